@@ -1,0 +1,5 @@
+import sys
+
+from mapd.cli import main
+
+sys.exit(main())

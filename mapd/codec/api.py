@@ -1,0 +1,236 @@
+"""``encode`` / ``decode``: self-describing map payloads around any codec plugin.
+
+Payload layout (little-endian), format version 1::
+
+    magic      4s   b"MAPD"
+    format     B    1
+    flags      B    bit 0: delta (coded against a base)   bit 1: lossy
+    name_len   B    then the codec name, ASCII (at most 32 bytes)
+    var_len    B    then the codec variant, ASCII (at most 64 bytes; a model id for learned codecs)
+    height     I
+    width      I
+    resolution d    meters per cell
+    origin     3d   x, y (m), yaw (rad)
+    base_ver   Q    version of the base (0 when not a delta)
+    base_dig   16s  BLAKE2b-128 of the base grid (zeros when not a delta)
+    check      16s  lossless: BLAKE2b-128 of the decoded grid; lossy: BLAKE2b-128 of the body
+    body_len   I
+    body       body_len bytes, the codec's own format
+
+The decoder reads the header, refuses anything over the cell limit before allocating, checks the
+base it was given against ``base_dig``, and checks the result against ``check``. Every failure is a
+:class:`~mapd.errors.CodecError` with one readable line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapd import plugins
+from mapd.codec.base import Codec, CodecOptions, Target
+from mapd.errors import CodecError, LimitError, MapdError
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+
+MAGIC = b"MAPD"
+FORMAT_VERSION = 1
+FLAG_DELTA = 0x01
+FLAG_LOSSY = 0x02
+_FIXED = struct.Struct("<IId3dQ16s16sI")
+MAX_NAME = 32
+MAX_VARIANT = 64
+ZERO_DIGEST = bytes(16)
+
+_instances: dict[tuple[str, str], Codec] = {}
+
+
+@dataclass(frozen=True)
+class Header:
+    """The decoded payload header."""
+
+    codec: str
+    variant: str
+    delta: bool
+    lossy: bool
+    height: int
+    width: int
+    resolution: float
+    origin: Pose2D
+    base_version: int
+    base_digest: bytes
+    check: bytes
+    body_offset: int
+    body_len: int
+
+    @property
+    def cells(self) -> int:
+        return self.height * self.width
+
+
+def get_codec(name: str, options: CodecOptions | None = None) -> Codec:
+    """The codec plugin ``name``, constructed once per distinct options and reused."""
+    key = (name, options.model_dump_json() if options is not None else "")
+    codec = _instances.get(key)
+    if codec is None:
+        try:
+            cls = plugins.load("codec", name)
+        except MapdError as exc:
+            raise CodecError(str(exc)) from None
+        codec = cls(options)
+        _instances[key] = codec
+    return codec
+
+
+def _blake(data: bytes) -> bytes:
+    return hashlib.blake2b(data, digest_size=16).digest()
+
+
+def encode(
+    grid: OccupancyGrid,
+    codec: str = "raw",
+    base: OccupancyGrid | None = None,
+    *,
+    options: CodecOptions | None = None,
+) -> bytes:
+    """Encode ``grid`` with the codec named ``codec``; a delta against ``base`` when it pays.
+
+    ``base`` must be a grid the receiver holds (same robot, an earlier version). Codecs that cannot
+    use a base ignore it and send the whole map.
+    """
+    impl = get_codec(codec, options)
+    name = impl.name.encode("ascii")
+    variant = impl.variant().encode("ascii")
+    if len(name) > MAX_NAME or len(variant) > MAX_VARIANT:
+        raise CodecError(f"codec '{codec}': name or variant too long for the header")
+    use_base = base if impl.uses_base else None
+    out = impl.encode_cells(grid, use_base)
+    delta = bool(out.delta and use_base is not None)
+    flags = (FLAG_DELTA if delta else 0) | (0 if impl.lossless else FLAG_LOSSY)
+    check = grid.digest() if impl.lossless else _blake(out.body)
+    assert use_base is not None or not delta
+    fixed = _FIXED.pack(
+        grid.height,
+        grid.width,
+        grid.resolution,
+        *grid.origin,
+        use_base.version if delta and use_base is not None else 0,
+        use_base.digest() if delta and use_base is not None else ZERO_DIGEST,
+        check,
+        len(out.body),
+    )
+    head = MAGIC + bytes([FORMAT_VERSION, flags, len(name)]) + name + bytes([len(variant)]) + variant
+    return head + fixed + out.body
+
+
+def read_header(payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS) -> Header:
+    """Parse and sanity-check a payload header without touching the body's contents."""
+    mv = memoryview(payload)
+    if len(mv) < 7 or bytes(mv[:4]) != MAGIC:
+        raise CodecError("not a mapd payload (bad magic)")
+    if mv[4] != FORMAT_VERSION:
+        raise CodecError(f"unsupported payload format version {mv[4]} (this mapd reads {FORMAT_VERSION})")
+    flags = mv[5]
+    if flags & ~(FLAG_DELTA | FLAG_LOSSY):
+        raise CodecError(f"payload has unknown flags 0x{flags:02x}")
+    pos = 6
+    fields = []
+    for limit in (MAX_NAME, MAX_VARIANT):
+        if pos >= len(mv):
+            raise CodecError("payload truncated in its header")
+        n = mv[pos]
+        if n > limit or pos + 1 + n > len(mv):
+            raise CodecError("payload header is corrupt (bad name length)")
+        raw = bytes(mv[pos + 1 : pos + 1 + n])
+        try:
+            fields.append(raw.decode("ascii"))
+        except UnicodeDecodeError:
+            raise CodecError("payload header is corrupt (non-ASCII codec name)") from None
+        pos += 1 + n
+    if pos + _FIXED.size > len(mv):
+        raise CodecError("payload truncated in its header")
+    h, w, res, ox, oy, oyaw, base_ver, base_dig, check, body_len = _FIXED.unpack_from(mv, pos)
+    pos += _FIXED.size
+    if h == 0 or w == 0:
+        raise CodecError(f"payload declares an empty grid ({w}x{h})")
+    if h * w > max_cells:
+        raise LimitError(f"payload declares {w}x{h} = {w * h} cells, over the limit of {max_cells}")
+    if not (math.isfinite(res) and res > 0) or not all(math.isfinite(v) for v in (ox, oy, oyaw)):
+        raise CodecError("payload header has a non-finite or non-positive resolution or origin")
+    if pos + body_len != len(mv):
+        raise CodecError(f"payload body is {len(mv) - pos} bytes but the header says {body_len} (truncated?)")
+    return Header(
+        codec=fields[0],
+        variant=fields[1],
+        delta=bool(flags & FLAG_DELTA),
+        lossy=bool(flags & FLAG_LOSSY),
+        height=h,
+        width=w,
+        resolution=res,
+        origin=Pose2D(ox, oy, oyaw),
+        base_version=base_ver,
+        base_digest=base_dig,
+        check=check,
+        body_offset=pos,
+        body_len=body_len,
+    )
+
+
+def decode(
+    payload: bytes,
+    base: OccupancyGrid | None = None,
+    *,
+    max_cells: int = DEFAULT_MAX_CELLS,
+    options: CodecOptions | None = None,
+) -> OccupancyGrid:
+    """Decode a payload made by :func:`encode` back into an :class:`OccupancyGrid`.
+
+    ``base`` must be the grid the payload was coded against when it is a delta; a missing or
+    different base raises :class:`CodecError`, never a wrong map.
+    """
+    try:
+        head = read_header(payload, max_cells=max_cells)
+    except LimitError as exc:
+        raise CodecError(str(exc)) from None
+    impl = get_codec(head.codec, options)
+    if head.lossy == impl.lossless:
+        raise CodecError(f"payload's lossy flag does not match codec '{head.codec}'")
+    if head.variant != impl.variant():
+        have = impl.variant() or "none"
+        raise CodecError(
+            f"payload was made with {head.codec} variant '{head.variant}', but this mapd has '{have}'"
+        )
+    body = bytes(payload[head.body_offset :])
+    if head.lossy and _blake(body) != head.check:
+        raise CodecError("payload body checksum mismatch (corrupted in transit?)")
+    use_base = None
+    if head.delta:
+        if base is None:
+            raise CodecError(f"payload is a delta against version {head.base_version}, but no base was given")
+        if base.digest() != head.base_digest:
+            raise CodecError(
+                f"payload is a delta against version {head.base_version} "
+                f"(digest {head.base_digest.hex()[:12]}), but the base given is version {base.version} "
+                f"(digest {base.digest().hex()[:12]})"
+            )
+        use_base = base
+    target = Target(head.height, head.width, head.resolution, head.origin, head.variant)
+    try:
+        cells = impl.decode_cells(body, target, use_base)
+    except MapdError as exc:
+        raise CodecError(f"{head.codec}: {exc}") from None
+    except (ValueError, IndexError, KeyError, OverflowError, struct.error, EOFError, MemoryError) as exc:
+        # A codec that trips over corrupt input is still reporting corrupt input.
+        raise CodecError(f"{head.codec}: corrupt payload body ({type(exc).__name__}: {exc})") from None
+    cells = np.asarray(cells)
+    if cells.shape != (head.height, head.width) or cells.dtype != np.int8:
+        raise CodecError(
+            f"{head.codec}: decoded cells have shape {cells.shape}, expected {(head.height, head.width)}"
+        )
+    grid = OccupancyGrid(data=cells, resolution=head.resolution, origin=head.origin)
+    if not head.lossy and grid.digest() != head.check:
+        raise CodecError(f"{head.codec}: decoded map does not match its checksum (corrupted in transit?)")
+    return grid

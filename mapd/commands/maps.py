@@ -1,0 +1,171 @@
+"""Commands for map files, payloads, configs and plugins: info, encode, decode, check-config, plugins."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from mapd.errors import CodecError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("plugins", help="list the source, codec and transport plugins installed")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_plugins)
+
+    p = sub.add_parser(
+        "check-config",
+        help="validate a config file and print what it resolves to",
+        description="Validate config.toml (every key and every plugin table) and print the result.",
+    )
+    p.add_argument("path", type=Path, help="config file (TOML)")
+    p.set_defaults(func=cmd_check_config)
+
+    p = sub.add_parser(
+        "info",
+        help="size, resolution, origin and cell counts of a map_server map",
+        description="Load a map_server YAML + image the way map_server does and summarise it.",
+    )
+    p.add_argument("map", type=Path, help="map_server YAML")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser(
+        "encode",
+        help="compress a map_server map into a mapd payload",
+        description="Encode a map into a self-describing payload; with --base, as a delta when smaller.",
+    )
+    p.add_argument("map", type=Path, help="map_server YAML to encode")
+    p.add_argument("-o", "--output", type=Path, required=True, help="payload file to write")
+    p.add_argument("--codec", default="lossless", help="codec plugin (default: lossless; see 'mapd plugins')")
+    p.add_argument("--base", type=Path, help="map_server YAML the receiver already holds (delta base)")
+    p.set_defaults(func=cmd_encode)
+
+    p = sub.add_parser(
+        "decode",
+        help="turn a mapd payload back into map_server files",
+        description="Decode a payload made by 'mapd encode' into map_server YAML + PGM.",
+    )
+    p.add_argument("payload", type=Path, help="payload file")
+    p.add_argument("-o", "--output", type=Path, required=True, help="map_server YAML to write")
+    p.add_argument("--base", type=Path, help="the base map, when the payload is a delta")
+    p.set_defaults(func=cmd_decode)
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from mapd import plugins
+
+    rows: list[dict[str, Any]] = []
+    for kind in ("source", "codec", "transport"):
+        for info in plugins.available(kind):
+            status = "ok"
+            try:
+                plugins.load(kind, info.name)
+            except Exception as exc:  # report every failure, keep listing
+                status = str(exc)
+            rows.append({"kind": kind, "name": info.name, "target": info.target, "status": status})
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    for kind in ("source", "codec", "transport"):
+        print(f"{kind}s:")
+        for r in (r for r in rows if r["kind"] == kind):
+            mark = "" if r["status"] == "ok" else f"  [unavailable: {r['status']}]"
+            print(f"  {r['name']:<10} {r['target']}{mark}")
+    return 0
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    from mapd import config
+
+    cfg = config.load(args.path)
+    options = config.check_plugins(cfg)
+    resolved = cfg.model_dump(mode="json")
+    for section, tables in options.items():
+        for name, opts in tables.items():
+            resolved[section][name] = opts.model_dump(mode="json")
+    print(f"{args.path}: ok")
+    print(json.dumps(resolved, indent=2))
+    return 0
+
+
+def _grid_summary(path: Path) -> dict[str, Any]:
+    from mapd.grid import load_map, read_map_yaml
+
+    meta = read_map_yaml(path)
+    grid = load_map(path)
+    counts = grid.counts()
+    return {
+        "map": str(path),
+        "image": str(meta["image"]),
+        "mode": meta["mode"],
+        "width": grid.width,
+        "height": grid.height,
+        "cells": grid.cells,
+        "resolution": grid.resolution,
+        "size_m": [round(grid.width * grid.resolution, 3), round(grid.height * grid.resolution, 3)],
+        "origin": {"x": grid.origin.x, "y": grid.origin.y, "yaw": grid.origin.yaw},
+        **counts,
+        "trinary": grid.is_trinary(),
+    }
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    s = _grid_summary(args.map)
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    n = s["cells"]
+    print(f"map        {s['map']}")
+    print(f"image      {s['image']} (mode {s['mode']})")
+    print(f"size       {s['width']} x {s['height']} cells = {n} cells, {s['size_m'][0]} x {s['size_m'][1]} m")
+    print(f"resolution {s['resolution']} m/cell")
+    o = s["origin"]
+    print(f"origin     x {o['x']} m, y {o['y']} m, yaw {o['yaw']} rad ({math.degrees(o['yaw']):.1f} deg)")
+    for k in ("free", "occupied", "unknown"):
+        print(f"{k:<10} {s[k]:>10}  {100.0 * s[k] / n:5.1f} %")
+    print(f"values     {'trinary (-1/0/100)' if s['trinary'] else 'graded occupancy (0..100)'}")
+    return 0
+
+
+def cmd_encode(args: argparse.Namespace) -> int:
+    import time
+
+    from mapd.codec import encode
+    from mapd.grid import load_map
+
+    grid = load_map(args.map)
+    base = load_map(args.base) if args.base else None
+    t0 = time.perf_counter()
+    payload = encode(grid, args.codec, base)
+    ms = 1000 * (time.perf_counter() - t0)
+    try:
+        args.output.write_bytes(payload)
+    except OSError as exc:
+        raise CodecError(f"{args.output}: cannot write payload: {exc.strerror}") from None
+    ratio = grid.cells / len(payload)
+    print(
+        f"{args.output}: {len(payload)} bytes for {grid.cells} cells "
+        f"(ratio {ratio:.1f}:1, {8 * len(payload) / grid.cells:.4f} bits/cell, {ms:.0f} ms)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    from mapd.codec import decode
+    from mapd.grid import load_map, save_map
+
+    try:
+        payload = args.payload.read_bytes()
+    except OSError as exc:
+        raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
+    base = load_map(args.base) if args.base else None
+    grid = decode(payload, base)
+    save_map(grid, args.output)
+    print(f"{args.output}: {grid.width} x {grid.height} cells", file=sys.stderr)
+    return 0

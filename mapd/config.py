@@ -1,0 +1,274 @@
+"""``config.toml``: read with tomllib, validated with pydantic, errors that name file and key.
+
+The file has one table per part of the daemon. Plugin sections name the plugin in ``use`` and keep
+each plugin's own options in a sub-table named after it, which that plugin validates itself::
+
+    [source]
+    use = "sim"
+    [source.sim]
+    seed = 7
+
+so a complete example config can hold every plugin's table while only the chosen ones run.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from mapd import plugins
+from mapd.errors import ConfigError, MapdError
+from mapd.grid import DEFAULT_MAX_CELLS
+
+M = TypeVar("M", bound=BaseModel)
+
+_NAME = r"^[A-Za-z0-9_\-]{1,32}$"
+
+
+class Strict(BaseModel):
+    """Base for config tables: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class RobotSection(Strict):
+    name: str = Field(pattern=_NAME, description="this robot's id in the fleet")
+    fleet: str = Field(
+        default="default", pattern=_NAME, description="fleet id; updates from other fleets are dropped"
+    )
+    key_file: Path | None = Field(
+        default=None, description="fleet signing key (32+ bytes, or hex); unset: no signing"
+    )
+
+
+class LimitsSection(Strict):
+    max_cells: int = Field(
+        default=DEFAULT_MAX_CELLS, ge=1, description="largest grid accepted from any input"
+    )
+    max_message_bytes: int = Field(default=8 << 20, ge=1024, description="largest envelope accepted or sent")
+    max_peers: int = Field(default=64, ge=1, description="peers tracked at once")
+
+
+class StateSection(Strict):
+    dir: Path = Field(default=Path("/var/lib/mapd"), description="state directory (systemd StateDirectory)")
+    runtime_dir: Path = Field(default=Path("/run/mapd"), description="control socket dir (RuntimeDirectory)")
+
+
+class PluginSection(BaseModel):
+    """A section that picks plugins; sub-tables named after plugins hold their options."""
+
+    model_config = ConfigDict(extra="allow")
+
+    def plugin_tables(self) -> dict[str, Any]:
+        return dict(self.model_extra or {})
+
+    def table(self, name: str) -> dict[str, Any]:
+        value = (self.model_extra or {}).get(name, {})
+        return value if isinstance(value, dict) else {}
+
+
+class SourceSection(PluginSection):
+    use: str = Field(default="sim", description="map-source plugin (mapd.sources)")
+
+
+class CodecSection(PluginSection):
+    use: str = Field(default="lossless", description="codec plugin (mapd.codecs)")
+    keyframe_every: int = Field(default=10, ge=1, description="send a whole map at least every K updates")
+
+
+class TransportsSection(PluginSection):
+    use: list[str] = Field(default_factory=list, description="transport plugins to run (mapd.transports)")
+
+
+class FusionSection(Strict):
+    mode: Literal["logodds", "occupied_wins"] = "logodds"
+    debounce_s: float = Field(
+        default=1.0, ge=0.0, description="wait this long after an update before re-merging"
+    )
+    min_confidence: float = Field(
+        default=0.5, ge=0.0, le=1.0, description="accept estimates at or above this"
+    )
+    min_agreement: float = Field(
+        default=0.8, ge=0.0, le=1.0, description="overlap agreement needed to accept"
+    )
+    poses: dict[str, list[float] | Literal["estimate"]] = Field(
+        default_factory=dict,
+        description="robot -> [x m, y m, yaw rad] of its map frame in the fleet frame, or 'estimate'",
+    )
+
+    @field_validator("poses")
+    @classmethod
+    def _check_poses(cls, v: dict[str, Any]) -> dict[str, Any]:
+        for robot, pose in v.items():
+            if isinstance(pose, list) and (len(pose) != 3 or not all(math.isfinite(p) for p in pose)):
+                raise ValueError(f"pose of '{robot}' must be [x, y, yaw] in meters and radians")
+        return v
+
+
+class ControlSection(Strict):
+    socket: Path | None = Field(
+        default=None, description="control socket path; default <runtime_dir>/mapd.sock"
+    )
+
+
+class LogSection(Strict):
+    level: Literal["debug", "info", "warning", "error"] = "info"
+
+
+class MapdConfig(Strict):
+    """The whole ``config.toml``."""
+
+    robot: RobotSection
+    limits: LimitsSection = Field(default_factory=LimitsSection)
+    state: StateSection = Field(default_factory=StateSection)
+    source: SourceSection = Field(default_factory=SourceSection)
+    codec: CodecSection = Field(default_factory=CodecSection)
+    transports: TransportsSection = Field(default_factory=TransportsSection)
+    fusion: FusionSection = Field(default_factory=FusionSection)
+    control: ControlSection = Field(default_factory=ControlSection)
+    log: LogSection = Field(default_factory=LogSection)
+
+    @model_validator(mode="after")
+    def _check_plugin_tables(self) -> MapdConfig:
+        for section in ("source", "codec", "transports"):
+            for key, value in getattr(self, section).plugin_tables().items():
+                if not isinstance(value, dict):
+                    raise ValueError(f"{section}.{key}: expected a table of plugin options")
+        return self
+
+    # Resolved after validation by load(); not part of the file.
+    _path: Path | None = None
+
+    @property
+    def path(self) -> Path | None:
+        return self._path
+
+    def control_socket(self) -> Path:
+        return self.control.socket or (self.state.runtime_dir / "mapd.sock")
+
+
+def format_validation_error(exc: ValidationError, where: str, prefix: str = "") -> str:
+    """One line per problem: ``file: key.path: message``."""
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"] if p != "__root__")
+        if prefix:
+            loc = f"{prefix}.{loc}" if loc else prefix
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key (typo?)"
+        elif err["type"] == "missing":
+            msg = "required key is missing"
+        elif "input" in err and err["type"] not in ("value_error",):
+            msg = f"{msg} (got {err['input']!r})"
+        lines.append(f"{where}: {loc}: {msg}" if loc else f"{where}: {msg}")
+    return "\n".join(lines)
+
+
+def validate(model: type[M], data: Any, where: str, prefix: str = "") -> M:
+    """Validate ``data`` against ``model``, raising :class:`ConfigError` naming ``where`` and the key."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, where, prefix)) from None
+
+
+def load(path: str | os.PathLike[str]) -> MapdConfig:
+    """Read and validate a config file. Plugin tables are checked by :func:`check_plugins`."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    cfg = validate(MapdConfig, data, str(p))
+    cfg._path = p
+    # Relative paths in a config are relative to the file, like systemd drop-ins expect.
+    base = p.parent
+    if cfg.robot.key_file is not None and not cfg.robot.key_file.is_absolute():
+        cfg.robot.key_file = base / cfg.robot.key_file
+    return cfg
+
+
+def plugin_options(cfg: MapdConfig, section: str, name: str) -> BaseModel:
+    """Validate the ``[section.name]`` table with that plugin's own ``Options`` model."""
+    kind = {"source": "source", "codec": "codec", "transports": "transport"}[section]
+    cls = plugins.load(kind, name)
+    where = str(cfg.path) if cfg.path else "config"
+    table = getattr(cfg, section).table(name)
+    options_model = getattr(cls, "Options", None)
+    if options_model is None:
+        if table:
+            raise ConfigError(f"{where}: {section}.{name}: this plugin takes no options")
+        return BaseModel()
+    return validate(options_model, table, where, prefix=f"{section}.{name}")
+
+
+def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict[str, BaseModel]]:
+    """Check that chosen plugins exist and that every plugin table validates; return the options.
+
+    With ``all_tables``, tables of plugins that are not chosen are validated too (so a complete
+    example config stays correct), except for plugins whose optional dependency is missing.
+    """
+    where = str(cfg.path) if cfg.path else "config"
+    chosen = {
+        "source": [cfg.source.use],
+        "codec": [cfg.codec.use],
+        "transports": list(cfg.transports.use),
+    }
+    out: dict[str, dict[str, BaseModel]] = {"source": {}, "codec": {}, "transports": {}}
+    for section, picked in chosen.items():
+        kind = {"source": "source", "codec": "codec", "transports": "transport"}[section]
+        known = plugins.names(kind)
+        for name in picked:
+            if name not in known:
+                raise ConfigError(
+                    f"{where}: {section}.use: no {kind} plugin '{name}' (known: {', '.join(known)})"
+                )
+        tables = getattr(cfg, section).plugin_tables()
+        for name in tables:
+            if name not in known:
+                raise ConfigError(
+                    f"{where}: [{section}.{name}]: no {kind} plugin '{name}' (known: {', '.join(known)})"
+                )
+        names = set(picked) | (set(tables) if all_tables else set())
+        for name in sorted(names):
+            try:
+                out[section][name] = plugin_options(cfg, section, name)
+            except ConfigError:
+                raise
+            except MapdError:
+                if name in picked:
+                    raise
+    if len(set(cfg.transports.use)) != len(cfg.transports.use):
+        raise ConfigError(f"{where}: transports.use: a transport is listed twice")
+    return out
+
+
+def read_key(cfg: MapdConfig) -> bytes | None:
+    """The fleet key from ``robot.key_file``: hex text or raw bytes, at least 16 bytes."""
+    path = cfg.robot.key_file
+    if path is None:
+        return None
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"robot.key_file: cannot read {path}: {exc.strerror}") from None
+    text = raw.strip()
+    try:
+        key = bytes.fromhex(text.decode("ascii"))
+    except (UnicodeDecodeError, ValueError):
+        key = raw
+    if len(key) < 16:
+        raise ConfigError(f"robot.key_file: {path} holds {len(key)} bytes; a fleet key needs at least 16")
+    return key

@@ -1,0 +1,201 @@
+"""The update envelope: what every transport carries, msgpack-packed and strictly validated.
+
+An envelope names the fleet, the robot, its map version and the base version a delta was coded
+against, the codec and its variant (model id), the grid metadata, and the codec payload. With a
+fleet key, it carries a truncated HMAC-SHA256 over everything else, so forged or foreign updates are
+dropped before anything decodes them.
+
+Wire form: a msgpack map with short keys (see ``_KEYS``). Unpacking bounds every length before
+msgpack allocates, rejects unknown or missing keys and wrong types, and checks the signature.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import msgpack
+
+from mapd.errors import EnvelopeError
+from mapd.grid import Pose2D
+
+FORMAT = 1
+SIG_LEN = 16
+_KEYS = {
+    "f": "format",
+    "fl": "fleet",
+    "r": "robot",
+    "v": "version",
+    "b": "base_version",
+    "c": "codec",
+    "m": "variant",
+    "w": "width",
+    "h": "height",
+    "res": "resolution",
+    "o": "origin",
+    "fr": "frame_id",
+    "t": "stamp",
+    "n": "seq",
+    "p": "payload",
+    "s": "sig",
+}
+_MAX_STR = 64
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """One map update on the wire.
+
+    ``base_version`` is 0 for a keyframe (a whole map), else the version the payload is a delta
+    against. ``seq`` increases with every envelope a robot sends (it makes replays detectable when
+    signed). ``sig`` is empty when the fleet has no key.
+    """
+
+    fleet: str
+    robot: str
+    version: int
+    base_version: int
+    codec: str
+    width: int
+    height: int
+    resolution: float
+    origin: Pose2D
+    payload: bytes
+    variant: str = ""
+    frame_id: str = "map"
+    stamp: float = 0.0
+    seq: int = 0
+    sig: bytes = field(default=b"", repr=False)
+
+    @property
+    def is_keyframe(self) -> bool:
+        return self.base_version == 0
+
+    def _fields(self) -> dict[str, Any]:
+        return {
+            "f": FORMAT,
+            "fl": self.fleet,
+            "r": self.robot,
+            "v": self.version,
+            "b": self.base_version,
+            "c": self.codec,
+            "m": self.variant,
+            "w": self.width,
+            "h": self.height,
+            "res": self.resolution,
+            "o": list(self.origin),
+            "fr": self.frame_id,
+            "t": self.stamp,
+            "n": self.seq,
+            "p": self.payload,
+        }
+
+    def signed(self, key: bytes) -> Envelope:
+        """A copy carrying the HMAC over all other fields."""
+        return replace(self, sig=_mac(key, self._fields()))
+
+    def pack(self) -> bytes:
+        body = self._fields()
+        if self.sig:
+            body["s"] = self.sig
+        return msgpack.packb(body, use_bin_type=True)
+
+
+def _mac(key: bytes, fields: dict[str, Any]) -> bytes:
+    blob = msgpack.packb(fields, use_bin_type=True)
+    return hmac.new(key, blob, hashlib.sha256).digest()[:SIG_LEN]
+
+
+def _want(d: dict[str, Any], k: str, kind: type | tuple[type, ...]) -> Any:
+    v = d[k]
+    if isinstance(v, bool) or not isinstance(v, kind):
+        raise EnvelopeError(f"envelope field '{_KEYS[k]}' has the wrong type ({type(v).__name__})")
+    return v
+
+
+def unpack(
+    data: bytes,
+    *,
+    max_bytes: int = 8 << 20,
+    key: bytes | None = None,
+    fleet: str | None = None,
+) -> Envelope:
+    """Parse and validate an envelope from untrusted bytes.
+
+    Raises :class:`EnvelopeError` when it is too large, malformed, from another fleet, unsigned
+    while ``key`` is set, or badly signed.
+    """
+    if len(data) > max_bytes:
+        raise EnvelopeError(f"envelope of {len(data)} bytes is over the limit of {max_bytes}")
+    try:
+        obj = msgpack.unpackb(
+            data,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=max_bytes,
+            max_str_len=_MAX_STR,
+            max_array_len=8,
+            max_map_len=len(_KEYS),
+            max_ext_len=0,
+        )
+    except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, ValueError, TypeError) as exc:
+        raise EnvelopeError(f"malformed envelope: {exc}") from None
+    except Exception as exc:  # msgpack raises assorted exceptions on hostile input
+        raise EnvelopeError(f"malformed envelope: {type(exc).__name__}") from None
+    if not isinstance(obj, dict):
+        raise EnvelopeError("malformed envelope: not a map")
+    unknown = set(obj) - set(_KEYS)
+    if unknown:
+        raise EnvelopeError(f"envelope has unknown fields {sorted(map(str, unknown))}")
+    missing = set(_KEYS) - {"s"} - set(obj)
+    if missing:
+        raise EnvelopeError(f"envelope is missing fields {sorted(_KEYS[k] for k in missing)}")
+    if _want(obj, "f", int) != FORMAT:
+        raise EnvelopeError(f"envelope format {obj['f']} is not supported (this mapd reads {FORMAT})")
+    strs = {k: _want(obj, k, str) for k in ("fl", "r", "c", "m", "fr")}
+    ints = {k: _want(obj, k, int) for k in ("v", "b", "w", "h", "n")}
+    if any(v < 0 or v >= 1 << 63 for v in ints.values()):
+        raise EnvelopeError("envelope has a negative or oversized integer field")
+    if ints["v"] == 0 or ints["b"] >= ints["v"]:
+        raise EnvelopeError(f"envelope version {ints['v']} with base {ints['b']} is inconsistent")
+    if not strs["fl"] or not strs["r"] or not strs["c"]:
+        raise EnvelopeError("envelope has an empty fleet, robot or codec")
+    res = _want(obj, "res", (float, int))
+    stamp = _want(obj, "t", (float, int))
+    origin = _want(obj, "o", list)
+    if len(origin) != 3 or not all(isinstance(x, float | int) and not isinstance(x, bool) for x in origin):
+        raise EnvelopeError("envelope origin must be three numbers")
+    if not all(math.isfinite(float(x)) for x in (res, stamp, *origin)) or res <= 0:
+        raise EnvelopeError("envelope has a non-finite resolution, stamp or origin")
+    payload = _want(obj, "p", bytes)
+    sig = obj.get("s", b"")
+    if not isinstance(sig, bytes) or (sig and len(sig) != SIG_LEN):
+        raise EnvelopeError("envelope signature has the wrong form")
+    if fleet is not None and strs["fl"] != fleet:
+        raise EnvelopeError(f"envelope is for fleet '{strs['fl']}', not '{fleet}'")
+    if key is not None:
+        if not sig:
+            raise EnvelopeError(f"unsigned envelope from '{strs['r']}' while a fleet key is set")
+        fields = {k: v for k, v in obj.items() if k != "s"}
+        if not hmac.compare_digest(sig, _mac(key, fields)):
+            raise EnvelopeError(f"bad signature on envelope from '{strs['r']}'")
+    return Envelope(
+        fleet=strs["fl"],
+        robot=strs["r"],
+        version=ints["v"],
+        base_version=ints["b"],
+        codec=strs["c"],
+        variant=strs["m"],
+        width=ints["w"],
+        height=ints["h"],
+        resolution=float(res),
+        origin=Pose2D(*(float(x) for x in origin)),
+        frame_id=strs["fr"],
+        stamp=float(stamp),
+        seq=ints["n"],
+        payload=payload,
+        sig=sig,
+    )

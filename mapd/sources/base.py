@@ -1,0 +1,60 @@
+"""The map-source interface: an async iterator of the robot's own map versions."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+
+
+class SourceOptions(BaseModel):
+    """Options a source reads from its ``[source.<name>]`` table. Subclass to add fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass
+class SourceContext:
+    """What the daemon hands every source."""
+
+    robot: str
+    max_cells: int = DEFAULT_MAX_CELLS
+    #: Folder of shared data (MAPD_DATA), for sources that read logs or maps by relative path.
+    data_dir: Path | None = None
+
+
+class MapSource(ABC):
+    """Yields :class:`OccupancyGrid` versions of one robot's map, in that robot's map frame.
+
+    Versions strictly increase. ``robot`` is set to the context's robot id. A source that meets bad
+    input (a bad log line, a half-written file) logs it, counts it in :meth:`stats` and goes on.
+    """
+
+    name: ClassVar[str]
+    Options: ClassVar[type[SourceOptions]] = SourceOptions
+
+    def __init__(self, options: SourceOptions | None, ctx: SourceContext) -> None:
+        self.options = options if options is not None else self.Options()
+        self.ctx = ctx
+
+    @abstractmethod
+    def maps(self) -> AsyncIterator[OccupancyGrid]:
+        """The stream of map versions; ends when the source is exhausted (a log replay)."""
+
+    def start_pose(self) -> Pose2D | None:
+        """Where this robot's map frame sits in the fleet/world frame, when the source knows it
+        (a simulator or a log with corrected poses); ``None`` otherwise."""
+        return None
+
+    def stats(self) -> dict[str, int | float | str]:
+        """Counters for ``mapd status`` (scans, skipped lines, last error ...)."""
+        return {}
+
+    async def close(self) -> None:  # noqa: B027 - optional hook
+        """Release files, sessions or threads."""

@@ -1,0 +1,139 @@
+"""The transport interface: how envelopes leave and reach a robot.
+
+A transport is an asyncio adapter around a wire protocol. The daemon gives it envelopes with
+:meth:`Transport.offer` (latest wins: a newer version of the same robot's map replaces one not yet
+sent) and hears back through the ``emit`` callback of its :class:`TransportContext`, on the event
+loop's thread, with the events below.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from mapd.envelope import Envelope
+
+
+class TransportOptions(BaseModel):
+    """Options a transport reads from its ``[transports.<name>]`` table. Subclass to add fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass(frozen=True)
+class Received:
+    """Envelope bytes arrived from ``peer`` (unverified: the daemon unpacks and checks them)."""
+
+    transport: str
+    peer: str
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Delivered:
+    """``peer`` has acknowledged ``robot``'s map ``version`` (so it can serve as a delta base)."""
+
+    transport: str
+    peer: str
+    robot: str
+    version: int
+
+
+@dataclass(frozen=True)
+class Failed:
+    """An offered version could not be delivered to ``peer`` by its deadline."""
+
+    transport: str
+    peer: str
+    robot: str
+    version: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class PeerUp:
+    """A peer appeared (liveliness token, first valid frame)."""
+
+    transport: str
+    peer: str
+
+
+@dataclass(frozen=True)
+class PeerDown:
+    """A peer vanished (token dropped, silent past its timeout)."""
+
+    transport: str
+    peer: str
+
+
+@dataclass(frozen=True)
+class PeerRestarted:
+    """A peer restarted (new session id): it may have lost what it held."""
+
+    transport: str
+    peer: str
+
+
+@dataclass(frozen=True)
+class KeyframeNeeded:
+    """A peer asked for a whole map of ``robot`` (late join, gap, unknown base)."""
+
+    transport: str
+    peer: str
+    robot: str
+
+
+TransportEvent = Received | Delivered | Failed | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded
+
+
+@dataclass
+class TransportContext:
+    """What the daemon hands every transport."""
+
+    robot: str
+    fleet: str
+    key: bytes | None
+    max_message_bytes: int
+    emit: Callable[[TransportEvent], None]
+    state_dir: Path | None = None
+    #: Returns the robot's latest keyframe envelope (for late joiners), or None before the first map.
+    latest_keyframe: Callable[[], Envelope | None] = field(default=lambda: None)
+
+
+class Transport(ABC):
+    """A pluggable link. Subclasses set ``name`` and ``Options`` and implement the methods."""
+
+    name: ClassVar[str]
+    Options: ClassVar[type[TransportOptions]] = TransportOptions
+
+    def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
+        self.options = options if options is not None else self.Options()
+        self.ctx = ctx
+
+    @abstractmethod
+    async def start(self) -> None:
+        """Open the link; raise :class:`~mapd.errors.TransportError` with one clear line on failure."""
+
+    @abstractmethod
+    async def close(self) -> None:
+        """Stop promptly and release everything (undeclare, close ports); never hang."""
+
+    @abstractmethod
+    def offer(self, envelope: Envelope) -> None:
+        """Queue ``envelope`` for every peer; replaces any unsent older version of the same robot."""
+
+    async def request_keyframe(self, robot: str) -> None:  # noqa: B027 - optional hook
+        """Ask peers for a whole map of ``robot`` (after a gap or an unknown base)."""
+
+    def peers(self) -> list[str]:
+        """Peers this transport currently sees."""
+        return []
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``mapd status`` (bytes, goodput, resends, errors, RTT ...)."""
+        return {}
