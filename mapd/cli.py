@@ -17,8 +17,13 @@ from mapd import __version__
 from mapd.errors import MapdError
 
 COMMAND_MODULES = [
-    "mapd.commands.maps",
-    "mapd.commands.bench",
+    "mapd.commands.maps",  # plugins, check-config, info, encode, decode
+    "mapd.commands.daemon",  # run, status, demo
+    "mapd.commands.fusion",  # merge
+    "mapd.commands.mapping",  # replay
+    "mapd.commands.link",  # link send / recv
+    "mapd.commands.train",  # train
+    "mapd.commands.bench",  # bench ...
 ]
 
 DESCRIPTION = """\
@@ -50,7 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # command module not written yet
+                continue
+            raise
+        module.register(sub)
     return parser
 
 

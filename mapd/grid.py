@@ -274,6 +274,8 @@ def _read_pixels(image_path: Path, yaml_path: Path, max_cells: int) -> tuple[np.
         img = Image.open(image_path)
     except FileNotFoundError:
         raise MapFileError(f"{yaml_path}: image '{image_path}' does not exist") from None
+    except Image.DecompressionBombError as exc:
+        raise LimitError(f"{yaml_path}: image '{image_path}' is too large: {exc}") from None
     except (UnidentifiedImageError, OSError) as exc:
         raise MapFileError(f"{yaml_path}: cannot read image '{image_path}': {exc}") from None
     with img:

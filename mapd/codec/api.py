@@ -160,6 +160,8 @@ def read_header(payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS) -> Header
         raise LimitError(f"payload declares {w}x{h} = {w * h} cells, over the limit of {max_cells}")
     if not (math.isfinite(res) and res > 0) or not all(math.isfinite(v) for v in (ox, oy, oyaw)):
         raise CodecError("payload header has a non-finite or non-positive resolution or origin")
+    if not flags & FLAG_DELTA and (base_ver != 0 or base_dig != ZERO_DIGEST):
+        raise CodecError("payload header is corrupt (base fields set on a whole-map payload)")
     if pos + body_len != len(mv):
         raise CodecError(f"payload body is {len(mv) - pos} bytes but the header says {body_len} (truncated?)")
     return Header(

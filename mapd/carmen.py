@@ -1,0 +1,256 @@
+"""Reading CARMEN laser logs (``FLASER`` and ``ROBOTLASER1`` lines), gzip or plain, one scan at a time.
+
+The logs in ``../shared/data/logs`` hold SLAM-corrected laser poses in ``FLASER`` lines::
+
+    FLASER n r_1 ... r_n x y theta odom_x odom_y odom_theta ipc_timestamp ipc_hostname logger_timestamp
+
+A ``FLASER`` line carries no angles: CARMEN's front laser covers ``fov_deg`` (180 degrees) starting at
+``theta - fov/2``; 180 or 360 beams give 1 or 0.5 degree steps, 181 or 361 beams include both ends.
+
+Bad lines never stop a replay. A line with the wrong number of fields, a non-number, a NaN or a
+negative range, or a message type CARMEN does not define is skipped, counted in :class:`LogStats`,
+and logged once with the file and line number. Other CARMEN messages (``ODOM``, ``PARAM``, ...) are
+ignored and counted separately. A log that cannot be opened or read is one :class:`SourceError`.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import logging
+import math
+import os
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mapd.errors import SourceError
+from mapd.grid import Pose2D
+
+log = logging.getLogger(__name__)
+
+#: Longest line read; anything longer is skipped, so a corrupt log cannot make us allocate without bound.
+MAX_LINE_BYTES = 1 << 20
+#: Most beams accepted in one scan.
+MAX_BEAMS = 8192
+
+# Message types CARMEN logs define that carry no front-laser scan for the mapper.
+_IGNORED = frozenset(
+    {
+        "PARAM", "SYNC", "ODOM", "RLASER", "TRUEPOS", "NEFF", "RAWLASER1", "RAWLASER2", "RAWLASER3",
+        "RAWLASER4", "ROBOTLASER2", "GPSNMEA", "GPSNMEA-GGA", "GPSNMEA-RMC", "SONAR", "BUMPER",
+        "SCANMARK", "POSITIONLASER", "IMU", "VECTORMOVE", "ROBOTVELOCITY", "FOLLOWTRAJECTORY",
+        "BASEVELOCITY", "ARM", "PANTILT_SCANMARK", "PANTILT_LASERPOS", "RFID", "NMEA", "REARLASER",
+        "LASER1", "LASER2", "LASER3", "LASER4", "RAWLASER", "FLASER_RAW", "RLASER_RAW",
+    }
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class LaserScan:
+    """One scan: ranges in meters, beam angles relative to the laser, the laser's pose, log time."""
+
+    ranges: np.ndarray
+    angles: np.ndarray
+    pose: Pose2D
+    stamp: float
+    line: int
+    #: Ordinal of the line among the log's scan lines (bad ones included), as :func:`count_scans` counts.
+    index: int = 0
+
+
+@dataclass
+class LogStats:
+    """What a pass over a log met: scans read, bad lines skipped, other messages ignored."""
+
+    scans: int = 0
+    skipped: int = 0
+    ignored: int = 0
+    last_error: str = ""
+    by_reason: dict[str, int] = field(default_factory=dict)
+
+    def skip(self, where: str, reason: str) -> None:
+        self.skipped += 1
+        self.by_reason[reason] = self.by_reason.get(reason, 0) + 1
+        self.last_error = f"{where}: {reason}"
+        # One warning per reason keeps a log full of the same fault readable.
+        if self.by_reason[reason] == 1:
+            log.warning("%s: %s (skipped; further lines like it are counted, not logged)", where, reason)
+
+
+class BadLine(ValueError):
+    """A line that cannot be a scan; the message says why."""
+
+
+def _open(path: Path) -> io.BufferedIOBase:
+    try:
+        raw = open(path, "rb")  # noqa: SIM115 - returned to the caller, closed there
+    except FileNotFoundError:
+        raise SourceError(f"{path}: no such log file") from None
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot open log: {exc.strerror}") from None
+    magic = raw.read(2)
+    raw.seek(0)
+    if magic == b"\x1f\x8b":
+        return gzip.GzipFile(fileobj=raw, mode="rb")
+    return raw
+
+
+def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
+    """(line number, line) pairs; overlong lines come back as b'' plus a sentinel of their own."""
+    fh = _open(path)
+    try:
+        number = 0
+        while True:
+            try:
+                chunk = fh.readline(MAX_LINE_BYTES)
+            except (OSError, EOFError, zlib.error) as exc:
+                raise SourceError(f"{path}: line {number + 1}: log is corrupt or truncated: {exc}") from None
+            if not chunk:
+                return
+            number += 1
+            if len(chunk) >= MAX_LINE_BYTES and not chunk.endswith(b"\n"):
+                # Drain the rest of the overlong line so the next line is read whole.
+                while True:
+                    try:
+                        more = fh.readline(MAX_LINE_BYTES)
+                    except (OSError, EOFError, zlib.error) as exc:
+                        raise SourceError(
+                            f"{path}: line {number}: log is corrupt or truncated: {exc}"
+                        ) from None
+                    if not more or more.endswith(b"\n"):
+                        break
+                yield number, b"\x00overlong"
+                continue
+            yield number, chunk
+    finally:
+        fh.close()
+
+
+def _floats(tokens: list[str], what: str) -> np.ndarray:
+    try:
+        return np.array([float(t) for t in tokens], dtype=np.float64)
+    except ValueError:
+        raise BadLine(f"{what} holds a value that is not a number") from None
+
+
+def _check_ranges(ranges: np.ndarray) -> None:
+    if np.isnan(ranges).any():
+        raise BadLine("NaN range")
+    if (ranges < 0).any():
+        raise BadLine("negative range")
+
+
+def _beam_angles(n: int, fov: float) -> np.ndarray:
+    # 181/361 beams include both ends of the field of view; 180/360 beams step fov/n from the start.
+    step = fov / (n - 1) if (n % 2 == 1 and n > 1) else fov / n
+    return -fov / 2.0 + step * np.arange(n, dtype=np.float64)
+
+
+def parse_flaser(tokens: list[str], fov: float, line: int) -> LaserScan:
+    """A ``FLASER`` line split on whitespace; raises :class:`BadLine`."""
+    if len(tokens) < 2:
+        raise BadLine("FLASER line has no beam count")
+    try:
+        n = int(tokens[1])
+    except ValueError:
+        raise BadLine(f"FLASER beam count {tokens[1]!r} is not an integer") from None
+    if not 1 <= n <= MAX_BEAMS:
+        raise BadLine(f"FLASER beam count {n} is outside 1..{MAX_BEAMS}")
+    expected = 2 + n + 6 + 3
+    if len(tokens) != expected:
+        raise BadLine(f"FLASER with {n} beams needs {expected} fields, got {len(tokens)}")
+    ranges = _floats(tokens[2 : 2 + n], "ranges")
+    _check_ranges(ranges)
+    tail = _floats([*tokens[2 + n : 2 + n + 3], tokens[2 + n + 6]], "pose or timestamp")
+    if not np.isfinite(tail).all():
+        raise BadLine("pose or timestamp is not finite")
+    x, y, theta, stamp = (float(v) for v in tail)
+    return LaserScan(ranges, _beam_angles(n, fov), Pose2D(x, y, theta), stamp, line)
+
+
+def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
+    """A ``ROBOTLASER1`` line (angles and laser pose given in the line); raises :class:`BadLine`."""
+    # ROBOTLASER1 type start fov res maxrange accuracy remission_mode n r_1..r_n m v_1..v_m
+    #   laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv fwd side turn ts host logger_ts
+    if len(tokens) < 9:
+        raise BadLine("ROBOTLASER1 line is too short")
+    try:
+        n = int(tokens[8])
+        if not 1 <= n <= MAX_BEAMS:
+            raise BadLine(f"ROBOTLASER1 beam count {n} is outside 1..{MAX_BEAMS}")
+        m = int(tokens[9 + n]) if len(tokens) > 9 + n else -1
+    except ValueError:
+        raise BadLine("ROBOTLASER1 beam or remission count is not an integer") from None
+    if not 0 <= m <= MAX_BEAMS:
+        raise BadLine("ROBOTLASER1 remission count is missing or out of range")
+    expected = 10 + n + m + 14
+    if len(tokens) != expected:
+        raise BadLine(
+            f"ROBOTLASER1 with {n} beams and {m} remissions needs {expected} fields, got {len(tokens)}"
+        )
+    head = _floats(tokens[2:4], "start angle or field of view")
+    ranges = _floats(tokens[9 : 9 + n], "ranges")
+    _check_ranges(ranges)
+    base = 10 + n + m
+    tail = _floats([*tokens[base : base + 3], tokens[base + 11]], "pose or timestamp")
+    if not (np.isfinite(tail).all() and np.isfinite(head).all()):
+        raise BadLine("angles, pose or timestamp are not finite")
+    start, fov = float(head[0]), float(head[1])
+    step = fov / (n - 1) if n > 1 else 0.0
+    angles = start + step * np.arange(n, dtype=np.float64)
+    x, y, theta, stamp = (float(v) for v in tail)
+    return LaserScan(ranges, angles, Pose2D(x, y, theta), stamp, line)
+
+
+def read_scans(
+    path: str | os.PathLike[str], *, stats: LogStats | None = None, fov_deg: float = 180.0
+) -> Iterator[LaserScan]:
+    """Yield every scan of a CARMEN log in order; bad lines are skipped and counted in ``stats``."""
+    p = Path(path)
+    st = stats if stats is not None else LogStats()
+    fov = math.radians(fov_deg)
+    ordinal = -1
+    for number, raw in _lines(p):
+        if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
+            ordinal += 1
+        where = f"{p}: line {number}"
+        if raw == b"\x00overlong":
+            st.skip(where, f"line longer than {MAX_LINE_BYTES} bytes")
+            continue
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError:
+            st.skip(where, "line is not ASCII text")
+            continue
+        tokens = text.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        kind = tokens[0]
+        try:
+            if kind == "FLASER":
+                scan = parse_flaser(tokens, fov, number)
+            elif kind == "ROBOTLASER1":
+                scan = parse_robotlaser1(tokens, number)
+            elif kind in _IGNORED:
+                st.ignored += 1
+                continue
+            else:
+                raise BadLine(f"unknown message type {kind[:40]!r}")
+        except BadLine as exc:
+            st.skip(where, str(exc))
+            continue
+        st.scans += 1
+        yield LaserScan(scan.ranges, scan.angles, scan.pose, scan.stamp, number, ordinal)
+
+
+def count_scans(path: str | os.PathLike[str]) -> int:
+    """How many lines of the log look like scans (a cheap first pass, used to split a log among robots)."""
+    n = 0
+    for _number, raw in _lines(Path(path)):
+        if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
+            n += 1
+    return n

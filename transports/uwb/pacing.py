@@ -1,0 +1,148 @@
+"""When may the next frame go out: rate pacing and medium access, both pure (``now`` comes in).
+
+:class:`Pacer` keeps the bytes a node writes at or under ``rate_bps`` over *every* window of
+``window_s`` (1 s), resends and acks included. Two rules together: a token bucket one frame deep keeps
+frames evenly spaced (a radio's small buffer never floods), and a log of the last window's writes
+makes the bound exact, where a token bucket alone would allow ``rate + burst`` in some windows.
+
+:class:`MediumAccess` shares one half-duplex channel between robots:
+
+* ``none``: send whenever the pacer allows (a point-to-point link, or a radio with its own MAC);
+* ``tdma``: time is cut into ``slots`` slots of ``slot_s`` seconds on a clock all robots share (the
+  adapter passes the offset from its loop clock to wall time); a robot sends only in its own slot, and
+  only a frame that ends ``guard_s`` before the slot does;
+* ``backoff``: listen before talk: wait until nothing was heard for ``sense_s``, then a random backoff
+  drawn from ``[backoff_min_s, backoff_max_s]`` (new after every frame) so two waiting robots rarely
+  start together.
+"""
+
+from __future__ import annotations
+
+import random
+from collections import deque
+from typing import Literal
+
+MacMode = Literal["none", "tdma", "backoff"]
+_EPS = 1e-9
+
+
+class Pacer:
+    """Token bucket (one frame deep) plus an exact sliding-window byte budget."""
+
+    def __init__(self, rate_bps: float, burst_bytes: int, window_s: float = 1.0) -> None:
+        if rate_bps <= 0 or burst_bytes <= 0:
+            raise ValueError("pacer rate and burst must be positive")
+        self.rate = rate_bps / 8.0  # bytes per second
+        self.burst = float(burst_bytes)
+        self.window = window_s
+        self.budget = self.rate * window_s  # bytes allowed in any window
+        if self.budget < burst_bytes:
+            raise ValueError(f"a {window_s} s window at {rate_bps} b/s cannot carry a {burst_bytes}-byte frame")
+        self._tokens = self.burst
+        self._t: float | None = None
+        self._log: deque[tuple[float, int]] = deque()
+        self._in_window = 0
+        self.bytes_total = 0
+        self.peak_window_bytes = 0
+
+    def _expire(self, now: float) -> None:
+        while self._log and self._log[0][0] <= now - self.window:
+            self._in_window -= self._log.popleft()[1]
+
+    def _tokens_at(self, now: float) -> float:
+        if self._t is None:
+            return self.burst
+        return min(self.burst, self._tokens + max(0.0, now - self._t) * self.rate)
+
+    def ready_at(self, n: int, now: float) -> float:
+        """The earliest time (>= now) at which ``n`` bytes may be written."""
+        tokens = self._tokens_at(now)
+        t_bucket = now if tokens >= n else now + (n - tokens) / self.rate + _EPS
+        self._expire(now)
+        excess = self._in_window + n - self.budget
+        t_window = now
+        if excess > 0:
+            freed = 0
+            for t_e, n_e in self._log:
+                freed += n_e
+                if freed >= excess:
+                    t_window = t_e + self.window + _EPS
+                    break
+        return max(t_bucket, t_window)
+
+    def consume(self, n: int, now: float) -> None:
+        """Record that ``n`` bytes were written at ``now`` (callers check :meth:`ready_at` first)."""
+        self._tokens = self._tokens_at(now) - n
+        self._t = now
+        self._expire(now)
+        self._log.append((now, n))
+        self._in_window += n
+        self.bytes_total += n
+        self.peak_window_bytes = max(self.peak_window_bytes, self._in_window)
+
+
+class MediumAccess:
+    """Decides when this robot may start a frame on a shared channel (see the module docstring)."""
+
+    def __init__(
+        self,
+        mode: MacMode,
+        rate_bps: float,
+        *,
+        slot_s: float = 0.25,
+        slots: int = 1,
+        slot_index: int = 0,
+        guard_s: float = 0.01,
+        clock_offset: float = 0.0,
+        sense_s: float = 0.02,
+        backoff_min_s: float = 0.0,
+        backoff_max_s: float = 0.1,
+        rng: random.Random | None = None,
+    ) -> None:
+        self.mode = mode
+        self.byte_time = 8.0 / rate_bps
+        self.slot_s = slot_s
+        self.slots = max(1, slots)
+        self.slot_index = slot_index % self.slots
+        self.guard_s = guard_s
+        self.clock_offset = clock_offset
+        self.sense_s = sense_s
+        self.backoff_min_s = backoff_min_s
+        self.backoff_max_s = backoff_max_s
+        self._rng = rng or random.Random(0)
+        self._heard = -1e18
+        self._tx_end = -1e18
+        self._backoff = self._draw()
+
+    def _draw(self) -> float:
+        return self._rng.uniform(self.backoff_min_s, self.backoff_max_s)
+
+    def heard(self, now: float) -> None:
+        """Bytes arrived from the channel at ``now`` (carrier sense)."""
+        self._heard = max(self._heard, now)
+
+    def ready_at(self, n: int, now: float) -> float:
+        """The earliest time (>= now) at which an ``n``-byte frame may start."""
+        airtime = n * self.byte_time
+        if self.mode == "tdma":
+            return self._tdma(airtime, now)
+        if self.mode == "backoff":
+            idle = max(self._heard + self.sense_s, self._tx_end)
+            return max(now, idle + self._backoff)
+        return now
+
+    def _tdma(self, airtime: float, now: float) -> float:
+        cycle = self.slots * self.slot_s
+        t = now + self.clock_offset
+        phase = t % cycle
+        start = self.slot_index * self.slot_s
+        end = start + self.slot_s - self.guard_s
+        if start <= phase and phase + airtime <= end:
+            return now
+        nxt = t - phase + (start if phase < start else cycle + start)
+        return nxt - self.clock_offset + _EPS
+
+    def sent(self, n: int, now: float) -> None:
+        """A frame of ``n`` bytes started at ``now``."""
+        self._tx_end = now + n * self.byte_time
+        self._backoff = self._draw()

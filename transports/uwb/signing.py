@@ -1,0 +1,179 @@
+"""Frame signing in the manner of MAVLink 2: a per-sender counter and a truncated HMAC-SHA256.
+
+A signed frame body ends with ``u48 counter || tag`` where ``tag`` is the first 8 bytes of
+``HMAC-SHA256(key, DOMAIN || body || counter)``. The counter rises with every frame a node signs and
+never repeats, across restarts too: the adapter reserves blocks of counters in a file under the
+state directory before the core may use them (:class:`CounterStore`), and starts no lower than a
+clock-derived floor (10 µs ticks since 2015, as MAVLink's timestamp), so a node without a state
+directory still never reuses a counter unless its clock runs backwards.
+
+Receivers keep, per sender id, the highest counter seen and a 64-frame window below it (as IPsec
+does), so reordered frames are accepted once and replayed or duplicated frames are dropped.
+
+:class:`Signer` and :class:`Verifier` are pure; only :class:`CounterStore` touches files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from mapd.errors import StateError
+
+COUNTER_LEN = 6
+TAG_LEN = 8
+TRAILER_LEN = COUNTER_LEN + TAG_LEN
+COUNTER_MAX = (1 << 48) - 1
+DOMAIN = b"mapd-uwb-frame/1\x00"
+_EPOCH_2015 = 1420070400.0
+REPLAY_WINDOW = 64
+
+
+def clock_floor(wall_time: float) -> int:
+    """A counter value derived from the wall clock (10 µs ticks since 2015-01-01)."""
+    return max(0, min(COUNTER_MAX, int((wall_time - _EPOCH_2015) * 100_000)))
+
+
+class _Mac:
+    def __init__(self, key: bytes) -> None:
+        self._base = hmac.new(key, DOMAIN, hashlib.sha256)
+
+    def tag(self, data: bytes) -> bytes:
+        h = self._base.copy()
+        h.update(data)
+        return h.digest()[:TAG_LEN]
+
+
+class Signer:
+    """Appends counter and tag to frame bodies, within the counters the adapter has persisted.
+
+    The core asks :meth:`reservation` after each frame; when it returns a value, the adapter writes
+    it to disk and calls :meth:`confirm`. Until then :meth:`can_sign` turns false once the confirmed
+    block is used up, so no counter is ever used that a restart could hand out again.
+    """
+
+    def __init__(self, key: bytes, start: int, *, block: int = 4096) -> None:
+        self._mac = _Mac(key)
+        self.next = start
+        self.limit = start
+        self.block = block
+
+    def can_sign(self) -> bool:
+        return self.next < self.limit
+
+    def reservation(self) -> int | None:
+        """A new upper bound to persist, when less than half a block is left; else None."""
+        if self.limit - self.next < self.block // 2 and self.limit < COUNTER_MAX:
+            return min(COUNTER_MAX, self.next + self.block)
+        return None
+
+    def confirm(self, upto: int) -> None:
+        """The adapter has persisted ``upto``: counters below it may be used."""
+        self.limit = max(self.limit, upto)
+
+    def sign(self, body: bytes) -> bytes:
+        if not self.can_sign():
+            raise RuntimeError("uwb: signing counter not reserved")  # core checks can_sign first
+        counter = self.next.to_bytes(COUNTER_LEN, "little")
+        self.next += 1
+        data = body + counter
+        return data + self._mac.tag(data)
+
+
+@dataclass
+class VerifyStats:
+    unsigned: int = 0
+    bad_signature: int = 0
+    replayed: int = 0
+
+
+class Verifier:
+    """Checks signed bodies and drops replays; bounded state (one window per sender id)."""
+
+    def __init__(self, key: bytes) -> None:
+        self._mac = _Mac(key)
+        self._windows: dict[int, tuple[int, int]] = {}  # src -> (highest counter, bitmask below it)
+        self.stats = VerifyStats()
+
+    def check(self, body: bytes, signed: bool) -> bytes | None:
+        """The body without its trailer when it is signed, authentic and fresh; else None (counted)."""
+        if not signed or len(body) < TRAILER_LEN + 2:
+            self.stats.unsigned += 1
+            return None
+        data, tag = body[:-TAG_LEN], body[-TAG_LEN:]
+        if not hmac.compare_digest(self._mac.tag(data), tag):
+            self.stats.bad_signature += 1
+            return None
+        src = body[1]
+        counter = int.from_bytes(data[-COUNTER_LEN:], "little")
+        if not self._accept(src, counter):
+            self.stats.replayed += 1
+            return None
+        return data[:-COUNTER_LEN]
+
+    def _accept(self, src: int, counter: int) -> bool:
+        top, mask = self._windows.get(src, (-1, 0))
+        if counter > top:
+            shift = counter - top
+            mask = ((mask << shift) | (1 << (shift - 1))) & ((1 << REPLAY_WINDOW) - 1) if top >= 0 else 0
+            self._windows[src] = (counter, mask)
+            return True
+        back = top - counter
+        if back == 0 or back > REPLAY_WINDOW:
+            return False
+        bit = 1 << (back - 1)
+        if mask & bit:
+            return False
+        self._windows[src] = (top, mask | bit)
+        return True
+
+
+def strip_unverified(body: bytes) -> bytes | None:
+    """The body of a signed frame without its trailer, for a node that has no key; None if too short."""
+    return body[:-TRAILER_LEN] if len(body) >= TRAILER_LEN + 2 else None
+
+
+class CounterStore:
+    """The persisted high-water mark of a node's signing counter (one small file, written atomically)."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._memory = 0
+
+    def load(self) -> int:
+        if self.path is None:
+            return self._memory
+        try:
+            text = self.path.read_text(encoding="ascii").strip()
+        except FileNotFoundError:
+            return 0
+        except (OSError, UnicodeDecodeError) as exc:
+            raise StateError(f"uwb: cannot read signing counter {self.path}: {exc}") from None
+        try:
+            value = int(text)
+        except ValueError:
+            raise StateError(f"uwb: signing counter file {self.path} is corrupt ({text[:20]!r})") from None
+        if not 0 <= value <= COUNTER_MAX:
+            raise StateError(f"uwb: signing counter file {self.path} holds {value}, out of range")
+        return value
+
+    def save(self, value: int) -> None:
+        """Persist ``value`` durably before the caller uses counters below it."""
+        if self.path is None:
+            self._memory = value
+            return
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            try:
+                os.write(fd, f"{value}\n".encode("ascii"))
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(tmp, self.path)
+        except OSError as exc:
+            raise StateError(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None

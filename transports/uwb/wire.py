@@ -1,0 +1,196 @@
+"""Frame bodies of the UWB link protocol: fixed little-endian layouts, strictly parsed.
+
+Every body starts with a 7-byte header::
+
+    u8  kind      low 4 bits: frame type; bits 4-6: protocol version (1); bit 7: signed
+    u8  src       sender's link id, 1..254
+    u8  dst       receiver's link id, 1..254, or 255 for broadcast
+    u32 session   sender's session id, new at every start (restart detection)
+
+then, by type::
+
+    DATA   u32 msg, u8 stream, u16 index, u16 count, u32 total, payload (1.. bytes)
+    ACK    u32 target_session, u32 msg, u8 gen, u8 flags, u16 base, bitmap (0..32 bytes)
+    HELLO  (nothing: presence and session announcement)
+
+A signed body ends with a 14-byte trailer (u48 counter, 8-byte truncated HMAC; see
+:mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
+
+A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
+message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which
+chunks the receiver holds: all below ``base``, and bit ``k`` of ``bitmap`` is chunk ``base + 1 + k``.
+``gen`` names the receiver's reassembly buffer for that message: when it changes, the receiver has
+thrown away what it held (hash mismatch, memory pressure) and earlier acks no longer count.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+from mapd.errors import ProtocolError
+
+VERSION = 1
+BROADCAST = 255
+SIGNED = 0x80
+
+DATA, ACK, HELLO = 1, 2, 3
+KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO"}
+
+# ACK flags
+COMPLETE = 0x01  # the whole message is held and its hash verified
+REJECT = 0x02  # the receiver refuses the message (over its size limit); the sender gives up on it
+GONE = 0x04  # the receiver already holds a newer message of that stream
+_ACK_FLAGS = COMPLETE | REJECT | GONE
+
+MAX_BITMAP = 32  # bytes: an ACK describes up to 256 chunks past base
+
+_HDR = struct.Struct("<BBBI")
+_DATA = struct.Struct("<IBHHI")
+_ACK = struct.Struct("<IIBBH")
+HEADER_LEN = _HDR.size
+DATA_HEADER_LEN = _HDR.size + _DATA.size
+ACK_HEADER_LEN = _HDR.size + _ACK.size
+
+
+@dataclass(frozen=True, slots=True)
+class Data:
+    """One chunk of a message."""
+
+    src: int
+    dst: int
+    session: int
+    msg: int
+    stream: int
+    index: int
+    count: int
+    total: int
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    """Selective acknowledgement of message ``msg`` of the sender whose session is ``target_session``."""
+
+    src: int
+    dst: int
+    session: int
+    target_session: int
+    msg: int
+    gen: int
+    flags: int
+    base: int
+    bitmap: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """Presence: announces a sender and its session."""
+
+    src: int
+    dst: int
+    session: int
+
+
+Frame = Data | Ack | Hello
+
+
+def _kind(kind: int, signed: bool) -> int:
+    return kind | (VERSION << 4) | (SIGNED if signed else 0)
+
+
+def pack_data(d: Data, *, signed: bool = False) -> bytes:
+    head = _HDR.pack(_kind(DATA, signed), d.src, d.dst, d.session)
+    return head + _DATA.pack(d.msg, d.stream, d.index, d.count, d.total) + d.payload
+
+
+def pack_ack(a: Ack, *, signed: bool = False) -> bytes:
+    head = _HDR.pack(_kind(ACK, signed), a.src, a.dst, a.session)
+    return head + _ACK.pack(a.target_session, a.msg, a.gen, a.flags, a.base) + a.bitmap
+
+
+def pack_hello(h: Hello, *, signed: bool = False) -> bytes:
+    return _HDR.pack(_kind(HELLO, signed), h.src, h.dst, h.session)
+
+
+def pack(frame: Frame, *, signed: bool = False) -> bytes:
+    """The body of ``frame`` (without a signing trailer)."""
+    if isinstance(frame, Data):
+        return pack_data(frame, signed=signed)
+    if isinstance(frame, Ack):
+        return pack_ack(frame, signed=signed)
+    return pack_hello(frame, signed=signed)
+
+
+def is_signed(body: bytes) -> bool:
+    """Whether the body says it carries a signing trailer (the header is not yet validated)."""
+    return bool(body) and bool(body[0] & SIGNED)
+
+
+def parse(body: bytes, *, max_total: int) -> Frame:
+    """Parse a body (signing trailer already stripped); :class:`ProtocolError` on any absurd field.
+
+    ``max_total`` bounds a DATA frame's ``total`` (the receiver's message limit plus the hash), so a
+    hostile frame can never make a receiver plan an allocation past its limit.
+    """
+    if len(body) < HEADER_LEN:
+        raise ProtocolError(f"uwb: frame of {len(body)} bytes is shorter than a header")
+    k, src, dst, session = _HDR.unpack_from(body)
+    if (k >> 4) & 0x7 != VERSION:
+        raise ProtocolError(f"uwb: frame protocol version {(k >> 4) & 0x7} is not {VERSION}")
+    kind = k & 0x0F
+    if not 1 <= src <= 254:
+        raise ProtocolError(f"uwb: frame source id {src} is out of range")
+    if not 1 <= dst <= 255:
+        raise ProtocolError(f"uwb: frame destination id {dst} is out of range")
+    if kind == DATA:
+        if len(body) <= DATA_HEADER_LEN:
+            raise ProtocolError("uwb: DATA frame has no payload")
+        msg, stream, index, count, total = _DATA.unpack_from(body, HEADER_LEN)
+        payload = body[DATA_HEADER_LEN:]
+        if count == 0 or index >= count:
+            raise ProtocolError(f"uwb: DATA chunk index {index} is not below its count {count}")
+        if total > max_total:
+            raise ProtocolError(f"uwb: DATA message of {total} bytes is over the limit of {max_total}")
+        if count > total or len(payload) > total:
+            raise ProtocolError(f"uwb: DATA sizes are inconsistent ({count} chunks, {total} bytes)")
+        return Data(src, dst, session, msg, stream, index, count, total, payload)
+    if kind == ACK:
+        if len(body) < ACK_HEADER_LEN:
+            raise ProtocolError("uwb: ACK frame is truncated")
+        target, msg, gen, flags, base = _ACK.unpack_from(body, HEADER_LEN)
+        bitmap = body[ACK_HEADER_LEN:]
+        if len(bitmap) > MAX_BITMAP:
+            raise ProtocolError(f"uwb: ACK bitmap of {len(bitmap)} bytes is over {MAX_BITMAP}")
+        if flags & ~_ACK_FLAGS:
+            raise ProtocolError(f"uwb: ACK has unknown flags {flags:#x}")
+        if dst == BROADCAST:
+            raise ProtocolError("uwb: ACK sent to broadcast")
+        return Ack(src, dst, session, target, msg, gen, flags, base, bitmap)
+    if kind == HELLO:
+        if len(body) != HEADER_LEN:
+            raise ProtocolError("uwb: HELLO frame has trailing bytes")
+        return Hello(src, dst, session)
+    raise ProtocolError(f"uwb: unknown frame type {kind}")
+
+
+def bitmap_from(have: bytearray, base: int, count: int) -> bytes:
+    """The ACK bitmap for chunks ``base+1 ..`` of ``have`` (1 = held), trailing zero bytes cut."""
+    out = bytearray(MAX_BITMAP)
+    top = min(count, base + 1 + 8 * MAX_BITMAP)
+    for i in range(base + 1, top):
+        if have[i]:
+            k = i - base - 1
+            out[k >> 3] |= 1 << (k & 7)
+    return bytes(out.rstrip(b"\x00"))
+
+
+def bitmap_indices(base: int, bitmap: bytes) -> list[int]:
+    """Chunk indices an ACK bitmap marks as held."""
+    out = []
+    for byte_i, b in enumerate(bitmap):
+        while b:
+            low = b & -b
+            out.append(base + 1 + 8 * byte_i + low.bit_length() - 1)
+            b ^= low
+    return out

@@ -1,0 +1,105 @@
+"""Key expressions of the zenoh transport: how mapd names things on a zenoh bus.
+
+Every name lives under ``mapd/<fleet>/``, so fleets sharing one zenoh network never see each
+other's traffic (and a router ACL can fence a fleet with one rule)::
+
+    mapd/<fleet>/<robot>/update          map updates of <robot> (packed envelopes), pub/sub
+    mapd/<fleet>/<robot>                 liveliness token: <robot> is present
+    mapd/<fleet>/<robot>/latest          queryable: <robot>'s latest keyframe envelope
+    mapd/<fleet>/<peer>/ack/<robot>      <peer> has applied <robot>'s map version (8-byte payload)
+
+Fleet and robot ids are the config's names (``[A-Za-z0-9_-]{1,32}``), so they hold no zenoh
+wildcard or separator and a key built from them matches exactly one thing. The parsers take keys
+from the network: they return ``None`` for anything that is not exactly one of these shapes.
+"""
+
+from __future__ import annotations
+
+import re
+
+PREFIX = "mapd"
+_NAME = re.compile(r"[A-Za-z0-9_\-]{1,32}")
+
+
+def valid_name(name: str) -> bool:
+    """True when ``name`` can be a fleet or robot id (and so a single key-expression chunk)."""
+    return _NAME.fullmatch(name) is not None
+
+
+def _check(*names: str) -> None:
+    for name in names:
+        if not valid_name(name):
+            raise ValueError(f"'{name}' is not a valid fleet or robot id ([A-Za-z0-9_-], 1 to 32 characters)")
+
+
+def update_key(fleet: str, robot: str) -> str:
+    """Where ``robot`` publishes its map updates."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/{robot}/update"
+
+
+def presence_key(fleet: str, robot: str) -> str:
+    """The liveliness token that says ``robot`` is present."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/{robot}"
+
+
+def latest_key(fleet: str, robot: str) -> str:
+    """The queryable that answers with ``robot``'s latest keyframe."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/{robot}/latest"
+
+
+def ack_key(fleet: str, peer: str, robot: str) -> str:
+    """Where ``peer`` says which of ``robot``'s versions it has applied."""
+    _check(fleet, peer, robot)
+    return f"{PREFIX}/{fleet}/{peer}/ack/{robot}"
+
+
+def all_updates(fleet: str) -> str:
+    """Subscription to every robot's updates in ``fleet``."""
+    _check(fleet)
+    return f"{PREFIX}/{fleet}/*/update"
+
+
+def all_presence(fleet: str) -> str:
+    """Liveliness subscription to every robot of ``fleet``."""
+    _check(fleet)
+    return f"{PREFIX}/{fleet}/*"
+
+
+def acks_for(fleet: str, robot: str) -> str:
+    """Subscription to every peer's acks of ``robot``'s versions."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/*/ack/{robot}"
+
+
+def _chunks(fleet: str, key: str, n: int) -> list[str] | None:
+    parts = key.split("/")
+    if len(parts) != n or parts[0] != PREFIX or parts[1] != fleet:
+        return None
+    return parts
+
+
+def parse_update(fleet: str, key: str) -> str | None:
+    """The robot of an update key in ``fleet``, or None when ``key`` is not one."""
+    parts = _chunks(fleet, key, 4)
+    if parts is None or parts[3] != "update" or not valid_name(parts[2]):
+        return None
+    return parts[2]
+
+
+def parse_presence(fleet: str, key: str) -> str | None:
+    """The robot of a liveliness token key in ``fleet``, or None."""
+    parts = _chunks(fleet, key, 3)
+    if parts is None or not valid_name(parts[2]):
+        return None
+    return parts[2]
+
+
+def parse_ack(fleet: str, robot: str, key: str) -> str | None:
+    """The peer that sent an ack of ``robot``'s versions, or None when ``key`` is not one."""
+    parts = _chunks(fleet, key, 5)
+    if parts is None or parts[3] != "ack" or parts[4] != robot or not valid_name(parts[2]):
+        return None
+    return parts[2]
