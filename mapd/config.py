@@ -79,6 +79,9 @@ class SourceSection(PluginSection):
 class CodecSection(PluginSection):
     use: str = Field(default="lossless", description="codec plugin (mapd.codecs)")
     keyframe_every: int = Field(default=10, ge=1, description="send a whole map at least every K updates")
+    measure_quality: bool = Field(
+        default=False, description="lossy codecs: decode each update locally and log its PSNR/SSIM"
+    )
 
 
 class TransportsSection(PluginSection):

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Install mapd on a robot: a venv under /opt/mapd, config and key under /etc/mapd, the systemd unit,
+# the udev rule, and a dedicated 'mapd' user in the 'dialout' group. Run as root from the repo root:
+#   sudo deploy/install.sh [--robot NAME] [--fleet NAME]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+robot="$(hostname -s)"; fleet="default"
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --robot) robot="$2"; shift 2 ;;
+    --fleet) fleet="$2"; shift 2 ;;
+    *) echo "usage: $0 [--robot NAME] [--fleet NAME]" >&2; exit 2 ;;
+  esac
+done
+[ "$(id -u)" = 0 ] || { echo "install.sh must run as root" >&2; exit 1; }
+py="$(command -v python3.11 || command -v python3)"
+"$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "mapd needs Python 3.11+")'
+
+id mapd >/dev/null 2>&1 || useradd --system --home-dir /var/lib/mapd --shell /usr/sbin/nologin mapd
+usermod -aG dialout mapd
+
+install -d -m 0755 /opt/mapd
+"$py" -m venv /opt/mapd/venv
+links=""; [ -d /opt/wheels ] && links="--find-links /opt/wheels"
+/opt/mapd/venv/bin/pip install -q -c constraints.txt $links .
+rm -rf /opt/mapd/models && cp -r models /opt/mapd/models
+cp README.md /opt/mapd/README.md
+
+install -d -m 0750 -o root -g mapd /etc/mapd
+if [ ! -f /etc/mapd/config.toml ]; then
+  sed -e "s/^name = \"alpha\"/name = \"$robot\"/" -e "s/^fleet = \"demo\"/fleet = \"$fleet\"/" \
+      -e 's#^dir = .*#dir = "/var/lib/mapd"#' -e 's#^runtime_dir = .*#runtime_dir = "/run/mapd"#' \
+      config.toml > /etc/mapd/config.toml
+  chgrp mapd /etc/mapd/config.toml && chmod 0640 /etc/mapd/config.toml
+  echo "wrote /etc/mapd/config.toml for robot '$robot' (edit it, then: systemctl restart mapd)"
+fi
+install -m 0644 deploy/mapd.service /etc/systemd/system/mapd.service
+install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
+udevadm control --reload 2>/dev/null || true
+systemctl daemon-reload
+systemd-analyze verify /etc/systemd/system/mapd.service || true
+echo "installed. start with: systemctl enable --now mapd; check with: /opt/mapd/venv/bin/mapd status"

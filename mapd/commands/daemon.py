@@ -1,0 +1,154 @@
+"""``mapd run``, ``mapd status`` and ``mapd demo``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+DEFAULT_CONFIG = Path(os.environ.get("MAPD_CONFIG", "/etc/mapd/config.toml"))
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run the daemon (source -> codec -> transports; peers -> fusion)",
+        description="Run mapd in the foreground until SIGTERM/SIGINT (a second SIGINT forces exit). "
+        "Under systemd it reports READY=1 and pings the watchdog.",
+    )
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help=f"config file (default {DEFAULT_CONFIG})")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "status",
+        help="show what the local daemon is doing",
+        description="Read the daemon's read-only control socket and print a summary. Exits 1 when no "
+        "daemon answers.",
+    )
+    p.add_argument("--config", type=Path, default=None, help="config file, to find the control socket")
+    p.add_argument("--socket", type=Path, default=None, help="control socket path (overrides --config)")
+    p.add_argument("--json", action="store_true", help="print the raw JSON status")
+    p.add_argument("--watch", nargs="?", const=1.0, type=float, metavar="SECONDS", help="refresh every N s")
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser(
+        "demo",
+        help="two robots exploring one building, sharing maps over an emulated 12.5 kb/s UWB link",
+        description="Start N 'mapd run' daemons as separate processes, each with a simulated robot, exchanging "
+        "maps over socat pty pairs through an emulated 12.5 kb/s radio (or zenoh), then write the "
+        "global map, bandwidth and quality figures and a metrics table.",
+    )
+    p.add_argument("--robots", type=int, default=2, help="fleet size (default 2)")
+    p.add_argument("--transport", choices=["uwb", "zenoh"], default="uwb", help="link between robots")
+    p.add_argument("--codec", default="lossless", help="codec the robots use (default lossless)")
+    p.add_argument("--log", type=Path, default=None, help="replay a CARMEN log instead of the simulator")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
+    p.add_argument("--seed", type=int, default=7, help="building and robots seed")
+    p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
+    p.set_defaults(func=cmd_demo)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from mapd import config
+    from mapd.daemon import run_daemon
+    from mapd.systemd import setup_logging
+
+    cfg = config.load(args.config)
+    setup_logging(cfg.log.level)
+    return run_daemon(cfg)
+
+
+def _socket_path(args: argparse.Namespace) -> Path:
+    if args.socket is not None:
+        return Path(args.socket)
+    from mapd import config
+
+    cfg_path = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
+    if cfg_path is not None:
+        return config.load(cfg_path).control_socket()
+    return Path("/run/mapd/mapd.sock")
+
+
+def _age(seconds: Any) -> str:
+    if not isinstance(seconds, int | float):
+        return "-"
+    return f"{seconds:.0f}s" if seconds < 120 else f"{seconds / 60:.0f}m"
+
+
+def _num(v: Any, spec: str = ".1f") -> str:
+    if isinstance(v, float) and not math.isfinite(v):
+        return "-"
+    return format(v, spec) if isinstance(v, int | float) else "-"
+
+
+def render_status(s: dict[str, Any]) -> str:
+    """A readable summary of one status document."""
+    out = []
+    src = s.get("source", {})
+    out.append(f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}")
+    size = src.get("size") or ["-", "-"]
+    out.append(f"source  {src.get('name')}: map v{src.get('version')} ({size[0]} x {size[1]} cells)")
+    c = s.get("codec", {})
+    out.append(
+        f"codec   {c.get('name')}: last v{c.get('last_version', '-')} {c.get('last_kind', '')} "
+        f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
+        f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
+    )
+    out.append("peers")
+    peers = s.get("peers", {})
+    if not peers:
+        out.append("  (none yet)")
+    for name, p in peers.items():
+        state = "up" if p.get("present", True) else "gone"
+        out.append(
+            f"  {name:<12} v{p.get('version', '-'):<5} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
+            f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our v{p.get('acked_our_version', 0)}"
+        )
+    out.append("links")
+    for name, st in s.get("links", {}).items():
+        keys = ("rate_bps", "goodput_bps", "bytes_tx", "bytes_rx", "resends", "crc_errors", "rtt_ms")
+        parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st]
+        others = [f"{k}={v}" for k, v in st.items() if k not in keys and isinstance(v, int | float)]
+        out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
+    f = s.get("fusion", {})
+    out.append(f"fusion  maps {f.get('maps_merged', f.get('maps', '-'))}, last merge {_age(f.get('last_merge_age_s'))} ago")
+    for robot, t in (f.get("transforms") or {}).items():
+        if isinstance(t, dict):
+            acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason', '?')})"
+            out.append(
+                f"  {robot:<12} x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
+                f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {acc}"
+            )
+    bad = {k: v for k, v in s.get("counters", {}).items() if v}
+    if bad:
+        out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))
+    return "\n".join(out)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from mapd.control import query
+
+    path = _socket_path(args)
+    while True:
+        doc = query(path)
+        if args.json:
+            print(json.dumps(doc, indent=2))
+        else:
+            if args.watch:
+                print("\033[2J\033[H", end="")
+            print(render_status(doc))
+        if not args.watch:
+            return 0
+        sys.stdout.flush()
+        time.sleep(args.watch)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from mapd.demo import run_demo
+
+    return run_demo(args)

@@ -1,0 +1,463 @@
+"""``mapd run``: start-up, the running daemon, and graceful shutdown, in one place.
+
+One update's way through the robot::
+
+    source --grid--> publish slot --encode(base = newest version every peer acked)--> Envelope
+                                       --offer--> every transport (latest wins inside each)
+    transport --Received--> events queue --verify, decode against the held base--> fusion worker
+
+Every queue is bounded and latest-wins where order does not matter: a new own version replaces
+an unsent older one, a full event queue drops (and counts) rather than grow. Blocking work
+(encode, decode, state writes) runs in threads so the loop keeps serving status and timers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import logging
+import os
+import signal
+import threading
+import time
+from typing import Any
+
+from mapd import config as configmod
+from mapd import plugins
+from mapd.codec import decode, encode, get_codec
+from mapd.codec.base import CodecOptions
+from mapd.control import ControlServer
+from mapd.envelope import Envelope, unpack
+from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
+from mapd.fusion.worker import FusionWorker
+from mapd.grid import OccupancyGrid
+from mapd.metrics import psnr, ssim
+from mapd.sources.base import MapSource, SourceContext
+from mapd.state import StateStore
+from mapd.systemd import notify, watchdog_interval
+from mapd.transport import (
+    Delivered,
+    Failed,
+    KeyframeNeeded,
+    PeerDown,
+    PeerRestarted,
+    PeerUp,
+    Received,
+    Transport,
+    TransportContext,
+    TransportEvent,
+)
+
+log = logging.getLogger("mapd.daemon")
+EVENT_QUEUE = 256
+KEEP_VERSIONS = 16
+
+
+class Daemon:
+    """One robot's mapd. Construct with a validated config, then ``await run()``."""
+
+    def __init__(self, cfg: configmod.MapdConfig, *, shutdown_timeout: float = 5.0) -> None:
+        self.cfg = cfg
+        self.me = cfg.robot.name
+        self.shutdown_timeout = shutdown_timeout
+        self.options = configmod.check_plugins(cfg, all_tables=False)
+        self.key = configmod.read_key(cfg)
+        self.store = StateStore(cfg.state.dir, max_cells=cfg.limits.max_cells)
+        self.started = time.time()
+        self._stop = asyncio.Event()
+        self._publish = asyncio.Event()
+        self._pending: OccupancyGrid | None = None
+        self._events: asyncio.Queue[TransportEvent] = asyncio.Queue(EVENT_QUEUE)
+        self._sent: dict[int, OccupancyGrid] = {}  # recent own versions, for delta bases
+        self._kf_lock = threading.Lock()
+        self._kf_cache: Envelope | None = None
+        self.own: OccupancyGrid | None = None
+        self.peer_maps: dict[str, OccupancyGrid] = {}
+        self.peer_info: dict[str, dict[str, Any]] = {}
+        self.since_keyframe = 0
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("bad_envelopes", "foreign_fleet", "bad_signature", "duplicates", "decode_errors", "dropped_events",
+             "keyframe_requests", "keyframes_sent", "deltas_sent", "updates_received"), 0)
+        self.codec_stats: dict[str, Any] = {"name": cfg.codec.use}
+        self.transports: list[Transport] = []
+        self.source: MapSource | None = None
+        codec_opts = self.options["codec"].get(cfg.codec.use)
+        self.codec_options = codec_opts if isinstance(codec_opts, CodecOptions) else None
+        self.codec = get_codec(cfg.codec.use, self.codec_options)
+        self.fusion = FusionWorker(self.me, cfg.fusion, cfg.state.dir / "global", on_global=[])
+        self.control = ControlServer(cfg.control_socket(), self.snapshot)
+        self._updates_csv = cfg.state.dir / "updates.csv"
+
+    # ------------------------------------------------------------------ lifecycle
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    async def run(self) -> None:
+        """Start everything, run until asked to stop, then shut down within the timeout."""
+        await asyncio.to_thread(self.store.open)
+        self._restore()
+        source_cls = plugins.load("source", self.cfg.source.use)
+        self.source = source_cls(
+            self.options["source"].get(self.cfg.source.use),
+            SourceContext(robot=self.me, max_cells=self.cfg.limits.max_cells),
+        )
+        for name in self.cfg.transports.use:
+            cls = plugins.load("transport", name)
+            ctx = TransportContext(
+                robot=self.me,
+                fleet=self.cfg.robot.fleet,
+                key=self.key,
+                max_message_bytes=self.cfg.limits.max_message_bytes,
+                emit=self._emit,
+                state_dir=self.cfg.state.dir / "links" / name,
+                latest_keyframe=self.latest_keyframe,
+            )
+            (self.cfg.state.dir / "links" / name).mkdir(parents=True, exist_ok=True)
+            self.transports.append(cls(self.options["transports"].get(name), ctx))
+        try:
+            for t in self.transports:
+                await t.start()
+            await self.control.start()
+            notify("READY=1\nSTATUS=running")
+            log.info("mapd started", extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}})
+            try:
+                await self._run_tasks()
+            except* MapdError as group:
+                raise group.exceptions[0] from None
+        finally:
+            await self._shutdown()
+
+    async def _run_tasks(self) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tasks = [
+                tg.create_task(self._source_loop(), name="source"),
+                tg.create_task(self._publisher(), name="publisher"),
+                tg.create_task(self._event_loop(), name="events"),
+                tg.create_task(self.fusion.run(), name="fusion"),
+                tg.create_task(self._watchdog(), name="watchdog"),
+            ]
+            await self._stop.wait()
+            notify("STOPPING=1")
+            log.info("stopping")
+            for task in tasks:
+                task.cancel()
+
+    async def _shutdown(self) -> None:
+        async def close_all() -> None:
+            for t in self.transports:
+                with contextlib.suppress(Exception):
+                    await t.close()
+            if self.source is not None:
+                with contextlib.suppress(Exception):
+                    await self.source.close()
+            await self.control.close()
+
+        try:
+            await asyncio.wait_for(close_all(), self.shutdown_timeout)
+        except TimeoutError:
+            log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
+        with contextlib.suppress(MapdError, OSError):
+            await asyncio.to_thread(self.store.flush)
+
+    def _restore(self) -> None:
+        """Resume from the state directory: own version, bases, and every peer's last map."""
+        data = self.store.data
+        base = self.store.base_map()
+        if base is not None:
+            self._sent[base.version] = base
+        own = self.store.own_map()
+        if own is not None:
+            self.own = own.replace(robot=self.me)
+            self._sent[own.version] = self.own
+            self.fusion.submit(self.own)
+        for robot in list(data.peers):
+            grid = self.store.peer_map(robot)
+            if grid is None:
+                data.peers.pop(robot, None)
+                continue
+            self.peer_maps[robot] = grid
+            self.fusion.submit(grid)
+        if data.own_version:
+            log.info("resumed from state", extra={"fields": {"own_version": data.own_version,
+                                                              "peers": ",".join(self.peer_maps) or "-"}})
+
+    async def _watchdog(self) -> None:
+        interval = watchdog_interval()
+        if interval is None:
+            return
+        while True:
+            notify("WATCHDOG=1")
+            await asyncio.sleep(interval)
+
+    # ------------------------------------------------------------------ own maps out
+    async def _source_loop(self) -> None:
+        assert self.source is not None
+        async for grid in self.source.maps():
+            if grid.cells > self.cfg.limits.max_cells:
+                log.warning("source map of %d cells is over the limit; skipped", grid.cells)
+                continue
+            # Versions are the daemon's, so they keep increasing across restarts.
+            self.store.data.own_version += 1
+            own = grid.replace(robot=self.me, version=self.store.data.own_version, stamp=grid.stamp or time.time())
+            self.own = own
+            self._pending = own  # latest wins: an unencoded older version is simply replaced
+            self._publish.set()
+            self.fusion.submit(own)
+        log.info("source finished; still serving peers")
+
+    def _target_peers(self) -> set[str]:
+        peers: set[str] = set()
+        for t in self.transports:
+            peers.update(t.peers())
+        return peers
+
+    def _choose_base(self) -> OccupancyGrid | None:
+        if not self.codec.uses_base or self.since_keyframe + 1 >= self.cfg.codec.keyframe_every:
+            return None
+        peers = self._target_peers()
+        if not peers:
+            return None
+        acked = {self.store.data.acked.get(p, 0) for p in peers}
+        if len(acked) != 1:
+            return None  # peers hold different versions: only a keyframe suits them all
+        return self._sent.get(acked.pop())
+
+    async def _publisher(self) -> None:
+        while True:
+            await self._publish.wait()
+            self._publish.clear()
+            grid, self._pending = self._pending, None
+            if grid is None:
+                continue
+            await asyncio.to_thread(self.store.save_own, grid)
+            self._sent[grid.version] = grid
+            for v in sorted(self._sent)[:-KEEP_VERSIONS]:
+                if self.store.data.base is None or v != self.store.data.base.version:
+                    del self._sent[v]
+            base = self._choose_base()
+            env = await asyncio.to_thread(self._make_envelope, grid, base)
+            if env.is_keyframe:
+                self.since_keyframe = 0
+                self.counters["keyframes_sent"] += 1
+                with self._kf_lock:
+                    self._kf_cache = env
+            else:
+                self.since_keyframe += 1
+                self.counters["deltas_sent"] += 1
+            for t in self.transports:
+                t.offer(env)
+
+    def _make_envelope(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Envelope:
+        t0 = time.perf_counter()
+        payload = encode(grid, self.cfg.codec.use, base, options=self.codec_options)
+        enc_ms = 1000 * (time.perf_counter() - t0)
+        from mapd.codec import read_header
+
+        head = read_header(payload, max_cells=self.cfg.limits.max_cells)
+        base_version = head.base_version if head.delta else 0
+        self.store.data.seq += 1
+        env = Envelope(
+            fleet=self.cfg.robot.fleet, robot=self.me, version=grid.version, base_version=base_version,
+            codec=self.cfg.codec.use, variant=head.variant, width=grid.width, height=grid.height,
+            resolution=grid.resolution, origin=grid.origin, frame_id=grid.frame_id, stamp=grid.stamp,
+            seq=self.store.data.seq, payload=payload,
+        )
+        if self.key is not None:
+            env = env.signed(self.key)
+        row: dict[str, Any] = {
+            "time": round(time.time(), 3), "version": grid.version, "kind": "delta" if head.delta else "keyframe",
+            "cells": grid.cells, "bytes": len(payload), "ratio": round(grid.cells / len(payload), 2),
+            "encode_ms": round(enc_ms, 2), "psnr": "", "ssim": "",
+        }
+        if self.cfg.codec.measure_quality and not self.codec.lossless:
+            back = decode(payload, base, max_cells=self.cfg.limits.max_cells, options=self.codec_options)
+            row["psnr"], row["ssim"] = round(psnr(grid.data, back.data), 3), round(ssim(grid.data, back.data), 5)
+        self.codec_stats.update(last_version=grid.version, last_bytes=len(payload), last_ratio=row["ratio"],
+                                last_encode_ms=row["encode_ms"], last_kind=row["kind"])
+        self._log_update(row)
+        return env
+
+    def _log_update(self, row: dict[str, Any]) -> None:
+        new = not self._updates_csv.exists()
+        with open(self._updates_csv, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(row))
+            if new:
+                w.writeheader()
+            w.writerow(row)
+
+    def latest_keyframe(self) -> Envelope | None:
+        """The newest own map as a keyframe, for late joiners (thread-safe; encodes at most once)."""
+        own = self.own
+        if own is None:
+            return None
+        with self._kf_lock:
+            if self._kf_cache is not None and self._kf_cache.version == own.version:
+                return self._kf_cache
+        env = self._make_envelope(own, None)
+        with self._kf_lock:
+            self._kf_cache = env
+        return env
+
+    # ------------------------------------------------------------------ events in
+    def _emit(self, event: TransportEvent) -> None:
+        try:
+            self._events.put_nowait(event)
+        except asyncio.QueueFull:
+            self.counters["dropped_events"] += 1
+
+    async def _event_loop(self) -> None:
+        while True:
+            ev = await self._events.get()
+            try:
+                await self._handle(ev)
+            except MapdError as exc:
+                log.warning("event from %s dropped: %s", getattr(ev, "peer", "?"), exc)
+
+    def _transport(self, name: str) -> Transport | None:
+        return next((t for t in self.transports if t.name == name), None)
+
+    async def _handle(self, ev: TransportEvent) -> None:
+        if isinstance(ev, Received):
+            await self._on_received(ev)
+        elif isinstance(ev, Delivered):
+            if ev.robot != self.me:
+                return
+            prev = self.store.data.acked.get(ev.peer, 0)
+            if ev.version > prev:
+                self.store.data.acked[ev.peer] = ev.version
+                await self._maybe_save_base()
+        elif isinstance(ev, KeyframeNeeded | PeerRestarted):
+            # The peer may not hold our base any more: the next update goes out whole.
+            self.since_keyframe = self.cfg.codec.keyframe_every
+            self.store.data.acked.pop(ev.peer, None)
+            if self.own is not None:
+                self._pending = self._pending or self.own
+                self._publish.set()
+        elif isinstance(ev, PeerUp | PeerDown):
+            info = self.peer_info.setdefault(ev.peer, {})
+            info["present"] = isinstance(ev, PeerUp)
+            info["link"] = ev.transport
+        elif isinstance(ev, Failed):
+            log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
+
+    async def _maybe_save_base(self) -> None:
+        peers = self._target_peers() or set(self.store.data.acked)
+        versions = {self.store.data.acked.get(p, 0) for p in peers}
+        if len(versions) == 1:
+            v = versions.pop()
+            grid = self._sent.get(v)
+            if grid is not None and (self.store.data.base is None or self.store.data.base.version != v):
+                await asyncio.to_thread(self.store.save_base, grid)
+                return
+        await asyncio.to_thread(self.store.flush)
+
+    async def _on_received(self, ev: Received) -> None:
+        try:
+            env = unpack(ev.data, max_bytes=self.cfg.limits.max_message_bytes, key=self.key)
+        except EnvelopeError as exc:
+            msg = str(exc)
+            key = "bad_signature" if "signature" in msg or "unsigned" in msg else "bad_envelopes"
+            self.counters[key] += 1
+            log.info("dropped envelope from %s: %s", ev.peer, msg)
+            return
+        if env.fleet != self.cfg.robot.fleet:
+            self.counters["foreign_fleet"] += 1
+            return
+        if env.robot == self.me:
+            return
+        held = self.peer_maps.get(env.robot)
+        if held is not None and env.version <= held.version:
+            self.counters["duplicates"] += 1
+            return
+        base = None
+        transport = self._transport(ev.transport)
+        if not env.is_keyframe:
+            if held is None or held.version != env.base_version:
+                self.counters["keyframe_requests"] += 1
+                if transport is not None:
+                    await transport.request_keyframe(env.robot)
+                return
+            base = held
+        try:
+            grid = await asyncio.to_thread(decode, env.payload, base, max_cells=self.cfg.limits.max_cells)
+        except CodecError as exc:
+            self.counters["decode_errors"] += 1
+            log.info("cannot decode v%d from %s: %s", env.version, env.robot, exc)
+            if transport is not None and base is not None:
+                self.counters["keyframe_requests"] += 1
+                await transport.request_keyframe(env.robot)
+            return
+        if (grid.width, grid.height) != (env.width, env.height):
+            self.counters["decode_errors"] += 1
+            return
+        grid = grid.replace(robot=env.robot, version=env.version, stamp=env.stamp, frame_id=env.frame_id)
+        self.peer_maps[env.robot] = grid
+        self.counters["updates_received"] += 1
+        info = self.peer_info.setdefault(env.robot, {})
+        info.update(version=env.version, received_at=time.time(), link=ev.transport, present=True,
+                    bytes=info.get("bytes", 0) + len(ev.data), updates=info.get("updates", 0) + 1,
+                    last_kind="keyframe" if env.is_keyframe else "delta")
+        try:
+            await asyncio.to_thread(self.store.save_peer, grid)
+        except StateError as exc:
+            log.error("%s", exc)
+        self.fusion.submit(grid)
+        ack = getattr(transport, "ack", None)
+        if callable(ack):
+            ack(env.robot, env.version)
+
+    # ------------------------------------------------------------------ status
+    def snapshot(self) -> dict[str, Any]:
+        """Everything ``mapd status`` shows, as JSON-able data."""
+        now = time.time()
+        peers = {}
+        for robot in sorted(set(self.peer_info) | set(self.peer_maps)):
+            info = dict(self.peer_info.get(robot, {}))
+            if "received_at" in info:
+                info["age_s"] = round(now - info.pop("received_at"), 1)
+            info["acked_our_version"] = self.store.data.acked.get(robot, 0)
+            peers[robot] = info
+        return {
+            "robot": self.me,
+            "fleet": self.cfg.robot.fleet,
+            "pid": os.getpid(),
+            "uptime_s": round(now - self.started, 1),
+            "source": {
+                "name": self.cfg.source.use,
+                "version": self.own.version if self.own else 0,
+                "size": [self.own.width, self.own.height] if self.own else None,
+                "stats": self.source.stats() if self.source else {},
+            },
+            "codec": {**self.codec_stats, "keyframes": self.counters["keyframes_sent"],
+                      "deltas": self.counters["deltas_sent"]},
+            "peers": peers,
+            "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
+            "fusion": self.fusion.status(),
+            "counters": dict(self.counters),
+            "state_dir": str(self.cfg.state.dir),
+        }
+
+
+def run_daemon(cfg: configmod.MapdConfig) -> int:
+    """Run the daemon with signal handling: SIGTERM/SIGINT drain, a second SIGINT forces exit."""
+
+    async def main() -> None:
+        daemon = Daemon(cfg)
+        loop = asyncio.get_running_loop()
+        hits = {"int": 0}
+
+        def on_sigint() -> None:
+            hits["int"] += 1
+            if hits["int"] > 1:
+                log.warning("second SIGINT: exiting now")
+                os._exit(130)
+            daemon.request_stop()
+
+        loop.add_signal_handler(signal.SIGTERM, daemon.request_stop)
+        loop.add_signal_handler(signal.SIGINT, on_sigint)
+        await daemon.run()
+
+    asyncio.run(main())
+    return 0
+

@@ -1,0 +1,180 @@
+"""The demo's outputs: global_map.png, bandwidth.png, quality.png, metrics.csv and a summary table."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapd.bench.common import table
+from mapd.errors import MapdError
+from mapd.grid import OccupancyGrid, load_map
+
+UWB_RATE = 12500
+COLOURS = np.array([[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189],
+                    [140, 86, 75], [227, 119, 194], [23, 190, 207]], dtype=np.float64)
+
+
+def _updates(state: Path) -> list[dict[str, Any]]:
+    path = state / "updates.csv"
+    if not path.exists():
+        return []
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            row: dict[str, Any] = dict(r)
+            for k in ("time", "ratio", "encode_ms", "psnr", "ssim"):
+                row[k] = float(r[k]) if r.get(k) not in (None, "") else float("nan")
+            for k in ("version", "cells", "bytes"):
+                row[k] = int(r[k])
+            rows.append(row)
+    return rows
+
+
+def coloured_global(global_map: OccupancyGrid, contributions: np.ndarray | None) -> np.ndarray:
+    """RGB image of the global map: free white, unknown grey, occupied dark, tinted by robot."""
+    d = np.flipud(global_map.data)
+    img = np.full(d.shape + (3,), 205.0)
+    img[(d >= 0) & (d < 65)] = 250.0
+    img[d >= 65] = 30.0
+    if contributions is not None and contributions.shape == global_map.data.shape:
+        who = np.flipud(contributions)
+        for r in range(int(who.max(initial=-1)) + 1):
+            m = (who == r) & (d >= 0)
+            tint = COLOURS[r % len(COLOURS)]
+            img[m] = 0.55 * img[m] + 0.45 * tint
+    return img.astype(np.uint8)
+
+
+def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = min((rows[0]["time"] for rows in series.values() if rows), default=0.0)
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for i, (name, rows) in enumerate(series.items()):
+        if len(rows) < 2:
+            continue
+        t = np.array([r["time"] - t0 for r in rows])
+        dt = np.diff(t)
+        dt[dt <= 0] = np.nan
+        raw = np.array([r["cells"] * 8 for r in rows[1:]]) / dt
+        comp = np.array([r["bytes"] * 8 for r in rows[1:]]) / dt
+        c = COLOURS[i % len(COLOURS)] / 255
+        ax.plot(t[1:], raw / 1000, "--", color=c, label=f"{name} raw cells")
+        ax.plot(t[1:], comp / 1000, "-", color=c, label=f"{name} compressed")
+    ax.axhline(UWB_RATE / 1000, color="k", lw=1.5, label="UWB budget 12.5 kb/s")
+    ax.set_yscale("log")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("bandwidth needed (kb/s)")
+    ax.set_title("Bandwidth per robot, with and without compression (cf. paper Fig. 8b)")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "bandwidth.png", dpi=110)
+    plt.close(fig)
+
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    lossy = False
+    for i, (name, rows) in enumerate(series.items()):
+        if not rows:
+            continue
+        t = [r["time"] - t0 for r in rows]
+        c = COLOURS[i % len(COLOURS)] / 255
+        a1.plot(t, [r["ratio"] for r in rows], "o-", ms=3, color=c, label=name)
+        ps = [r["psnr"] for r in rows]
+        if any(np.isfinite(ps)):
+            lossy = True
+            a2.plot(t, ps, "o-", ms=3, color=c, label=f"{name} PSNR")
+    a1.set_ylabel("compression ratio (cells : bytes)")
+    a1.set_yscale("log")
+    a1.set_title("Compression and map quality per update (cf. paper Fig. 8a)")
+    a1.legend(fontsize=7)
+    a1.grid(alpha=0.3)
+    if lossy:
+        a2.set_ylabel("PSNR (dB)")
+        a2.legend(fontsize=7)
+    else:
+        a2.text(0.5, 0.5, "lossless codec: every map arrives exact (PSNR = inf, SSIM = 1)",
+                ha="center", va="center", transform=a2.transAxes)
+        a2.set_yticks([])
+    a2.set_xlabel("time (s)")
+    a2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "quality.png", dpi=110)
+    plt.close(fig)
+
+
+def write_report(
+    out: Path, run_dir: Path, names: list[str], snaps: dict[str, dict[str, Any]], args: argparse.Namespace
+) -> str:
+    """Write every demo output under ``out`` and return the summary table as text."""
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    series = {n: _updates(run_dir / n / "state") for n in names}
+    with open(out / "metrics.csv", "w", newline="") as fh:
+        cols = ["robot", "time", "version", "kind", "cells", "bytes", "ratio", "encode_ms", "psnr", "ssim"]
+        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
+        w.writeheader()
+        for n, rows in series.items():
+            for r in rows:
+                w.writerow({"robot": n, **r})
+    _plots(out, series)
+
+    gdir = run_dir / names[0] / "state" / "global"
+    global_note = "no global map yet"
+    if (gdir / "map.yaml").exists():
+        try:
+            g = load_map(gdir / "map.yaml")
+            contrib = np.load(gdir / "contributions.npy") if (gdir / "contributions.npy").exists() else None
+            Image.fromarray(coloured_global(g, contrib)).save(out / "global_map.png")
+            for f in gdir.iterdir():
+                if f.suffix in (".yaml", ".pgm", ".json"):
+                    shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)
+            c = g.counts()
+            global_note = (f"global map {g.width} x {g.height} cells at {g.resolution} m, "
+                           f"{c['free'] + c['occupied']} known cells -> {out / 'global_map.png'}")
+        except (MapdError, OSError, ValueError) as exc:
+            global_note = f"global map unreadable: {exc}"
+
+    rows = []
+    for n in names:
+        ups = series[n]
+        s = snaps.get(n, {})
+        duration = (ups[-1]["time"] - ups[0]["time"]) if len(ups) > 1 else float("nan")
+        sent = sum(r["bytes"] for r in ups)
+        raw = sum(r["cells"] for r in ups)
+        peers = s.get("peers", {})
+        transforms = s.get("fusion", {}).get("transforms") or {}
+        confs = [t.get("confidence") for t in transforms.values() if isinstance(t, dict) and t.get("confidence")]
+        rows.append({
+            "robot": n,
+            "versions": ups[-1]["version"] if ups else 0,
+            "keyframes": sum(r["kind"] == "keyframe" for r in ups),
+            "deltas": sum(r["kind"] == "delta" for r in ups),
+            "raw_kb": raw / 1000,
+            "sent_kb": sent / 1000,
+            "ratio": raw / sent if sent else float("nan"),
+            "bps": 8 * sent / duration if duration and duration > 0 else float("nan"),
+            "budget": (8 * sent / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
+            "peers": " ".join(f"{p}:v{v.get('version', '-')}" for p, v in peers.items()) or "-",
+            "conf": min(confs) if confs else float("nan"),
+        })
+    cols = [("robot", "robot", ""), ("versions", "versions", ""), ("keyframes", "keyframes", ""),
+            ("deltas", "deltas", ""), ("raw_kb", "raw kB", ".1f"), ("sent_kb", "sent kB", ".1f"),
+            ("ratio", "ratio", ".1f"), ("bps", "bit/s", ".0f"), ("budget", "of 12.5 kb/s", ".1%"),
+            ("peers", "holds peers", ""), ("conf", "fusion conf", ".2f")]
+    (out / "summary.json").write_text(json.dumps({"robots": rows, "global": global_note}, indent=2, default=str))
+    return "\n".join([
+        "", "summary", table(rows, cols), "", global_note,
+        f"figures: {out / 'bandwidth.png'}, {out / 'quality.png'}; table: {out / 'metrics.csv'}",
+        f"daemon logs and state: {run_dir}",
+    ])

@@ -1,0 +1,181 @@
+"""Crash-safe persistence of what a daemon must not lose (the systemd ``StateDirectory``).
+
+Layout::
+
+    <state>/state.json          versions: own, each peer's applied version, acks, envelope seq
+    <state>/own/map.yaml+pgm    the robot's latest map
+    <state>/own/base.yaml+pgm   the newest own version every peer acknowledged (the delta base)
+    <state>/peers/<robot>/map.yaml+pgm   the last applied version of each peer's map
+    <state>/global/...          written by the fusion worker
+
+Every file is replaced atomically (temp file, fsync, rename), map files first and ``state.json``
+last. ``state.json`` names each map by version and digest, so a map file that does not match it
+(a crash between the two writes) is treated as absent, never as the wrong version.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mapd.errors import MapdError, StateError
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
+
+log = logging.getLogger(__name__)
+_SAFE = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
+
+
+def atomic_write_bytes(path: Path, payload: bytes) -> None:
+    """Replace ``path`` with ``payload`` so that readers see the old or the new file, never half."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        fh.write(payload)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    try:
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)  # make the rename itself durable
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode())
+
+
+@dataclass
+class MapRecord:
+    version: int
+    digest: str
+
+
+@dataclass
+class StateData:
+    """The small, frequently written part of the state."""
+
+    own_version: int = 0
+    own: MapRecord | None = None
+    base: MapRecord | None = None
+    peers: dict[str, MapRecord] = field(default_factory=dict)
+    #: peer -> newest own version that peer acknowledged
+    acked: dict[str, int] = field(default_factory=dict)
+    seq: int = 0
+
+    def to_json(self) -> dict[str, Any]:
+        rec = lambda r: None if r is None else {"version": r.version, "digest": r.digest}  # noqa: E731
+        return {
+            "own_version": self.own_version,
+            "own": rec(self.own),
+            "base": rec(self.base),
+            "peers": {k: rec(v) for k, v in self.peers.items()},
+            "acked": self.acked,
+            "seq": self.seq,
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> StateData:
+        def rec(x: Any) -> MapRecord | None:
+            if isinstance(x, dict) and isinstance(x.get("version"), int) and isinstance(x.get("digest"), str):
+                return MapRecord(x["version"], x["digest"])
+            return None
+
+        peers = {str(k): r for k, v in (d.get("peers") or {}).items() if (r := rec(v)) is not None}
+        acked = {str(k): int(v) for k, v in (d.get("acked") or {}).items() if isinstance(v, int)}
+        return cls(
+            own_version=int(d.get("own_version", 0)),
+            own=rec(d.get("own")),
+            base=rec(d.get("base")),
+            peers=peers,
+            acked=acked,
+            seq=int(d.get("seq", 0)),
+        )
+
+
+class StateStore:
+    """Reads and writes the state directory. Methods are blocking: call them from a thread."""
+
+    def __init__(self, root: Path, *, max_cells: int = DEFAULT_MAX_CELLS) -> None:
+        self.root = root
+        self.max_cells = max_cells
+        self.data = StateData()
+
+    # ------------------------------------------------------------------ setup
+    def open(self) -> StateData:
+        """Create the layout (checking it is writable) and load what a previous run left."""
+        try:
+            for sub in ("own", "peers", "global"):
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
+            probe = self.root / ".write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise StateError(f"state directory {self.root} is not writable: {exc.strerror}") from None
+        path = self.root / "state.json"
+        if path.exists():
+            try:
+                self.data = StateData.from_json(json.loads(path.read_text()))
+            except (OSError, ValueError, TypeError, AttributeError) as exc:
+                log.warning("state.json unreadable (%s); starting with empty state", exc)
+                self.data = StateData()
+        return self.data
+
+    def _peer_dir(self, robot: str) -> Path:
+        if not robot or not set(robot) <= _SAFE:
+            raise StateError(f"refusing unsafe robot name {robot!r} for a state path")
+        return self.root / "peers" / robot
+
+    # ------------------------------------------------------------------ maps
+    def _load(self, yaml_path: Path, rec: MapRecord | None) -> OccupancyGrid | None:
+        if rec is None or not yaml_path.exists():
+            return None
+        try:
+            grid = load_map(yaml_path, max_cells=self.max_cells)
+        except MapdError as exc:
+            log.warning("state map %s unreadable: %s", yaml_path, exc)
+            return None
+        if grid.digest().hex() != rec.digest:
+            log.warning("state map %s does not match state.json (interrupted write); ignoring it", yaml_path)
+            return None
+        return grid.replace(version=rec.version)
+
+    def own_map(self) -> OccupancyGrid | None:
+        return self._load(self.root / "own" / "map.yaml", self.data.own)
+
+    def base_map(self) -> OccupancyGrid | None:
+        return self._load(self.root / "own" / "base.yaml", self.data.base)
+
+    def peer_map(self, robot: str) -> OccupancyGrid | None:
+        grid = self._load(self._peer_dir(robot) / "map.yaml", self.data.peers.get(robot))
+        return None if grid is None else grid.replace(robot=robot)
+
+    def save_own(self, grid: OccupancyGrid) -> None:
+        save_map(grid, self.root / "own" / "map.yaml")
+        self.data.own = MapRecord(grid.version, grid.digest().hex())
+        self.data.own_version = max(self.data.own_version, grid.version)
+        self.flush()
+
+    def save_base(self, grid: OccupancyGrid) -> None:
+        save_map(grid, self.root / "own" / "base.yaml")
+        self.data.base = MapRecord(grid.version, grid.digest().hex())
+        self.flush()
+
+    def save_peer(self, grid: OccupancyGrid) -> None:
+        d = self._peer_dir(grid.robot)
+        d.mkdir(parents=True, exist_ok=True)
+        save_map(grid, d / "map.yaml")
+        self.data.peers[grid.robot] = MapRecord(grid.version, grid.digest().hex())
+        self.flush()
+
+    def flush(self) -> None:
+        try:
+            atomic_write_json(self.root / "state.json", self.data.to_json())
+        except OSError as exc:
+            raise StateError(f"cannot write {self.root / 'state.json'}: {exc.strerror}") from None

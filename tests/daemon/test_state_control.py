@@ -1,0 +1,134 @@
+"""State directory persistence, the read-only control socket, and sd_notify."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import stat
+from pathlib import Path
+
+import pytest
+
+from mapd.control import ControlServer, query
+from mapd.errors import DaemonError, StateError
+from mapd.grid import OccupancyGrid
+from mapd.state import StateStore
+from mapd.systemd import JournalFormatter, notify, watchdog_interval
+
+
+def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
+    store = StateStore(tmp_path / "s")
+    store.open()
+    own = room_grid.replace(version=4, robot="alpha")
+    peer = room_grid.replace(version=9, robot="beta")
+    store.save_own(own)
+    store.save_base(own)
+    store.save_peer(peer)
+    store.data.acked["beta"] = 4
+    store.flush()
+    again = StateStore(tmp_path / "s")
+    data = again.open()
+    assert (data.own_version, data.acked) == (4, {"beta": 4})
+    assert again.own_map() is not None and again.own_map().same_map(own)  # type: ignore[union-attr]
+    assert again.base_map().version == 4  # type: ignore[union-attr]
+    back = again.peer_map("beta")
+    assert back is not None and back.same_map(peer) and back.version == 9
+
+
+def test_map_not_matching_state_json_is_ignored(tmp_path: Path, room_grid: OccupancyGrid) -> None:
+    store = StateStore(tmp_path)
+    store.open()
+    store.save_peer(room_grid.replace(version=2, robot="beta"))
+    # A crash after the map was replaced but before state.json: the map no longer matches.
+    changed = room_grid.data.copy()
+    changed[0, 0] = 100
+    from mapd.grid import save_map
+
+    save_map(room_grid.replace(data=changed), tmp_path / "peers" / "beta" / "map.yaml")
+    again = StateStore(tmp_path)
+    again.open()
+    assert again.peer_map("beta") is None
+
+
+def test_corrupt_state_json_starts_empty(tmp_path: Path) -> None:
+    (tmp_path / "state.json").write_text("{not json")
+    assert StateStore(tmp_path).open().own_version == 0
+
+
+@pytest.mark.parametrize("where", ["proc", "under-a-file"])
+def test_unwritable_state_dir_is_one_clear_error(tmp_path: Path, where: str) -> None:
+    # /proc refuses new directories even to root; a path below a regular file can never exist.
+    if where == "proc":
+        target = Path("/proc/mapd-state")
+    else:
+        (tmp_path / "file").write_text("x")
+        target = tmp_path / "file" / "state"
+    with pytest.raises(StateError, match="is not writable"):
+        StateStore(target).open()
+
+
+def test_unsafe_peer_names_never_become_paths(tmp_path: Path, room_grid: OccupancyGrid) -> None:
+    store = StateStore(tmp_path)
+    store.open()
+    with pytest.raises(StateError, match="unsafe"):
+        store.save_peer(room_grid.replace(robot="../../etc"))
+
+
+def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
+    path = tmp_path / "run" / "mapd.sock"
+    calls = {"n": 0}
+
+    def snap() -> dict[str, object]:
+        calls["n"] += 1
+        return {"robot": "alpha", "n": calls["n"]}
+
+    async def main() -> None:
+        server = ControlServer(path, snap)
+        await server.start()
+        assert stat.S_IMODE(path.stat().st_mode) == 0o660
+        doc = await asyncio.to_thread(query, path)
+        assert doc == {"robot": "alpha", "n": 1}
+        # Writing commands changes nothing: the reply is still just the status.
+        r, w = await asyncio.open_unix_connection(str(path))
+        w.write(b'{"cmd": "shutdown"}\n' * 100)
+        await w.drain()
+        reply = json.loads(await r.read())
+        assert reply["robot"] == "alpha"
+        w.close()
+        with pytest.raises(DaemonError, match="already serving"):
+            await ControlServer(path, snap).start()
+        await server.close()
+        assert not path.exists()
+
+    asyncio.run(main())
+
+
+def test_query_without_daemon_is_clear(tmp_path: Path) -> None:
+    with pytest.raises(DaemonError, match="no mapd daemon is running"):
+        query(tmp_path / "none.sock")
+
+
+def test_sd_notify_and_watchdog(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    sock_path = tmp_path / "notify"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.bind(str(sock_path))
+        monkeypatch.setenv("NOTIFY_SOCKET", str(sock_path))
+        assert notify("READY=1")
+        assert s.recv(100) == b"READY=1"
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    assert not notify("READY=1")
+    monkeypatch.setenv("WATCHDOG_USEC", "4000000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    assert watchdog_interval() == 2.0
+    monkeypatch.setenv("WATCHDOG_PID", "1")
+    assert watchdog_interval() is None
+
+
+def test_journal_formatter_priority_prefix() -> None:
+    import logging
+
+    rec = logging.LogRecord("mapd.x", logging.WARNING, __file__, 1, "link down", None, None)
+    rec.fields = {"peer": "beta"}
+    assert JournalFormatter(journal=True).format(rec) == "<4>mapd.x: link down peer=beta"
