@@ -7,6 +7,7 @@ until EOF; anything it sends is ignored, so nothing on the socket can change the
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import os
@@ -45,7 +46,7 @@ class ControlServer:
             doc = json.dumps(self.snapshot(), default=str).encode() + b"\n"
             writer.write(doc)
             await asyncio.wait_for(writer.drain(), timeout=5)
-        except (OSError, TimeoutError, asyncio.TimeoutError):
+        except (OSError, TimeoutError):
             pass
         except Exception:  # a status bug must never take the daemon down
             log.exception("status snapshot failed")
@@ -57,10 +58,8 @@ class ControlServer:
             self._server.close()
             await self._server.wait_closed()
             self._server = None
-        try:
+        with contextlib.suppress(OSError):
             self.path.unlink()
-        except OSError:
-            pass
 
 
 def _alive(path: Path) -> bool:

@@ -77,8 +77,20 @@ class Daemon:
         self.peer_info: dict[str, dict[str, Any]] = {}
         self.since_keyframe = 0
         self.counters: dict[str, int] = dict.fromkeys(
-            ("bad_envelopes", "foreign_fleet", "bad_signature", "duplicates", "decode_errors", "dropped_events",
-             "keyframe_requests", "keyframes_sent", "deltas_sent", "updates_received"), 0)
+            (
+                "bad_envelopes",
+                "foreign_fleet",
+                "bad_signature",
+                "duplicates",
+                "decode_errors",
+                "dropped_events",
+                "keyframe_requests",
+                "keyframes_sent",
+                "deltas_sent",
+                "updates_received",
+            ),
+            0,
+        )
         self.codec_stats: dict[str, Any] = {"name": cfg.codec.use}
         self.transports: list[Transport] = []
         self.source: MapSource | None = None
@@ -120,7 +132,10 @@ class Daemon:
                 await t.start()
             await self.control.start()
             notify("READY=1\nSTATUS=running")
-            log.info("mapd started", extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}})
+            log.info(
+                "mapd started",
+                extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}},
+            )
             try:
                 await self._run_tasks()
             except* MapdError as group:
@@ -179,8 +194,10 @@ class Daemon:
             self.peer_maps[robot] = grid
             self.fusion.submit(grid)
         if data.own_version:
-            log.info("resumed from state", extra={"fields": {"own_version": data.own_version,
-                                                              "peers": ",".join(self.peer_maps) or "-"}})
+            log.info(
+                "resumed from state",
+                extra={"fields": {"own_version": data.own_version, "peers": ",".join(self.peer_maps) or "-"}},
+            )
 
     async def _watchdog(self) -> None:
         interval = watchdog_interval()
@@ -199,7 +216,9 @@ class Daemon:
                 continue
             # Versions are the daemon's, so they keep increasing across restarts.
             self.store.data.own_version += 1
-            own = grid.replace(robot=self.me, version=self.store.data.own_version, stamp=grid.stamp or time.time())
+            own = grid.replace(
+                robot=self.me, version=self.store.data.own_version, stamp=grid.stamp or time.time()
+            )
             self.own = own
             self._pending = own  # latest wins: an unencoded older version is simply replaced
             self._publish.set()
@@ -258,23 +277,47 @@ class Daemon:
         base_version = head.base_version if head.delta else 0
         self.store.data.seq += 1
         env = Envelope(
-            fleet=self.cfg.robot.fleet, robot=self.me, version=grid.version, base_version=base_version,
-            codec=self.cfg.codec.use, variant=head.variant, width=grid.width, height=grid.height,
-            resolution=grid.resolution, origin=grid.origin, frame_id=grid.frame_id, stamp=grid.stamp,
-            seq=self.store.data.seq, payload=payload,
+            fleet=self.cfg.robot.fleet,
+            robot=self.me,
+            version=grid.version,
+            base_version=base_version,
+            codec=self.cfg.codec.use,
+            variant=head.variant,
+            width=grid.width,
+            height=grid.height,
+            resolution=grid.resolution,
+            origin=grid.origin,
+            frame_id=grid.frame_id,
+            stamp=grid.stamp,
+            seq=self.store.data.seq,
+            payload=payload,
         )
         if self.key is not None:
             env = env.signed(self.key)
         row: dict[str, Any] = {
-            "time": round(time.time(), 3), "version": grid.version, "kind": "delta" if head.delta else "keyframe",
-            "cells": grid.cells, "bytes": len(payload), "ratio": round(grid.cells / len(payload), 2),
-            "encode_ms": round(enc_ms, 2), "psnr": "", "ssim": "",
+            "time": round(time.time(), 3),
+            "version": grid.version,
+            "kind": "delta" if head.delta else "keyframe",
+            "cells": grid.cells,
+            "bytes": len(payload),
+            "ratio": round(grid.cells / len(payload), 2),
+            "encode_ms": round(enc_ms, 2),
+            "psnr": "",
+            "ssim": "",
         }
         if self.cfg.codec.measure_quality and not self.codec.lossless:
             back = decode(payload, base, max_cells=self.cfg.limits.max_cells, options=self.codec_options)
-            row["psnr"], row["ssim"] = round(psnr(grid.data, back.data), 3), round(ssim(grid.data, back.data), 5)
-        self.codec_stats.update(last_version=grid.version, last_bytes=len(payload), last_ratio=row["ratio"],
-                                last_encode_ms=row["encode_ms"], last_kind=row["kind"])
+            row["psnr"], row["ssim"] = (
+                round(psnr(grid.data, back.data), 3),
+                round(ssim(grid.data, back.data), 5),
+            )
+        self.codec_stats.update(
+            last_version=grid.version,
+            last_bytes=len(payload),
+            last_ratio=row["ratio"],
+            last_encode_ms=row["encode_ms"],
+            last_kind=row["kind"],
+        )
         self._log_update(row)
         return env
 
@@ -395,9 +438,15 @@ class Daemon:
         self.peer_maps[env.robot] = grid
         self.counters["updates_received"] += 1
         info = self.peer_info.setdefault(env.robot, {})
-        info.update(version=env.version, received_at=time.time(), link=ev.transport, present=True,
-                    bytes=info.get("bytes", 0) + len(ev.data), updates=info.get("updates", 0) + 1,
-                    last_kind="keyframe" if env.is_keyframe else "delta")
+        info.update(
+            version=env.version,
+            received_at=time.time(),
+            link=ev.transport,
+            present=True,
+            bytes=info.get("bytes", 0) + len(ev.data),
+            updates=info.get("updates", 0) + 1,
+            last_kind="keyframe" if env.is_keyframe else "delta",
+        )
         try:
             await asyncio.to_thread(self.store.save_peer, grid)
         except StateError as exc:
@@ -429,8 +478,11 @@ class Daemon:
                 "size": [self.own.width, self.own.height] if self.own else None,
                 "stats": self.source.stats() if self.source else {},
             },
-            "codec": {**self.codec_stats, "keyframes": self.counters["keyframes_sent"],
-                      "deltas": self.counters["deltas_sent"]},
+            "codec": {
+                **self.codec_stats,
+                "keyframes": self.counters["keyframes_sent"],
+                "deltas": self.counters["deltas_sent"],
+            },
             "peers": peers,
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "fusion": self.fusion.status(),
@@ -460,4 +512,3 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
 
     asyncio.run(main())
     return 0
-

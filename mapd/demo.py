@@ -158,7 +158,9 @@ class Fleet:
             log = open(d / "daemon.log", "wb")  # noqa: SIM115 - lives as long as the process
             self.procs[name] = subprocess.Popen(
                 [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-                stdout=log, stderr=subprocess.STDOUT, env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
             )
 
     def status(self) -> dict[str, dict[str, Any]]:
@@ -174,7 +176,9 @@ class Fleet:
     def check_alive(self) -> None:
         for name, p in self.procs.items():
             if p.poll() is not None:
-                tail = (self.run_dir / name / "daemon.log").read_text(errors="replace").strip().splitlines()[-5:]
+                tail = (
+                    (self.run_dir / name / "daemon.log").read_text(errors="replace").strip().splitlines()[-5:]
+                )
                 raise DaemonError(f"{name} exited with code {p.returncode}: " + " | ".join(tail))
 
     def stop(self, timeout: float = 10.0) -> dict[str, int | None]:
@@ -198,12 +202,15 @@ class Fleet:
 def _progress_line(t: float, snaps: dict[str, dict[str, Any]]) -> str:
     parts = [f"t={t:5.1f}s"]
     for name, s in snaps.items():
-        link = next(iter(s.get("links", {}).values()), {})
+        link: dict[str, Any] = next(iter(s.get("links", {}).values()), {})
         rate = link.get("rate_bps") or UWB_RATE
         tx = link.get("tx_bps", link.get("goodput_bps"))
         use = f"{100 * tx / rate:3.0f}%" if isinstance(tx, int | float) else "  -"
-        conf = [t.get("confidence") for t in (s.get("fusion", {}).get("transforms") or {}).values()
-                if isinstance(t, dict) and t.get("confidence") is not None]
+        conf: list[float] = [
+            t["confidence"]
+            for t in (s.get("fusion", {}).get("transforms") or {}).values()
+            if isinstance(t, dict) and t.get("confidence") is not None
+        ]
         peers = ",".join(f"{p}:v{v.get('version', '-')}" for p, v in s.get("peers", {}).items()) or "-"
         c = s.get("codec", {})
         parts.append(
@@ -222,9 +229,12 @@ def run_demo(args: argparse.Namespace) -> int:
     if args.transport == "uwb" and shutil.which("socat") is None:
         raise MapdError("the UWB demo needs socat: sudo apt-get install -y socat")
     fleet = Fleet(args)
-    print(f"mapd demo: {args.robots} robots, {args.transport} link, codec {args.codec}, "
-          f"{'log ' + str(args.log) if args.log else 'simulated building seed ' + str(args.seed)}, "
-          f"{args.duration:.0f} s", flush=True)
+    print(
+        f"mapd demo: {args.robots} robots, {args.transport} link, codec {args.codec}, "
+        f"{'log ' + str(args.log) if args.log else 'simulated building seed ' + str(args.seed)}, "
+        f"{args.duration:.0f} s",
+        flush=True,
+    )
     fleet.prepare()
     fleet.start()
     t0 = time.monotonic()

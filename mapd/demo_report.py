@@ -16,8 +16,19 @@ from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid, load_map
 
 UWB_RATE = 12500
-COLOURS = np.array([[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189],
-                    [140, 86, 75], [227, 119, 194], [23, 190, 207]], dtype=np.float64)
+COLOURS = np.array(
+    [
+        [31, 119, 180],
+        [214, 39, 40],
+        [44, 160, 44],
+        [255, 127, 14],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [23, 190, 207],
+    ],
+    dtype=np.float64,
+)
 
 
 def _updates(state: Path) -> list[dict[str, Any]]:
@@ -39,7 +50,7 @@ def _updates(state: Path) -> list[dict[str, Any]]:
 def coloured_global(global_map: OccupancyGrid, contributions: np.ndarray | None) -> np.ndarray:
     """RGB image of the global map: free white, unknown grey, occupied dark, tinted by robot."""
     d = np.flipud(global_map.data)
-    img = np.full(d.shape + (3,), 205.0)
+    img = np.full((*d.shape, 3), 205.0)
     img[(d >= 0) & (d < 65)] = 250.0
     img[d >= 65] = 30.0
     if contributions is not None and contributions.shape == global_map.data.shape:
@@ -86,13 +97,13 @@ def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
     for i, (name, rows) in enumerate(series.items()):
         if not rows:
             continue
-        t = [r["time"] - t0 for r in rows]
+        ts = [r["time"] - t0 for r in rows]
         c = COLOURS[i % len(COLOURS)] / 255
-        a1.plot(t, [r["ratio"] for r in rows], "o-", ms=3, color=c, label=name)
+        a1.plot(ts, [r["ratio"] for r in rows], "o-", ms=3, color=c, label=name)
         ps = [r["psnr"] for r in rows]
         if any(np.isfinite(ps)):
             lossy = True
-            a2.plot(t, ps, "o-", ms=3, color=c, label=f"{name} PSNR")
+            a2.plot(ts, ps, "o-", ms=3, color=c, label=f"{name} PSNR")
     a1.set_ylabel("compression ratio (cells : bytes)")
     a1.set_yscale("log")
     a1.set_title("Compression and map quality per update (cf. paper Fig. 8a)")
@@ -102,8 +113,14 @@ def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
         a2.set_ylabel("PSNR (dB)")
         a2.legend(fontsize=7)
     else:
-        a2.text(0.5, 0.5, "lossless codec: every map arrives exact (PSNR = inf, SSIM = 1)",
-                ha="center", va="center", transform=a2.transAxes)
+        a2.text(
+            0.5,
+            0.5,
+            "lossless codec: every map arrives exact (PSNR = inf, SSIM = 1)",
+            ha="center",
+            va="center",
+            transform=a2.transAxes,
+        )
         a2.set_yticks([])
     a2.set_xlabel("time (s)")
     a2.grid(alpha=0.3)
@@ -121,8 +138,8 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     series = {n: _updates(run_dir / n / "state") for n in names}
     with open(out / "metrics.csv", "w", newline="") as fh:
-        cols = ["robot", "time", "version", "kind", "cells", "bytes", "ratio", "encode_ms", "psnr", "ssim"]
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
+        fields = ["robot", "time", "version", "kind", "cells", "bytes", "ratio", "encode_ms", "psnr", "ssim"]
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         for n, rows in series.items():
             for r in rows:
@@ -140,8 +157,10 @@ def write_report(
                 if f.suffix in (".yaml", ".pgm", ".json"):
                     shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)
             c = g.counts()
-            global_note = (f"global map {g.width} x {g.height} cells at {g.resolution} m, "
-                           f"{c['free'] + c['occupied']} known cells -> {out / 'global_map.png'}")
+            global_note = (
+                f"global map {g.width} x {g.height} cells at {g.resolution} m, "
+                f"{c['free'] + c['occupied']} known cells -> {out / 'global_map.png'}"
+            )
         except (MapdError, OSError, ValueError) as exc:
             global_note = f"global map unreadable: {exc}"
 
@@ -154,27 +173,46 @@ def write_report(
         raw = sum(r["cells"] for r in ups)
         peers = s.get("peers", {})
         transforms = s.get("fusion", {}).get("transforms") or {}
-        confs = [t.get("confidence") for t in transforms.values() if isinstance(t, dict) and t.get("confidence")]
-        rows.append({
-            "robot": n,
-            "versions": ups[-1]["version"] if ups else 0,
-            "keyframes": sum(r["kind"] == "keyframe" for r in ups),
-            "deltas": sum(r["kind"] == "delta" for r in ups),
-            "raw_kb": raw / 1000,
-            "sent_kb": sent / 1000,
-            "ratio": raw / sent if sent else float("nan"),
-            "bps": 8 * sent / duration if duration and duration > 0 else float("nan"),
-            "budget": (8 * sent / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
-            "peers": " ".join(f"{p}:v{v.get('version', '-')}" for p, v in peers.items()) or "-",
-            "conf": min(confs) if confs else float("nan"),
-        })
-    cols = [("robot", "robot", ""), ("versions", "versions", ""), ("keyframes", "keyframes", ""),
-            ("deltas", "deltas", ""), ("raw_kb", "raw kB", ".1f"), ("sent_kb", "sent kB", ".1f"),
-            ("ratio", "ratio", ".1f"), ("bps", "bit/s", ".0f"), ("budget", "of 12.5 kb/s", ".1%"),
-            ("peers", "holds peers", ""), ("conf", "fusion conf", ".2f")]
-    (out / "summary.json").write_text(json.dumps({"robots": rows, "global": global_note}, indent=2, default=str))
-    return "\n".join([
-        "", "summary", table(rows, cols), "", global_note,
-        f"figures: {out / 'bandwidth.png'}, {out / 'quality.png'}; table: {out / 'metrics.csv'}",
-        f"daemon logs and state: {run_dir}",
-    ])
+        confs: list[float] = [float(t["confidence"]) for t in transforms.values() if isinstance(t, dict) and t.get("confidence")]
+        rows.append(
+            {
+                "robot": n,
+                "versions": ups[-1]["version"] if ups else 0,
+                "keyframes": sum(r["kind"] == "keyframe" for r in ups),
+                "deltas": sum(r["kind"] == "delta" for r in ups),
+                "raw_kb": raw / 1000,
+                "sent_kb": sent / 1000,
+                "ratio": raw / sent if sent else float("nan"),
+                "bps": 8 * sent / duration if duration and duration > 0 else float("nan"),
+                "budget": (8 * sent / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
+                "peers": " ".join(f"{p}:v{v.get('version', '-')}" for p, v in peers.items()) or "-",
+                "conf": min(confs) if confs else float("nan"),
+            }
+        )
+    cols = [
+        ("robot", "robot", ""),
+        ("versions", "versions", ""),
+        ("keyframes", "keyframes", ""),
+        ("deltas", "deltas", ""),
+        ("raw_kb", "raw kB", ".1f"),
+        ("sent_kb", "sent kB", ".1f"),
+        ("ratio", "ratio", ".1f"),
+        ("bps", "bit/s", ".0f"),
+        ("budget", "of 12.5 kb/s", ".1%"),
+        ("peers", "holds peers", ""),
+        ("conf", "fusion conf", ".2f"),
+    ]
+    (out / "summary.json").write_text(
+        json.dumps({"robots": rows, "global": global_note}, indent=2, default=str)
+    )
+    return "\n".join(
+        [
+            "",
+            "summary",
+            table(rows, cols),
+            "",
+            global_note,
+            f"figures: {out / 'bandwidth.png'}, {out / 'quality.png'}; table: {out / 'metrics.csv'}",
+            f"daemon logs and state: {run_dir}",
+        ]
+    )

@@ -40,7 +40,12 @@ def intel_log(data_dir: Path) -> Path:
 
 
 def make_room_grid(
-    height: int = 60, width: int = 80, *, seed: int = 0, resolution: float = 0.05, origin: Pose2D | None = None
+    height: int = 60,
+    width: int = 80,
+    *,
+    seed: int = 0,
+    resolution: float = 0.05,
+    origin: Pose2D | None = None,
 ) -> OccupancyGrid:
     """A small synthetic trinary map: unknown outside, a walled room with a box inside, some speckle."""
     rng = np.random.default_rng(seed)

@@ -21,7 +21,11 @@ BASELINES = ("zstd-19", "brotli-11")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--codec", nargs="+", default=None, metavar="NAME", help="codecs to measure (default: every installed one)"
+        "--codec",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="codecs to measure (default: every installed one)",
     )
     p.add_argument("--maps", type=Path, default=None, help="folder of map_server maps (default: shared data)")
     p.add_argument("--limit", type=int, default=None, help="only the first N maps")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
@@ -40,8 +41,8 @@ def synthetic_maps(count: int = 6, seed: int = 0) -> list[tuple[str, OccupancyGr
         # Rooms on a jittered grid, joined by doors: free inside, walls around.
         rooms_y = np.linspace(10, h - 10, int(rng.integers(2, 5)) + 1).astype(int)
         rooms_x = np.linspace(10, w - 10, int(rng.integers(2, 5)) + 1).astype(int)
-        for r0, r1 in zip(rooms_y[:-1], rooms_y[1:], strict=True):
-            for c0, c1 in zip(rooms_x[:-1], rooms_x[1:], strict=True):
+        for r0, r1 in itertools.pairwise(rooms_y):
+            for c0, c1 in itertools.pairwise(rooms_x):
                 if rng.random() < 0.2:
                     continue
                 d[r0:r1, c0:c1] = 0

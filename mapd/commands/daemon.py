@@ -21,7 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run mapd in the foreground until SIGTERM/SIGINT (a second SIGINT forces exit). "
         "Under systemd it reports READY=1 and pings the watchdog.",
     )
-    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help=f"config file (default {DEFAULT_CONFIG})")
+    p.add_argument(
+        "--config", type=Path, default=DEFAULT_CONFIG, help=f"config file (default {DEFAULT_CONFIG})"
+    )
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
@@ -90,7 +92,9 @@ def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
     out = []
     src = s.get("source", {})
-    out.append(f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}")
+    out.append(
+        f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}"
+    )
     size = src.get("size") or ["-", "-"]
     out.append(f"source  {src.get('name')}: map v{src.get('version')} ({size[0]} x {size[1]} cells)")
     c = s.get("codec", {})
@@ -116,7 +120,9 @@ def render_status(s: dict[str, Any]) -> str:
         others = [f"{k}={v}" for k, v in st.items() if k not in keys and isinstance(v, int | float)]
         out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
     f = s.get("fusion", {})
-    out.append(f"fusion  maps {f.get('maps_merged', f.get('maps', '-'))}, last merge {_age(f.get('last_merge_age_s'))} ago")
+    out.append(
+        f"fusion  maps {f.get('maps_merged', f.get('maps', '-'))}, last merge {_age(f.get('last_merge_age_s'))} ago"
+    )
     for robot, t in (f.get("transforms") or {}).items():
         if isinstance(t, dict):
             acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason', '?')})"

@@ -50,7 +50,10 @@ def test_example_config_is_complete_and_valid() -> None:
     [
         (MINIMAL + "\n[fusion]\nmdoe = 'logodds'\n", r"mapd\.toml: fusion\.mdoe: unknown key"),
         (MINIMAL.replace('name = "alpha"', "name = 5"), r"mapd\.toml: robot\.name: .*string"),
-        (MINIMAL.replace("level = 7", "level = 99"), r"mapd\.toml: codec\.zstd\.level: .*less than or equal to 22"),
+        (
+            MINIMAL.replace("level = 7", "level = 99"),
+            r"mapd\.toml: codec\.zstd\.level: .*less than or equal to 22",
+        ),
         (MINIMAL.replace("level = 7", "levle = 7"), r"codec\.zstd\.levle: unknown key"),
         (MINIMAL.replace('use = "zstd"', 'use = "nosuch"'), r"codec\.use: no codec plugin 'nosuch'"),
         ("[robot]\nfleet = 'x'\n", r"robot\.name: required key is missing"),
@@ -71,7 +74,9 @@ def test_missing_config_file(tmp_path: Path) -> None:
 
 def test_key_file(tmp_path: Path) -> None:
     (tmp_path / "fleet.key").write_text("ab" * 32 + "\n")
-    cfg = config.load(write(tmp_path, MINIMAL.replace('fleet = "lab"', 'fleet = "lab"\nkey_file = "fleet.key"')))
+    cfg = config.load(
+        write(tmp_path, MINIMAL.replace('fleet = "lab"', 'fleet = "lab"\nkey_file = "fleet.key"'))
+    )
     assert config.read_key(cfg) == bytes.fromhex("ab" * 32)
     (tmp_path / "fleet.key").write_text("abcd")
     with pytest.raises(ConfigError, match="at least 16"):
@@ -93,7 +98,9 @@ def test_unknown_plugin_and_missing_dependency(monkeypatch: pytest.MonkeyPatch) 
         plugins.load("codec", "nope")
     with pytest.raises(PluginError, match="unknown plugin kind"):
         plugins.names("widget")
-    fake = importlib.metadata.EntryPoint(name="fancy", value="some_missing_lib_xyz.codec:Fancy", group="mapd.codecs")
+    fake = importlib.metadata.EntryPoint(
+        name="fancy", value="some_missing_lib_xyz.codec:Fancy", group="mapd.codecs"
+    )
     monkeypatch.setattr(plugins, "_entry_points", lambda kind: {"fancy": fake})
     with pytest.raises(PluginError, match="codec plugin 'fancy' needs some_missing_lib_xyz"):
         plugins.load("codec", "fancy")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import msgpack
 import pytest
 from hypothesis import given, settings
@@ -15,8 +17,21 @@ KEY = b"k" * 32
 
 
 def make(**kw: object) -> Envelope:
-    base = dict(fleet="f1", robot="alpha", version=3, base_version=2, codec="lossless", width=10, height=20,
-                resolution=0.05, origin=Pose2D(1.0, 2.0, 0.5), payload=b"\x01\x02", variant="", stamp=12.5, seq=7)
+    base = dict(
+        fleet="f1",
+        robot="alpha",
+        version=3,
+        base_version=2,
+        codec="lossless",
+        width=10,
+        height=20,
+        resolution=0.05,
+        origin=Pose2D(1.0, 2.0, 0.5),
+        payload=b"\x01\x02",
+        variant="",
+        stamp=12.5,
+        seq=7,
+    )
     base.update(kw)
     return Envelope(**base)  # type: ignore[arg-type]
 
@@ -49,8 +64,16 @@ def test_fleet_and_size_limits() -> None:
 
 @pytest.mark.parametrize(
     ("field", "value", "match"),
-    [("v", "3", "wrong type"), ("v", 0, "inconsistent"), ("b", 5, "inconsistent"), ("res", -1.0, "non-finite"),
-     ("o", [1, 2], "three numbers"), ("zz", 1, "unknown fields"), ("f", 9, "format 9"), ("r", "", "empty")],
+    [
+        ("v", "3", "wrong type"),
+        ("v", 0, "inconsistent"),
+        ("b", 5, "inconsistent"),
+        ("res", -1.0, "non-finite"),
+        ("o", [1, 2], "three numbers"),
+        ("zz", 1, "unknown fields"),
+        ("f", 9, "format 9"),
+        ("r", "", "empty"),
+    ],
 )
 def test_bad_fields(field: str, value: object, match: str) -> None:
     d = msgpack.unpackb(make().pack())
@@ -69,18 +92,22 @@ def test_missing_field() -> None:
 @settings(max_examples=300, deadline=None)
 @given(blob=st.binary(max_size=300))
 def test_fuzz_unpack_only_raises_envelope_errors(blob: bytes) -> None:
-    try:
+    with contextlib.suppress(EnvelopeError):
         unpack(blob)
-    except EnvelopeError:
-        pass
 
 
 @settings(max_examples=100, deadline=None)
-@given(obj=st.recursive(st.none() | st.integers(-(2**63), 2**64 - 1) | st.text(max_size=5) | st.binary(max_size=5) | st.floats(),
-                        lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=3), c, max_size=4),
-                        max_leaves=20))
+@given(
+    obj=st.recursive(
+        st.none()
+        | st.integers(-(2**63), 2**64 - 1)
+        | st.text(max_size=5)
+        | st.binary(max_size=5)
+        | st.floats(),
+        lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=3), c, max_size=4),
+        max_leaves=20,
+    )
+)
 def test_fuzz_structured_garbage(obj: object) -> None:
-    try:
+    with contextlib.suppress(EnvelopeError):
         unpack(msgpack.packb(obj))
-    except EnvelopeError:
-        pass
