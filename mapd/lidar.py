@@ -49,11 +49,13 @@ class Lidar:
         self.noise_std = float(noise_std)
         self.dropout = float(dropout)
         fov = math.radians(fov_deg)
-        # A full circle must not sample the same direction twice.
-        span = fov if fov_deg < 360.0 else fov * (beams - 1) / beams
-        self.angles = (-span / 2 + span * np.arange(beams) / max(beams - 1, 1)).astype(np.float64)
         if beams == 1:
             self.angles = np.zeros(1)
+        elif fov_deg >= 360.0:
+            # A full circle: from -pi in steps of 2 pi / beams, never the same direction twice.
+            self.angles = -math.pi + (2 * math.pi / beams) * np.arange(beams, dtype=np.float64)
+        else:
+            self.angles = -fov / 2 + (fov / (beams - 1)) * np.arange(beams, dtype=np.float64)
         st = step if step is not None else 0.5 * self.resolution
         self._t = np.arange(st, self.max_range + 1e-9, st, dtype=np.float32)
 

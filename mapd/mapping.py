@@ -22,6 +22,7 @@ and the benches use it); :func:`split_range` is how a log is shared among ``robo
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections.abc import Iterator
@@ -35,6 +36,25 @@ from mapd.grid import DEFAULT_MAX_CELLS, FREE, OCCUPIED, UNKNOWN, OccupancyGrid,
 
 #: Cells added on each side when the buffer must grow (so growth is rare, not once per scan).
 GROW_MARGIN_CELLS = 160
+#: Most ray samples handled at once; longer scans are cast in several chunks.
+MAX_SAMPLES = 1 << 20
+
+
+def _dda_cells(
+    sc: float, sr: float, ec: np.ndarray, er: np.ndarray, steps: np.ndarray, w: int, h: int
+) -> np.ndarray:
+    """Flat buffer indices of the cells from (sr, sc) towards each (er, ec), ``steps`` samples each."""
+    total = int(steps.sum())
+    beam = np.repeat(np.arange(steps.size), steps)
+    first = np.cumsum(steps) - steps
+    k = np.arange(total, dtype=np.float64) - np.repeat(first, steps)
+    t = k / np.repeat(np.maximum(steps, 1), steps)
+    fc = np.floor(sc + t * (ec - sc)[beam]).astype(np.int64)
+    fr = np.floor(sr + t * (er - sr)[beam]).astype(np.int64)
+    np.clip(fc, 0, w - 1, out=fc)
+    np.clip(fr, 0, h - 1, out=fr)
+    out: np.ndarray = fr * w + fc
+    return out
 
 
 def logit(p: float) -> float:
@@ -103,6 +123,7 @@ class Mapper:
         self._free_lo = logit(o.free_thresh)
         self._lo = np.zeros((0, 0), dtype=np.float32)
         self._scratch = np.zeros((0, 0), dtype=np.bool_)
+        self._seen = np.zeros((0, 0), dtype=np.bool_)
         # Frame cell (row, col) of buffer cell (0, 0).
         self._off = (0, 0)
         # Observed bounds in frame cells, half-open: row0, row1, col0, col1; None before the first scan.
@@ -153,6 +174,7 @@ class Mapper:
             lo[dr - nr0 : dr - nr0 + h, dc - nc0 : dc - nc0 + w] = self._lo
         self._lo = lo
         self._scratch = np.zeros(lo.shape, dtype=np.bool_)
+        self._seen = np.zeros(lo.shape, dtype=np.bool_)
         self._off = (nr0, nc0)
 
     # -- integration ----------------------------------------------------------------------------------
@@ -178,8 +200,8 @@ class Mapper:
         if o.clear_no_return:
             free_len = np.where(no_ret, max_range, free_len)
         used = free_len > 0.0
-        self.scans += 1
         if not used.any():
+            self.scans += 1
             return 0
         res = self._res
         th = pose.yaw + a[used]
@@ -199,32 +221,37 @@ class Mapper:
         sc_b, sr_b = sc - dc, sr - dr
         ec_b, er_b = ec - dc, er - dr
 
-        # DDA: one sample per cell along each beam's major axis, the end cell excluded.
-        steps = np.ceil(np.maximum(np.abs(ec_b - sc_b), np.abs(er_b - sr_b))).astype(np.int64)
-        total = int(steps.sum())
-        beam = np.repeat(np.arange(steps.size), steps)
-        first = np.cumsum(steps) - steps
-        k = np.arange(total, dtype=np.float64) - np.repeat(first, steps)
-        t = k / np.repeat(np.maximum(steps, 1), steps)
-        fc = np.floor(sc_b + t * (ec_b - sc_b)[beam]).astype(np.int64)
-        fr = np.floor(sr_b + t * (er_b - sr_b)[beam]).astype(np.int64)
-        np.clip(fc, 0, w - 1, out=fc)
-        np.clip(fr, 0, h - 1, out=fr)
-        free_idx = fr * w + fc
-
         hc = np.clip(np.floor(ec_b[hits]).astype(np.int64), 0, w - 1)
         hr = np.clip(np.floor(er_b[hits]).astype(np.int64), 0, h - 1)
         hit_idx = hr * w + hc
 
+        # DDA: one sample per cell along each beam's major axis, the end cell excluded. Beams are
+        # taken in chunks of at most MAX_SAMPLES samples so that one long scan cannot allocate much.
+        steps = np.ceil(np.maximum(np.abs(ec_b - sc_b), np.abs(er_b - sr_b))).astype(np.int64)
+        chunk_of = (np.cumsum(steps) - 1) // MAX_SAMPLES
+        cuts = np.flatnonzero(np.diff(chunk_of)) + 1
+        bounds = [0, *cuts.tolist(), steps.size]
         lo = self._lo.reshape(-1)
         scratch = self._scratch.reshape(-1)
+        seen = self._seen.reshape(-1)
+        several = len(bounds) > 2
         scratch[hit_idx] = True
-        free_idx = free_idx[~scratch[free_idx]]
+        missed: list[np.ndarray] = []
+        for i0, i1 in itertools.pairwise(bounds):
+            free_idx = _dda_cells(sc_b, sr_b, ec_b[i0:i1], er_b[i0:i1], steps[i0:i1], w, h)
+            free_idx = free_idx[~scratch[free_idx]]
+            if several:
+                # Across chunks, a cell must still get one miss per scan.
+                free_idx = free_idx[~seen[free_idx]]
+                seen[free_idx] = True
+            # Fancy-index += applies once per distinct cell: one miss/hit per cell per scan.
+            lo[free_idx] += np.float32(o.miss)
+            missed.append(free_idx)
         scratch[hit_idx] = False
-        # Fancy-index += applies once per distinct cell: one miss/hit per cell per scan.
-        lo[free_idx] += np.float32(o.miss)
         lo[hit_idx] += np.float32(o.hit)
-        touched = np.concatenate((free_idx, hit_idx))
+        touched = np.concatenate([*missed, hit_idx])
+        if several:
+            seen[touched] = False
         lo[touched] = np.clip(lo[touched], o.clamp_min, o.clamp_max)
 
         if self._bounds is None:
@@ -232,6 +259,7 @@ class Mapper:
         else:
             b = self._bounds
             self._bounds = (min(b[0], r0), max(b[1], r1), min(b[2], c0), max(b[3], c1))
+        self.scans += 1
         return int(used.sum())
 
     # -- output ---------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ class Planner:
         res = g.resolution
         self.clear = ndimage.distance_transform_edt(world.free()) * res  # m to the nearest non-free cell
         self.clearance = clearance
-        k = max(1, int(round(PLAN_CELL / res)))
+        k = max(1, round(PLAN_CELL / res))
         self.k = k
         h, w = (g.height // k) * k, (g.width // k) * k
         coarse = self.clear[:h, :w].reshape(h // k, k, w // k, k).min(axis=(1, 3))
@@ -174,6 +174,7 @@ class SimRobot:
             raise ValueError(f"start must be a pose, 'auto' or 'random', not {start!r}")
         self.pose = self.start
         self.time = 0.0
+        self.steps = 0
         self.distance = 0.0
         self._route: list[tuple[float, float]] = []
         self._tour = self._tour_from(self.start)
@@ -212,9 +213,8 @@ class SimRobot:
 
     def _tour_from(self, here: Pose2D) -> list[tuple[float, float]]:
         """Own group nearest-first, then the other groups (nearest group first), nearest-first each."""
-        order = [self.index] + sorted(
-            (i for i in range(self.robots) if i != self.index), key=lambda i: abs(i - self.index)
-        )
+        others = sorted((i for i in range(self.robots) if i != self.index), key=lambda i: abs(i - self.index))
+        order = [self.index, *others]
         tour: list[tuple[float, float]] = []
         x, y = here.x, here.y
         for gi in order:
@@ -267,7 +267,9 @@ class SimRobot:
     def step(self) -> None:
         """Advance one scan period: drive, scan, map."""
         self._drive(self.dt)
-        self.time += self.dt
+        self.steps += 1
+        # From the step count, so sim time does not drift with float sums.
+        self.time = self.steps * self.dt
         ranges = self.lidar.scan(self.pose, self.rng)
         self.mapper.integrate(ranges, self.lidar.angles, relative(self.start, self.pose))
 

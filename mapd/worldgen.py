@@ -15,6 +15,7 @@ spread over the largest connected free area.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -70,17 +71,19 @@ class _Painter:
 
     def __init__(self, width_m: float, height_m: float, resolution: float) -> None:
         self.res = resolution
-        self.w = int(round((width_m + 2 * MARGIN) / resolution))
-        self.h = int(round((height_m + 2 * MARGIN) / resolution))
+        self.w = round((width_m + 2 * MARGIN) / resolution)
+        self.h = round((height_m + 2 * MARGIN) / resolution)
         self.data = np.full((self.h, self.w), UNKNOWN, dtype=np.int8)
 
     def _cells(self, v: float) -> int:
-        return int(round((v + MARGIN) / self.res))
+        return round((v + MARGIN) / self.res)
 
     def rect(self, x0: float, y0: float, x1: float, y1: float, value: int) -> None:
         c0, c1 = sorted((self._cells(x0), self._cells(x1)))
         r0, r1 = sorted((self._cells(y0), self._cells(y1)))
-        self.data[max(r0, 0) : min(max(r1, r0 + 1), self.h), max(c0, 0) : min(max(c1, c0 + 1), self.w)] = value
+        self.data[max(r0, 0) : min(max(r1, r0 + 1), self.h), max(c0, 0) : min(max(c1, c0 + 1), self.w)] = (
+            value
+        )
 
     def hwall(self, x0: float, x1: float, y: float, t: float = WALL) -> None:
         self.rect(x0 - t / 2, y - t / 2, x1 + t / 2, y + t / 2, OCCUPIED)
@@ -137,7 +140,7 @@ def generate(
         ya, yb = (0.0, c0) if side == "south" else (c1, height_m)
         door_y = c0 if side == "south" else c1
         cuts = _split(rng, 0.0, width_m, 3.0, 6.0)
-        for x0, x1 in zip(cuts[:-1], cuts[1:], strict=True):
+        for x0, x1 in itertools.pairwise(cuts):
             if x0 > 0:
                 pt.vwall(x0, ya, yb)
             width = float(rng.uniform(0.9, 1.2))
@@ -176,7 +179,9 @@ def generate(
                 if dy is not None:
                     openings.append((x - WALL, dy - w3 / 2, x + WALL, dy + w3 / 2))
                     for r in rooms:
-                        if (abs(r.x0 - x) < 1e-9 or abs(r.x1 - x) < 1e-9) and r.y0 - 1e-9 <= dy <= r.y1 + 1e-9:
+                        if (
+                            abs(r.x0 - x) < 1e-9 or abs(r.x1 - x) < 1e-9
+                        ) and r.y0 - 1e-9 <= dy <= r.y1 + 1e-9:
                             r.doors.append((x, dy))
 
     pt.hwall(0, width_m, c0)

@@ -11,9 +11,12 @@ makes the bound exact, where a token bucket alone would allow ``rate + burst`` i
 * ``tdma``: time is cut into ``slots`` slots of ``slot_s`` seconds on a clock all robots share (the
   adapter passes the offset from its loop clock to wall time); a robot sends only in its own slot, and
   only a frame that ends ``guard_s`` before the slot does;
-* ``backoff``: listen before talk: wait until nothing was heard for ``sense_s``, then a random backoff
-  drawn from ``[backoff_min_s, backoff_max_s]`` (new after every frame) so two waiting robots rarely
-  start together.
+* ``backoff``: listen before talk: after hearing the channel busy, wait until it was quiet for
+  ``sense_s`` plus a random backoff drawn from ``[backoff_min_s, backoff_max_s]`` (new after every
+  frame), so two robots waiting for the same frame to end rarely start together. A robot that heard
+  nothing recently sends at once, so a lone sender pays nothing. Carrier sense here means "bytes
+  arrived": a radio that hands over a frame only once it is complete hides a frame still in the air,
+  which is what TDMA avoids.
 """
 
 from __future__ import annotations
@@ -37,7 +40,9 @@ class Pacer:
         self.window = window_s
         self.budget = self.rate * window_s  # bytes allowed in any window
         if self.budget < burst_bytes:
-            raise ValueError(f"a {window_s} s window at {rate_bps} b/s cannot carry a {burst_bytes}-byte frame")
+            raise ValueError(
+                f"a {window_s} s window at {rate_bps} b/s cannot carry a {burst_bytes}-byte frame"
+            )
         self._tokens = self.burst
         self._t: float | None = None
         self._log: deque[tuple[float, int]] = deque()
@@ -55,15 +60,15 @@ class Pacer:
         return min(self.burst, self._tokens + max(0.0, now - self._t) * self.rate)
 
     def ready_at(self, n: int, now: float) -> float:
-        """The earliest time (>= now) at which ``n`` bytes may be written."""
+        """The earliest time (>= now) at which ``n`` bytes may be written (pure: state is unchanged)."""
         tokens = self._tokens_at(now)
         t_bucket = now if tokens >= n else now + (n - tokens) / self.rate + _EPS
-        self._expire(now)
-        excess = self._in_window + n - self.budget
+        live = [(t_e, n_e) for t_e, n_e in self._log if t_e > now - self.window]
+        excess = sum(n_e for _, n_e in live) + n - self.budget
         t_window = now
         if excess > 0:
             freed = 0
-            for t_e, n_e in self._log:
+            for t_e, n_e in live:
                 freed += n_e
                 if freed >= excess:
                     t_window = t_e + self.window + _EPS
@@ -111,7 +116,6 @@ class MediumAccess:
         self.backoff_max_s = backoff_max_s
         self._rng = rng or random.Random(0)
         self._heard = -1e18
-        self._tx_end = -1e18
         self._backoff = self._draw()
 
     def _draw(self) -> float:
@@ -127,8 +131,7 @@ class MediumAccess:
         if self.mode == "tdma":
             return self._tdma(airtime, now)
         if self.mode == "backoff":
-            idle = max(self._heard + self.sense_s, self._tx_end)
-            return max(now, idle + self._backoff)
+            return max(now, self._heard + self.sense_s + self._backoff)
         return now
 
     def _tdma(self, airtime: float, now: float) -> float:
@@ -143,6 +146,5 @@ class MediumAccess:
         return nxt - self.clock_offset + _EPS
 
     def sent(self, n: int, now: float) -> None:
-        """A frame of ``n`` bytes started at ``now``."""
-        self._tx_end = now + n * self.byte_time
+        """A frame of ``n`` bytes started at ``now``: draw the next backoff."""
         self._backoff = self._draw()

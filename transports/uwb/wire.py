@@ -40,8 +40,7 @@ KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO"}
 # ACK flags
 COMPLETE = 0x01  # the whole message is held and its hash verified
 REJECT = 0x02  # the receiver refuses the message (over its size limit); the sender gives up on it
-GONE = 0x04  # the receiver already holds a newer message of that stream
-_ACK_FLAGS = COMPLETE | REJECT | GONE
+_ACK_FLAGS = COMPLETE | REJECT
 
 MAX_BITMAP = 32  # bytes: an ACK describes up to 256 chunks past base
 
@@ -127,11 +126,11 @@ def is_signed(body: bytes) -> bool:
     return bool(body) and bool(body[0] & SIGNED)
 
 
-def parse(body: bytes, *, max_total: int) -> Frame:
+def parse(body: bytes) -> Frame:
     """Parse a body (signing trailer already stripped); :class:`ProtocolError` on any absurd field.
 
-    ``max_total`` bounds a DATA frame's ``total`` (the receiver's message limit plus the hash), so a
-    hostile frame can never make a receiver plan an allocation past its limit.
+    Only the structure is checked here; limits that are policy (a message over the receiver's size
+    limit) are the core's to answer, so the sender hears a REJECT instead of retrying into silence.
     """
     if len(body) < HEADER_LEN:
         raise ProtocolError(f"uwb: frame of {len(body)} bytes is shorter than a header")
@@ -150,8 +149,6 @@ def parse(body: bytes, *, max_total: int) -> Frame:
         payload = body[DATA_HEADER_LEN:]
         if count == 0 or index >= count:
             raise ProtocolError(f"uwb: DATA chunk index {index} is not below its count {count}")
-        if total > max_total:
-            raise ProtocolError(f"uwb: DATA message of {total} bytes is over the limit of {max_total}")
         if count > total or len(payload) > total:
             raise ProtocolError(f"uwb: DATA sizes are inconsistent ({count} chunks, {total} bytes)")
         return Data(src, dst, session, msg, stream, index, count, total, payload)
@@ -172,17 +169,6 @@ def parse(body: bytes, *, max_total: int) -> Frame:
             raise ProtocolError("uwb: HELLO frame has trailing bytes")
         return Hello(src, dst, session)
     raise ProtocolError(f"uwb: unknown frame type {kind}")
-
-
-def bitmap_from(have: bytearray, base: int, count: int) -> bytes:
-    """The ACK bitmap for chunks ``base+1 ..`` of ``have`` (1 = held), trailing zero bytes cut."""
-    out = bytearray(MAX_BITMAP)
-    top = min(count, base + 1 + 8 * MAX_BITMAP)
-    for i in range(base + 1, top):
-        if have[i]:
-            k = i - base - 1
-            out[k >> 3] |= 1 << (k & 7)
-    return bytes(out.rstrip(b"\x00"))
 
 
 def bitmap_indices(base: int, bitmap: bytes) -> list[int]:

@@ -1,0 +1,167 @@
+"""``mapfile``: watch a map_server YAML (say, what ``map_saver`` rewrites every few seconds).
+
+The YAML and its image are polled every ``poll_s``. A change is loaded only once both files have
+stayed the same for ``settle_s`` (a writer mid-way through is left alone), and it is emitted only if
+they were still the same after loading and the map differs from the last one sent, so a half-written
+file is retried, never emitted. A file that will not load (truncated image, broken YAML) or that
+vanishes is logged with the reason, counted, and retried when the files change again; the source
+keeps running. The stream never ends on its own.
+
+Each version is stamped with the newest modification time of the two files. The map is whatever
+frame the writer used; give ``start_pose`` when its pose in the fleet frame is known.
+
+Example ``config.toml`` table::
+
+    [source.mapfile]
+    path = "/var/lib/robot/map.yaml"
+    poll_s = 1.0
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from pydantic import Field, field_validator
+
+from mapd.errors import LimitError, MapFileError
+from mapd.grid import OccupancyGrid, Pose2D, load_map, read_map_yaml
+from mapd.sources.base import MapSource, SourceContext, SourceOptions
+
+log = logging.getLogger(__name__)
+
+Signature = tuple[tuple[int, int, int], tuple[int, int, int]]
+
+
+class MapFileOptions(SourceOptions):
+    """``[source.mapfile]``: the YAML to watch and how often."""
+
+    path: Path = Field(description="map_server YAML to watch (relative: to the data folder, then the cwd)")
+    poll_s: float = Field(default=1.0, gt=0.0, le=3600.0, description="seconds between checks")
+    settle_s: float = Field(
+        default=0.3, ge=0.0, le=60.0, description="files must be unchanged this long before loading"
+    )
+    start_pose: list[float] | None = Field(
+        default=None, description="[x, y, yaw] of this map's frame in the fleet frame, when known"
+    )
+
+    @field_validator("start_pose")
+    @classmethod
+    def _check_pose(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
+            raise ValueError("start_pose must be [x, y, yaw] (m, m, rad)")
+        return v
+
+
+def _stat(p: Path) -> tuple[int, int, int]:
+    st = os.stat(p)
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+class MapFileSource(MapSource):
+    """Emits a new version whenever a watched map_server map changes and loads cleanly."""
+
+    name = "mapfile"
+    Options = MapFileOptions
+
+    def __init__(self, options: SourceOptions | None, ctx: SourceContext) -> None:
+        super().__init__(options, ctx)
+        assert isinstance(self.options, MapFileOptions)
+        self.opts: MapFileOptions = self.options
+        self._versions = 0
+        self._errors = 0
+        self._last_error = ""
+        self._last_digest: bytes | None = None
+
+    @property
+    def path(self) -> Path:
+        p = self.opts.path
+        if not p.is_absolute() and self.ctx.data_dir is not None and (self.ctx.data_dir / p).exists():
+            return self.ctx.data_dir / p
+        return p
+
+    def start_pose(self) -> Pose2D | None:
+        return Pose2D(*self.opts.start_pose) if self.opts.start_pose is not None else None
+
+    def _fail(self, reason: str) -> None:
+        # Count and log each new fault once, not once per poll while it lasts.
+        if reason != self._last_error:
+            self._errors += 1
+            log.warning("%s (will retry when the files change)", reason)
+        self._last_error = reason
+
+    def _signature(self) -> Signature:
+        """Stats of the YAML and its image; raises MapFileError when either is missing or unreadable."""
+        path = self.path
+        try:
+            ystat = _stat(path)
+        except FileNotFoundError:
+            raise MapFileError(f"{path}: map file vanished or not written yet") from None
+        except OSError as exc:
+            raise MapFileError(f"{path}: cannot stat: {exc.strerror}") from None
+        image = read_map_yaml(path)["image"]
+        try:
+            istat = _stat(image)
+        except FileNotFoundError:
+            raise MapFileError(f"{path}: image '{image}' vanished or not written yet") from None
+        except OSError as exc:
+            raise MapFileError(f"{path}: cannot stat image '{image}': {exc.strerror}") from None
+        return (ystat, istat)
+
+    def check(self, state: dict[str, object], now: float) -> OccupancyGrid | None:
+        """One poll (blocking file I/O; the stream runs it in a thread): a new map to emit, or None.
+
+        ``state`` carries what earlier polls saw (pending signature and since when, last loaded).
+        """
+        try:
+            sig = self._signature()
+        except MapFileError as exc:
+            state["pending"] = None
+            self._fail(str(exc))
+            return None
+        if sig == state.get("done"):
+            return None
+        if sig != state.get("pending"):
+            # The files have been as they are since their last write (at start-up, often long ago).
+            age = max(0.0, time.time() - max(sig[0][0], sig[1][0]) / 1e9)
+            state["pending"], state["since"] = sig, now - age
+        since = state.get("since")
+        if isinstance(since, float) and now - since < self.opts.settle_s:
+            return None
+        try:
+            grid = load_map(self.path, max_cells=self.ctx.max_cells, robot=self.ctx.robot)
+            after = self._signature()
+        except (MapFileError, LimitError) as exc:
+            # Mark this signature done: a file that stays broken is retried once it changes.
+            state["done"] = sig
+            self._fail(str(exc))
+            return None
+        if after != sig:
+            state["pending"], state["since"] = after, now
+            return None
+        state["done"] = sig
+        self._last_error = ""
+        digest = grid.digest()
+        if digest == self._last_digest:
+            return None
+        self._last_digest = digest
+        self._versions += 1
+        stamp = max(sig[0][0], sig[1][0]) / 1e9
+        return grid.replace(version=self._versions, stamp=stamp, robot=self.ctx.robot)
+
+    async def maps(self) -> AsyncIterator[OccupancyGrid]:
+        """Poll forever; yield each new map that loads cleanly."""
+        state: dict[str, object] = {}
+        while True:
+            grid = await asyncio.to_thread(self.check, state, time.monotonic())
+            if grid is not None:
+                yield grid
+            await asyncio.sleep(self.opts.poll_s)
+
+    def stats(self) -> dict[str, int | float | str]:
+        return {"versions": self._versions, "load_errors": self._errors, "last_error": self._last_error}

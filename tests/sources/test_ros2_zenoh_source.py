@@ -1,0 +1,218 @@
+"""ROS 2 OccupancyGrid CDR, key formats, and the ros2 source and sink over a loopback zenoh session."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+import struct
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapd import plugins, ros2cdr
+from mapd.errors import CodecError, LimitError
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.sources.base import SourceContext
+from mapd.sources.ros2 import Ros2Options, Ros2Source
+
+zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("rosbags")
+
+
+def _grid(k: int = 0, yaw: float = 0.3) -> OccupancyGrid:
+    rng = np.random.default_rng(k)
+    d = rng.choice(np.array([-1, 0, 100], dtype=np.int8), size=(30 + k, 45))
+    return OccupancyGrid(d, 0.05, Pose2D(-2.5, 1.25, yaw), frame_id="map", stamp=1700000000.25 + k)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def publisher_session() -> Iterator[tuple[Any, str]]:
+    """A zenoh session listening on a free loopback port, multicast scouting off."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    session = ros2cdr.open_session(mode="peer", listen=[endpoint])
+    yield session, endpoint
+    session.close()
+
+
+def _source(endpoint: str, **kw: Any) -> Ros2Source:
+    opts = Ros2Options(mode="peer", connect=[endpoint], **kw)
+    return Ros2Source(opts, SourceContext(robot="r2"))
+
+
+# -- CDR and keys --------------------------------------------------------------------------------------
+
+
+def test_registered_under_mapd_sources() -> None:
+    assert plugins.load("source", "ros2") is Ros2Source
+
+
+def test_cdr_round_trip_and_fields_as_ros_sees_them() -> None:
+    g = _grid(2, yaw=-1.2)
+    payload = ros2cdr.encode(g, frame_id="world")
+    assert payload[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
+    msg = ros2cdr._typestore().deserialize_cdr(payload, ros2cdr.MSGTYPE)
+    assert (msg.info.width, msg.info.height) == (45, 32) and msg.header.frame_id == "world"
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1700000002, 250000000)
+    assert msg.info.origin.orientation.z == pytest.approx(math.sin(-0.6))
+    assert np.array_equal(msg.data, g.data.ravel())  # row-major, row 0 at the origin, as ROS
+    back = ros2cdr.decode(payload)
+    assert np.array_equal(back.data, g.data) and back.resolution == 0.05
+    assert back.origin.x == -2.5 and back.origin.yaw == pytest.approx(-1.2)
+    assert back.stamp == pytest.approx(g.stamp) and back.frame_id == "world"
+
+
+def test_keys() -> None:
+    h = ros2cdr.type_hash()
+    assert h.startswith("RIHS01_") and len(h) == 7 + 64
+    assert ros2cdr.rmw_zenoh_key("/map") == f"0/map/nav_msgs::msg::dds_::OccupancyGrid_/{h}"
+    assert ros2cdr.key_for("/robot1/map", "rmw_zenoh", domain=7, subscribe=True) == (
+        "7/robot1/map/nav_msgs::msg::dds_::OccupancyGrid_/*"
+    )
+    assert ros2cdr.ros2dds_key("/map") == "map"
+    assert ros2cdr.ros2dds_key("/map", namespace="/robot1") == "robot1/map"
+    for bad in ["", "/", "a//b", "map/*", "m$p"]:
+        with pytest.raises(ValueError):
+            ros2cdr.rmw_zenoh_key(bad)
+    with pytest.raises(ValueError):
+        Ros2Options(topic="bad//topic")
+
+
+def test_decode_rejects_garbage_and_oversized_grids() -> None:
+    good = ros2cdr.encode(_grid())
+    with pytest.raises(CodecError, match="topic /map: "):
+        ros2cdr.decode(good[: len(good) // 2], where="topic /map")
+    with pytest.raises(CodecError, match="encapsulation"):
+        ros2cdr.decode(b"\x07\x07" + good[2:])
+    with pytest.raises(LimitError):
+        ros2cdr.decode(good, max_cells=100)
+    # A header claiming more cells than the data holds.
+    msg = ros2cdr._typestore().deserialize_cdr(good, ros2cdr.MSGTYPE)
+    msg.info.width = 46
+    lie = bytes(ros2cdr._typestore().serialize_cdr(msg, ros2cdr.MSGTYPE))
+    with pytest.raises(CodecError, match="cells for a 46 x 30 grid"):
+        ros2cdr.decode(lie)
+
+
+@settings(max_examples=80, deadline=None)
+@given(data=st.data())
+def test_fuzz_decode_only_raises_mapd_errors(data: st.DataObject) -> None:
+    good = bytearray(ros2cdr.encode(_grid(1)))
+    kind = data.draw(st.sampled_from(["flip", "cut", "random"]))
+    if kind == "flip":
+        for _ in range(data.draw(st.integers(1, 8))):
+            i = data.draw(st.integers(0, len(good) - 1))
+            good[i] = data.draw(st.integers(0, 255))
+        payload = bytes(good)
+    elif kind == "cut":
+        payload = bytes(good[: data.draw(st.integers(0, len(good)))])
+    else:
+        payload = b"\x00\x01\x00\x00" + data.draw(st.binary(max_size=300))
+    try:
+        g = ros2cdr.decode(payload, max_cells=10_000)
+    except (CodecError, LimitError) as exc:
+        assert str(exc).startswith("CDR payload: ")
+    else:
+        assert g.cells <= 10_000 and g.resolution > 0
+
+
+# -- over zenoh -------------------------------------------------------------------------------------------
+
+
+async def _next(it: Any, timeout: float = 10.0) -> OccupancyGrid:
+    grid: OccupancyGrid = await asyncio.wait_for(it.__anext__(), timeout)
+    return grid
+
+
+def test_late_subscriber_gets_the_current_map_then_updates(publisher_session: tuple[Any, str]) -> None:
+    session, endpoint = publisher_session
+    sink = ros2cdr.Ros2Sink(session, "/map")
+    first, second = _grid(1), _grid(2)
+    sink.publish(first)  # before anyone subscribes: transient local
+    src = _source(endpoint)
+
+    async def go() -> tuple[OccupancyGrid, OccupancyGrid, dict[str, Any]]:
+        it = src.maps().__aiter__()
+        a = await _next(it)
+        # Keep the stream waiting while the next samples arrive, so each is decoded in turn.
+        waiting = asyncio.ensure_future(_next(it))
+        # A payload that does not parse is counted and skipped; the stream goes on.
+        session.put(ros2cdr.rmw_zenoh_key("/map"), b"\x00\x01\x00\x00garbage")
+        await asyncio.sleep(0.3)
+        sink.publish(first)  # the same map again: not a new version
+        await asyncio.sleep(0.3)
+        assert not waiting.done()
+        sink.publish(second)
+        b = await waiting
+        stats = src.stats()
+        await it.aclose()
+        return a, b, stats
+
+    a, b, stats = asyncio.run(go())
+    sink.close()
+    assert np.array_equal(a.data, first.data) and a.version == 1 and a.robot == "r2"
+    assert np.array_equal(b.data, second.data) and b.version == 2
+    assert stats["bad_payloads"] == 1 and "topic /map" in str(stats["last_error"])
+    assert src._session is None  # closed with the stream
+
+
+def test_sink_attachment_and_liveliness_follow_rmw_zenoh(publisher_session: tuple[Any, str]) -> None:
+    session, endpoint = publisher_session
+    other = ros2cdr.open_session(mode="peer", connect=[endpoint])
+    got: list[Any] = []
+    sub = other.declare_subscriber(ros2cdr.key_for("/map", "rmw_zenoh", subscribe=True), got.append)
+    sink = ros2cdr.Ros2Sink(session, "/map", node="fusion")
+    time.sleep(0.5)
+    sink.publish(_grid(3))
+    sink.publish(_grid(4))
+    deadline = time.time() + 5
+    while len(got) < 2 and time.time() < deadline:
+        time.sleep(0.05)
+    tokens = [str(r.ok.key_expr) for r in other.liveliness().get("@ros2_lv/0/**", timeout=3.0) if r.ok]
+    sink.close()
+    sub.undeclare()
+    other.close()
+    assert len(got) == 2
+    att = got[1].attachment.to_bytes()
+    seq, stamp = struct.unpack("<qq", att[:16])
+    assert seq == 2 and abs(stamp / 1e9 - time.time()) < 30 and att[16] == 16 and len(att) == 33
+    assert ros2cdr.decode(got[1].payload.to_bytes()).same_map(_grid(4))
+    pubs = [t for t in tokens if "/MP/" in t]
+    assert any(
+        t.endswith(f"/fusion/%map/{ros2cdr.DDS_TYPE}/{ros2cdr.type_hash()}/1:1:1,1:,:,:,,") for t in pubs
+    )
+    assert any("/NN/" in t and t.endswith("/fusion") for t in tokens)
+
+
+def test_bridge_key_format_with_namespace(publisher_session: tuple[Any, str]) -> None:
+    session, endpoint = publisher_session
+    src = _source(endpoint, key_format="ros2dds", namespace="robot1", history=False)
+    assert src.key == "robot1/map"
+
+    async def go() -> OccupancyGrid:
+        it = src.maps().__aiter__()
+        task = asyncio.ensure_future(_next(it))
+        grid = _grid(5)
+        # A bridge publishes plain puts; keep putting until the subscriber is up.
+        for _ in range(50):
+            session.put("robot1/map", ros2cdr.encode(grid))
+            done, _ = await asyncio.wait({task}, timeout=0.1)
+            if done:
+                break
+        out = await task
+        await it.aclose()
+        return out
+
+    g = asyncio.run(go())
+    assert np.array_equal(g.data, _grid(5).data)

@@ -1,0 +1,360 @@
+"""The sans-I/O core over a simulated wire with a fake clock: delivery rules under faults."""
+
+from __future__ import annotations
+
+import os
+import random
+from collections import Counter
+from typing import Any
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from transports.uwb import arq, wire
+from transports.uwb.arq import ArqConfig, ArqEndpoint
+from transports.uwb.faults import Faults
+from transports.uwb.framing import decode_frame, encode_frame
+from transports.uwb.sim import SimNet
+
+RATE = 100_000.0  # fast emulated line: the rules do not depend on the rate
+
+
+def ep(node: int, *, session: int | None = None, **kw: Any) -> ArqEndpoint:
+    kw.setdefault("rate_bps", RATE)
+    kw.setdefault("deadline_s", 30.0)
+    cfg = ArqConfig(node_id=node, **kw)
+    return ArqEndpoint(cfg, session=session if session is not None else 1000 + node, seed=node)
+
+
+def kinds(events: list[arq.Event], cls: type) -> list[Any]:
+    return [e for e in events if isinstance(e, cls)]
+
+
+def closed(net: SimNet, node: int, msg: int) -> bool:
+    return any(isinstance(e, arq.MessageClosed) and e.msg == msg for e in net.events[node])
+
+
+def test_clean_unicast_delivers_once_intact_and_paced() -> None:
+    a, b = ep(1), ep(2)
+    net = SimNet([a, b])
+    data = os.urandom(20_000)
+    msg = a.send(data, 0.0, dests=[2])
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(2)] == [data]
+    assert kinds(net.events[1], arq.MessageDelivered) == [arq.MessageDelivered(msg, 2)]
+    assert kinds(net.events[1], arq.MessageClosed) == [arq.MessageClosed(msg, "delivered")]
+    assert arq.PeerUp(2) in net.events[1] and arq.PeerUp(1) in net.events[2]
+    assert a.stats()["resends"] == 0
+    # Goodput close to the frame efficiency (197 payload bytes in 223 on the wire).
+    assert 8 * len(data) / net.now >= 0.8 * RATE
+    log = net.tx_log[1]
+    for t, _ in log:
+        assert sum(n for t2, n in log if t - 1.0 < t2 <= t) * 8 <= RATE
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(min_value=0, max_value=10_000),
+    drop=st.floats(min_value=0, max_value=0.3),
+    dup=st.floats(min_value=0, max_value=0.3),
+    flip=st.floats(min_value=0, max_value=2e-3),
+    reorder=st.floats(min_value=0, max_value=0.3),
+    outage=st.one_of(st.none(), st.tuples(st.floats(0, 3), st.floats(0.1, 4))),
+    sizes=st.lists(st.integers(min_value=0, max_value=6000), min_size=1, max_size=4),
+    split=st.booleans(),
+)
+def test_every_message_delivered_exactly_once_intact_or_fails_by_deadline(
+    seed: int,
+    drop: float,
+    dup: float,
+    flip: float,
+    reorder: float,
+    outage: tuple[float, float] | None,
+    sizes: list[int],
+    split: bool,
+) -> None:
+    faults = Faults(drop=drop, dup=dup, flip=flip, reorder=reorder, outages=(outage,) if outage else ())
+    a, b = ep(1, deadline_s=8.0), ep(2)
+    net = SimNet([a, b], faults=faults, seed=seed, split=split)
+    rng = random.Random(seed)
+    sent: dict[int, bytes] = {}
+    created: dict[int, float] = {}
+    for stream, n in enumerate(sizes):  # distinct streams: nothing supersedes
+        data = rng.randbytes(n)
+        msg = a.send(data, net.now, dests=[2], stream=stream)
+        sent[msg], created[msg] = data, net.now
+        net.run(net.now + rng.uniform(0, 0.5))
+    net.run(net.now + 10, stop=lambda: all(closed(net, 1, m) for m in sent))
+    assert all(closed(net, 1, m) for m in sent), "a message neither delivered nor failed by its deadline"
+    got = net.received(2)
+    assert len({r.msg for r in got}) == len(got), "a message was delivered twice"
+    for r in got:
+        assert r.data == sent[r.msg]
+    delivered = {e.msg for e in kinds(net.events[1], arq.MessageDelivered)}
+    failed = kinds(net.events[1], arq.MessageFailed)
+    assert delivered <= {r.msg for r in got}, "sender heard COMPLETE for a message the receiver lacks"
+    assert delivered.isdisjoint(f.msg for f in failed)
+    assert delivered | {f.msg for f in failed} == set(sent)
+    assert all(f.reason == "deadline" for f in failed)
+    assert a.in_flight() == 0
+    if not faults.drop and not faults.flip and not outage and not faults.reorder:
+        assert not failed
+
+
+def test_latest_wins_supersedes_the_older_version() -> None:
+    a, b = ep(1), ep(2)
+    net = SimNet([a, b])
+    old, new = os.urandom(30_000), os.urandom(5_000)
+    m1 = a.send(old, 0.0, dests=[2], stream=4)
+    net.run(0.5)
+    m2 = a.send(new, net.now, dests=[2], stream=4)
+    assert arq.MessageClosed(m1, "superseded") in a.events() + net.events[1]
+    net.run(10, stop=lambda: closed(net, 1, m2))
+    assert [r.data for r in net.received(2)] == [new]
+    assert b.stats()["rx_held_bytes"] == 0
+    # Only what went out before the new version, plus the new version itself, used the radio.
+    assert a.stats()["bytes_tx"] < 0.5 * RATE / 8 + 1.3 * len(new) + 2000
+
+
+def _tap(net: SimNet, node: int) -> list[bytes]:
+    """Record every frame ``node`` writes."""
+    frames: list[bytes] = []
+    orig = net._transmit
+
+    def tap(src: int, frame: bytes, rate: float) -> None:
+        if src == node:
+            frames.append(frame)
+        orig(src, frame, rate)
+
+    net._transmit = tap  # type: ignore[method-assign]
+    return frames
+
+
+def _data_indices(frames: list[bytes]) -> list[int]:
+    out = []
+    for f in frames:
+        frame = wire.parse(decode_frame(f[:-1]))
+        if isinstance(frame, wire.Data):
+            out.append(frame.index)
+    return out
+
+
+def test_outage_resumes_from_what_the_receiver_holds() -> None:
+    a, b = ep(1, deadline_s=120), ep(2)
+    net = SimNet([a, b], faults=Faults(outages=((1.0, 20.0),)))
+    frames = _tap(net, 1)
+    data = os.urandom(25_000)
+    msg = a.send(data, 0.0, dests=[2])
+    net.run(1.0)
+    held = set(b._peers[1].partials[msg].chunks)
+    assert len(held) > 30
+    assert net.run(60, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(2)] == [data]
+    sends = Counter(_data_indices(frames))
+    assert all(sends[i] == 1 for i in held), "a chunk the receiver held was sent again"
+    assert a.stats()["timeouts"] >= 3  # it kept probing through the outage, backing off
+    assert 21.0 < net.now < 30.0  # and resumed promptly once the line was back
+
+
+def test_receiver_restart_gets_a_clean_start() -> None:
+    a, b = ep(1), ep(2, session=5)
+    net = SimNet([a, b])
+    data = os.urandom(30_000)
+    msg = a.send(data, 0.0, dests=[2])
+    net.run(1.0)
+    assert not net.received(2)
+    b2 = ep(2, session=6)  # same id, new session, nothing held
+    net.replace(2, b2)
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    assert arq.PeerRestarted(2) in net.events[1]
+    assert [r.data for r in net.received(2)] == [data]
+    assert kinds(net.events[1], arq.MessageDelivered) == [arq.MessageDelivered(msg, 2)]
+
+
+def test_sender_restart_drops_the_stale_half_message() -> None:
+    a, b = ep(1, session=7), ep(2)
+    net = SimNet([a, b])
+    a.send(os.urandom(30_000), 0.0, dests=[2], stream=0)
+    net.run(1.0)
+    assert b.stats()["rx_held_bytes"] > 0
+    a2 = ep(1, session=8)
+    net.replace(1, a2)
+    data = os.urandom(3_000)
+    msg = a2.send(data, net.now, dests=[2], stream=0)
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    assert arq.PeerRestarted(1) in net.events[2]
+    assert [r.data for r in net.received(2)] == [data]
+    assert b.stats()["rx_held_bytes"] == 0
+
+
+def test_absent_peer_fails_by_deadline() -> None:
+    a = ep(1, deadline_s=5.0)
+    net = SimNet([a])
+    msg = a.send(os.urandom(3000), 0.0, dests=[9])
+    net.run(20, stop=lambda: closed(net, 1, msg))
+    assert kinds(net.events[1], arq.MessageFailed) == [arq.MessageFailed(msg, 9, "deadline")]
+    assert 5.0 <= net.now <= 5.01
+    assert a.stats()["timeouts"] >= 2
+
+
+def test_broadcast_needs_every_peer_and_a_dead_one_does_not_block_others() -> None:
+    a, b, c = ep(1, deadline_s=10), ep(2), ep(3)
+    net = SimNet([a, b, c, ep(4)], faults=Faults(drop=0.05), seed=3, shared=True)
+    net.replace(4, None)  # intended but never there
+    data = os.urandom(12_000)
+    msg = a.send(data, 0.0, dests=[2, 3, 4])
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(2)] == [data]
+    assert [r.data for r in net.received(3)] == [data]
+    done = kinds(net.events[1], arq.MessageDelivered)
+    assert sorted(e.peer for e in done) == [2, 3]
+    assert kinds(net.events[1], arq.MessageFailed) == [arq.MessageFailed(msg, 4, "deadline")]
+    assert kinds(net.events[1], arq.MessageClosed) == [arq.MessageClosed(msg, "failed")]
+
+
+def test_broadcast_closes_only_when_all_acked() -> None:
+    nodes = [ep(i) for i in (1, 2, 3, 4)]
+    net = SimNet(nodes, faults=Faults(drop=0.1, flip=1e-4), seed=11, shared=True)
+    data = os.urandom(8_000)
+    msg = nodes[0].send(data, 0.0, dests=[2, 3, 4])
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    closes = [i for i, e in enumerate(net.events[1]) if isinstance(e, arq.MessageClosed)]
+    delivers = [i for i, e in enumerate(net.events[1]) if isinstance(e, arq.MessageDelivered)]
+    assert len(delivers) == 3 and max(delivers) < closes[0]
+    assert arq.MessageClosed(msg, "delivered") in net.events[1]
+    for n in (2, 3, 4):
+        assert [r.data for r in net.received(n)] == [data]
+
+
+def test_oversized_message_is_refused_not_retried() -> None:
+    a, b = ep(1, max_message_bytes=100_000), ep(2, max_message_bytes=2048)
+    net = SimNet([a, b])
+    msg = a.send(os.urandom(10_000), 0.0, dests=[2])
+    assert net.run(10, stop=lambda: closed(net, 1, msg))
+    (f,) = kinds(net.events[1], arq.MessageFailed)
+    assert f.peer == 2 and "refused" in f.reason
+    assert net.now < 1.0
+    assert b.stats()["rejected"] == 1 and b.stats()["rx_held_bytes"] == 0
+
+
+def test_tdma_nodes_send_only_in_their_slots() -> None:
+    nodes = [ep(i, mac="tdma", slots=3, slot_index=i - 1, slot_s=0.05, guard_s=0.005) for i in (1, 2, 3)]
+    net = SimNet(nodes, shared=True)
+    data = os.urandom(4000)
+    msg = nodes[0].send(data, 0.0, dests=[2, 3])
+    assert net.run(20, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(3)] == [data]
+    for i in (1, 2, 3):
+        for t, n in net.tx_log[i]:
+            phase = t % 0.15
+            start = (i - 1) * 0.05
+            assert start - 1e-6 <= phase and phase + n * 8 / RATE <= start + 0.045 + 1e-6
+
+
+def _raw(src: int, frame: wire.Frame) -> bytes:
+    return encode_frame(wire.pack(frame))
+
+
+def test_hostile_frames_are_counted_and_bounded() -> None:
+    b = ep(2, max_message_bytes=50_000, max_partials_per_peer=3)
+    now = 0.0
+    b.receive_data(os.urandom(5000), now)  # noise
+    b.receive_data(b"\x01" * 100_000, now)  # endless bytes, no delimiter
+    b.receive_data(b"\x00", now)
+    # Valid CRC, absurd fields.
+    b.receive_data(encode_frame(wire.pack(wire.Data(1, 2, 9, 1, 0, 0, 1, 5, b"x"))[:-1]), now)
+    b.receive_data(encode_frame(b"\x11\x01\x02" + bytes(20)), now)  # index 0 of count 0
+    # A forger opens many messages of 50 KB and sends one chunk each: memory stays bounded.
+    for msg in range(200):
+        d = wire.Data(7, 2, 77, msg, msg % 256, 0, 250, 50_000, os.urandom(190))
+        b.receive_data(_raw(7, d), now)
+    # A message over the limit is refused.
+    b.receive_data(_raw(8, wire.Data(8, 2, 88, 5, 0, 0, 60_000, 4_000_000_000, b"x" * 100)), now)
+    # A flood of acks for messages nobody sent.
+    for msg in range(500):
+        b.receive_data(_raw(9, wire.Ack(9, 2, 99, b.session, msg, 0, 0, 3, b"\xff")), now)
+    s = b.stats()
+    assert s["bad_frames"] >= 2
+    assert s["oversize"] >= 1
+    assert s["unknown_acks"] == 500
+    assert s["rejected"] == 1
+    assert s["rx_held_bytes"] <= 3 * 190
+    assert len(b._peers[7].partials) <= 3
+    assert len(b._peers[7].acks_due) <= 16
+    # ...and a real peer still gets through afterwards.
+    a = ep(1)
+    net = SimNet([a, b])
+    net.now = 1.0
+    data = os.urandom(10_000)
+    msg = a.send(data, net.now, dests=[2])
+    assert net.run(20, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(2)] == [data]
+
+
+def test_hash_mismatch_is_never_delivered() -> None:
+    b = ep(2)
+    payload = os.urandom(100) + b"\x00" * 16  # a wrong hash trailer
+    b.receive_data(_raw(1, wire.Data(1, 2, 5, 3, 0, 0, 1, len(payload), payload)), 0.0)
+    assert b.stats()["hash_errors"] == 1
+    assert not [e for e in b.events() if isinstance(e, arq.MessageReceived)]
+
+
+def test_duplicate_after_completion_is_acked_not_redelivered() -> None:
+    a, b = ep(1), ep(2)
+    net = SimNet([a, b])
+    frames = _tap(net, 1)
+    msg = a.send(os.urandom(3000), 0.0, dests=[2])
+    assert net.run(10, stop=lambda: closed(net, 1, msg))
+    for f in frames:  # replay the whole exchange
+        b.receive_data(f, net.now)
+    assert len(net.received(2)) == 1 and not kinds(b.events(), arq.MessageReceived)
+    assert b.stats()["duplicates"] >= len(frames) - 2
+
+
+KEY = os.urandom(32)
+
+
+def test_signed_link_drops_unsigned_forged_and_replayed_frames() -> None:
+    a, b = ep(1, key=KEY), ep(2, key=KEY)
+    for e in (a, b):
+        e.confirm_counter(e.counter_reservation() or 0)
+    intruder, forger = ep(3), ep(4, key=os.urandom(32))
+    forger.confirm_counter(forger.counter_reservation() or 0)
+    net = SimNet([a, b, intruder, forger], shared=True)
+    frames = _tap(net, 1)
+    data = os.urandom(5000)
+    msg = a.send(data, 0.0, dests=[2])
+    intruder.send(os.urandom(500), 0.0, dests=[2])
+    forger.send(os.urandom(500), 0.0, dests=[2])
+    assert net.run(10, stop=lambda: closed(net, 1, msg))
+    assert [r.data for r in net.received(2)] == [data]
+    s = b.stats()
+    assert s["unsigned"] > 0 and s["bad_signature"] > 0
+    assert arq.PeerUp(3) not in net.events[2] and arq.PeerUp(4) not in net.events[2]
+    for f in frames:
+        b.receive_data(f, net.now)
+    assert b.stats()["replayed"] >= len(frames)
+    assert len(net.received(2)) == 1 and not kinds(b.events(), arq.MessageReceived)
+
+
+def test_signing_waits_for_persisted_counter() -> None:
+    a = ep(1, key=KEY, counter_start=500)
+    assert a.data_to_send(0.0) == b""
+    upto = a.counter_reservation()
+    assert upto is not None and upto > 500
+    a.confirm_counter(upto)
+    assert a.data_to_send(0.0) != b""
+
+
+def test_silent_peer_goes_down_and_comes_back_up() -> None:
+    a, b = ep(1, peer_timeout_s=3.0, beacon_s=1.0), ep(2, beacon_s=1.0)
+    net = SimNet([a, b])
+    net.run(2.0)
+    assert net.events[1] == [arq.PeerUp(2)]
+    net.replace(2, None)
+    net.run(6.0)
+    assert net.events[1] == [arq.PeerUp(2), arq.PeerDown(2)]
+    net.replace(2, b)  # same session: it was only out of range
+    net.run(9.0)
+    assert net.events[1] == [arq.PeerUp(2), arq.PeerDown(2), arq.PeerUp(2)]
+    assert a.peers_up() == [2]

@@ -1,0 +1,202 @@
+"""Frame layouts, absurd fields, signing (tags, replay window, persisted counter) and pacing bounds."""
+
+from __future__ import annotations
+
+import contextlib
+import random
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapd.errors import ProtocolError, StateError
+from transports.uwb import wire
+from transports.uwb.pacing import MediumAccess, Pacer
+from transports.uwb.signing import CounterStore, Signer, Verifier, clock_floor
+
+KEY = bytes(range(32))
+
+
+def test_frames_round_trip() -> None:
+    frames: list[wire.Frame] = [
+        wire.Data(1, 2, 0xDEADBEEF, 7, 3, 4, 10, 1000, b"payload"),
+        wire.Ack(2, 1, 5, 0xDEADBEEF, 7, 9, wire.COMPLETE, 3, b"\x01\x80"),
+        wire.Hello(3, wire.BROADCAST, 42),
+    ]
+    for f in frames:
+        assert wire.parse(wire.pack(f)) == f
+
+
+@pytest.mark.parametrize(
+    ("frame", "why"),
+    [
+        (wire.Data(1, 2, 1, 7, 0, 10, 10, 1000, b"x"), "index"),
+        (wire.Data(1, 2, 1, 7, 0, 0, 0, 1000, b"x"), "index"),
+        (wire.Data(1, 2, 1, 7, 0, 0, 500, 100, b"x"), "inconsistent"),
+        (wire.Data(1, 2, 1, 7, 0, 0, 1, 2, b"xyz"), "inconsistent"),
+        (wire.Data(0, 2, 1, 7, 0, 0, 1, 5, b"x"), "source"),
+        (wire.Data(255, 2, 1, 7, 0, 0, 1, 5, b"x"), "source"),
+        (wire.Data(1, 0, 1, 7, 0, 0, 1, 5, b"x"), "destination"),
+        (wire.Ack(1, 255, 1, 1, 7, 0, 0, 0, b""), "broadcast"),
+        (wire.Ack(1, 2, 1, 1, 7, 0, 0x80, 0, b""), "flags"),
+        (wire.Ack(1, 2, 1, 1, 7, 0, 0, 0, b"\x01" * 33), "bitmap"),
+    ],
+)
+def test_absurd_fields_are_protocol_errors(frame: wire.Frame, why: str) -> None:
+    with pytest.raises(ProtocolError, match=why):
+        wire.parse(wire.pack(frame))
+
+
+def test_bad_version_type_and_truncation() -> None:
+    body = bytearray(wire.pack(wire.Hello(1, 2, 3)))
+    with pytest.raises(ProtocolError, match="version"):
+        wire.parse(bytes([body[0] & 0x8F | 0x20]) + bytes(body[1:]))
+    with pytest.raises(ProtocolError, match="type"):
+        wire.parse(bytes([0x1F]) + bytes(body[1:]))
+    with pytest.raises(ProtocolError, match="shorter"):
+        wire.parse(bytes(body[:5]))
+    with pytest.raises(ProtocolError, match="no payload"):
+        wire.parse(wire.pack(wire.Data(1, 2, 1, 7, 0, 0, 1, 5, b"")))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=80))
+def test_fuzz_parse_raises_only_protocol_error(body: bytes) -> None:
+    with contextlib.suppress(ProtocolError):
+        wire.parse(body)
+
+
+def test_bitmap_indices() -> None:
+    assert wire.bitmap_indices(10, b"\x05\x80") == [11, 13, 26]
+    assert wire.bitmap_indices(0, b"") == []
+
+
+# --- signing ------------------------------------------------------------------------------------
+
+
+def _signer(start: int = 100) -> Signer:
+    s = Signer(KEY, start, block=4096)
+    r = s.reservation()
+    assert r is not None
+    s.confirm(r)
+    return s
+
+
+def test_sign_and_verify() -> None:
+    s, v = _signer(), Verifier(KEY)
+    body = wire.pack(wire.Hello(1, 2, 3), signed=True)
+    signed = s.sign(body)
+    assert v.check(signed, True) == body
+
+
+def test_tampered_unsigned_and_wrong_key_are_counted() -> None:
+    s, v = _signer(), Verifier(KEY)
+    body = wire.pack(wire.Hello(1, 2, 3), signed=True)
+    signed = bytearray(s.sign(body))
+    signed[3] ^= 1
+    assert v.check(bytes(signed), True) is None
+    assert v.check(wire.pack(wire.Hello(1, 2, 3)), False) is None
+    other = Signer(b"k" * 32, 5, block=64)
+    other.confirm(other.reservation() or 0)
+    assert v.check(other.sign(body), True) is None
+    assert (v.stats.bad_signature, v.stats.unsigned) == (2, 1)
+
+
+def test_replays_dropped_reordering_accepted_once() -> None:
+    s, v = _signer(), Verifier(KEY)
+    body = wire.pack(wire.Hello(1, 2, 3), signed=True)
+    frames = [s.sign(body) for _ in range(10)]
+    order = [0, 2, 1, 5, 3, 4, 9, 6, 8, 7]
+    assert all(v.check(frames[i], True) is not None for i in order)
+    assert all(v.check(f, True) is None for f in frames)
+    assert v.stats.replayed == 10
+    for _ in range(100):  # push the window past the first frames
+        assert v.check(s.sign(body), True) is not None
+    assert v.check(frames[9], True) is None
+
+
+def test_signer_needs_confirmed_reservation() -> None:
+    s = Signer(KEY, 1000, block=8)
+    assert not s.can_sign()
+    upto = s.reservation()
+    assert upto == 1008
+    s.confirm(upto)
+    for _ in range(8):
+        s.sign(b"\x91\x01\x02\x00\x00\x00\x00")
+    assert not s.can_sign()
+
+
+def test_counter_store_persists_and_never_reuses(tmp_path: Path) -> None:
+    path = tmp_path / "uwb-1.counter"
+    store = CounterStore(path)
+    used: list[int] = []
+    start = store.load()
+    for _run in range(3):  # three "boots", each crashing without a clean shutdown
+        s = Signer(KEY, max(store.load(), start), block=16)
+        for _ in range(21):
+            if (r := s.reservation()) is not None:
+                store.save(r)
+                s.confirm(r)
+            used.append(s.next)
+            s.sign(b"\x91\x01\x02\x00\x00\x00\x00")
+    assert len(used) == len(set(used)) and used == sorted(used)
+    path.write_text("garbage")
+    with pytest.raises(StateError, match="corrupt"):
+        CounterStore(path).load()
+
+
+def test_clock_floor_rises() -> None:
+    assert clock_floor(1.8e9) < clock_floor(1.8e9 + 0.001)
+    assert clock_floor(0) == 0
+
+
+# --- pacing -------------------------------------------------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    rate=st.sampled_from([2000.0, 12500.0, 57600.0, 250000.0]),
+    sizes=st.lists(st.integers(min_value=10, max_value=224), min_size=20, max_size=200),
+    jitter=st.lists(st.floats(min_value=0, max_value=0.3), min_size=1, max_size=20),
+)
+def test_pacer_never_exceeds_rate_in_any_window(rate: float, sizes: list[int], jitter: list[float]) -> None:
+    p = Pacer(rate, 2 * 224) if rate / 8 >= 448 else Pacer(rate, 224)
+    now, sends = 0.0, []
+    for i, n in enumerate(sizes):
+        now = p.ready_at(n, now + jitter[i % len(jitter)] * (i % 3 == 0) * 0.1)
+        p.consume(n, now)
+        sends.append((now, n))
+    budget = rate / 8
+    for t, _ in sends:  # every window ending at a send holds the most bytes
+        assert sum(n for t2, n in sends if t - 1.0 < t2 <= t) <= budget + 1e-9
+
+
+def test_pacer_keeps_up_with_the_rate() -> None:
+    p = Pacer(12500, 448)
+    now, total = 0.0, 0
+    while now < 60:
+        now = p.ready_at(223, now)
+        p.consume(223, now)
+        total += 223
+    assert total * 8 / now >= 0.99 * 12500
+
+
+def test_tdma_sends_only_in_own_slot() -> None:
+    mac = MediumAccess("tdma", 12500, slot_s=0.5, slots=3, slot_index=1, guard_s=0.02, clock_offset=100.25)
+    rng = random.Random(1)
+    for _ in range(200):
+        now = rng.uniform(0, 50)
+        t = mac.ready_at(223, now)
+        assert t >= now
+        phase = (t + 100.25) % 1.5
+        assert phase >= 0.5 - 1e-6 and phase + 223 * 8 / 12500 <= 1.0 - 0.02 + 1e-6
+
+
+def test_backoff_waits_for_idle_channel() -> None:
+    mac = MediumAccess("backoff", 12500, sense_s=0.02, backoff_min_s=0.01, backoff_max_s=0.05)
+    mac.heard(10.0)
+    t = mac.ready_at(100, 10.001)
+    assert 10.03 <= t <= 10.07
+    mac.sent(100, t)
+    assert mac.ready_at(100, 11.0) == 11.0  # quiet channel: no wait

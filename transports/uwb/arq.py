@@ -1,0 +1,693 @@
+"""The sans-I/O core of the UWB link: reliable, paced, signed messages over a lossy shared byte stream.
+
+No asyncio, no serial port, no clock: bytes and ``now`` come in (:meth:`ArqEndpoint.receive_data`),
+frames go out one at a time (:meth:`~ArqEndpoint.data_to_send`), one timer says when to call back
+(:meth:`~ArqEndpoint.get_timer` / :meth:`~ArqEndpoint.handle_timer`), and events come out
+(:meth:`~ArqEndpoint.events`). An adapter owns the port and the clock (see ``link.py``).
+
+The rules
+---------
+Framing and trust
+  R1. Every frame is COBS-encoded with a CRC-32 and a 0x00 delimiter (``framing.py``), at most
+      ``max_frame`` bytes on the wire. Frames failing COBS, CRC or parsing are counted and dropped.
+  R2. With a key, frames without a valid signature or with a replayed counter are counted and dropped
+      before anything else looks at them (``signing.py``). Without a key, signatures are not checked.
+  R3. A frame carries its sender's link id and session id. The first frame of an unknown sender makes
+      it a peer (PeerUp). A new session id from a known peer means it restarted (PeerRestarted): all it
+      was reassembling from us is forgotten, and all it had acked of our messages counts for nothing,
+      so it gets a clean start. Frames of a session it left are stale and dropped. A peer silent for
+      ``peer_timeout_s`` is down (PeerDown) until it is heard again. Nodes announce themselves with
+      HELLO at start and after ``beacon_s`` of silence.
+Sending
+  R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
+      chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
+      harmless. Message ids rise within a session.
+  R5. Latest wins: sending on a stream that already has a message in flight drops that message at
+      once (MessageClosed "superseded"); no radio time is spent on a stale map.
+  R6. A message goes to one peer (unicast) or to several (broadcast); it is delivered to a peer when
+      that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
+      failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
+  R7. Chunks go in order within a window of ``window`` chunks past what the most advanced peer holds,
+      so a silent peer never stops the others. Queued resends go before new chunks.
+  R8. Loss is detected two ways: a chunk a peer lacks is resent once the peer has acked a chunk sent
+      ``reorder_tolerance`` transmissions after it (so reordering is harmless); and when a peer's
+      retransmission timer expires, its oldest missing chunk is resent as a probe and the timer backs
+      off (doubles). The timer follows RFC 6298 over RTT samples from chunks sent once (Karn).
+  R9. An ACK whose ``gen`` differs from the one a peer acked before means the peer threw its buffer
+      away: its acks are reset and everything it lacks is queued again. A REJECT fails that peer.
+Receiving
+  R10. DATA for another node is ignored. A message larger than ``max_message_bytes`` is refused with a
+      REJECT. A chunk of a message already delivered is a duplicate: it is answered COMPLETE again and
+      never delivered twice. A chunk of a message older than the newest one seen on its stream is stale.
+  R11. A new message on a stream replaces a partial older one of that stream. A peer has at most
+      ``max_partials_per_peer`` partial messages, and all peers together at most ``rx_budget_bytes``
+      held; past either, the least recently active partial is dropped. Partials idle for
+      ``partial_ttl_s`` are dropped. So memory stays bounded whatever arrives.
+  R12. A complete message is delivered (MessageReceived) only when its length and hash check out; a
+      message failing the hash is dropped and its buffer starts over under a new ``gen``.
+  R13. ACKs are selective (lowest missing index + a bitmap of 256 chunks after it). An ACK is owed
+      ``ack_delay_s`` after new data, at once after ``ack_every`` new chunks, a gap, a duplicate, a
+      completion or a refusal; owed ACKs coalesce, and each one describes the state when it is sent.
+Pacing and access
+  R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
+      resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
+      Priority: HELLO, then owed ACKs, then DATA round-robin over messages.
+  R15. With a key, no frame is sent until the adapter has persisted the counter block it will use
+      (:meth:`counter_reservation` / :meth:`confirm_counter`).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapd.errors import LimitError, ProtocolError, TransportError
+from transports.uwb import wire
+from transports.uwb.framing import CRC_LEN, MIN_FRAME, FrameReader, cobs_max_len, encode_frame, max_body
+from transports.uwb.inbox import Partial, PeerState
+from transports.uwb.outbox import HASH_LEN, Outgoing
+from transports.uwb.pacing import MacMode, MediumAccess, Pacer
+from transports.uwb.rtt import RttEstimator
+from transports.uwb.signing import TRAILER_LEN, Signer, Verifier, strip_unverified
+
+MAX_CHUNKS = 0xFFFF
+
+
+@dataclass(frozen=True)
+class ArqConfig:
+    """Settings of one endpoint (the adapter builds it from the transport's options)."""
+
+    node_id: int
+    max_frame: int = 224
+    rate_bps: float = 12500.0
+    max_message_bytes: int = 8 << 20
+    window: int = 128
+    deadline_s: float = 120.0
+    initial_rto_s: float = 1.0
+    min_rto_s: float = 0.3
+    max_rto_s: float = 4.0
+    ack_delay_s: float = 0.0  # 0: four max-size frame times at rate_bps
+    ack_every: int = 8
+    ack_min_gap_s: float = 0.05
+    reorder_tolerance: int = 3
+    beacon_s: float = 5.0
+    peer_timeout_s: float = 20.0
+    max_peers: int = 64
+    max_partials_per_peer: int = 4
+    rx_budget_bytes: int = 0  # 0: twice max_message_bytes
+    partial_ttl_s: float = 0.0  # 0: twice deadline_s
+    mac: MacMode = "none"
+    slot_s: float = 0.25
+    slots: int = 1
+    slot_index: int = 0
+    guard_s: float = 0.01
+    clock_offset: float = 0.0
+    sense_s: float = 0.02
+    backoff_min_s: float = 0.0
+    backoff_max_s: float = 0.1
+    key: bytes | None = field(default=None, repr=False)
+    counter_start: int = 0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.node_id <= 254:
+            raise ProtocolError(f"uwb: node id {self.node_id} is not in 1..254")
+        if not 1 <= self.window <= 8 * wire.MAX_BITMAP:
+            raise ProtocolError(f"uwb: window {self.window} is not in 1..{8 * wire.MAX_BITMAP}")
+
+
+# --- events -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MessageReceived:
+    src: int
+    stream: int
+    msg: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class MessageDelivered:
+    msg: int
+    peer: int
+
+
+@dataclass(frozen=True)
+class MessageFailed:
+    msg: int
+    peer: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class MessageClosed:
+    """A message left the send queue: ``delivered`` (to all), ``failed`` (some) or ``superseded``."""
+
+    msg: int
+    outcome: str
+
+
+@dataclass(frozen=True)
+class PeerUp:
+    peer: int
+
+
+@dataclass(frozen=True)
+class PeerDown:
+    peer: int
+
+
+@dataclass(frozen=True)
+class PeerRestarted:
+    peer: int
+
+
+Event = MessageReceived | MessageDelivered | MessageFailed | MessageClosed | PeerUp | PeerDown | PeerRestarted
+
+_COUNTERS = [
+    "bytes_tx",
+    "bytes_rx",
+    "frames_tx",
+    "frames_rx",
+    "data_tx",
+    "resends",
+    "acks_tx",
+    "acks_rx",
+    "hellos_tx",
+    "timeouts",
+    "bad_frames",
+    "duplicates",
+    "stale",
+    "stale_session",
+    "not_for_me",
+    "own_id",
+    "rejected",
+    "hash_errors",
+    "evicted",
+    "superseded",
+    "superseded_rx",
+    "unknown_acks",
+    "stale_acks",
+    "gen_resets",
+    "peers_full",
+    "messages_tx",
+    "messages_delivered",
+    "messages_failed",
+    "messages_rx",
+    "bytes_delivered",
+]
+
+
+class ArqEndpoint:
+    """One node's protocol state: many peers, many messages, one byte stream."""
+
+    def __init__(self, config: ArqConfig, *, session: int, seed: int = 0) -> None:
+        self.cfg = config
+        self.node = config.node_id
+        self.session = session & 0xFFFFFFFF
+        self._rng = random.Random(seed)
+        self._reader = FrameReader(config.max_frame)
+        # Two frames deep, so a late wake-up can catch up; the 1 s window still bounds every second.
+        self._pacer = Pacer(config.rate_bps, 2 * config.max_frame)
+        self._mac = MediumAccess(
+            config.mac,
+            config.rate_bps,
+            slot_s=config.slot_s,
+            slots=config.slots,
+            slot_index=config.slot_index,
+            guard_s=config.guard_s,
+            clock_offset=config.clock_offset,
+            sense_s=config.sense_s,
+            backoff_min_s=config.backoff_min_s,
+            backoff_max_s=config.backoff_max_s,
+            rng=self._rng,
+        )
+        self._signer = Signer(config.key, config.counter_start) if config.key else None
+        self._verifier = Verifier(config.key) if config.key else None
+        self._trailer = TRAILER_LEN if config.key else 0
+        # A frame size that divides the 1 s byte budget evenly: 7 frames of 223 bytes fit in the
+        # 1562 bytes of 12.5 kb/s, where frames of 224 would leave room for only 6.
+        budget = self._pacer.budget
+        self.frame_size = min(config.max_frame, int(budget // math.ceil(budget / config.max_frame)))
+        self.chunk_size = max_body(max(self.frame_size, MIN_FRAME)) - wire.DATA_HEADER_LEN - self._trailer
+        if self.chunk_size < 8:
+            raise ProtocolError(f"uwb: max_frame {config.max_frame} leaves no room for data")
+        self._max_total = config.max_message_bytes + HASH_LEN
+        self._rx_budget = config.rx_budget_bytes or 2 * self._max_total
+        self._partial_ttl = config.partial_ttl_s or 2 * config.deadline_s
+        self._ack_delay = config.ack_delay_s or 4 * 8 * config.max_frame / config.rate_bps
+        self._peers: dict[int, PeerState] = {}
+        self._rtt: dict[int, RttEstimator] = {}
+        self._out: OrderedDict[int, Outgoing] = OrderedDict()
+        self._next_msg = self._rng.getrandbits(31)
+        self._events: deque[Event] = deque()
+        self._now = -math.inf
+        self._hello_due = -math.inf
+        self._housekeeping_at = -math.inf
+        self._rx_held = 0
+        self._goodput_bps = 0.0
+        self.counters: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
+
+    # --- the API an adapter drives --------------------------------------------------------------
+
+    def send(
+        self,
+        data: bytes,
+        now: float,
+        *,
+        dests: list[int],
+        stream: int = 0,
+        deadline: float | None = None,
+    ) -> int:
+        """Queue ``data`` for ``dests`` (link ids); return its message id (latest wins per stream)."""
+        self._now = now
+        if len(data) > self.cfg.max_message_bytes:
+            raise LimitError(
+                f"uwb: message of {len(data)} bytes is over the limit of {self.cfg.max_message_bytes}"
+            )
+        if -(-(len(data) + HASH_LEN) // self.chunk_size) > MAX_CHUNKS:
+            raise LimitError(f"uwb: message of {len(data)} bytes needs more than {MAX_CHUNKS} chunks")
+        if not 0 <= stream <= 255:
+            raise ProtocolError(f"uwb: stream {stream} is not in 0..255")
+        targets = sorted({d for d in dests if d != self.node})
+        if not targets or not all(1 <= d <= 254 for d in targets):
+            raise TransportError(f"uwb: no valid peer to send to (got {dests})")
+        for old in [m for m in self._out.values() if m.stream == stream]:
+            del self._out[old.msg]
+            self.counters["superseded"] += 1
+            self._events.append(MessageClosed(old.msg, "superseded"))
+        msg = self._next_msg
+        self._next_msg = (self._next_msg + 1) & 0xFFFFFFFF
+        dst = targets[0] if len(targets) == 1 else wire.BROADCAST
+        when = now + self.cfg.deadline_s if deadline is None else deadline
+        self._out[msg] = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
+        for d in targets:
+            self._rtt_of(d)
+        self.counters["messages_tx"] += 1
+        return msg
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        """Bytes from the line (any split, any garbage)."""
+        self._now = now
+        self.counters["bytes_rx"] += len(data)
+        if data:
+            self._mac.heard(now)
+        for body in self._reader.feed(data):
+            self._on_body(body, now)
+
+    def data_to_send(self, now: float) -> bytes:
+        """The next frame to write, or b"" when pacing, access or signing says wait (see get_timer)."""
+        self._now = now
+        if self._signer is not None and not self._signer.can_sign():
+            return b""
+        while True:
+            pick = self._choose(now)
+            if pick is None:
+                return b""
+            kind, ref, est = pick
+            if max(self._pacer.ready_at(est, now), self._mac.ready_at(est, now)) > now:
+                return b""
+            frame = self._build(kind, ref, now)
+            if frame is not None:
+                break
+        body = wire.pack(frame, signed=self._signer is not None)
+        if self._signer is not None:
+            body = self._signer.sign(body)
+        out = encode_frame(body)
+        self._pacer.consume(len(out), now)
+        self._mac.sent(len(out), now)
+        self._hello_due = now + self.cfg.beacon_s
+        self.counters["bytes_tx"] += len(out)
+        self.counters["frames_tx"] += 1
+        return out
+
+    def get_timer(self) -> float | None:
+        """When to call :meth:`handle_timer` (and :meth:`data_to_send`) next; None: only on input."""
+        now = self._now
+        times: list[float] = []
+        can_sign = self._signer is None or self._signer.can_sign()
+        if can_sign:
+            for due, est in self._send_dues(now):
+                t = max(due, now)
+                times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
+        for m in self._out.values():
+            times.append(m.deadline)
+            times.extend(p.rto_at for p in m.peers.values() if p.pending and p.rto_at is not None)
+        times.extend(p.last_heard + self.cfg.peer_timeout_s for p in self._peers.values() if p.up)
+        if any(p.partials for p in self._peers.values()):
+            times.append(self._housekeeping_at)
+        return min(times) if times else None
+
+    def handle_timer(self, now: float) -> None:
+        """Fire whatever is due at ``now``: deadlines, retransmission timers, peer timeouts."""
+        self._now = now
+        for m in list(self._out.values()):
+            if now >= m.deadline:
+                for p in m.pending():
+                    p.failed = True
+                    self.counters["messages_failed"] += 1
+                    self._events.append(MessageFailed(m.msg, p.peer, "deadline"))
+                self._close(m)
+                continue
+            for p in m.pending():
+                if p.rto_at is None or now < p.rto_at:
+                    continue
+                missing = m.outstanding(p)
+                if missing:
+                    m.queue_resend(missing[0])
+                elif p.n_acked == m.count:
+                    m.queue_resend(m.count - 1)  # all acked but COMPLETE not heard: ask again
+                rtt = self._rtt_of(p.peer)
+                rtt.backoff()
+                self.counters["timeouts"] += 1
+                p.rto_at = now + rtt.rto if (missing or p.n_acked == m.count) else None
+        for peer in self._peers.values():
+            if peer.up and now >= peer.last_heard + self.cfg.peer_timeout_s:
+                peer.up = False
+                self._events.append(PeerDown(peer.id))
+        if now >= self._housekeeping_at:
+            self._housekeeping_at = now + 1.0
+            for peer in self._peers.values():
+                for part in [p for p in peer.partials.values() if now - p.last > self._partial_ttl]:
+                    self._rx_held -= peer.drop_partial(part.msg)
+                    self.counters["evicted"] += 1
+
+    def events(self) -> list[Event]:
+        """Drain the events produced so far."""
+        out = list(self._events)
+        self._events.clear()
+        return out
+
+    def counter_reservation(self) -> int | None:
+        """A signing-counter bound the adapter must persist, then :meth:`confirm_counter`; or None."""
+        return self._signer.reservation() if self._signer is not None else None
+
+    def confirm_counter(self, upto: int) -> None:
+        if self._signer is not None:
+            self._signer.confirm(upto)
+
+    def peers_up(self) -> list[int]:
+        return sorted(p.id for p in self._peers.values() if p.up)
+
+    def in_flight(self) -> int:
+        return len(self._out)
+
+    def stats(self) -> dict[str, Any]:
+        """Flat counters and gauges (bytes, frames, resends, errors, RTT, goodput, peak rate)."""
+        r = self._reader.stats
+        out: dict[str, Any] = dict(self.counters)
+        out.update(crc_errors=r.crc_errors, cobs_errors=r.cobs_errors, oversize=r.oversize, runts=r.runts)
+        if self._verifier is not None:
+            v = self._verifier.stats
+            out.update(unsigned=v.unsigned, bad_signature=v.bad_signature, replayed=v.replayed)
+        srtts = [e.srtt for e in self._rtt.values() if e.srtt is not None]
+        out["rtt_ms"] = round(1000 * sum(srtts) / len(srtts), 1) if srtts else None
+        out["rto_ms"] = round(1000 * max((e.rto for e in self._rtt.values()), default=0.0), 1)
+        out["goodput_bps"] = round(self._goodput_bps, 1)
+        out["peak_bps_1s"] = round(8 * self._pacer.peak_window_bytes / self._pacer.window, 1)
+        out["link_rate_bps"] = self.cfg.rate_bps
+        out["in_flight"] = len(self._out)
+        out["rx_held_bytes"] = self._rx_held
+        out["peers_up"] = len(self.peers_up())
+        return out
+
+    # --- receiving ------------------------------------------------------------------------------
+
+    def _on_body(self, body: bytes, now: float) -> None:
+        signed = wire.is_signed(body)
+        plain: bytes | None
+        if self._verifier is not None:
+            plain = self._verifier.check(body, signed)
+            if plain is None:
+                return
+        else:
+            plain = strip_unverified(body) if signed else body
+        try:
+            if plain is None:
+                raise ProtocolError("uwb: signed frame too short")
+            frame = wire.parse(plain)
+        except ProtocolError:
+            self.counters["bad_frames"] += 1
+            return
+        self.counters["frames_rx"] += 1
+        if frame.src == self.node:
+            self.counters["own_id"] += 1  # another node uses our id, or the medium echoes
+            return
+        peer = self._peer_for(frame, now)
+        if peer is None:
+            return
+        if isinstance(frame, wire.Data):
+            self._on_data(peer, frame, now)
+        elif isinstance(frame, wire.Ack):
+            self._on_ack(peer, frame, now)
+
+    def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
+        peer = self._peers.get(f.src)
+        if peer is None:
+            if len(self._peers) >= self.cfg.max_peers and not self._evict_peer():
+                self.counters["peers_full"] += 1
+                return None
+            peer = PeerState(f.src, f.session, now, self.cfg.max_partials_per_peer)
+            self._peers[f.src] = peer
+            self._events.append(PeerUp(f.src))
+        elif f.session != peer.session:
+            if f.session in peer.retired:
+                self.counters["stale_session"] += 1
+                return None
+            self._rx_held -= peer.restart(f.session)
+            self._events.append(PeerRestarted(f.src))
+            for m in self._out.values():
+                prog = m.peers.get(f.src)
+                if prog is not None and prog.pending:
+                    prog.reset()
+                    prog.rto_at = None
+                    for i in m.outstanding(prog):
+                        m.queue_resend(i)
+        if not peer.up:
+            peer.up = True
+            self._events.append(PeerUp(f.src))
+        peer.last_heard = now
+        return peer
+
+    def _evict_peer(self) -> bool:
+        """Make room by forgetting a peer that is down and holds nothing; False when none is."""
+        for pid, peer in self._peers.items():
+            if not peer.up and not peer.partials:
+                del self._peers[pid]
+                return True
+        return False
+
+    def _on_data(self, peer: PeerState, d: wire.Data, now: float) -> None:
+        cfg = self.cfg
+        if d.dst not in (self.node, wire.BROADCAST):
+            self.counters["not_for_me"] += 1
+            return
+        if d.total > self._max_total:
+            if d.msg not in peer.rejected:
+                self.counters["rejected"] += 1
+            peer.remember_rejected(d.msg)
+            peer.owe_ack(d.msg, now)
+            return
+        if d.msg in peer.completed or d.msg in peer.rejected:
+            self.counters["duplicates"] += 1
+            peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
+            return
+        part = peer.partials.get(d.msg)
+        if part is None:
+            top = peer.stream_top.get(d.stream)
+            if top is not None and d.msg < top:
+                self.counters["stale"] += 1
+                return
+            for old in [p for p in peer.partials.values() if p.stream == d.stream]:
+                self._rx_held -= peer.drop_partial(old.msg)
+                self.counters["superseded_rx"] += 1
+            if len(peer.partials) >= peer.max_partials:
+                victim = peer.oldest_partial()
+                if victim is not None:
+                    self._rx_held -= peer.drop_partial(victim.msg)
+                    self.counters["evicted"] += 1
+            part = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
+            peer.partials[d.msg] = part
+            peer.stream_top[d.stream] = d.msg
+        elif part.count != d.count or part.total != d.total:
+            self.counters["bad_frames"] += 1
+            return
+        if d.index in part.chunks:
+            self.counters["duplicates"] += 1
+            peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
+            return
+        if part.held + len(d.payload) > part.total:
+            self.counters["bad_frames"] += 1
+            return
+        if not self._make_room(len(d.payload), keep=part):
+            self.counters["evicted"] += 1
+            return
+        gap = d.index != part.top + 1
+        part.add(d.index, d.payload, now)
+        self._rx_held += len(d.payload)
+        if part.complete():
+            self._rx_held -= peer.drop_partial(d.msg)
+            data = part.verified()
+            if data is None:
+                self.counters["hash_errors"] += 1
+                peer.partials[d.msg] = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
+            else:
+                peer.remember_completed(d.msg, part.gen)
+                self.counters["messages_rx"] += 1
+                self._events.append(MessageReceived(peer.id, d.stream, d.msg, data))
+            peer.owe_ack(d.msg, now)
+            return
+        urgent = gap or part.fresh >= cfg.ack_every
+        peer.owe_ack(d.msg, now if urgent else now + self._ack_delay)
+
+    def _make_room(self, n: int, keep: Partial) -> bool:
+        """Drop the least recently active partials (not ``keep``) until ``n`` more bytes fit."""
+        while self._rx_held + n > self._rx_budget:
+            victims = [(p.last, peer, p) for peer in self._peers.values() for p in peer.partials.values()]
+            victims = [v for v in victims if v[2] is not keep]
+            if not victims:
+                return False
+            _, peer, p = min(victims, key=lambda v: v[0])
+            self._rx_held -= peer.drop_partial(p.msg)
+            self.counters["evicted"] += 1
+        return True
+
+    def _on_ack(self, peer: PeerState, a: wire.Ack, now: float) -> None:
+        self.counters["acks_rx"] += 1
+        if a.dst != self.node:
+            self.counters["not_for_me"] += 1
+            return
+        if a.target_session != self.session:
+            self.counters["stale_acks"] += 1
+            return
+        m = self._out.get(a.msg)
+        prog = m.peers.get(peer.id) if m is not None else None
+        if m is None or prog is None or not prog.pending:
+            self.counters["unknown_acks"] += 1
+            return
+        if a.flags & wire.REJECT:
+            prog.failed = True
+            self.counters["messages_failed"] += 1
+            self._events.append(MessageFailed(m.msg, peer.id, "refused by peer (over its message limit)"))
+            self._maybe_close(m, now)
+            return
+        if prog.gen is not None and a.gen != prog.gen:
+            prog.reset()
+            self.counters["gen_resets"] += 1
+            for i in range(m.next_new):
+                m.queue_resend(i)
+        prog.gen = a.gen
+        if a.flags & wire.COMPLETE:
+            newly = [i for i in range(m.count) if not prog.acked[i]]
+            m.mark_all_acked(prog)
+        else:
+            newly = m.apply_ack(prog, a.base, a.bitmap)
+        rtt = self._rtt_of(peer.id)
+        once = [i for i in newly if m.sends[i] == 1]
+        if once:
+            rtt.sample(now - min(m.sent_at[i] for i in once))
+        if a.flags & wire.COMPLETE:
+            prog.done = True
+            prog.rto_at = None
+            self._events.append(MessageDelivered(m.msg, peer.id))
+            self._maybe_close(m, now)
+            return
+        m.detect_losses(prog, self.cfg.reorder_tolerance)
+        if newly:
+            waiting = bool(m.outstanding(prog)) or prog.n_acked == m.count
+            prog.rto_at = now + rtt.rto if waiting else None
+
+    # --- sending --------------------------------------------------------------------------------
+
+    def _rtt_of(self, peer: int) -> RttEstimator:
+        rtt = self._rtt.get(peer)
+        if rtt is None:
+            rtt = RttEstimator(
+                initial_rto=self.cfg.initial_rto_s, min_rto=self.cfg.min_rto_s, max_rto=self.cfg.max_rto_s
+            )
+            self._rtt[peer] = rtt
+        return rtt
+
+    def _est(self, body_len: int) -> int:
+        return cobs_max_len(body_len + self._trailer + CRC_LEN) + 1
+
+    def _owed_ack(self) -> tuple[float, PeerState, int] | None:
+        best: tuple[float, PeerState, int] | None = None
+        for peer in self._peers.values():
+            for msg, due in peer.acks_due.items():
+                if best is None or due < best[0]:
+                    best = (due, peer, msg)
+        return best
+
+    def _send_dues(self, now: float) -> list[tuple[float, int]]:
+        """(due time, size estimate) of each kind of frame waiting to go."""
+        dues = [(self._hello_due, self._est(wire.HEADER_LEN))]
+        owed = self._owed_ack()
+        if owed is not None:
+            dues.append((owed[0], self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)))
+        if any(m.has_work(self.cfg.window) for m in self._out.values()):
+            dues.append((now, self._est(wire.DATA_HEADER_LEN + self.chunk_size)))
+        return dues
+
+    def _choose(self, now: float) -> tuple[str, Any, int] | None:
+        if self._hello_due <= now:
+            return "hello", None, self._est(wire.HEADER_LEN)
+        owed = self._owed_ack()
+        if owed is not None and owed[0] <= now:
+            return "ack", (owed[1], owed[2]), self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)
+        for m in self._out.values():
+            i = m.next_index(self.cfg.window)
+            if i is not None:
+                return "data", (m, i), self._est(wire.DATA_HEADER_LEN + len(m.chunk(i)))
+        return None
+
+    def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
+        if kind == "hello":
+            self.counters["hellos_tx"] += 1
+            return wire.Hello(self.node, wire.BROADCAST, self.session)
+        if kind == "ack":
+            peer, msg = ref
+            return self._build_ack(peer, msg, now)
+        m, i = ref
+        resend = m.mark_sent(i, now)
+        self._out.move_to_end(m.msg)  # round-robin between messages
+        for p in m.pending():
+            if p.rto_at is None:
+                p.rto_at = now + self._rtt_of(p.peer).rto
+        self.counters["data_tx"] += 1
+        if resend:
+            self.counters["resends"] += 1
+        return wire.Data(self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i))
+
+    def _build_ack(self, peer: PeerState, msg: int, now: float) -> wire.Ack | None:
+        del peer.acks_due[msg]
+        base, bitmap, flags = 0, b"", 0
+        part = peer.partials.get(msg)
+        if part is not None:
+            gen, base, bitmap = part.gen, min(part.base, MAX_CHUNKS), part.bitmap()
+            part.fresh = 0
+        elif msg in peer.completed:
+            gen, flags = peer.completed[msg], wire.COMPLETE
+        elif msg in peer.rejected:
+            gen, flags = 0, wire.REJECT
+        else:
+            return None  # forgotten since (evicted): nothing true to say
+        self.counters["acks_tx"] += 1
+        return wire.Ack(self.node, peer.id, self.session, peer.session, msg, gen, flags, base, bitmap)
+
+    def _maybe_close(self, m: Outgoing, now: float) -> None:
+        if not m.finished():
+            return
+        if all(p.done for p in m.peers.values()):
+            self.counters["messages_delivered"] += 1
+            self.counters["bytes_delivered"] += m.size
+            self._goodput_bps = 8 * m.size / max(now - m.created, 1e-9)
+        self._close(m)
+
+    def _close(self, m: Outgoing) -> None:
+        self._out.pop(m.msg, None)
+        outcome = "delivered" if all(p.done for p in m.peers.values()) else "failed"
+        self._events.append(MessageClosed(m.msg, outcome))

@@ -1,0 +1,475 @@
+"""The asyncio adapter: a serial port (pyserial-asyncio) driving the sans-I/O core in ``arq.py``.
+
+It is thin on purpose. One task loops: feed what the port read, fire the core's timer, persist the
+signing counter when the core asks, write the frames the core hands out one at a time (waiting for
+each to leave the transport's buffer, so nothing queues behind the pacing), hand events on, and sleep
+until the core's next deadline or new input. A port that vanishes (a USB radio unplugged) is reopened
+every ``reopen_s``; meanwhile the core sees an outage and resumes where the receiver left off.
+
+:class:`UwbLink` carries raw byte messages (``mapd link`` uses it); :class:`UwbTransport` is the
+daemon's ``uwb`` transport: envelopes in, :mod:`mapd.transport` events out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import os
+import time
+import zlib
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, model_validator
+
+from mapd.envelope import Envelope
+from mapd.errors import ConfigError, LimitError, MapdError, TransportError
+from mapd.transport import (
+    Delivered,
+    Failed,
+    PeerDown,
+    PeerRestarted,
+    PeerUp,
+    Received,
+    Transport,
+    TransportContext,
+    TransportOptions,
+)
+from transports.uwb import arq
+from transports.uwb.framing import MIN_FRAME
+from transports.uwb.signing import CounterStore, clock_floor
+
+log = logging.getLogger("mapd.uwb")
+
+
+class UwbOptions(TransportOptions):
+    """The ``[transports.uwb]`` table."""
+
+    port: str = Field(default="/dev/ttyUSB0", description="serial device of the UWB radio")
+    baud: int = Field(default=115200, ge=1200, le=4_000_000, description="serial baud rate")
+    link_rate_bps: int = Field(
+        default=12500, ge=2000, le=10_000_000, description="bits/s this node may write (any 1 s window)"
+    )
+    max_frame: int = Field(default=224, ge=MIN_FRAME, le=4096, description="largest frame on the wire, bytes")
+    node_id: int | None = Field(
+        default=None, ge=1, le=254, description="this robot's link id; default nodes[robot]"
+    )
+    nodes: dict[str, int] = Field(
+        default_factory=dict, description="robot name -> link id (1..254) on this channel"
+    )
+    peers: list[str] = Field(
+        default_factory=list, description="robots that must ack each map; default: every other robot in nodes"
+    )
+    deadline_s: float = Field(default=120.0, gt=0, description="give up on a map after this long")
+    max_message_bytes: int | None = Field(
+        default=None, ge=1024, description="default: limits.max_message_bytes"
+    )
+    window: int = Field(default=128, ge=1, le=256, description="chunks in flight past the receiver's base")
+    mac: Literal["none", "tdma", "backoff"] = Field(
+        default="none", description="medium access on a shared channel"
+    )
+    slot_ms: float = Field(default=250.0, gt=0, description="tdma: slot length")
+    slots: int | None = Field(
+        default=None, ge=1, le=254, description="tdma: slots per cycle; default len(nodes)"
+    )
+    slot_index: int | None = Field(default=None, ge=0, description="tdma: own slot; default rank of node_id")
+    guard_ms: float = Field(default=10.0, ge=0, description="tdma: quiet time at the end of a slot")
+    sense_ms: float = Field(default=20.0, ge=0, description="backoff: channel idle time before a backoff")
+    backoff_min_ms: float = Field(default=0.0, ge=0, description="backoff: shortest random wait")
+    backoff_max_ms: float = Field(default=100.0, ge=0, description="backoff: longest random wait")
+    beacon_s: float = Field(default=5.0, gt=0, description="HELLO after this long without sending")
+    peer_timeout_s: float = Field(default=20.0, gt=0, description="a peer silent this long is down")
+    reopen_s: float = Field(default=1.0, gt=0, description="retry a vanished serial port this often")
+
+    @model_validator(mode="after")
+    def _check(self) -> UwbOptions:
+        for name, i in self.nodes.items():
+            if not 1 <= i <= 254:
+                raise ValueError(f"nodes.{name}: link id {i} is not in 1..254")
+        if len(set(self.nodes.values())) != len(self.nodes):
+            raise ValueError("nodes: two robots share a link id")
+        if self.link_rate_bps / 8 < self.max_frame:
+            raise ValueError(
+                f"link_rate_bps {self.link_rate_bps} cannot carry one {self.max_frame}-byte frame a second"
+            )
+        if self.backoff_max_ms < self.backoff_min_ms:
+            raise ValueError("backoff_max_ms is below backoff_min_ms")
+        if (
+            self.mac == "tdma"
+            and self.max_frame * 8 / self.link_rate_bps > (self.slot_ms - self.guard_ms) / 1000
+        ):
+            raise ValueError("tdma: a max_frame frame does not fit in slot_ms - guard_ms at link_rate_bps")
+        return self
+
+
+def resolve_peer(spec: str, nodes: dict[str, int]) -> int:
+    """A peer given as a robot name in ``nodes``, a number, or ``uwb-N``; ConfigError otherwise."""
+    if spec in nodes:
+        return nodes[spec]
+    text = spec.removeprefix("uwb-")
+    if text.isdigit() and 1 <= int(text) <= 254:
+        return int(text)
+    raise ConfigError(f"transports.uwb.peers: '{spec}' is not in transports.uwb.nodes nor a link id 1..254")
+
+
+def port_error(port: str, exc: BaseException | None = None) -> TransportError:
+    if not os.path.exists(port):
+        return TransportError(f"uwb: serial port {port} does not exist")
+    detail = str(exc).splitlines()[0] if exc is not None and str(exc) else "cannot be opened"
+    return TransportError(f"uwb: cannot open serial port {port}: {detail}")
+
+
+class _Proto(asyncio.Protocol):
+    def __init__(self, link: UwbLink) -> None:
+        self.link = link
+        self.transport: asyncio.Transport | None = None
+        self._writable: asyncio.Future[None] | None = None
+        self.lost = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        # Pause after every write until it has left the buffer: drain() then means "on the wire".
+        transport.set_write_buffer_limits(high=0, low=0)
+
+    def data_received(self, data: bytes) -> None:
+        self.link._on_bytes(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.lost = True
+        self.resume_writing()
+        self.link._on_lost(exc)
+
+    def pause_writing(self) -> None:
+        if self._writable is None or self._writable.done():
+            self._writable = asyncio.get_running_loop().create_future()
+
+    def resume_writing(self) -> None:
+        if self._writable is not None and not self._writable.done():
+            self._writable.set_result(None)
+
+    async def drain(self) -> None:
+        if self._writable is not None and not self._writable.done():
+            await self._writable
+
+
+class UwbLink:
+    """A serial port driving one :class:`~transports.uwb.arq.ArqEndpoint`; raw byte messages."""
+
+    def __init__(
+        self,
+        config: arq.ArqConfig,
+        port: str,
+        *,
+        baud: int = 115200,
+        on_event: Callable[[arq.Event], None] | None = None,
+        counter_store: CounterStore | None = None,
+        reopen_s: float = 1.0,
+        session: int | None = None,
+    ) -> None:
+        self.port = port
+        self.baud = baud
+        self.reopen_s = reopen_s
+        self._on_event = on_event or (lambda e: None)
+        self._store = counter_store or CounterStore(None)
+        self._cfg = config
+        self._session = session if session is not None else int.from_bytes(os.urandom(4), "little")
+        self.core: arq.ArqEndpoint | None = None
+        self._proto: _Proto | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._wake = asyncio.Event()
+        self._closing = False
+        self._reopen_at = 0.0
+        self._writes: deque[tuple[float, int]] = deque()
+        self._window_bytes = 0
+        self.write_peak_bps = 0.0
+        self.reconnects = 0
+        self.started_at = 0.0
+        self.first_rx_at: float | None = None
+
+    async def start(self) -> None:
+        """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
+        if self._cfg.key is not None:
+            start = max(self._store.load(), clock_floor(time.time()))
+            self._cfg = dataclasses.replace(self._cfg, counter_start=start)
+        self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
+        self._persist_counter()  # a state dir that cannot be written fails here, not later
+        await self._open()
+        self.started_at = asyncio.get_running_loop().time()
+        self._task = asyncio.create_task(self._run(), name=f"uwb-{self.port}")
+        self._task.add_done_callback(self._task_done)
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            exc = task.exception()
+            log.error("uwb: link on %s stopped: %s", self.port, exc, exc_info=exc)
+
+    async def _open(self) -> None:
+        import serial
+        import serial_asyncio
+
+        if not os.path.exists(self.port):
+            raise port_error(self.port)
+        loop = asyncio.get_running_loop()
+        try:
+            _, proto = await serial_asyncio.create_serial_connection(
+                loop, lambda: _Proto(self), self.port, baudrate=self.baud
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise port_error(self.port, exc) from None
+        self._proto = proto
+
+    async def close(self) -> None:
+        """Stop at once: cancel the loop, drop the port (unsent frames are abandoned)."""
+        self._closing = True
+        self._wake.set()
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await asyncio.wait_for(self._task, 2.0)
+        if self._proto is not None and self._proto.transport is not None:
+            self._proto.transport.abort()
+        self._proto = None
+
+    def send(self, data: bytes, dests: list[int], *, stream: int = 0, deadline_s: float | None = None) -> int:
+        """Queue a message (latest wins per stream); returns its id for the events that follow."""
+        if self.core is None:
+            raise TransportError("uwb: link not started")
+        now = asyncio.get_running_loop().time()
+        deadline = None if deadline_s is None else now + deadline_s
+        msg = self.core.send(data, now, dests=dests, stream=stream, deadline=deadline)
+        self._wake.set()
+        return msg
+
+    def stats(self) -> dict[str, Any]:
+        out = self.core.stats() if self.core is not None else {}
+        out.update(
+            port=self.port,
+            port_open=self._proto is not None and not self._proto.lost,
+            reconnects=self.reconnects,
+            write_peak_bps_1s=round(self.write_peak_bps, 1),
+        )
+        return out
+
+    # --- callbacks from the protocol ------------------------------------------------------------
+
+    def _on_bytes(self, data: bytes) -> None:
+        now = asyncio.get_running_loop().time()
+        if self.first_rx_at is None:
+            self.first_rx_at = now
+        if self.core is not None:
+            self.core.receive_data(data, now)
+        self._wake.set()
+
+    def _on_lost(self, exc: Exception | None) -> None:
+        if not self._closing:
+            log.warning(
+                "uwb: serial port %s lost (%s); reopening every %.1f s", self.port, exc, self.reopen_s
+            )
+            self._reopen_at = asyncio.get_running_loop().time() + self.reopen_s
+        self._wake.set()
+
+    # --- the loop -------------------------------------------------------------------------------
+
+    def _persist_counter(self) -> None:
+        assert self.core is not None
+        upto = self.core.counter_reservation()
+        if upto is not None:
+            self._store.save(upto)
+            self.core.confirm_counter(upto)
+
+    def _dispatch(self) -> None:
+        assert self.core is not None
+        for event in self.core.events():
+            try:
+                self._on_event(event)
+            except MapdError:
+                raise
+            except Exception:  # a consumer's bug must not stop the link
+                log.exception("uwb: event handler failed on %s", event)
+
+    def _record_write(self, now: float, n: int) -> None:
+        self._writes.append((now, n))
+        self._window_bytes += n
+        while self._writes and self._writes[0][0] <= now - 1.0:
+            self._window_bytes -= self._writes.popleft()[1]
+        self.write_peak_bps = max(self.write_peak_bps, 8.0 * self._window_bytes)
+
+    async def _maybe_reopen(self, now: float) -> None:
+        if self._proto is not None and not self._proto.lost:
+            return
+        if now < self._reopen_at:
+            return
+        try:
+            await self._open()
+            self.reconnects += 1
+            log.warning("uwb: serial port %s reopened", self.port)
+        except TransportError:
+            self._reopen_at = now + self.reopen_s
+
+    async def _run(self) -> None:
+        core = self.core
+        assert core is not None
+        loop = asyncio.get_running_loop()
+        while not self._closing:
+            self._wake.clear()
+            now = loop.time()
+            await self._maybe_reopen(now)
+            timer = core.get_timer()
+            if timer is not None and timer <= now:
+                core.handle_timer(now)
+            self._persist_counter()
+            self._dispatch()
+            while not self._closing:
+                now = loop.time()
+                frame = core.data_to_send(now)
+                if not frame:
+                    break
+                proto = self._proto
+                if proto is not None and not proto.lost and proto.transport is not None:
+                    proto.transport.write(frame)
+                    self._record_write(now, len(frame))
+                    await proto.drain()
+                # else: the line is down; the frame is lost like any other and will be resent
+                self._persist_counter()
+                self._dispatch()
+            self._dispatch()
+            timer = core.get_timer()
+            wait = None if timer is None else max(0.0, timer - loop.time())
+            if self._proto is None or self._proto.lost:
+                wait = min(wait if wait is not None else self.reopen_s, self.reopen_s)
+            if self._wake.is_set():
+                continue
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), wait)
+
+
+class UwbTransport(Transport):
+    """The daemon's ``uwb`` transport: maps over a UWB serial radio, latest wins per robot."""
+
+    name = "uwb"
+    Options = UwbOptions
+
+    def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
+        super().__init__(options, ctx)
+        opts = self.options
+        assert isinstance(opts, UwbOptions)
+        self.opts = opts
+        node = opts.node_id if opts.node_id is not None else opts.nodes.get(ctx.robot)
+        if node is None:
+            raise ConfigError(
+                f"transports.uwb: no link id for robot '{ctx.robot}': set node_id or add it to nodes"
+            )
+        self.node_id = node
+        self._names = {i: name for name, i in opts.nodes.items()}
+        if opts.peers:
+            self.peer_ids = [resolve_peer(p, opts.nodes) for p in opts.peers]
+        else:
+            self.peer_ids = sorted(i for i in opts.nodes.values() if i != node)
+        if node in self.peer_ids:
+            raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
+        self._streams: dict[str, int] = {}
+        self._msgs: dict[int, tuple[str, int]] = {}
+        self._link: UwbLink | None = None
+
+    def _name(self, link_id: int) -> str:
+        return self._names.get(link_id, f"uwb-{link_id}")
+
+    def _stream(self, robot: str) -> int:
+        if robot not in self._streams:
+            n = len(self._streams)
+            self._streams[robot] = n if n < 256 else zlib.crc32(robot.encode()) & 0xFF
+        return self._streams[robot]
+
+    def _config(self, loop: asyncio.AbstractEventLoop) -> arq.ArqConfig:
+        o = self.opts
+        ids = sorted({*self.opts.nodes.values(), self.node_id})
+        return arq.ArqConfig(
+            node_id=self.node_id,
+            max_frame=o.max_frame,
+            rate_bps=float(o.link_rate_bps),
+            max_message_bytes=o.max_message_bytes or self.ctx.max_message_bytes,
+            window=o.window,
+            deadline_s=o.deadline_s,
+            beacon_s=o.beacon_s,
+            peer_timeout_s=o.peer_timeout_s,
+            mac=o.mac,
+            slot_s=o.slot_ms / 1000,
+            slots=o.slots or len(ids),
+            slot_index=o.slot_index if o.slot_index is not None else ids.index(self.node_id),
+            guard_s=o.guard_ms / 1000,
+            clock_offset=time.time() - loop.time(),
+            sense_s=o.sense_ms / 1000,
+            backoff_min_s=o.backoff_min_ms / 1000,
+            backoff_max_s=o.backoff_max_ms / 1000,
+            key=self.ctx.key,
+        )
+
+    async def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        state = self.ctx.state_dir
+        store = CounterStore(Path(state) / f"uwb-{self.node_id}.counter" if state is not None else None)
+        self._link = UwbLink(
+            self._config(loop),
+            self.opts.port,
+            baud=self.opts.baud,
+            on_event=self._on_event,
+            counter_store=store,
+            reopen_s=self.opts.reopen_s,
+        )
+        await self._link.start()
+
+    async def close(self) -> None:
+        if self._link is not None:
+            await self._link.close()
+
+    def offer(self, envelope: Envelope) -> None:
+        link = self._link
+        if link is None or link.core is None:
+            raise TransportError("uwb: offer() before start()")
+        dests = self.peer_ids or link.core.peers_up()
+        if not dests:
+            log.debug("uwb: no peer to send %s v%d to", envelope.robot, envelope.version)
+            return
+        try:
+            msg = link.send(envelope.pack(), dests, stream=self._stream(envelope.robot))
+        except LimitError as exc:
+            for d in dests:
+                self.ctx.emit(Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc)))
+            return
+        self._msgs[msg] = (envelope.robot, envelope.version)
+
+    def peers(self) -> list[str]:
+        if self._link is None or self._link.core is None:
+            return []
+        return [self._name(i) for i in self._link.core.peers_up()]
+
+    def stats(self) -> dict[str, Any]:
+        out = self._link.stats() if self._link is not None else {}
+        out["node_id"] = self.node_id
+        return out
+
+    def _on_event(self, e: arq.Event) -> None:
+        emit = self.ctx.emit
+        if isinstance(e, arq.MessageReceived):
+            emit(Received("uwb", self._name(e.src), e.data))
+        elif isinstance(e, arq.MessageDelivered):
+            if e.msg in self._msgs:
+                robot, version = self._msgs[e.msg]
+                emit(Delivered("uwb", self._name(e.peer), robot, version))
+        elif isinstance(e, arq.MessageFailed):
+            if e.msg in self._msgs:
+                robot, version = self._msgs[e.msg]
+                emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
+        elif isinstance(e, arq.MessageClosed):
+            self._msgs.pop(e.msg, None)
+        elif isinstance(e, arq.PeerUp):
+            emit(PeerUp("uwb", self._name(e.peer)))
+        elif isinstance(e, arq.PeerDown):
+            emit(PeerDown("uwb", self._name(e.peer)))
+        elif isinstance(e, arq.PeerRestarted):
+            emit(PeerRestarted("uwb", self._name(e.peer)))

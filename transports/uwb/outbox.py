@@ -1,0 +1,170 @@
+"""The sender's view of one message in flight: its chunks, what each intended peer holds, what to resend.
+
+Pure bookkeeping used by :mod:`transports.uwb.arq`; the rules that drive it are written there.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import heapq
+from dataclasses import dataclass, field
+
+from transports.uwb.wire import bitmap_indices
+
+HASH_LEN = 16
+
+
+def message_hash(data: bytes) -> bytes:
+    """The hash that travels after a message and is checked before delivery (SHA-256, 16 bytes)."""
+    return hashlib.sha256(data).digest()[:HASH_LEN]
+
+
+@dataclass
+class PeerProgress:
+    """What one intended receiver holds of a message, as its acks tell."""
+
+    peer: int
+    count: int
+    acked: bytearray = field(init=False)
+    n_acked: int = 0
+    low: int = 0  # every chunk below is acked
+    gen: int | None = None  # the receiver's reassembly buffer the acks describe
+    done: bool = False
+    failed: bool = False
+    max_acked_seq: int = 0  # newest transmission (by send order) this peer acked
+    rto_at: float | None = None
+
+    def __post_init__(self) -> None:
+        self.acked = bytearray(self.count)
+
+    @property
+    def pending(self) -> bool:
+        return not self.done and not self.failed
+
+    def reset(self) -> None:
+        """The receiver lost what it held (restart, new buffer): nothing counts as acked."""
+        self.acked = bytearray(self.count)
+        self.n_acked = 0
+        self.low = 0
+        self.gen = None
+        self.max_acked_seq = 0
+
+
+class Outgoing:
+    """One message being sent to a set of peers, chunked, with per-chunk send history."""
+
+    def __init__(
+        self,
+        msg: int,
+        stream: int,
+        data: bytes,
+        chunk_size: int,
+        dests: list[int],
+        dst: int,
+        now: float,
+        deadline: float,
+    ) -> None:
+        self.msg = msg
+        self.stream = stream
+        self.size = len(data)
+        self.body = data + message_hash(data)
+        self.total = len(self.body)
+        self.chunk_size = chunk_size
+        self.count = -(-self.total // chunk_size)
+        self.dst = dst
+        self.created = now
+        self.deadline = deadline
+        self.peers = {p: PeerProgress(p, self.count) for p in dests}
+        self.next_new = 0
+        self.seq = [0] * self.count  # send order of each chunk's latest transmission (0: never)
+        self.sent_at = [0.0] * self.count
+        self.sends = [0] * self.count
+        self.xmit = 0
+        self._resend: list[int] = []
+        self._resend_set: set[int] = set()
+
+    def chunk(self, i: int) -> bytes:
+        return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]
+
+    def pending(self) -> list[PeerProgress]:
+        return [p for p in self.peers.values() if p.pending]
+
+    def finished(self) -> bool:
+        return not any(p.pending for p in self.peers.values())
+
+    def needed(self, i: int) -> bool:
+        return any(p.pending and not p.acked[i] for p in self.peers.values())
+
+    def window_base(self) -> int:
+        """New chunks may go up to this plus the window: the most advanced pending peer sets it, so a
+        silent peer never holds the others back (it gets probes, and resends once it answers)."""
+        lows = [p.low for p in self.peers.values() if p.pending]
+        return max(lows) if lows else self.count
+
+    def queue_resend(self, i: int) -> None:
+        if i not in self._resend_set:
+            self._resend_set.add(i)
+            heapq.heappush(self._resend, i)
+
+    def next_index(self, window: int) -> int | None:
+        """The chunk to send next: the lowest queued resend still needed, else a new chunk in the window."""
+        while self._resend:
+            i = self._resend[0]
+            if self.needed(i):
+                return i
+            heapq.heappop(self._resend)
+            self._resend_set.discard(i)
+        if self.next_new < self.count and self.next_new < self.window_base() + window:
+            return self.next_new
+        return None
+
+    def has_work(self, window: int) -> bool:
+        return self.next_index(window) is not None
+
+    def mark_sent(self, i: int, now: float) -> bool:
+        """Record a transmission of chunk ``i``; True when it was a resend."""
+        if self._resend and self._resend[0] == i:
+            heapq.heappop(self._resend)
+            self._resend_set.discard(i)
+        if i == self.next_new:
+            self.next_new += 1
+        self.xmit += 1
+        self.seq[i] = self.xmit
+        self.sent_at[i] = now
+        self.sends[i] += 1
+        return self.sends[i] > 1
+
+    def apply_ack(self, p: PeerProgress, base: int, bitmap: bytes) -> list[int]:
+        """Mark what an ACK says ``p`` holds; return the chunks newly acked."""
+        newly: list[int] = []
+        top = min(base, self.count)
+        for i in range(p.low, top):
+            if not p.acked[i]:
+                newly.append(i)
+        for i in bitmap_indices(base, bitmap):
+            if i < self.count and not p.acked[i] and i >= top:
+                newly.append(i)
+        for i in newly:
+            p.acked[i] = 1
+            p.max_acked_seq = max(p.max_acked_seq, self.seq[i])
+        p.n_acked += len(newly)
+        while p.low < self.count and p.acked[p.low]:
+            p.low += 1
+        return newly
+
+    def mark_all_acked(self, p: PeerProgress) -> None:
+        p.acked = bytearray(b"\x01" * self.count)
+        p.n_acked = p.low = self.count
+
+    def outstanding(self, p: PeerProgress) -> list[int]:
+        """Chunks sent at least once that ``p`` has not acked."""
+        return [i for i in range(p.low, self.next_new) if not p.acked[i] and self.sends[i]]
+
+    def detect_losses(self, p: PeerProgress, tolerance: int) -> int:
+        """Queue for resend every chunk ``p`` lacks that was sent well before one it acked (RACK-like)."""
+        lost = 0
+        for i in self.outstanding(p):
+            if self.seq[i] + tolerance <= p.max_acked_seq and i not in self._resend_set:
+                self.queue_resend(i)
+                lost += 1
+        return lost
