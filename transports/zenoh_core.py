@@ -15,7 +15,8 @@ emit, keyframe queries to send). The rules:
   counted, and the robot's latest keyframe is queried. Versions at or below the last one are stale
   (a duplicate, or a query reply older than what we hold) and are dropped.
 * **Queries** go to ``mapd/<fleet>/<robot>/latest?from=<us>``; at most one per robot is in flight
-  until its replies end or ``query_timeout_s`` passes. A peer that appears with no map known yet is
+  until its replies end or ``query_timeout_s`` passes; a gap seen meanwhile asks once more when it
+  ends (the reply may predate the gap). A peer that appears with no map known yet is
   queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
   robot's versions, so the keyframe that answers is accepted whatever its version.
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
@@ -92,6 +93,8 @@ class _Robot:
     bases: deque[int] = field(default_factory=deque)
     alive: bool = False
     query_until: float | None = None
+    #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
+    regap: bool = False
 
     def forget(self) -> None:
         self.last = 0
@@ -179,11 +182,15 @@ class ZenohCore:
         """A reply to our keyframe query of ``robot`` arrived."""
         return self._on_envelope(robot, data, now, from_query=True)
 
-    def query_done(self, robot: str) -> None:
+    def query_done(self, robot: str, now: float) -> Step:
         """Our query of ``robot`` has ended (all replies in, or timed out)."""
+        step = Step()
         st = self._robots.get(robot)
         if st is not None:
             st.query_until = None
+            if st.regap:
+                self._query(robot, st, now, step)
+        return step
 
     def on_presence(self, key_expr: str, alive: bool, now: float) -> Step:
         """A liveliness token appeared (``alive``) or vanished."""
@@ -254,7 +261,9 @@ class ZenohCore:
 
     def _query(self, robot: str, st: _Robot, now: float, step: Step) -> None:
         if st.query_until is not None and now < st.query_until:
+            st.regap = True
             return
+        st.regap = False
         st.query_until = now + self.query_timeout_s
         self.counters["keyframe_queries"] += 1
         step.queries.append(robot)

@@ -23,7 +23,10 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh_keys`; what happens
   version a delta base for us. Acks are only accepted for versions that robot actually offered.
 * **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
   outbox thread, bounded by ``close_timeout_s``) undeclares the liveliness token first, so peers
-  see us leave at once, then subscribers, queryable and publisher, and closes the session.
+  see us leave at once, then subscribers, queryable and publisher, closes the session, and waits
+  for zenoh's callback threads to end (one still ending at interpreter exit aborts the process;
+  see :mod:`transports.zenoh_handlers`). ``close`` never takes much longer than ``close_timeout_s``;
+  the outbox thread is a daemon thread, so even a zenoh call stuck past it cannot hold the exit.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from mapd.errors import TransportError
 from mapd.transport import Transport, TransportContext, TransportOptions
 from transports import zenoh_keys as keys
 from transports.zenoh_core import NAME, Step, ZenohCore
+from transports.zenoh_handlers import HandlerSet
 from transports.zenoh_outbox import Outbox
 from transports.zenoh_session import ZenohOptions, build_config, zenoh_message
 
@@ -55,7 +59,8 @@ class ZenohTransport(Transport):
     def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
         super().__init__(options, ctx)
         opts = self.options
-        assert isinstance(opts, ZenohOptions)
+        if not isinstance(opts, ZenohOptions):
+            raise TransportError(f"zenoh: options must be ZenohOptions, not {type(opts).__name__}")
         self.opts: ZenohOptions = opts
         if not keys.valid_name(ctx.robot) or not keys.valid_name(ctx.fleet):
             raise TransportError(f"zenoh: robot '{ctx.robot}' or fleet '{ctx.fleet}' is not a valid id")
@@ -78,6 +83,7 @@ class ZenohTransport(Transport):
         self._closed = False
         self._last_keyframe: bytes | None = None
         self._kf_cache: tuple[Envelope, bytes] | None = None
+        self._handlers = HandlerSet()
         self._tx_lock = threading.Lock()
         self._tx = {"bytes_tx": 0, "updates_tx": 0, "acks_tx": 0, "errors": 0, "oversize": 0}
 
@@ -94,17 +100,19 @@ class ZenohTransport(Transport):
         )
         try:
             await asyncio.wrap_future(self._outbox.call(lambda: self._open(conf)))
-        except TransportError:
-            self._outbox.stop(0.5)
+        except BaseException as exc:
+            # Cancelled mid-open, the session may still come up: close whatever did, then end.
+            outbox, self._outbox = self._outbox, None
+            outbox.call(lambda: self._shutdown(time.monotonic() + self.opts.close_timeout_s))
+            outbox.finish()
+            if isinstance(exc, Exception) and not isinstance(exc, TransportError):
+                raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
             raise
-        except Exception as exc:
-            self._outbox.stop(0.5)
-            raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
 
     def _open(self, conf: Any) -> None:
         import zenoh
 
-        fleet, me = self.ctx.fleet, self.ctx.robot
+        fleet, me, cb = self.ctx.fleet, self.ctx.robot, self._handlers.callback
         session = zenoh.open(conf)
         try:
             remote = zenoh.Locality.REMOTE
@@ -115,17 +123,21 @@ class ZenohTransport(Transport):
             )
             ents = self._entities
             ents.append(
-                session.declare_subscriber(keys.all_updates(fleet), self._cb_update, allowed_origin=remote)
+                session.declare_subscriber(
+                    keys.all_updates(fleet), cb(self._cb_update), allowed_origin=remote
+                )
             )
             ents.append(
-                session.declare_subscriber(keys.acks_for(fleet, me), self._cb_ack, allowed_origin=remote)
+                session.declare_subscriber(keys.acks_for(fleet, me), cb(self._cb_ack), allowed_origin=remote)
             )
             ents.append(
                 session.liveliness().declare_subscriber(
-                    keys.all_presence(fleet), self._cb_presence, history=True
+                    keys.all_presence(fleet), cb(self._cb_presence), history=True
                 )
             )
-            ents.append(session.declare_queryable(keys.latest_key(fleet, me), self._cb_query, complete=True))
+            ents.append(
+                session.declare_queryable(keys.latest_key(fleet, me), cb(self._cb_query), complete=True)
+            )
             self._publisher = session.declare_publisher(keys.update_key(fleet, me), congestion_control=cc)
             ents.append(self._publisher)
             # Last, so a peer that sees us can already query us.
@@ -146,23 +158,26 @@ class ZenohTransport(Transport):
         if outbox is None:
             return
         outbox.discard_pending()
+        deadline = time.monotonic() + self.opts.close_timeout_s
+        fut = outbox.call(lambda: self._shutdown(deadline))
         try:
-            await asyncio.wait_for(
-                asyncio.wrap_future(outbox.call(self._shutdown)), self.opts.close_timeout_s
-            )
+            await asyncio.wait_for(asyncio.wrap_future(fut), self.opts.close_timeout_s)
         except TimeoutError:
             log.warning(
                 "zenoh: session did not close within %.1f s; leaving it to the exit",
                 self.opts.close_timeout_s,
             )
         except asyncio.CancelledError:
-            outbox.stop(0.0)
-            raise
+            task = asyncio.current_task()
+            if task is not None and task.cancelling():
+                outbox.stop(0.0)
+                raise
+            # Otherwise the outbox had stopped already and cancelled the job: nothing is open.
         except Exception as exc:
             log.warning("zenoh: error while closing: %s", zenoh_message(exc))
         outbox.stop(0.2)
 
-    def _shutdown(self) -> None:
+    def _shutdown(self, deadline: float) -> None:
         for ent in [self._token, *reversed(self._entities)]:
             if ent is None:
                 continue
@@ -175,6 +190,10 @@ class ZenohTransport(Transport):
         if self._session is not None:
             self._session.close()
             self._session = None
+        # zenoh's callback threads end after the close; one still ending at interpreter exit
+        # would abort the process (see transports.zenoh_handlers).
+        if not self._handlers.wait(deadline):
+            log.warning("zenoh: %d callback threads still running after close", self._handlers.live)
 
     # -- zenoh threads: copy and hand over, nothing else -------------------------------------------
 
@@ -223,7 +242,7 @@ class ZenohTransport(Transport):
         self._apply(self.core.on_reply(robot, data, time.monotonic()))
 
     def _on_query_done(self, robot: str) -> None:
-        self.core.query_done(robot)
+        self._apply(self.core.query_done(robot, time.monotonic()))
 
     def _on_ack(self, key_expr: str, data: bytes) -> None:
         self._apply(self.core.on_ack(key_expr, data))
@@ -249,20 +268,19 @@ class ZenohTransport(Transport):
             query.drop()
 
     def _send_query(self, robot: str) -> None:
-        import zenoh
-
         selector = f"{keys.latest_key(self.ctx.fleet, robot)}?from={self.ctx.robot}"
-        handler: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(
-            lambda reply: self._cb_reply(robot, reply), lambda: self._post(self._on_query_done, robot)
-        )
         timeout = self.opts.query_timeout_s
 
         def job() -> None:
-            if self._session is not None:
-                self._session.get(selector, handler, timeout=timeout)
+            if self._session is None:
+                return
+            handler = self._handlers.callback(
+                lambda reply: self._cb_reply(robot, reply), lambda: self._post(self._on_query_done, robot)
+            )
+            self._session.get(selector, handler, timeout=timeout)
 
         if self._outbox is None or not self._outbox.submit(("get", robot), job):
-            self.core.query_done(robot)
+            self.core.query_done(robot, time.monotonic())  # not sent: do not wait for it
 
     def _keyframe_bytes(self) -> bytes | None:
         env = self.ctx.latest_keyframe()
@@ -321,7 +339,8 @@ class ZenohTransport(Transport):
         """Tell ``robot`` that its ``version`` has been decoded here (call after a successful decode).
 
         The robot's transport turns this into ``Delivered`` for us, so it may code deltas against
-        ``version``. Latest wins: a newer ack of the same robot replaces one not yet sent.
+        ``version``. Latest wins: a newer ack of the same robot replaces one not yet sent. A
+        ``version`` outside 1..2**63-1 is a caller bug (``ValueError``).
         """
         if self._closing or self._outbox is None or not keys.valid_name(robot) or robot == self.ctx.robot:
             return
@@ -348,7 +367,7 @@ class ZenohTransport(Transport):
         """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers."""
         with self._tx_lock:
             tx = dict(self._tx)
-        out: dict[str, Any] = {**tx, **self.core.stats()}
+        out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0}
         if self._outbox is not None:
             out["replaced"] = self._outbox.replaced
             out["dropped"] += self._outbox.rejected

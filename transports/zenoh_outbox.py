@@ -37,6 +37,7 @@ class Outbox:
         self._jobs: OrderedDict[Hashable, Callable[[], None]] = OrderedDict()
         self._futures: dict[Hashable, concurrent.futures.Future[Any]] = {}
         self._stopping = False
+        self._finishing = False
         self.replaced = 0
         self.rejected = 0
         self.failed = 0
@@ -49,7 +50,7 @@ class Outbox:
         Returns False (and drops the job) when the outbox is stopping or ``max_pending`` jobs wait.
         """
         with self._cond:
-            if self._stopping:
+            if self._stopping or self._finishing:
                 self.rejected += 1
                 return False
             if key in self._jobs:
@@ -77,7 +78,7 @@ class Outbox:
                 fut.set_exception(exc)
 
         with self._cond:
-            if self._stopping:
+            if self._stopping or self._finishing:
                 fut.cancel()
                 return fut
             self._jobs[key] = job
@@ -98,6 +99,12 @@ class Outbox:
                 del self._jobs[k]
             return len(drop)
 
+    def finish(self) -> None:
+        """Run the jobs already waiting, then end the thread; takes no new ones and does not wait."""
+        with self._cond:
+            self._finishing = True
+            self._cond.notify()
+
     def stop(self, timeout: float) -> bool:
         """Let the running job finish, drop the rest, end the thread; False if it is still busy."""
         with self._cond:
@@ -115,6 +122,8 @@ class Outbox:
         while True:
             with self._cond:
                 while not self._jobs and not self._stopping:
+                    if self._finishing:
+                        return
                     self._cond.wait()
                 if self._stopping:
                     return

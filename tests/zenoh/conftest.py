@@ -58,6 +58,7 @@ class Bot:
         listen: list[str] | None = None,
         connect: list[str] | None = None,
         key: bytes | None = None,
+        max_message_bytes: int = 4 << 20,
         **options: Any,
     ) -> None:
         self.events: list[TransportEvent] = []
@@ -69,7 +70,7 @@ class Bot:
             robot=robot,
             fleet=FLEET,
             key=key,
-            max_message_bytes=4 << 20,
+            max_message_bytes=max_message_bytes,
             emit=self.events.append,
             latest_keyframe=lambda: self.keyframe,
         )
@@ -104,9 +105,17 @@ class Bot:
         while not cond():
             if time.monotonic() > end:
                 raise AssertionError(
-                    f"{self.ctx.robot}: condition not met in {timeout} s; events: {self.events}"
+                    f"{self.ctx.robot}: condition not met in {timeout} s; events: {self.events}; {self.t.stats()}"
                 )
             await asyncio.sleep(0.01)
+
+
+async def meet(*bots: Bot, timeout: float = 5.0) -> None:
+    """Wait until every bot sees every other one's token. A token is declared after the
+    subscribers, so a robot that sees a peer's token also knows where to send it updates."""
+    for bot in bots:
+        others = sorted(o.ctx.robot for o in bots if o is not bot)
+        await bot.wait(lambda bot=bot, others=others: all(r in bot.t.peers() for r in others), timeout)
 
 
 def endpoint(port: int) -> str:
@@ -116,4 +125,6 @@ def endpoint(port: int) -> str:
 @pytest.fixture
 def zk() -> SimpleNamespace:
     """The helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
-    return SimpleNamespace(Bot=Bot, envelope=envelope, free_port=free_port, endpoint=endpoint, FLEET=FLEET)
+    return SimpleNamespace(
+        Bot=Bot, meet=meet, envelope=envelope, free_port=free_port, endpoint=endpoint, FLEET=FLEET
+    )

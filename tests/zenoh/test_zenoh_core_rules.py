@@ -120,8 +120,21 @@ def test_gap_queries_once_per_timeout_and_reply_recovers(zk) -> None:
     assert versions(c.on_update(*upd(zk, "a", 7, 6), now=1.2)) == [7]
     # After the timeout (or the end of the query) a new gap queries again.
     assert c.on_update(*upd(zk, "a", 9, 8), now=3.5).queries == ["a"]
-    c.query_done("a")
+    assert c.query_done("a", now=3.55).queries == []
     assert c.on_update(*upd(zk, "a", 10, 8), now=3.6).queries == ["a"]
+
+
+def test_a_gap_during_a_query_asks_again_when_it_ends(zk) -> None:
+    c = core()
+    step = c.on_presence(keys.presence_key("testfleet", "a"), True, now=0)  # late join: query 1
+    assert step.queries == ["a"]
+    assert versions(c.on_update(*upd(zk, "a", 1), now=0.01)) == [1]
+    assert c.on_update(*upd(zk, "a", 3, 2), now=0.02).queries == []  # gap while query 1 is out
+    # Query 1's reply (v1) predates the gap, so its end triggers one more query, and only one.
+    assert versions(c.on_reply("a", zk.envelope("a", 1).pack(), now=0.03)) == []
+    assert c.query_done("a", now=0.04).queries == ["a"]
+    assert c.query_done("a", now=0.05).queries == []
+    assert c.counters["keyframe_queries"] == 2
 
 
 def test_stale_and_duplicate_versions_are_dropped(zk) -> None:
