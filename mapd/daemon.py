@@ -52,6 +52,9 @@ from mapd.transport import (
 log = logging.getLogger("mapd.daemon")
 EVENT_QUEUE = 256
 KEEP_VERSIONS = 16
+#: Recent versions of each peer's map kept in memory: a delta may be coded against a version the
+#: sender saw acked while newer ones were still in flight.
+KEEP_PEER_VERSIONS = 8
 
 
 class Daemon:
@@ -74,6 +77,7 @@ class Daemon:
         self._kf_cache: Envelope | None = None
         self.own: OccupancyGrid | None = None
         self.peer_maps: dict[str, OccupancyGrid] = {}
+        self.peer_history: dict[str, dict[int, OccupancyGrid]] = {}
         self.peer_info: dict[str, dict[str, Any]] = {}
         self.since_keyframe = 0
         self.counters: dict[str, int] = dict.fromkeys(
@@ -192,6 +196,7 @@ class Daemon:
                 data.peers.pop(robot, None)
                 continue
             self.peer_maps[robot] = grid
+            self.peer_history[robot] = {grid.version: grid}
             self.fusion.submit(grid)
         if data.own_version:
             log.info(
@@ -416,12 +421,12 @@ class Daemon:
         base = None
         transport = self._transport(ev.transport)
         if not env.is_keyframe:
-            if held is None or held.version != env.base_version:
+            base = self.peer_history.get(env.robot, {}).get(env.base_version)
+            if base is None:
                 self.counters["keyframe_requests"] += 1
                 if transport is not None:
                     await transport.request_keyframe(env.robot)
                 return
-            base = held
         try:
             grid = await asyncio.to_thread(decode, env.payload, base, max_cells=self.cfg.limits.max_cells)
         except CodecError as exc:
@@ -436,6 +441,10 @@ class Daemon:
             return
         grid = grid.replace(robot=env.robot, version=env.version, stamp=env.stamp, frame_id=env.frame_id)
         self.peer_maps[env.robot] = grid
+        history = self.peer_history.setdefault(env.robot, {})
+        history[env.version] = grid
+        for v in sorted(history)[:-KEEP_PEER_VERSIONS]:
+            del history[v]
         self.counters["updates_received"] += 1
         info = self.peer_info.setdefault(env.robot, {})
         info.update(

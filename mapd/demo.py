@@ -10,7 +10,6 @@ socket for live progress, stops them with SIGTERM, and writes the figures and a 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import math
 import os
@@ -64,7 +63,7 @@ class Fleet:
         self.names = [f"robot{i}" for i in range(self.n)]
         self.run_dir = args.out / "run"
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self.relay: Any = None
+        self.relay: subprocess.Popen[str] | None = None
         self.ports: dict[str, str] = {}
 
     # ------------------------------------------------------------------ setup
@@ -73,10 +72,7 @@ class Fleet:
             shutil.rmtree(self.run_dir)
         self.run_dir.mkdir(parents=True)
         if self.args.transport == "uwb":
-            from transports.uwb.relay import start_channel
-
-            self.relay = start_channel(self.n, rate_bps=UWB_RATE, seed=self.args.seed, workdir=self.run_dir)
-            self.ports = dict(zip(self.names, self.relay.robot_ports, strict=True))
+            self._start_relay()
         zenoh_ports = [_free_port() for _ in self.names]
         poses = self._start_poses()
         for i, name in enumerate(self.names):
@@ -94,8 +90,9 @@ class Fleet:
                 tables["transports.uwb"] = {
                     "port": self.ports[name],
                     "link_rate_bps": UWB_RATE,
-                    "peers": [p for p in self.names if p != name],
+                    "mac": "tdma" if self.n > 2 else "none",
                 }
+                tables["transports.uwb.nodes"] = {r: j + 1 for j, r in enumerate(self.names)}
             else:
                 tables["transports"] = {"use": ["zenoh"]}
                 tables["transports.zenoh"] = {
@@ -108,17 +105,34 @@ class Fleet:
             tables["fusion.poses"] = {r: list(p) for r, p in poses.items()} if poses else {}
             write_config(d / "config.toml", tables)
 
+    def _start_relay(self) -> None:
+        """The emulated radio: a separate process joining every robot's socat pty at 12.5 kb/s."""
+        uwb = self.run_dir / "uwb"
+        uwb.mkdir()
+        cmd = [sys.executable, "-m", "transports.uwb.relay", "--robots", str(self.n), "--rate-bps", str(UWB_RATE),
+               "--seed", str(self.args.seed), "--dir", str(uwb)]
+        self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert self.relay.stdout is not None
+        deadline = time.monotonic() + 15
+        while len(self.ports) < self.n:
+            line = self.relay.stdout.readline()
+            if not line or time.monotonic() > deadline:
+                raise DaemonError(f"the UWB relay did not start: {line.strip() or 'no output'}")
+            if line.startswith("robot "):
+                idx, port = line[len("robot ") :].split(":", 1)
+                self.ports[self.names[int(idx)]] = port.strip()
+
     def _source_tables(self, i: int) -> dict[str, dict[str, Any]]:
         if self.args.log is not None:
             return {
                 "source": {"use": "laserlog"},
                 "source.laserlog": {
-                    "path": str(Path(self.args.log).resolve()),
+                    "log": str(Path(self.args.log).resolve()),
                     "robots": self.n,
                     "index": i,
                     "every": 20,
-                    "realtime": 0.0,
-                    "pace_s": max(self.args.duration / 40.0, 0.5),
+                    # The intel log spans 45 minutes; replay each robot's part within the demo.
+                    "realtime": max(2700.0 / self.args.duration, 1.0),
                 },
             }
         return {
@@ -193,9 +207,13 @@ class Fleet:
             except subprocess.TimeoutExpired:
                 p.kill()
                 codes[name] = None
-        if self.relay is not None:
-            with contextlib.suppress(Exception):
-                self.relay.stop()
+        if self.relay is not None and self.relay.poll() is None:
+            self.relay.send_signal(signal.SIGTERM)
+            try:
+                out, _ = self.relay.communicate(timeout=5)
+                (self.run_dir / "uwb" / "relay-stats.json").write_text(out[out.find("{") :] if "{" in out else out)
+            except subprocess.TimeoutExpired:
+                self.relay.kill()
         return codes
 
 

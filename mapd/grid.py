@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
+from mapd.atomic import atomic_write_bytes
 from mapd.errors import LimitError, MapFileError
 
 UNKNOWN = -1
@@ -355,16 +356,6 @@ def load_map(
     return OccupancyGrid(data=data, resolution=meta["resolution"], origin=meta["origin"], robot=robot)
 
 
-def _atomic_write(path: Path, payload: bytes) -> None:
-    """Write via a temp file, fsync and rename, so readers never see half a file."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(payload)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
 def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: str | None = None) -> Path:
     """Write ``grid`` as map_server YAML plus PGM next to it; returns the YAML path.
 
@@ -384,7 +375,7 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
     header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_write(image_path, header + np.ascontiguousarray(pixels).tobytes())
+        atomic_write_bytes(image_path, header + np.ascontiguousarray(pixels).tobytes())
         meta = {
             "image": image_path.name,
             "mode": mode,
@@ -394,7 +385,7 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
             "occupied_thresh": 0.65,
             "free_thresh": 0.196,
         }
-        _atomic_write(path, yaml.safe_dump(meta, sort_keys=False).encode())
+        atomic_write_bytes(path, yaml.safe_dump(meta, sort_keys=False).encode())
     except OSError as exc:
         raise MapFileError(f"{path}: cannot write map: {exc}") from None
     return path

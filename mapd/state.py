@@ -17,38 +17,17 @@ from __future__ import annotations
 
 import json
 import logging
-import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mapd.atomic import atomic_write_json
 from mapd.errors import MapdError, StateError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
 
 log = logging.getLogger(__name__)
 _SAFE = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
-
-
-def atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Replace ``path`` with ``payload`` so that readers see the old or the new file, never half."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(payload)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    try:
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)  # make the rename itself durable
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode())
 
 
 @dataclass
@@ -106,6 +85,8 @@ class StateStore:
         self.root = root
         self.max_cells = max_cells
         self.data = StateData()
+        # Callers write from worker threads; one writer at a time keeps state.json consistent.
+        self._lock = threading.RLock()
 
     # ------------------------------------------------------------------ setup
     def open(self) -> StateData:
@@ -157,25 +138,35 @@ class StateStore:
         return None if grid is None else grid.replace(robot=robot)
 
     def save_own(self, grid: OccupancyGrid) -> None:
-        save_map(grid, self.root / "own" / "map.yaml")
-        self.data.own = MapRecord(grid.version, grid.digest().hex())
-        self.data.own_version = max(self.data.own_version, grid.version)
-        self.flush()
+        with self._lock:
+            self._save(grid, self.root / "own" / "map.yaml")
+            self.data.own = MapRecord(grid.version, grid.digest().hex())
+            self.data.own_version = max(self.data.own_version, grid.version)
+            self.flush()
 
     def save_base(self, grid: OccupancyGrid) -> None:
-        save_map(grid, self.root / "own" / "base.yaml")
-        self.data.base = MapRecord(grid.version, grid.digest().hex())
-        self.flush()
+        with self._lock:
+            self._save(grid, self.root / "own" / "base.yaml")
+            self.data.base = MapRecord(grid.version, grid.digest().hex())
+            self.flush()
 
     def save_peer(self, grid: OccupancyGrid) -> None:
-        d = self._peer_dir(grid.robot)
-        d.mkdir(parents=True, exist_ok=True)
-        save_map(grid, d / "map.yaml")
-        self.data.peers[grid.robot] = MapRecord(grid.version, grid.digest().hex())
-        self.flush()
+        with self._lock:
+            d = self._peer_dir(grid.robot)
+            d.mkdir(parents=True, exist_ok=True)
+            self._save(grid, d / "map.yaml")
+            self.data.peers[grid.robot] = MapRecord(grid.version, grid.digest().hex())
+            self.flush()
+
+    def _save(self, grid: OccupancyGrid, path: Path) -> None:
+        try:
+            save_map(grid, path)
+        except MapdError as exc:
+            raise StateError(str(exc)) from None
 
     def flush(self) -> None:
-        try:
-            atomic_write_json(self.root / "state.json", self.data.to_json())
-        except OSError as exc:
-            raise StateError(f"cannot write {self.root / 'state.json'}: {exc.strerror}") from None
+        with self._lock:
+            try:
+                atomic_write_json(self.root / "state.json", self.data.to_json())
+            except OSError as exc:
+                raise StateError(f"cannot write {self.root / 'state.json'}: {exc.strerror}") from None

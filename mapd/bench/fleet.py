@@ -1,0 +1,130 @@
+"""Fleet benchmark: N real ``mapd run`` daemons over zenoh on loopback, each with a simulated robot.
+
+For each fleet size it reports the update latency from publish (the sender encodes and offers an
+update) to fused (a receiver's fusion worker has merged that version into its global map), at the
+median and 95th percentile over every (sender, receiver, version); the bytes each robot sends per
+second; and the CPU each daemon used per second of wall time. All daemons share this machine's
+clock, so latencies need no clock sync. The single-robot-pair run (N = 2) is the baseline the
+larger fleets are compared with, as ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+HELP = "N daemons over zenoh on loopback: latency publish->fused, bytes/robot/s, CPU per daemon"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8], help="fleet sizes (default 2 4 8)")
+    p.add_argument("--duration", type=float, default=40.0, help="seconds per fleet size (default 40)")
+    p.add_argument("--codec", default="lossless", help="codec (default lossless)")
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--out", type=Path, default=Path("out/bench-fleet"), help="work folder")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """utime + stime of a live process from /proc (Linux)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _percentile(xs: list[float], q: float) -> float:
+    import numpy as np
+
+    return float(np.percentile(xs, q)) if xs else float("nan")
+
+
+def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
+    from mapd.demo import Fleet
+
+    fa = argparse.Namespace(
+        robots=n,
+        transport="zenoh",
+        codec=args.codec,
+        log=None,
+        seed=args.seed,
+        out=args.out / f"n{n}",
+        duration=args.duration,
+    )
+    fleet = Fleet(fa)
+    fleet.prepare()
+    fleet.start()
+    t0 = time.monotonic()
+    try:
+        while time.monotonic() - t0 < args.duration:
+            time.sleep(1.0)
+            fleet.check_alive()
+        wall = time.monotonic() - t0
+        cpu = {name: _cpu_seconds(p.pid) for name, p in fleet.procs.items()}
+        snaps = fleet.status()
+    finally:
+        fleet.stop()
+    published: dict[tuple[str, int], float] = {}
+    sent_bytes: dict[str, int] = {}
+    for name in fleet.names:
+        for r in _read_csv(fleet.run_dir / name / "state" / "updates.csv"):
+            published.setdefault((name, int(r["version"])), float(r["time"]))
+            sent_bytes[name] = sent_bytes.get(name, 0) + int(r["bytes"])
+    latencies = []
+    for name in fleet.names:
+        for r in _read_csv(fleet.run_dir / name / "state" / "fused.csv"):
+            key = (r["robot"], int(r["version"]))
+            if r["robot"] != name and key in published:
+                latencies.append(1000.0 * (float(r["time"]) - published[key]))
+    tx = [s.get("links", {}).get("zenoh", {}).get("bytes_tx", 0) for s in snaps.values()]
+    return {
+        "robots": n,
+        "latency_p50_ms": _percentile(latencies, 50),
+        "latency_p95_ms": _percentile(latencies, 95),
+        "samples": len(latencies),
+        "payload_bps_per_robot": 8 * sum(sent_bytes.values()) / max(len(sent_bytes), 1) / wall,
+        "wire_bps_per_robot": 8 * sum(tx) / max(len(tx), 1) / wall if tx else float("nan"),
+        "cpu_per_daemon": sum(cpu.values()) / len(cpu) / wall,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from mapd.bench.common import dump_json, table
+
+    rows = []
+    for n in args.robots:
+        print(f"fleet of {n}: running {args.duration:.0f} s ...", file=sys.stderr, flush=True)
+        rows.append(measure(n, args))
+    base = rows[0]
+    for r in rows:
+        for k in ("latency_p50_ms", "latency_p95_ms", "cpu_per_daemon", "payload_bps_per_robot"):
+            r[f"{k}_x"] = r[k] / base[k] if base[k] else float("nan")
+    if args.json:
+        print(dump_json(rows))
+        return 0
+    cols = [
+        ("robots", "robots", ""),
+        ("samples", "updates fused", ""),
+        ("latency_p50_ms", "p50 ms", ".0f"),
+        ("latency_p95_ms", "p95 ms", ".0f"),
+        ("latency_p95_ms_x", f"p95 x N={base['robots']}", ".2f"),
+        ("payload_bps_per_robot", "payload b/s/robot", ".0f"),
+        ("wire_bps_per_robot", "wire b/s/robot", ".0f"),
+        ("cpu_per_daemon", "CPU/daemon", ".2f"),
+        ("cpu_per_daemon_x", f"CPU x N={base['robots']}", ".2f"),
+    ]
+    print(table(rows, cols))
+    print(f"(CPU/daemon is CPU seconds per wall second; this machine has {os.cpu_count()} cores)")
+    return 0
