@@ -1,0 +1,418 @@
+"""The paper's entropy stage: Huffman code, hex string, run-length code (Algorithms 1 and 2).
+
+Zhang & Deng (2024), Algorithm 1: collect the quantized feature values and their probabilities,
+build a Huffman tree by merging the two least probable nodes (code table ``T``), write the values
+as a bit string with ``T``, read the bit string as a hex string ``h``, and run-length code ``h``
+(each run of one hex character becomes its count and its character) into ``e``. Algorithm 2 undoes
+the three steps. This module does exactly that, vectorised with numpy (no Python loop over cells).
+
+What the paper leaves open, and our choice (documented in ``models/paper-v1/MODEL_CARD.md``):
+
+* ``T`` on the wire is a *canonical* Huffman code (DEFLATE style): only the code length of each
+  symbol is sent, and both ends derive the same codes from the lengths. Lengths are capped at
+  :data:`MAX_CODE_LEN` (15) so one length fits in a nibble; in the rare case a tree is deeper,
+  counts are halved and the tree rebuilt (as zlib does). A single distinct value gets the code ``0``.
+* The bit string is padded with zero bits to whole hex digits; the decoder knows the number of
+  symbols from the payload header and refuses any other padding.
+* ``e`` is stored column-wise: the number of runs, then every run's hex character (one nibble
+  each), then every run's count minus one as a nibble varint (3 value bits, bit 3 = "more
+  nibbles follow", least significant group first). A run of 1..8 characters costs one byte.
+
+Wire form of the stage (``T`` then ``e``)::
+
+    u8          alphabet size - 1 (A; symbols 0..A-1; trailing unused symbols are dropped)
+    ceil(A/2)   code lengths, 4 bits each, high nibble first (0 = symbol absent); pad nibble 0
+    varint      R, the number of runs (LEB128, at most 5 bytes)
+    ceil(R/2)   the runs' hex characters, 4 bits each, high nibble first; pad nibble 0
+    rest        the runs' counts - 1, nibble varints, high nibble first; pad nibble 0
+
+The form is canonical: the decoder refuses non-minimal varints, adjacent runs of the same character,
+non-zero padding, an incomplete or over-full code table and trailing bytes, so one symbol array has
+exactly one encoding (which the golden tests pin).
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapd.errors import CodecError
+
+MAX_CODE_LEN = 15
+MAX_ALPHABET = 256
+#: A run count is at most 10 nibbles (30 bits), far above any count a legal map needs.
+MAX_COUNT_NIBBLES = 10
+_MAX_VARINT_BYTES = 5
+
+
+# --------------------------------------------------------------------------------------------
+# Code table T
+# --------------------------------------------------------------------------------------------
+
+
+def _huffman_lengths(counts: list[int]) -> list[int]:
+    """Code lengths of a Huffman tree over the non-zero ``counts`` (merge the two least probable)."""
+    live = [(c, i) for i, c in enumerate(counts) if c > 0]
+    lengths = [0] * len(counts)
+    if len(live) == 1:
+        lengths[live[0][1]] = 1
+        return lengths
+    # Heap items: (weight, tie-break id, member symbols). The id keeps ties deterministic.
+    heap: list[tuple[int, int, list[int]]] = [(c, i, [i]) for c, i in live]
+    heapq.heapify(heap)
+    next_id = len(counts)
+    while len(heap) > 1:
+        w1, _, s1 = heapq.heappop(heap)
+        w2, _, s2 = heapq.heappop(heap)
+        for s in s1:
+            lengths[s] += 1
+        for s in s2:
+            lengths[s] += 1
+        heapq.heappush(heap, (w1 + w2, next_id, s1 + s2))
+        next_id += 1
+    return lengths
+
+
+def code_lengths(counts: np.ndarray, max_len: int = MAX_CODE_LEN) -> np.ndarray:
+    """Huffman code lengths for symbol ``counts`` (uint8), capped at ``max_len`` bits.
+
+    A deeper tree only arises from extremely skewed counts; then the counts are halved (keeping
+    every used symbol at least 1) and the tree rebuilt until it fits, as zlib does.
+    """
+    c = [int(v) for v in np.asarray(counts).ravel()]
+    if not c or len(c) > MAX_ALPHABET or min(c) < 0 or max(c) == 0:
+        raise CodecError("huffman: need 1..256 symbol counts with at least one non-zero")
+    while True:
+        lengths = _huffman_lengths(c)
+        if max(lengths) <= max_len:
+            return np.array(lengths, dtype=np.uint8)
+        c = [0 if v == 0 else max(1, v >> 1) for v in c]
+
+
+def canonical_codes(lengths: np.ndarray) -> np.ndarray:
+    """Canonical code of each symbol (uint32; meaningless where the length is 0).
+
+    Symbols sorted by (length, symbol) take consecutive code values; a longer code continues from
+    the previous one shifted left. Both ends derive the same codes from the lengths alone.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    codes = np.zeros(lengths.size, dtype=np.uint32)
+    code = 0
+    prev = 0
+    for sym in sorted((int(s) for s in np.flatnonzero(lengths)), key=lambda s: (lengths[s], s)):
+        code <<= int(lengths[sym]) - prev
+        prev = int(lengths[sym])
+        codes[sym] = code
+        code += 1
+    return codes
+
+
+def check_lengths(lengths: np.ndarray) -> None:
+    """Refuse a code table that is not a complete prefix code (or the one-symbol code ``0``)."""
+    used = lengths[lengths > 0].astype(np.int64)
+    if used.size == 0:
+        raise CodecError("huffman table is corrupt (no symbols)")
+    if used.size == 1:
+        if int(used[0]) != 1:
+            raise CodecError("huffman table is corrupt (a single symbol must have a 1-bit code)")
+        return
+    kraft = int(np.sum(np.left_shift(1, MAX_CODE_LEN - used)))
+    if kraft != 1 << MAX_CODE_LEN:
+        state = "over-full" if kraft > 1 << MAX_CODE_LEN else "incomplete"
+        raise CodecError(f"huffman table is corrupt ({state} prefix code)")
+
+
+def pack_table(lengths: np.ndarray) -> bytes:
+    """``T`` on the wire: alphabet size - 1, then one nibble per symbol's code length."""
+    lengths = np.asarray(lengths, dtype=np.uint8)
+    used = np.flatnonzero(lengths)
+    size = int(used[-1]) + 1
+    nib = lengths[:size]
+    if size % 2:
+        nib = np.append(nib, np.uint8(0))
+    packed = (nib[0::2] << 4) | nib[1::2]
+    return bytes([size - 1]) + packed.astype(np.uint8).tobytes()
+
+
+def unpack_table(buf: bytes, pos: int, alphabet: int) -> tuple[np.ndarray, int]:
+    """Read ``T`` at ``pos``; return the code lengths (size ``alphabet``) and the next position."""
+    if pos >= len(buf):
+        raise CodecError("huffman table is truncated")
+    size = buf[pos] + 1
+    if size > alphabet:
+        raise CodecError(f"huffman table is corrupt ({size} symbols, the model has {alphabet})")
+    nbytes = (size + 1) // 2
+    raw = (
+        np.frombuffer(buf, dtype=np.uint8, count=nbytes, offset=pos + 1)
+        if pos + 1 + nbytes <= len(buf)
+        else None
+    )
+    if raw is None:
+        raise CodecError("huffman table is truncated")
+    nib = np.empty(2 * nbytes, dtype=np.uint8)
+    nib[0::2] = raw >> 4
+    nib[1::2] = raw & 0x0F
+    if size % 2 and nib[-1] != 0:
+        raise CodecError("huffman table is corrupt (non-zero padding)")
+    if nib[size - 1] == 0:
+        raise CodecError("huffman table is corrupt (alphabet size not minimal)")
+    lengths = np.zeros(alphabet, dtype=np.uint8)
+    lengths[:size] = nib[:size]
+    check_lengths(lengths)
+    return lengths, pos + 1 + nbytes
+
+
+# --------------------------------------------------------------------------------------------
+# Bits <-> hex <-> runs
+# --------------------------------------------------------------------------------------------
+
+
+def to_bits(symbols: np.ndarray, lengths: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """Concatenate the codes of ``symbols`` into a bit array (uint8 0/1)."""
+    sym = np.asarray(symbols).ravel()
+    lens = lengths[sym].astype(np.int64)
+    if np.any(lens == 0):
+        raise CodecError("huffman: a symbol has no code")
+    width = int(lens.max())
+    # Left-justify every code in 16 bits (codes are at most 15), unpack the big-endian bytes to a
+    # (n, 16) bit matrix and keep the first `len` bits of each row.
+    just = (codes.astype(np.uint16)[sym] << (16 - lens).astype(np.uint16)).astype(">u2")
+    mat = np.unpackbits(just.view(np.uint8).reshape(-1, 2), axis=1)[:, :width]
+    keep = np.arange(width, dtype=np.int64)[None, :] < lens[:, None]
+    return mat[keep]
+
+
+def bits_to_hex(bits: np.ndarray) -> np.ndarray:
+    """Read bits as hex digits (uint8 0..15), padding the last digit with zero bits."""
+    pad = (-bits.size) % 4
+    if pad:
+        bits = np.concatenate([bits, np.zeros(pad, dtype=np.uint8)])
+    return (bits.reshape(-1, 4) @ np.array([8, 4, 2, 1], dtype=np.uint8)).astype(np.uint8)
+
+
+def hex_to_bits(hexs: np.ndarray) -> np.ndarray:
+    """Hex digits back to bits (four per digit, most significant first)."""
+    return ((hexs[:, None] >> np.array([3, 2, 1, 0], dtype=np.uint8)) & 1).astype(np.uint8).ravel()
+
+
+def hex_string(hexs: np.ndarray) -> str:
+    """The hex digits as the paper writes ``h`` (for logs and tests; the wire form is nibbles)."""
+    return "".join("0123456789ABCDEF"[int(v)] for v in hexs)
+
+
+def run_lengths(hexs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of equal hex characters: (counts int64, characters uint8)."""
+    if hexs.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8)
+    starts = np.concatenate([[0], np.flatnonzero(hexs[1:] != hexs[:-1]) + 1])
+    counts = np.diff(np.append(starts, hexs.size)).astype(np.int64)
+    return counts, hexs[starts].astype(np.uint8)
+
+
+def _pack_nibbles(nib: np.ndarray) -> bytes:
+    if nib.size % 2:
+        nib = np.append(nib, np.uint8(0))
+    return ((nib[0::2] << 4) | nib[1::2]).astype(np.uint8).tobytes()
+
+
+def _unpack_nibbles(buf: bytes, start: int, nbytes: int) -> np.ndarray:
+    raw = np.frombuffer(buf, dtype=np.uint8, count=nbytes, offset=start)
+    nib = np.empty(2 * nbytes, dtype=np.uint8)
+    nib[0::2] = raw >> 4
+    nib[1::2] = raw & 0x0F
+    return nib
+
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte = value & 0x7F
+        value >>= 7
+        if value:
+            out.append(byte | 0x80)
+        else:
+            out.append(byte)
+            return bytes(out)
+
+
+def _read_varint(buf: bytes, pos: int) -> tuple[int, int]:
+    value = 0
+    for i in range(_MAX_VARINT_BYTES):
+        if pos + i >= len(buf):
+            raise CodecError("run-length code is truncated (in the run count)")
+        byte = buf[pos + i]
+        value |= (byte & 0x7F) << (7 * i)
+        if not byte & 0x80:
+            if byte == 0 and i > 0:
+                raise CodecError("run-length code is corrupt (non-minimal run count)")
+            return value, pos + i + 1
+    raise CodecError("run-length code is corrupt (run count too long)")
+
+
+def pack_runs(counts: np.ndarray, chars: np.ndarray) -> bytes:
+    """``e`` on the wire: run count, character nibbles, then count-1 nibble varints."""
+    v = np.asarray(counts, dtype=np.int64) - 1
+    if v.size and (v.min() < 0 or int(v.max()) >= 1 << (3 * MAX_COUNT_NIBBLES)):
+        raise CodecError("run-length code: run count out of range")
+    groups = np.ones(v.size, dtype=np.int64)
+    rest = v >> 3
+    while np.any(rest):
+        groups += rest > 0
+        rest >>= 3
+    width = int(groups.max()) if v.size else 1
+    j = np.arange(width, dtype=np.int64)
+    mat = ((v[:, None] >> (3 * j)[None, :]) & 7) | np.where(j[None, :] < groups[:, None] - 1, 8, 0)
+    nib = mat[j[None, :] < groups[:, None]].astype(np.uint8)
+    return _varint(int(v.size)) + _pack_nibbles(np.asarray(chars, dtype=np.uint8)) + _pack_nibbles(nib)
+
+
+def unpack_runs(buf: bytes, pos: int, max_hex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``e`` from ``pos`` to the end of ``buf``; refuse more than ``max_hex`` characters in all."""
+    runs, pos = _read_varint(buf, pos)
+    if runs == 0 or runs > max_hex:
+        raise CodecError(f"run-length code is corrupt ({runs} runs for at most {max_hex} hex digits)")
+    nbytes = (runs + 1) // 2
+    if pos + nbytes > len(buf):
+        raise CodecError("run-length code is truncated (in the characters)")
+    chars = _unpack_nibbles(buf, pos, nbytes)
+    if runs % 2 and chars[-1] != 0:
+        raise CodecError("run-length code is corrupt (non-zero padding)")
+    chars = chars[:runs]
+    if np.any(chars[1:] == chars[:-1]):
+        raise CodecError("run-length code is corrupt (two adjacent runs of one character)")
+    pos += nbytes
+    nib = _unpack_nibbles(buf, pos, len(buf) - pos)
+    ends = np.flatnonzero(nib < 8)
+    if ends.size < runs:
+        raise CodecError("run-length code is truncated (in the counts)")
+    ends = ends[:runs]
+    used = int(ends[-1]) + 1
+    if not (used == nib.size or (used == nib.size - 1 and nib[-1] == 0)):
+        raise CodecError("run-length code has trailing bytes")
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    sizes = ends - starts + 1
+    if int(sizes.max()) > MAX_COUNT_NIBBLES:
+        raise CodecError("run-length code is corrupt (run count too long)")
+    if np.any((sizes > 1) & (nib[ends] == 0)):
+        raise CodecError("run-length code is corrupt (non-minimal run count)")
+    j = np.arange(used, dtype=np.int64) - np.repeat(starts, sizes)
+    vals = np.add.reduceat((nib[:used] & 7).astype(np.int64) << (3 * j), starts)
+    counts = vals + 1
+    total = int(counts.sum())
+    if total > max_hex:
+        raise CodecError(f"run-length code expands to {total} hex digits, more than the {max_hex} allowed")
+    return counts, chars
+
+
+# --------------------------------------------------------------------------------------------
+# Algorithm 1 and 2
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Stage:
+    """Every intermediate of Algorithm 1, for tests and for explaining a payload."""
+
+    lengths: np.ndarray
+    codes: np.ndarray
+    bits: np.ndarray
+    hexs: np.ndarray
+    counts: np.ndarray
+    chars: np.ndarray
+    wire: bytes
+
+
+def encode_stage(symbols: np.ndarray, alphabet: int) -> Stage:
+    """Algorithm 1 on integer ``symbols`` in ``0..alphabet-1``; ``wire`` is ``T`` followed by ``e``."""
+    sym = np.asarray(symbols).ravel()
+    if sym.size == 0:
+        raise CodecError("huffman: nothing to encode")
+    if not 1 <= alphabet <= MAX_ALPHABET:
+        raise CodecError(f"huffman: alphabet of {alphabet} symbols (1..{MAX_ALPHABET} supported)")
+    if int(sym.min()) < 0 or int(sym.max()) >= alphabet:
+        raise CodecError("huffman: symbol outside the alphabet")
+    counts = np.bincount(sym, minlength=alphabet)
+    lengths = code_lengths(counts)
+    codes = canonical_codes(lengths)
+    bits = to_bits(sym, lengths, codes)
+    hexs = bits_to_hex(bits)
+    run_counts, chars = run_lengths(hexs)
+    wire = pack_table(lengths) + pack_runs(run_counts, chars)
+    return Stage(lengths, codes, bits, hexs, run_counts, chars, wire)
+
+
+def encode(symbols: np.ndarray, alphabet: int) -> bytes:
+    """Algorithm 1: integer symbols to the wire form of (T, e)."""
+    return encode_stage(symbols, alphabet).wire
+
+
+def _decode_table(lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Lookup tables indexed by the next ``width`` bits: (symbol, code length; 0 = invalid)."""
+    width = int(lengths.max())
+    codes = canonical_codes(lengths)
+    order = sorted((int(s) for s in np.flatnonzero(lengths)), key=lambda s: (lengths[s], s))
+    order_a = np.array(order, dtype=np.int64)
+    lens = lengths[order_a].astype(np.int64)
+    spans = np.left_shift(1, width - lens)
+    firsts = codes[order_a].astype(np.int64) << (width - lens)
+    size = 1 << width
+    sym_t = np.zeros(size, dtype=np.uint8)
+    len_t = np.zeros(size, dtype=np.int64)
+    # Canonical codes left-justified are consecutive, so each symbol owns one contiguous span.
+    covered = int(spans.sum())
+    assert int(firsts[0]) == 0
+    sym_t[:covered] = np.repeat(order_a, spans).astype(np.uint8)
+    len_t[:covered] = np.repeat(lens, spans)
+    return sym_t, len_t, width
+
+
+def decode(buf: bytes, count: int, alphabet: int, pos: int = 0) -> np.ndarray:
+    """Algorithm 2: the wire form of (T, e) from ``pos`` to the end back to ``count`` symbols (uint8).
+
+    Raises :class:`CodecError` on a corrupt table, a run-length code that would expand past what
+    ``count`` symbols can occupy, a truncated bit string, or trailing data.
+    """
+    if count <= 0:
+        raise CodecError("huffman: nothing to decode")
+    lengths, pos = unpack_table(buf, pos, alphabet)
+    width = int(lengths.max())
+    min_len = int(lengths[lengths > 0].min())
+    max_hex = -(-count * width // 4)
+    min_hex = -(-count * min_len // 4)
+    run_counts, chars = unpack_runs(buf, pos, max_hex)
+    hexs = np.repeat(chars, run_counts)
+    if hexs.size < min_hex:
+        raise CodecError(f"bit string is truncated ({hexs.size} hex digits for {count} symbols)")
+    bits = hex_to_bits(hexs)
+    nbits = bits.size
+    sym_t, len_t, width = _decode_table(lengths)
+    # The code starting at every bit position, read from the next `width` bits (zero past the end).
+    padded = np.concatenate([bits, np.zeros(width, dtype=np.uint8)])
+    window = np.zeros(nbits, dtype=np.int64)
+    for j in range(width):
+        window = (window << 1) | padded[j : j + nbits]
+    step = len_t[window]
+    # Jump table over bit positions: nbits means "ended exactly here", nbits + 1 means "broken".
+    jump = np.arange(nbits, dtype=np.int64) + step
+    jump[(step == 0) | (jump > nbits)] = nbits + 1
+    jump = np.concatenate([jump, [nbits, nbits + 1]])
+    # Positions of symbols 0..count-1 by pointer doubling: p[m + 2^k] = jump^(2^k)[p[m]].
+    pos_arr = np.zeros(1, dtype=np.int64)
+    while pos_arr.size < count:
+        need = min(pos_arr.size, count - pos_arr.size)
+        pos_arr = np.concatenate([pos_arr, jump[pos_arr[:need]]])
+        if pos_arr.size < count:
+            jump = jump[jump]
+    if int(pos_arr[-1]) >= nbits:
+        raise CodecError(f"bit string is truncated or corrupt (fewer than {count} codes)")
+    last_len = int(step[pos_arr[-1]])
+    end = int(pos_arr[-1]) + last_len
+    if last_len == 0 or end > nbits:
+        raise CodecError("bit string is truncated or corrupt (in its last code)")
+    if nbits - end >= 4:
+        raise CodecError("bit string has trailing data after the last code")
+    if np.any(bits[end:]):
+        raise CodecError("bit string is corrupt (non-zero padding)")
+    return sym_t[window[pos_arr]]

@@ -1,0 +1,97 @@
+"""``mapd train``: train the paper codec's networks on map tiles and write a model folder."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+EPILOG = """\
+example (the shipped model):
+  mapd train --maps ../shared/data/maps --epochs 12 --tile 64 --seed 0 -o models/paper-v1
+
+The folder gets weights.npz, model.json (settings, split, metrics, sha256) and MODEL_CARD.md.
+Use it with [codec.paper] model = "NAME" (and model_dir = "DIR" when it is not under models/).
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train",
+        help="train the paper codec (CNN_feature + CNN_recovery) on map tiles",
+        description="Train the paper codec's networks end to end through the quantizer on tiles of "
+        "real maps, validate on whole held-out maps (split by place), and write a model folder.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--maps", type=Path, default=None, help="folder of map_server maps (default: the shared data)"
+    )
+    p.add_argument("--epochs", type=int, default=12, help="passes over --tiles-per-epoch tiles (default 12)")
+    p.add_argument("--tile", type=int, default=64, help="tile side in cells, a multiple of 4 (default 64)")
+    p.add_argument("--seed", type=int, default=0, help="seed of weights and tile sampler (default 0)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="model folder to write, e.g. models/NAME")
+    p.add_argument("--levels", type=int, default=16, help="quantizer levels of m_feature (default 16)")
+    p.add_argument("--tiles-per-epoch", type=int, default=2048, help="tiles drawn per epoch (default 2048)")
+    p.add_argument("--batch", type=int, default=16, help="tiles per step (default 16)")
+    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate (default 2e-3)")
+    p.add_argument("--val-fraction", type=float, default=0.2, help="share of places held out (default 0.2)")
+    p.add_argument(
+        "--val-tiles", type=int, default=256, help="held-out tiles scored each epoch (default 256)"
+    )
+    p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu or cuda")
+    p.add_argument("--no-eval", action="store_true", help="skip the whole-map evaluation at the end")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
+def _command(args: argparse.Namespace, maps: Path) -> list[str]:
+    """The command line that reproduces this run, every setting spelled out."""
+    return [
+        "mapd", "train", "--maps", str(maps), "--epochs", str(args.epochs), "--tile", str(args.tile),
+        "--seed", str(args.seed), "--levels", str(args.levels),
+        "--tiles-per-epoch", str(args.tiles_per_epoch), "--batch", str(args.batch), "--lr", str(args.lr),
+        "--val-fraction", str(args.val_fraction), "--val-tiles", str(args.val_tiles),
+        "--device", args.device, "-o", str(args.output),
+    ]  # fmt: skip
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from mapd.data import data_dir
+    from mapd.errors import ConfigError
+    from mapd.train import TrainConfig, main_train
+
+    maps = args.maps
+    if maps is None:
+        base = data_dir()
+        if base is None:
+            raise ConfigError("no --maps given and no shared data found (set MAPD_DATA)")
+        maps = base / "maps"
+    if not maps.is_dir():
+        raise ConfigError(f"--maps {maps}: not a folder")
+    cfg = TrainConfig(
+        maps=maps,
+        out=args.output,
+        epochs=args.epochs,
+        tile=args.tile,
+        seed=args.seed,
+        levels=args.levels,
+        tiles_per_epoch=args.tiles_per_epoch,
+        batch=args.batch,
+        lr=args.lr,
+        val_fraction=args.val_fraction,
+        val_tiles=args.val_tiles,
+        device=args.device,
+        progress=not args.quiet,
+        evaluate=not args.no_eval,
+        extra={"argv": _command(args, maps)},
+    )
+    meta = main_train(cfg)
+    out = f"{args.output}: weights sha256 {meta['weights_sha256'][:12]}, {meta['parameters']} parameters"
+    m = meta.get("metrics", {}).get("validation")
+    if m:
+        out += (
+            f"; validation ({m['maps']} maps): ratio {m['ratio']:.1f}:1, PSNR {m['psnr_mean']:.2f} dB,"
+            f" SSIM {m['ssim_mean']:.4f}"
+        )
+    print(out)
+    return 0
