@@ -55,6 +55,9 @@ KEEP_VERSIONS = 16
 #: Recent versions of each peer's map kept in memory: a delta may be coded against a version the
 #: sender saw acked while newer ones were still in flight.
 KEEP_PEER_VERSIONS = 8
+#: A transport gets the next version only when the previous one is acked by every peer, failed,
+#: or older than this. Superseding a half-sent map with every new version starves a slow link.
+INFLIGHT_TIMEOUT_S = 30.0
 
 
 class Daemon:
@@ -97,11 +100,20 @@ class Daemon:
         )
         self.codec_stats: dict[str, Any] = {"name": cfg.codec.use}
         self.transports: list[Transport] = []
+        self._inflight: dict[str, tuple[int, float, set[str]]] = {}  # transport -> (version, since, unacked)
+        self._held: dict[str, Envelope] = {}  # transport -> newest envelope waiting for the link
         self.source: MapSource | None = None
         codec_opts = self.options["codec"].get(cfg.codec.use)
         self.codec_options = codec_opts if isinstance(codec_opts, CodecOptions) else None
         self.codec = get_codec(cfg.codec.use, self.codec_options)
-        self.fusion = FusionWorker(self.me, cfg.fusion, cfg.state.dir / "global", on_global=[])
+        self.fusion = FusionWorker(
+            self.me,
+            cfg.fusion,
+            cfg.state.dir / "global",
+            on_global=[self._on_global],
+            max_cells=cfg.limits.max_cells,
+        )
+        self._fused_csv = cfg.state.dir / "fused.csv"
         self.control = ControlServer(cfg.control_socket(), self.snapshot)
         self._updates_csv = cfg.state.dir / "updates.csv"
 
@@ -270,7 +282,28 @@ class Daemon:
                 self.since_keyframe += 1
                 self.counters["deltas_sent"] += 1
             for t in self.transports:
-                t.offer(env)
+                self._offer(t, env)
+
+    def _offer(self, t: Transport, env: Envelope) -> None:
+        """Offer ``env`` unless an earlier version is still on its way; then hold it (latest wins)."""
+        busy = self._inflight.get(t.name)
+        if busy is not None and busy[2] and time.monotonic() - busy[1] < INFLIGHT_TIMEOUT_S:
+            self._held[t.name] = env
+            return
+        self._held.pop(t.name, None)
+        self._inflight[t.name] = (env.version, time.monotonic(), set(t.peers()))
+        t.offer(env)
+
+    def _settled(self, transport: str, peer: str, version: int) -> None:
+        busy = self._inflight.get(transport)
+        if busy is None or version < busy[0]:
+            return
+        busy[2].discard(peer)
+        if not busy[2]:
+            held = self._held.pop(transport, None)
+            t = self._transport(transport)
+            if held is not None and t is not None:
+                self._offer(t, held)
 
     def _make_envelope(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Envelope:
         t0 = time.perf_counter()
@@ -334,6 +367,19 @@ class Daemon:
                 w.writeheader()
             w.writerow(row)
 
+    def _on_global(self, grid: OccupancyGrid) -> None:
+        """Log which version of each robot's map the new global map holds (for latency benches)."""
+        now = round(time.time(), 3)
+        robots = self.fusion.status().get("robots", {})
+        new = not self._fused_csv.exists()
+        with open(self._fused_csv, "a", newline="") as fh:
+            w = csv.writer(fh)
+            if new:
+                w.writerow(["time", "robot", "version"])
+            for robot, info in robots.items():
+                if isinstance(info, dict) and info.get("accepted") and info.get("version"):
+                    w.writerow([now, robot, info["version"]])
+
     def latest_keyframe(self) -> Envelope | None:
         """The newest own map as a keyframe, for late joiners (thread-safe; encodes at most once)."""
         own = self.own
@@ -371,6 +417,7 @@ class Daemon:
         elif isinstance(ev, Delivered):
             if ev.robot != self.me:
                 return
+            self._settled(ev.transport, ev.peer, ev.version)
             prev = self.store.data.acked.get(ev.peer, 0)
             if ev.version > prev:
                 self.store.data.acked[ev.peer] = ev.version
@@ -387,6 +434,7 @@ class Daemon:
             info["present"] = isinstance(ev, PeerUp)
             info["link"] = ev.transport
         elif isinstance(ev, Failed):
+            self._settled(ev.transport, ev.peer, ev.version)
             log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
 
     async def _maybe_save_base(self) -> None:

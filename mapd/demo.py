@@ -226,7 +226,7 @@ def _progress_line(t: float, snaps: dict[str, dict[str, Any]]) -> str:
         use = f"{100 * tx / rate:3.0f}%" if isinstance(tx, int | float) else "  -"
         conf: list[float] = [
             t["confidence"]
-            for t in (s.get("fusion", {}).get("transforms") or {}).values()
+            for t in (s.get("fusion", {}).get("robots") or {}).values()
             if isinstance(t, dict) and t.get("confidence") is not None
         ]
         peers = ",".join(f"{p}:v{v.get('version', '-')}" for p, v in s.get("peers", {}).items()) or "-"

@@ -148,9 +148,9 @@ def write_report(
 
     gdir = run_dir / names[0] / "state" / "global"
     global_note = "no global map yet"
-    if (gdir / "map.yaml").exists():
+    if (gdir / "global.yaml").exists():
         try:
-            g = load_map(gdir / "map.yaml")
+            g = load_map(gdir / "global.yaml")
             contrib = np.load(gdir / "contributions.npy") if (gdir / "contributions.npy").exists() else None
             Image.fromarray(coloured_global(g, contrib)).save(out / "global_map.png")
             for f in gdir.iterdir():
@@ -172,8 +172,10 @@ def write_report(
         sent = sum(r["bytes"] for r in ups)
         raw = sum(r["cells"] for r in ups)
         peers = s.get("peers", {})
-        transforms = s.get("fusion", {}).get("transforms") or {}
-        confs: list[float] = [float(t["confidence"]) for t in transforms.values() if isinstance(t, dict) and t.get("confidence")]
+        transforms = s.get("fusion", {}).get("robots") or {}
+        confs: list[float] = [
+            float(t["confidence"]) for t in transforms.values() if isinstance(t, dict) and t.get("confidence")
+        ]
         rows.append(
             {
                 "robot": n,

@@ -120,15 +120,17 @@ def render_status(s: dict[str, Any]) -> str:
         others = [f"{k}={v}" for k, v in st.items() if k not in keys and isinstance(v, int | float)]
         out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
     f = s.get("fusion", {})
+    g = f.get("global") or {}
     out.append(
-        f"fusion  maps {f.get('maps_merged', f.get('maps', '-'))}, last merge {_age(f.get('last_merge_age_s'))} ago"
+        f"fusion  {f.get('maps', 0)} maps merged, {f.get('merges', 0)} merges, global "
+        f"{g.get('width', '-')} x {g.get('height', '-')} cells, last merge {_num(f.get('last_merge_s'), '.2f')} s"
     )
-    for robot, t in (f.get("transforms") or {}).items():
+    for robot, t in (f.get("robots") or {}).items():
         if isinstance(t, dict):
-            acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason', '?')})"
+            acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason') or '?'})"
             out.append(
-                f"  {robot:<12} x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
-                f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {acc}"
+                f"  {robot:<12} v{t.get('version', '-')}  x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
+                f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {t.get('source', '')}  {acc}"
             )
     bad = {k: v for k, v in s.get("counters", {}).items() if v}
     if bad:
