@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from mapd.fusion.transforms import compose, index_to_map, inverse, to_matrix
+from mapd.fusion.transforms import compose, index_to_map, inverse, warp_matrix
 from mapd.grid import OCCUPIED_AT, UNKNOWN, OccupancyGrid, Pose2D
 
 
@@ -32,7 +32,9 @@ class Pair:
     label: str
 
 
-def crop(grid: OccupancyGrid, r0: int, c0: int, h: int, w: int, origin: Pose2D) -> tuple[OccupancyGrid, Pose2D]:
+def crop(
+    grid: OccupancyGrid, r0: int, c0: int, h: int, w: int, origin: Pose2D
+) -> tuple[OccupancyGrid, Pose2D]:
     """Cells ``[r0:r0+h, c0:c0+w]`` as a grid with a new ``origin``; returns it and its frame in grid's."""
     data = np.ascontiguousarray(grid.data[r0 : r0 + h, c0 : c0 + w])
     out = grid.replace(data=data, origin=origin)
@@ -49,8 +51,8 @@ def rotate(grid: OccupancyGrid, theta: float, origin: Pose2D) -> tuple[Occupancy
     """
     h, w = grid.height, grid.width
     c, s = abs(math.cos(theta)), abs(math.sin(theta))
-    w2 = int(math.ceil(w * c + h * s)) + 2
-    h2 = int(math.ceil(w * s + h * c)) + 2
+    w2 = math.ceil(w * c + h * s) + 2
+    h2 = math.ceil(w * s + h * c) + 2
     # In pixel-index coordinates: q_new = R(theta) (q_old - ctr_old) + ctr_new.
     ctr_old = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     ctr_new = np.array([(w2 - 1) / 2.0, (h2 - 1) / 2.0])
@@ -128,21 +130,32 @@ def make_pair(
     rng: np.random.Generator,
     *,
     size: tuple[int, int] = (360, 480),
-    min_occupied: int = 150,
-    tries: int = 40,
+    min_occupied: int = 50,
+    tolerance: float | None = None,
+    tries: int = 60,
     label: str = "",
 ) -> Pair | None:
-    """Two crops of ``grid`` whose rectangles overlap by ``overlap`` of the smaller one, b turned.
+    """Two crops of ``grid`` that share ``overlap`` of the smaller one's known cells, b turned.
 
-    Crops are drawn until their shared rectangle holds at least ``min_occupied`` occupied cells
-    (no method can place a pair whose shared part is blank); None when ``tries`` draws all fail.
+    The crop rectangles are laid to overlap by ``overlap`` of the smaller one; a draw is kept when
+    the shared rectangle holds at least ``min_occupied`` occupied cells and the measured overlap
+    (:func:`known_overlap`, after b is degraded) is within ``tolerance`` of the target (default
+    0.05 + 0.1 x target). None when ``tries`` draws all fail (a small or mostly unexplored map).
     """
+    tol = 0.05 + 0.1 * overlap if tolerance is None else tolerance
     occ = grid.data >= OCCUPIED_AT
     occ_sum = occ.astype(np.int32).cumsum(0).cumsum(1)
     gh, gw = grid.height, grid.width
     for _ in range(tries):
+        # crops of a robot-sized area, but at most 55% of the map each way, so that two fit side by side
+        cap_h, cap_w = max(8, int(0.55 * gh)), max(8, int(0.55 * gw))
         sides = [int(rng.integers(size[0], size[1] + 1)) for _ in range(4)]
-        ha, wa, hb, wb = (min(sides[0], gh), min(sides[1], gw), min(sides[2], gh), min(sides[3], gw))
+        ha, wa, hb, wb = (
+            min(sides[0], cap_h),
+            min(sides[1], cap_w),
+            min(sides[2], cap_h),
+            min(sides[3], cap_w),
+        )
         small = min(ha * wa, hb * wb)
         # Shape of the shared rectangle: area overlap * small, random aspect, fitting both crops.
         target = overlap * small
@@ -150,8 +163,8 @@ def make_pair(
         ow_hi = float(min(wa, wb))
         if ow_lo > ow_hi:
             continue
-        ow = int(round(rng.uniform(ow_lo, ow_hi)))
-        oh = int(round(target / max(ow, 1)))
+        ow = round(float(rng.uniform(ow_lo, ow_hi)))
+        oh = round(target / max(ow, 1))
         if not (1 <= oh <= min(ha, hb)):
             continue
         # b sits to the left/right and above/below a so that exactly ow x oh are shared.
@@ -175,7 +188,12 @@ def make_pair(
         b0 = degrade(b0, rng)
         b, t_b0_b = rotate(b0, float(rng.uniform(-math.pi, math.pi)), _random_origin(rng))
         truth = compose(compose(inverse(t_src_a), t_src_b0), t_b0_b)
-        real = (r1 - r0) * (c1 - c0) / small
+        # The overlap that matters is shared *content*: crops of a half-explored map, or with the
+        # shared part left unexplored by b, would overlap on paper only. Keep draws whose measured
+        # overlap is near the target.
+        real = known_overlap(a, b, truth)
+        if abs(real - overlap) > tol:
+            continue
         return Pair(a=a, b=b.replace(robot="b"), truth=truth, overlap=real, label=label)
     return None
 
@@ -200,13 +218,17 @@ def hide_pose(a: OccupancyGrid, b: OccupancyGrid, rng: np.random.Generator, labe
     b_turned, t_b_b2 = rotate(b, float(rng.uniform(-math.pi, math.pi)), _random_origin(rng))
     # a's and b's map frames are both the world frame.
     truth = compose(inverse(t_world_a2), t_b_b2)
-    return Pair(a=a2, b=b_turned.replace(robot="b"), truth=truth, overlap=known_overlap(a2, b_turned, truth), label=label)
+    return Pair(
+        a=a2,
+        b=b_turned.replace(robot="b"),
+        truth=truth,
+        overlap=known_overlap(a2, b_turned, truth),
+        label=label,
+    )
 
 
 def known_overlap(a: OccupancyGrid, b: OccupancyGrid, truth: Pose2D) -> float:
     """Cells known in both under ``truth``, over the known cells of the map with fewer of them."""
-    from mapd.fusion.transforms import warp_matrix
-
     m = warp_matrix(b, truth, a)
     bw = cv2.warpAffine(
         b.data.view(np.uint8),
@@ -221,4 +243,4 @@ def known_overlap(a: OccupancyGrid, b: OccupancyGrid, truth: Pose2D) -> float:
     return both / small if small else 0.0
 
 
-__all__ = ["Pair", "crop", "degrade", "hide_pose", "known_overlap", "make_pair", "rotate", "to_matrix"]
+__all__ = ["Pair", "crop", "degrade", "hide_pose", "known_overlap", "make_pair", "rotate"]

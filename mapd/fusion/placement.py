@@ -1,0 +1,352 @@
+"""Placing every robot's map in the fleet frame, and keeping the placements stable over time.
+
+The **fleet frame** is the frame the configured poses are given in (each pose is a robot's *map
+frame* in the fleet frame: x, y in meters, yaw in radians; for a SLAM map that starts where the
+robot starts, that is the robot's initial pose). When no pose is configured, the fleet frame is
+the ``anchor`` robot's map frame (the worker's own robot, or the first map of ``mapd merge``).
+
+:class:`Placer` decides, on every update, where each map goes:
+
+* a robot with a configured pose is placed by it (and its agreement with the maps it overlaps is
+  reported, so a pose given in cells instead of meters, or one that forgets a map's origin, shows);
+* any other robot is estimated against the maps already placed (so chains work: c is placed
+  against b once b is placed against a); the most confident accepted estimate wins;
+* **never flip**: once accepted, a robot's placement is *held*. Each update refines it from the held
+  value (cheap, no search); a full search runs again every ``research_every`` updates. A different
+  placement replaces the held one only when it is accepted, beats the held one's current fit by
+  ``switch_margin``, and does so on ``switch_after`` updates in a row. A held placement whose
+  confidence drops stays merged (dropping it would flip the map too) and says so in its reason;
+* an estimate below threshold is never merged; its ``reason`` says why.
+
+Pure logic over :func:`~mapd.fusion.estimate.estimate_transform`: no asyncio, no clock, no files.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from mapd.fusion.estimate import Estimate, EstimateOptions, check_transform, estimate_transform
+from mapd.fusion.transforms import IDENTITY, compose, inverse, pose_distance
+from mapd.grid import OccupancyGrid, Pose2D
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where one robot's map goes: its map frame in the fleet frame, and why.
+
+    ``source`` is ``anchor`` (its frame is the fleet frame), ``pose`` (configured), ``estimate``,
+    or ``none`` (not merged). ``accepted`` says whether it is merged.
+    """
+
+    robot: str
+    transform: Pose2D | None = None
+    source: str = "none"
+    accepted: bool = False
+    confidence: float = 0.0
+    agreement: float | None = None
+    reason: str = ""
+    against: str | None = None
+    watching: dict[str, float] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able form (used by ``status()`` and ``transforms.json``)."""
+        t = self.transform
+        return {
+            "robot": self.robot,
+            "x": None if t is None else t.x,
+            "y": None if t is None else t.y,
+            "yaw": None if t is None else t.yaw,
+            "source": self.source,
+            "accepted": self.accepted,
+            "confidence": round(self.confidence, 4),
+            "agreement": None if self.agreement is None else round(self.agreement, 4),
+            "reason": self.reason,
+            "against": self.against,
+            "watching": self.watching,
+        }
+
+    @staticmethod
+    def from_dict(d: Mapping[str, Any]) -> Placement:
+        """Inverse of :meth:`as_dict` (raises KeyError/TypeError/ValueError on malformed input)."""
+        xs = (d.get("x"), d.get("y"), d.get("yaw"))
+        t = None
+        if all(v is not None for v in xs):
+            vals = tuple(float(v) for v in xs)  # type: ignore[arg-type]
+            if not all(math.isfinite(v) for v in vals):
+                raise ValueError("transform is not finite")
+            t = Pose2D(*vals)
+        agr = d.get("agreement")
+        return Placement(
+            robot=str(d["robot"]),
+            transform=t,
+            source=str(d.get("source", "estimate")),
+            accepted=bool(d.get("accepted", False)) and t is not None,
+            confidence=float(d.get("confidence", 0.0)),
+            agreement=None if agr is None else float(agr),
+            reason=str(d.get("reason", "")),
+            against=None if d.get("against") is None else str(d["against"]),
+        )
+
+
+@dataclass
+class _Track:
+    """Per-robot memory between updates."""
+
+    updates_since_search: int = 0
+    challenger: Pose2D | None = None
+    streak: int = 0
+    #: other robot -> ((digest of its map, digest of this map, held transform), answer)
+    last: dict[str, tuple[tuple[bytes, bytes, Pose2D | None], Placement]] = field(default_factory=dict)
+
+
+class Placer:
+    """Placements of a fleet's maps in the fleet frame, kept stable across updates.
+
+    ``poses`` maps a robot to its map frame's pose in the fleet frame, or to None for "estimate"
+    (robots not listed are estimated too). ``anchor`` is the robot whose map frame is the fleet frame
+    when no pose is configured.
+    """
+
+    def __init__(
+        self,
+        poses: Mapping[str, Pose2D | None],
+        anchor: str | None,
+        *,
+        min_confidence: float = 0.5,
+        min_agreement: float = 0.8,
+        options: EstimateOptions | None = None,
+        switch_margin: float = 0.1,
+        switch_after: int = 2,
+        research_every: int = 5,
+    ) -> None:
+        self.poses = {r: p for r, p in poses.items() if p is not None}
+        self.anchor = anchor
+        self.min_confidence = min_confidence
+        self.min_agreement = min_agreement
+        self.options = options or EstimateOptions()
+        self.switch_margin = switch_margin
+        self.switch_after = max(1, switch_after)
+        self.research_every = max(1, research_every)
+        self.placements: dict[str, Placement] = {}
+        self._tracks: dict[str, _Track] = {}
+
+    @property
+    def fleet_frame(self) -> str:
+        """A description of the fleet frame, for status output."""
+        if self.poses:
+            return "frame of the configured poses (" + ", ".join(sorted(self.poses)) + ")"
+        return f"map frame of robot '{self.anchor}'" if self.anchor else "map frame of the first map"
+
+    def restore(self, placements: Mapping[str, Placement]) -> None:
+        """Hold earlier accepted estimates (from ``transforms.json``) so a restart keeps them."""
+        for robot, p in placements.items():
+            if p.accepted and p.transform is not None and p.source == "estimate" and robot not in self.poses:
+                self.placements[robot] = replace(p, reason="restored from the state directory")
+
+    def update(self, maps: Mapping[str, OccupancyGrid], *, estimate: bool = True) -> dict[str, Placement]:
+        """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
+
+        With ``estimate=False`` nothing is estimated: configured poses and the anchor are placed,
+        other robots keep their held placements (a cheap update, e.g. for a last flush).
+        """
+        out: dict[str, Placement] = {}
+        placed: dict[str, Pose2D] = {}
+        for robot in sorted(maps):
+            if robot in self.poses:
+                placed[robot] = self.poses[robot]
+        if not self.poses and self.anchor in maps:
+            assert self.anchor is not None
+            placed[self.anchor] = IDENTITY
+            out[self.anchor] = Placement(
+                self.anchor, IDENTITY, "anchor", True, 1.0, None, "its map frame is the fleet frame"
+            )
+        for robot in sorted(placed):
+            if robot not in out:
+                out[robot] = self._pose_placement(robot, maps, placed)
+        if not placed:
+            waiting = ", ".join(sorted(self.poses)) if self.poses else str(self.anchor)
+            for robot in sorted(maps):
+                out[robot] = Placement(
+                    robot, reason=f"waiting for a map from {waiting} to fix the fleet frame"
+                )
+            self.placements.update(out)
+            return out
+        # Held robots first, so chains form in a stable order; then the rest by name.
+        pending = sorted((r for r in maps if r not in placed), key=lambda r: (r not in self.placements, r))
+        if not estimate:
+            for robot in pending:
+                out[robot] = self.placements.get(robot) or Placement(robot, reason="not estimated yet")
+            self.placements.update(out)
+            return out
+        progress = True
+        while pending and progress:
+            progress = False
+            for robot in list(pending):
+                p = self._place(robot, maps, placed)
+                if p.accepted and p.transform is not None:
+                    placed[robot] = p.transform
+                    pending.remove(robot)
+                    progress = True
+                out[robot] = p
+        self.placements.update(out)
+        return out
+
+    # -----------------------------------------------------------------------------------------
+
+    def _pose_placement(
+        self, robot: str, maps: Mapping[str, OccupancyGrid], placed: Mapping[str, Pose2D]
+    ) -> Placement:
+        """A configured pose, with its agreement against the first other placed map it overlaps."""
+        t = placed[robot]
+        for other in sorted(placed):
+            if other == robot:
+                continue
+            rel = compose(inverse(placed[other]), t)
+            chk = check_transform(maps[other], maps[robot], rel, options=self.options)
+            if chk.overlap > 0:
+                note = ""
+                if chk.confidence < self.min_confidence or chk.agreement < self.min_agreement:
+                    fit = chk.details.get("fit", 0.0)
+                    note = (
+                        f"; it does not line up with '{other}' (wall fit {fit:.2f}, agreement "
+                        f"{chk.agreement:.2f}): check the pose (x, y in meters and yaw in radians of "
+                        "the map frame, not of the map's origin cell)"
+                    )
+                return Placement(robot, t, "pose", True, 1.0, chk.agreement, "configured pose" + note, other)
+        return Placement(robot, t, "pose", True, 1.0, None, "configured pose")
+
+    def _place(
+        self, robot: str, maps: Mapping[str, OccupancyGrid], placed: Mapping[str, Pose2D]
+    ) -> Placement:
+        track = self._tracks.setdefault(robot, _Track())
+        held = self.placements.get(robot)
+        if held is not None and not (
+            held.accepted and held.transform is not None and held.source == "estimate"
+        ):
+            held = None
+        others = sorted(placed, key=lambda r: (held is None or r != held.against, r))
+        best: Placement | None = None
+        for other in others:
+            p = self._place_against(robot, other, maps, placed, held, track)
+            if best is None or (p.accepted and (not best.accepted or p.confidence > best.confidence)):
+                best = p
+            if best.accepted and held is not None:
+                break  # a held robot is tracked against one map, not re-shopped every update
+        assert best is not None
+        return best
+
+    def _place_against(
+        self,
+        robot: str,
+        other: str,
+        maps: Mapping[str, OccupancyGrid],
+        placed: Mapping[str, Pose2D],
+        held: Placement | None,
+        track: _Track,
+    ) -> Placement:
+        a, b = maps[other], maps[robot]
+        t_other = placed[other]
+        key = (a.digest(), b.digest(), None if held is None else held.transform)
+        cached = track.last.get(other)
+        if cached is not None and cached[0] == key:
+            return cached[1]  # neither map nor the held placement changed: same answer
+        prior = None if held is None else compose(inverse(t_other), held.transform or IDENTITY)
+        search = prior is None or track.updates_since_search + 1 >= self.research_every
+        est = estimate_transform(
+            a,
+            b,
+            min_confidence=self.min_confidence,
+            min_agreement=self.min_agreement,
+            prior=prior,
+            search=search,
+            options=self.options,
+        )
+        track.updates_since_search = 0 if search else track.updates_since_search + 1
+        result = self._judge(robot, other, b, t_other, est, held, prior, track)
+        track.last[other] = (key, result)
+        return result
+
+    def _judge(
+        self,
+        robot: str,
+        other: str,
+        b: OccupancyGrid,
+        t_other: Pose2D,
+        est: Estimate,
+        held: Placement | None,
+        prior: Pose2D | None,
+        track: _Track,
+    ) -> Placement:
+        new_t = compose(t_other, est.transform)
+        if held is None or prior is None:
+            if est.accepted:
+                return Placement(
+                    robot, new_t, "estimate", True, est.confidence, est.agreement, "estimated", other
+                )
+            return Placement(robot, None, "none", False, est.confidence, est.agreement, est.reason, other)
+        assert held.transform is not None
+        ctr = _centre(b)
+        dist_m, dyaw = pose_distance(est.transform, prior, ctr)
+        near = dist_m <= self.options.rival_cells * b.resolution and dyaw <= math.radians(
+            self.options.rival_deg
+        )
+        if near:
+            track.challenger, track.streak = None, 0
+            if est.accepted:
+                return Placement(
+                    robot, new_t, "estimate", True, est.confidence, est.agreement, "tracking", other
+                )
+            return replace(
+                held,
+                confidence=est.confidence,
+                agreement=est.agreement,
+                reason=f"held (current check: {est.reason})",
+                watching=None,
+            )
+        # A different placement: switch only to a clearly better one, seen more than once.
+        prior_fit = est.details.get("prior_fit") or 0.0
+        best_fit = est.details.get("best_fit") or 0.0
+        clearly = est.accepted and best_fit >= prior_fit + self.switch_margin
+        if clearly:
+            same = track.challenger is not None and _close(track.challenger, new_t, b, self.options)
+            track.streak = track.streak + 1 if same else 1
+            track.challenger = new_t
+            if track.streak >= self.switch_after:
+                track.challenger, track.streak = None, 0
+                return Placement(
+                    robot,
+                    new_t,
+                    "estimate",
+                    True,
+                    est.confidence,
+                    est.agreement,
+                    f"switched to a clearly better placement (fit {best_fit:.2f} vs {prior_fit:.2f})",
+                    other,
+                )
+        else:
+            track.challenger, track.streak = None, 0
+        watching = {
+            "x": new_t.x,
+            "y": new_t.y,
+            "yaw": new_t.yaw,
+            "confidence": est.confidence,
+            "fit": float(best_fit),
+            "held_fit": float(prior_fit),
+        }
+        why = "a different placement is being watched" if clearly else "a different placement fits no better"
+        return replace(held, reason=f"held; {why}", watching=watching)
+
+
+def _centre(g: OccupancyGrid) -> tuple[float, float]:
+    x, y = g.cell_to_world(np.array([g.height / 2.0]), np.array([g.width / 2.0]))
+    return float(x[0]), float(y[0])
+
+
+def _close(t1: Pose2D, t2: Pose2D, b: OccupancyGrid, opt: EstimateOptions) -> bool:
+    d, dyaw = pose_distance(t1, t2, _centre(b))
+    return d <= opt.rival_cells * b.resolution and dyaw <= math.radians(opt.rival_deg)

@@ -1,0 +1,372 @@
+"""The fusion worker: the asyncio task that owns the global map.
+
+API for the daemon::
+
+    worker = FusionWorker(robot, cfg.fusion, state_dir, on_global=[zenoh_sink, ros2_sink])
+    task = asyncio.create_task(worker.run())
+    worker.submit(grid)          # own map or a peer's decoded map; grid.robot names it
+    worker.status()              # JSON-able dict for `mapd status`
+    worker.global_map            # latest OccupancyGrid, or None
+    task.cancel()                # stops; a pending update is merged with the held placements first
+
+* ``submit`` never blocks and never queues: the latest map of each robot wins.
+* ``run`` loads the previous global map and ``transforms.json`` from the state directory (so a
+  restart loses neither the map nor the accepted placements), then waits for submissions. After the
+  first new map it waits ``cfg.debounce_s`` (collecting whatever else arrives), places every map with
+  a :class:`~mapd.fusion.placement.Placer` and merges them in a worker thread (a large merge never
+  stalls the event loop), writes ``global.yaml`` + ``global.pgm`` (map_server files, atomic) and
+  ``transforms.json`` (atomic: temp file, fsync, rename) into the state directory, and calls every
+  ``on_global`` callback with the new grid on the event loop's thread.
+* The **fleet frame** is the frame the configured poses are given in, or this robot's own map frame
+  when no pose is configured (``cfg.poses``: robot -> ``[x m, y m, yaw rad]`` of that robot's map
+  frame in the fleet frame, or ``"estimate"``). The global map's origin lies on the fleet frame's
+  cell lattice and only grows outward in blocks of 64 cells (:mod:`mapd.fusion.merge`).
+* ``transforms.json`` and ``status()["robots"]`` give, per robot, the "fleet frame -> robot map"
+  transform (x, y in meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``),
+  its source, confidence, agreement, whether it is merged, and the reason when it is not.
+* Until every robot named in a restored ``transforms.json`` has sent a map again, the restored global
+  map fills the cells no current map knows, so a restart never shows a half-empty map.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapd.config import FusionSection
+from mapd.errors import FusionError, MapdError, StateError
+from mapd.fusion.estimate import EstimateOptions
+from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, merge_with_owner
+from mapd.fusion.placement import Placement, Placer
+from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, load_map, save_map
+
+log = logging.getLogger(__name__)
+
+GLOBAL_YAML = "global.yaml"
+TRANSFORMS_JSON = "transforms.json"
+FORMAT = 1
+
+
+@dataclass(frozen=True)
+class _Fused:
+    result: MergeResult
+    placements: dict[str, Placement]
+    seconds: float
+    versions: dict[str, int]
+
+
+class FusionWorker:
+    """Owns the global map: re-places and re-merges on every new map version, debounced."""
+
+    def __init__(
+        self,
+        robot: str,
+        cfg: FusionSection,
+        state_dir: Path | None,
+        on_global: Sequence[Callable[[OccupancyGrid], None]] | None = None,
+        *,
+        max_cells: int = DEFAULT_MAX_CELLS,
+        max_robots: int = 64,
+        options: EstimateOptions | None = None,
+    ) -> None:
+        self.robot = robot
+        self.cfg = cfg
+        self.state_dir = state_dir
+        self.on_global: list[Callable[[OccupancyGrid], None]] = list(on_global or [])
+        self.max_cells = max_cells
+        self.max_robots = max_robots
+        poses = {r: (Pose2D(*p) if isinstance(p, list) else None) for r, p in cfg.poses.items()}
+        self.placer = Placer(
+            poses,
+            anchor=robot,
+            min_confidence=cfg.min_confidence,
+            min_agreement=cfg.min_agreement,
+            options=options,
+        )
+        self._latest: dict[str, OccupancyGrid] = {}
+        self._wake = asyncio.Event()
+        self._global: OccupancyGrid | None = None
+        self._placements: dict[str, Placement] = {}
+        self._bounds: Bounds | None = None
+        self._resolution: float | None = None
+        self._restored: OccupancyGrid | None = None
+        self._restored_robots: set[str] = set()
+        self._merges = 0
+        self._last_merge: float | None = None
+        self._last_seconds: float | None = None
+        self._error: str | None = None
+        self._dropped = 0
+        self._loaded = False
+
+    # -- the daemon's side ------------------------------------------------------------------
+
+    def submit(self, grid: OccupancyGrid) -> None:
+        """Hand over a map (own or a peer's); ``grid.robot`` names it. Latest wins; never blocks."""
+        robot = grid.robot or ""
+        if not robot:
+            raise FusionError("a map submitted for fusion must name its robot")
+        if robot not in self._latest and len(self._latest) >= self.max_robots:
+            self._dropped += 1
+            log.warning("fusion: ignoring a map from '%s': already %d robots", robot, self.max_robots)
+            return
+        self._latest[robot] = grid
+        self._wake.set()
+
+    @property
+    def global_map(self) -> OccupancyGrid | None:
+        """The latest global map (the restored one until the first merge), or None."""
+        return self._global
+
+    @property
+    def placements(self) -> dict[str, Placement]:
+        return dict(self._placements)
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able state for ``mapd status``."""
+        g = self._global
+        robots: dict[str, Any] = {}
+        for name in sorted(set(self._latest) | set(self._placements)):
+            p = self._placements.get(name)
+            entry = p.as_dict() if p is not None else Placement(name, reason="not merged yet").as_dict()
+            grid = self._latest.get(name)
+            entry["version"] = None if grid is None else grid.version
+            robots[name] = entry
+        return {
+            "robot": self.robot,
+            "mode": self.cfg.mode,
+            "fleet_frame": self.placer.fleet_frame,
+            "maps": sum(1 for p in self._placements.values() if p.accepted and p.robot in self._latest),
+            "robots": robots,
+            "global": None
+            if g is None
+            else {
+                "width": g.width,
+                "height": g.height,
+                "resolution": g.resolution,
+                "origin": {"x": g.origin.x, "y": g.origin.y, "yaw": g.origin.yaw},
+                "version": g.version,
+            },
+            "merges": self._merges,
+            "last_merge": self._last_merge,
+            "last_merge_s": self._last_seconds,
+            "pending": self._wake.is_set(),
+            "error": self._error,
+            "dropped": self._dropped,
+            "restored_until": sorted(self._restored_robots - set(self._latest)) if self._restored else [],
+        }
+
+    async def run(self) -> None:
+        """The worker task: load state, then merge on submissions until cancelled."""
+        if not self._loaded:
+            await asyncio.to_thread(self._load_state)
+            self._loaded = True
+        try:
+            while True:
+                await self._wake.wait()
+                if self.cfg.debounce_s > 0:
+                    await asyncio.sleep(self.cfg.debounce_s)
+                self._wake.clear()
+                await self._merge_once(search=True)
+        except asyncio.CancelledError:
+            if self._wake.is_set() and self._latest:
+                # cheap flush: merge what is pending with the placements already held, no estimation
+                with contextlib.suppress(Exception):
+                    self._wake.clear()
+                    await asyncio.to_thread(self._fuse_and_publish_sync, False)
+            raise
+
+    async def merge_now(self) -> None:
+        """Merge immediately (no debounce); for tools and tests."""
+        if not self._loaded:
+            await asyncio.to_thread(self._load_state)
+            self._loaded = True
+        self._wake.clear()
+        await self._merge_once(search=True)
+
+    # -- internals --------------------------------------------------------------------------
+
+    async def _merge_once(self, search: bool) -> None:
+        maps = dict(self._latest)
+        try:
+            fused = await asyncio.to_thread(self._fuse, maps, search)
+        except MapdError as exc:
+            self._error = str(exc)
+            log.warning("fusion: %s", exc)
+            return
+        except Exception as exc:  # a bug must not take the daemon down with the global map
+            self._error = f"internal error: {type(exc).__name__}: {exc}"
+            log.exception("fusion: merge failed")
+            return
+        self._apply(fused)
+
+    def _fuse_and_publish_sync(self, search: bool) -> None:
+        fused = self._fuse(dict(self._latest), search)
+        self._apply(fused, publish=False)
+
+    def _fuse(self, maps: dict[str, OccupancyGrid], search: bool) -> _Fused:
+        """Place, merge and persist (runs in a worker thread)."""
+        t0 = time.perf_counter()
+        self.placer.update(maps, estimate=search)
+        # every robot the placer knows, also those restored but not heard from since the restart
+        placements = dict(self.placer.placements)
+        names = sorted(
+            r for r, p in placements.items() if p.accepted and p.transform is not None and r in maps
+        )
+        if self._resolution is None:
+            first = next((r for r in names if placements[r].source in ("anchor", "pose")), None)
+            if first is None and names:
+                first = names[0]
+            self._resolution = maps[first].resolution if first else None
+        result = merge_with_owner(
+            [maps[r] for r in names],
+            [placements[r].transform for r in names],
+            self.cfg.mode,
+            resolution=self._resolution,
+            bounds=self._bounds,
+            frame_id="fleet",
+            max_cells=self.max_cells,
+        )
+        result = self._fill_from_restored(result, set(maps))
+        stamp = time.time()
+        grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)
+        result = MergeResult(grid=grid, bounds=result.bounds, owner=result.owner)
+        self._save(result, placements, stamp)
+        return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
+
+    def _apply(self, fused: _Fused, publish: bool = True) -> None:
+        self._merges = fused.result.grid.version
+        self._global = fused.result.grid
+        self._bounds = fused.result.bounds
+        self._placements = fused.placements
+        self._last_merge = fused.result.grid.stamp
+        self._last_seconds = fused.seconds
+        self._error = None
+        if not publish:
+            return
+        for callback in self.on_global:
+            try:
+                callback(fused.result.grid)
+            except Exception:  # one failing sink must not stop the others or the worker
+                log.exception("fusion: an on_global callback failed")
+
+    def _fill_from_restored(self, result: MergeResult, present: set[str]) -> MergeResult:
+        """Cells no current map knows keep the restored global map's value until its robots return."""
+        old = self._restored
+        if old is None:
+            return result
+        if self._restored_robots <= present:
+            self._restored = None
+            return result
+        ob = Bounds.of_grid(old)
+        nb = result.bounds
+        if ob is None or old.resolution != result.grid.resolution:
+            return result
+        c0, r0 = max(ob.c0, nb.c0), max(ob.r0, nb.r0)
+        c1, r1 = min(ob.c1, nb.c1), min(ob.r1, nb.r1)
+        if c1 <= c0 or r1 <= r0:
+            return result
+        data = result.grid.data.copy()
+        dst = data[r0 - nb.r0 : r1 - nb.r0, c0 - nb.c0 : c1 - nb.c0]
+        src = old.data[r0 - ob.r0 : r1 - ob.r0, c0 - ob.c0 : c1 - ob.c0]
+        hole = dst == UNKNOWN
+        dst[hole] = src[hole]
+        return MergeResult(grid=result.grid.replace(data=data), bounds=nb, owner=result.owner)
+
+    # -- state directory --------------------------------------------------------------------
+
+    def _load_state(self) -> None:
+        if self.state_dir is None:
+            return
+        tj = self.state_dir / TRANSFORMS_JSON
+        gy = self.state_dir / GLOBAL_YAML
+        try:
+            doc = json.loads(tj.read_text(encoding="utf-8")) if tj.exists() else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            log.warning("fusion: ignoring unreadable %s: %s", tj, exc)
+            doc = None
+        placements: dict[str, Placement] = {}
+        if isinstance(doc, dict) and isinstance(doc.get("robots"), dict):
+            for name, entry in doc["robots"].items():
+                try:
+                    placements[str(name)] = Placement.from_dict(entry)
+                except (KeyError, TypeError, ValueError) as exc:
+                    log.warning("fusion: ignoring entry '%s' of %s: %s", name, tj, exc)
+            self._merges = int(doc.get("version", 0)) if isinstance(doc.get("version"), int) else 0
+        self.placer.restore(placements)
+        self._placements = {r: p for r, p in placements.items()}
+        if gy.exists():
+            try:
+                grid = load_map(gy, max_cells=self.max_cells)
+            except MapdError as exc:
+                log.warning("fusion: ignoring unreadable %s: %s", gy, exc)
+                return
+            bounds = Bounds.of_grid(grid)
+            if bounds is None:
+                log.warning("fusion: %s is not on the fleet lattice; starting a new global map", gy)
+                return
+            self._global = grid.replace(robot=self.robot, version=self._merges, frame_id="fleet")
+            self._bounds = bounds
+            self._resolution = grid.resolution
+            self._restored = self._global
+            self._restored_robots = {r for r, p in placements.items() if p.accepted}
+
+    def _save(self, result: MergeResult, placements: dict[str, Placement], stamp: float) -> None:
+        if self.state_dir is None:
+            return
+        try:
+            self.state_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StateError(f"{self.state_dir}: cannot create the state directory: {exc.strerror}") from None
+        save_map(result.grid, self.state_dir / GLOBAL_YAML)
+        doc = {
+            "format": FORMAT,
+            "robot": self.robot,
+            "fleet_frame": self.placer.fleet_frame,
+            "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
+            "mode": self.cfg.mode,
+            "version": result.grid.version,
+            "stamp": stamp,
+            "resolution": result.grid.resolution,
+            "origin": list(result.grid.origin),
+            "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
+        }
+        write_json_atomic(self.state_dir / TRANSFORMS_JSON, doc)
+
+
+def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
+    """Write JSON via a temp file, fsync and rename, so readers never see half a file."""
+    try:
+        payload = (json.dumps(doc, indent=2, allow_nan=False, default=_jsonable) + "\n").encode()
+    except (TypeError, ValueError) as exc:
+        raise StateError(f"{path}: cannot serialise: {exc}") from None
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise StateError(f"{path}: cannot write: {exc.strerror}") from None
+
+
+def _jsonable(v: object) -> object:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    raise TypeError(f"cannot serialise {type(v).__name__}")
+
+
+__all__ = ["GLOBAL_YAML", "NO_OWNER", "TRANSFORMS_JSON", "FusionWorker", "write_json_atomic"]

@@ -1,0 +1,90 @@
+"""`mapd merge` as a real process: JSON, files, poses, and one-line errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
+
+
+def _mapd(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mapd", *args], cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+
+
+@pytest.fixture(scope="module")
+def two_maps(tmp_path_factory: pytest.TempPathFactory, building: OccupancyGrid) -> tuple[Path, Path]:
+    d = tmp_path_factory.mktemp("maps")
+    a = building.replace(
+        data=np.ascontiguousarray(building.data[0:220, 0:170]), origin=Pose2D(-1.0, 2.0, 0.0)
+    )
+    b = building.replace(
+        data=np.ascontiguousarray(building.data[60:300, 110:260]), origin=Pose2D(0.0, 0.0, 0.0)
+    )
+    (d / "one").mkdir()
+    (d / "two").mkdir()
+    return save_map(a, d / "one" / "map.yaml"), save_map(b, d / "two" / "map.yaml")
+
+
+def test_merge_prints_transforms_in_the_first_maps_frame(tmp_path: Path, two_maps: tuple[Path, Path]) -> None:
+    a, b = two_maps
+    out, png = tmp_path / "merged.yaml", tmp_path / "merged.png"
+    r = _mapd("merge", str(a), str(b), "-o", str(out), "--png", str(png), "--json", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    (t,) = doc["transforms"]
+    assert {"x", "y", "yaw", "confidence", "agreement", "accepted"} <= set(t)
+    assert t["robot"] == "1"  # both files are called map.yaml: robots are named by position
+    # b's cell (0, 0) corner sits at a's cell (60, 110), i.e. a's origin + (5.5, 3.0) m
+    assert (
+        t["accepted"]
+        and math.isclose(t["x"], -1.0 + 5.5, abs_tol=0.1)
+        and math.isclose(t["y"], 2.0 + 3.0, abs_tol=0.1)
+    )
+    assert abs(t["yaw"]) < math.radians(1.0) and t["confidence"] >= 0.5 and t["agreement"] >= 0.8
+    merged = load_map(out)
+    assert merged.cells >= 240 * 260 and png.stat().st_size > 0
+
+
+def test_known_pose_and_text_output(tmp_path: Path, two_maps: tuple[Path, Path]) -> None:
+    a, b = two_maps
+    out = tmp_path / "m.yaml"
+    r = _mapd(
+        "merge", str(a), str(b), "-o", str(out), "--pose", "0=0,0,0", "--pose", "1=4.5,5,0", cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    assert "x     4.500" in r.stdout and "(pose)" in r.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--pose", "1=1,2"], "three numbers"),
+        (["--pose", "7=1,2,3"], "no input named '7'"),
+        (["--min-confidence", "2"], "must lie in [0, 1]"),
+    ],
+)
+def test_bad_options_give_one_line(
+    tmp_path: Path, two_maps: tuple[Path, Path], args: list[str], words: str
+) -> None:
+    a, b = two_maps
+    r = _mapd("merge", str(a), str(b), "-o", str(tmp_path / "x.yaml"), *args, cwd=tmp_path)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mapd: error:") and words in lines[0]
+
+
+def test_missing_map_gives_one_line(tmp_path: Path, two_maps: tuple[Path, Path]) -> None:
+    r = _mapd(
+        "merge", str(two_maps[0]), str(tmp_path / "nope.yaml"), "-o", str(tmp_path / "x.yaml"), cwd=tmp_path
+    )
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines() == [f"mapd: error: {tmp_path / 'nope.yaml'}: no such map file"]

@@ -1,0 +1,124 @@
+"""Placer: known poses, estimates, chains, and placements that never flip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapd.fusion.placement import Placement, Placer
+from mapd.fusion.transforms import compose, inverse, pose_distance
+from mapd.grid import OccupancyGrid, Pose2D
+
+ZERO = Pose2D(0.0, 0.0, 0.0)
+
+
+#: each crop's map origin (pose of its cell (0, 0) in its map frame), yaw included
+ORIGINS = {"a": Pose2D(1.0, -2.0, 0.3), "b": Pose2D(-4.0, 0.5, -1.0), "c": Pose2D(0.0, 0.0, 2.0)}
+CORNERS = {"a": (0, 0), "b": (60, 110), "c": (80, 210)}
+
+
+def _crop(g: OccupancyGrid, r0: int, r1: int, c0: int, c1: int, name: str) -> OccupancyGrid:
+    return g.replace(data=np.ascontiguousarray(g.data[r0:r1, c0:c1]), origin=ORIGINS[name], robot=name)
+
+
+def _near(t: Pose2D | None, truth: Pose2D, g: OccupancyGrid, cells: float = 2.0) -> bool:
+    assert t is not None
+    x, y = g.cell_to_world(np.array([g.height / 2]), np.array([g.width / 2]))
+    d, yaw = pose_distance(t, truth, (float(x[0]), float(y[0])))
+    return d <= cells * g.resolution and math.degrees(yaw) <= 1.0
+
+
+@pytest.fixture(scope="module")
+def crops(building: OccupancyGrid) -> dict[str, OccupancyGrid]:
+    return {
+        "a": _crop(building, 0, 220, 0, 170, "a"),
+        "b": _crop(building, 60, 300, 110, 260, "b"),
+        "c": _crop(building, 80, 320, 210, 360, "c"),
+    }
+
+
+def _truth(r0: int, c0: int, res: float = 0.05, name: str = "b") -> Pose2D:
+    """Map frame of crop ``name`` (cell (0, 0) at building cell (r0, c0)) in a's map frame.
+
+    a's cells sit at O_a * (cells); the crop's at O_name * (cells - corner), so
+    T = O_a * shift(corner) * inverse(O_name).
+    """
+    return compose(compose(ORIGINS["a"], Pose2D(c0 * res, r0 * res, 0.0)), inverse(ORIGINS[name]))
+
+
+def test_known_poses_are_used_as_given_and_checked(crops: dict[str, OccupancyGrid]) -> None:
+    pa = Pose2D(2.0, -1.0, 0.5)
+    good = compose(pa, _truth(60, 110))
+    ab = {"a": crops["a"], "b": crops["b"]}
+    out = Placer({"a": pa, "b": good}, anchor=None).update(ab)
+    assert out["a"].transform == pa and out["b"].transform == good
+    assert out["b"].source == "pose" and out["b"].agreement is not None and out["b"].agreement > 0.95
+    # a pose given in cells instead of meters: still used as given, but flagged
+    wrong = compose(pa, Pose2D(110.0, 60.0, 0.0))
+    out = Placer({"a": pa, "b": compose(pa, Pose2D(1.0, 0.5, 0.0))}, anchor=None).update(ab)
+    assert "check the pose" in out["b"].reason
+    out = Placer({"a": pa, "b": wrong}, anchor=None).update(ab)
+    assert out["b"].transform == wrong
+
+
+def test_known_and_estimated_mix_and_chain(crops: dict[str, OccupancyGrid]) -> None:
+    pa = Pose2D(2.0, -1.0, 0.5)
+    out = Placer({"a": pa, "b": None}, anchor=None).update(crops)
+    assert out["a"].source == "pose"
+    assert out["b"].source == "estimate" and out["b"].accepted
+    assert _near(out["b"].transform, compose(pa, _truth(60, 110)), crops["b"])
+    # c does not overlap a: it is placed against b
+    assert out["c"].accepted and out["c"].against == "b"
+    assert _near(out["c"].transform, compose(pa, _truth(80, 210, name="c")), crops["c"])
+
+
+def test_anchor_frame_and_waiting(crops: dict[str, OccupancyGrid]) -> None:
+    out = Placer({}, anchor="b").update({"a": crops["a"], "b": crops["b"]})
+    assert out["b"].source == "anchor" and out["b"].transform == ZERO
+    assert out["a"].accepted and _near(out["a"].transform, inverse(_truth(60, 110)), crops["a"])
+    out = Placer({"x": Pose2D(1.0, 2.0, 0.0)}, anchor="a").update({"a": crops["a"], "b": crops["b"]})
+    assert not out["a"].accepted and "waiting" in out["a"].reason
+
+
+def test_accepted_placement_is_held_and_switches_only_to_a_clearly_better_one_twice(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    placer = Placer({}, anchor="a", research_every=1, switch_after=2)
+    first = placer.update({"a": crops["a"], "b": crops["b"]})["b"]
+    assert first.accepted and _near(first.transform, _truth(60, 110), crops["b"])
+    # b's SLAM re-anchors: the same place now lies 2 m further along b's map x axis
+    shift = Pose2D(2.0, 0.0, 0.0)
+    moved = crops["b"].replace(origin=compose(shift, crops["b"].origin), version=2)
+    second = placer.update({"a": crops["a"], "b": moved})["b"]
+    assert second.accepted and second.transform == first.transform  # held, not flipped
+    assert "held" in second.reason and second.watching is not None
+    # the better placement wins again on a newer map version: now it is adopted
+    newer = moved.replace(data=moved.data.copy(), version=3)
+    newer.data[0, 0] = 0 if newer.data[0, 0] != 0 else -1  # any change: a new map version
+    third = placer.update({"a": crops["a"], "b": newer})["b"]
+    assert third.accepted and "switched" in third.reason
+    assert _near(third.transform, compose(_truth(60, 110), inverse(shift)), crops["b"])
+
+
+def test_held_placement_stays_merged_when_evidence_drops(crops: dict[str, OccupancyGrid]) -> None:
+    placer = Placer({}, anchor="a", research_every=1)
+    first = placer.update({"a": crops["a"], "b": crops["b"]})["b"]
+    blank = crops["b"].replace(data=np.where(crops["b"].data == 100, 0, crops["b"].data).astype(np.int8))
+    later = placer.update({"a": crops["a"], "b": blank})["b"]
+    assert later.accepted and later.transform == first.transform
+    assert later.reason.startswith("held")
+
+
+def test_restored_placements_are_tracked_from_where_they_were(crops: dict[str, OccupancyGrid]) -> None:
+    truth = _truth(60, 110)
+    saved = Placement("b", truth, "estimate", True, 0.9, 0.97, "estimated", "a").as_dict()
+    placer = Placer({}, anchor="a", research_every=5)
+    placer.restore({"b": Placement.from_dict(saved)})
+    out = placer.update({"a": crops["a"], "b": crops["b"]})["b"]
+    assert out.accepted and out.reason == "tracking" and _near(out.transform, truth, crops["b"], 1.0)
+    with pytest.raises((KeyError, TypeError, ValueError)):
+        Placement.from_dict({"x": 1.0})
+    with pytest.raises(ValueError):
+        Placement.from_dict({"robot": "b", "x": float("nan"), "y": 0.0, "yaw": 0.0})

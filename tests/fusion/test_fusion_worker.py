@@ -1,0 +1,135 @@
+"""FusionWorker: debounced merges in a thread, atomic state files, restart, callbacks, status."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapd.config import FusionSection
+from mapd.errors import FusionError
+from mapd.fusion.worker import GLOBAL_YAML, TRANSFORMS_JSON, FusionWorker
+from mapd.grid import OccupancyGrid, Pose2D, load_map
+
+ZERO = Pose2D(0.0, 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def fleet(building: OccupancyGrid) -> dict[str, OccupancyGrid]:
+    def crop(r0: int, r1: int, c0: int, c1: int, name: str) -> OccupancyGrid:
+        return building.replace(
+            data=np.ascontiguousarray(building.data[r0:r1, c0:c1]), origin=ZERO, robot=name
+        )
+
+    return {"a": crop(0, 220, 0, 170, "a"), "b": crop(60, 300, 110, 260, "b")}
+
+
+async def _until(cond: object, timeout: float = 20.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not cond():  # type: ignore[operator]
+        if loop.time() > end:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.02)
+
+
+def test_merges_writes_state_publishes_and_reports(tmp_path: Path, fleet: dict[str, OccupancyGrid]) -> None:
+    got: list[OccupancyGrid] = []
+
+    def broken(_grid: OccupancyGrid) -> None:
+        raise RuntimeError("sink down")
+
+    async def main() -> dict[str, object]:
+        w = FusionWorker("a", FusionSection(debounce_s=0.05), tmp_path, [broken, got.append])
+        task = asyncio.create_task(w.run())
+        w.submit(fleet["a"])
+        w.submit(fleet["b"].replace(version=7))
+        await _until(lambda: w.status()["maps"] == 2)
+        st = w.status()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert w.global_map is not None and got and got[-1] is w.global_map
+        return st
+
+    st = asyncio.run(main())
+    json.dumps(st)  # JSON-able
+    b = st["robots"]["b"]  # type: ignore[index]
+    assert b["accepted"] and b["source"] == "estimate" and b["version"] == 7
+    assert math.isclose(b["x"], 110 * 0.05, abs_tol=0.1) and math.isclose(b["y"], 60 * 0.05, abs_tol=0.1)
+    assert st["fleet_frame"] == "map frame of robot 'a'" and st["last_merge_s"] is not None
+    doc = json.loads((tmp_path / TRANSFORMS_JSON).read_text())
+    assert doc["robots"]["b"]["accepted"] and "meters" in doc["units"]
+    glob = load_map(tmp_path / GLOBAL_YAML)
+    assert glob.origin.yaw == 0.0 and glob.cells >= fleet["a"].cells
+    assert not list(tmp_path.glob(".*tmp*"))  # no temp files left behind
+
+
+def test_restart_keeps_map_and_placements(tmp_path: Path, fleet: dict[str, OccupancyGrid]) -> None:
+    async def first() -> None:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await w.merge_now()
+
+    async def second() -> tuple[OccupancyGrid | None, dict[str, object], OccupancyGrid | None]:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+        task = asyncio.create_task(w.run())
+        await _until(lambda: w.global_map is not None)
+        before = w.global_map
+        w.submit(fleet["a"])  # b has not come back yet
+        await _until(lambda: w.status()["merges"] >= 2)
+        after = w.global_map
+        st = w.status()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return before, st, after
+
+    asyncio.run(first())
+    saved = load_map(tmp_path / GLOBAL_YAML)
+    before, st, after = asyncio.run(second())
+    assert before is not None and before.same_map(saved)
+    assert st["restored_until"] == ["b"]
+    assert st["robots"]["b"]["accepted"]  # type: ignore[index]
+    # b's cells are still in the map although only a was merged since the restart
+    assert after is not None and after.origin == saved.origin
+    assert int((after.data >= 0).sum()) == int((saved.data >= 0).sum())
+
+
+def test_known_poses_and_cancel_flush(tmp_path: Path, fleet: dict[str, OccupancyGrid]) -> None:
+    pb = [5.0, 2.0, 0.3]
+    cfg = FusionSection(debounce_s=30.0, poses={"a": [1.0, 1.0, 0.0], "b": pb})
+
+    async def main() -> None:
+        w = FusionWorker("a", cfg, tmp_path)
+        task = asyncio.create_task(w.run())
+        await asyncio.sleep(0.05)
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await asyncio.sleep(0.05)
+        task.cancel()  # long debounce: the pending update is flushed on the way out
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())
+    doc = json.loads((tmp_path / TRANSFORMS_JSON).read_text())
+    b = doc["robots"]["b"]
+    assert b["source"] == "pose" and [b["x"], b["y"], b["yaw"]] == pb
+    assert (tmp_path / GLOBAL_YAML).exists()
+
+
+def test_submit_needs_a_robot_and_caps_robots(fleet: dict[str, OccupancyGrid]) -> None:
+    async def main() -> None:
+        w = FusionWorker("a", FusionSection(), None, max_robots=1)
+        with pytest.raises(FusionError):
+            w.submit(fleet["a"].replace(robot=""))
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        assert w.status()["dropped"] == 1 and list(w.status()["robots"]) == ["a"]
+
+    asyncio.run(main())
