@@ -109,8 +109,19 @@ class Fleet:
         """The emulated radio: a separate process joining every robot's socat pty at 12.5 kb/s."""
         uwb = self.run_dir / "uwb"
         uwb.mkdir()
-        cmd = [sys.executable, "-m", "transports.uwb.relay", "--robots", str(self.n), "--rate-bps", str(UWB_RATE),
-               "--seed", str(self.args.seed), "--dir", str(uwb)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "transports.uwb.relay",
+            "--robots",
+            str(self.n),
+            "--rate-bps",
+            str(UWB_RATE),
+            "--seed",
+            str(self.args.seed),
+            "--dir",
+            str(uwb),
+        ]
         self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert self.relay.stdout is not None
         deadline = time.monotonic() + 15
@@ -211,7 +222,9 @@ class Fleet:
             self.relay.send_signal(signal.SIGTERM)
             try:
                 out, _ = self.relay.communicate(timeout=5)
-                (self.run_dir / "uwb" / "relay-stats.json").write_text(out[out.find("{") :] if "{" in out else out)
+                (self.run_dir / "uwb" / "relay-stats.json").write_text(
+                    out[out.find("{") :] if "{" in out else out
+                )
             except subprocess.TimeoutExpired:
                 self.relay.kill()
         return codes

@@ -103,7 +103,7 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
         d = f.run_dir / "robot0"
         f.procs["robot0"] = subprocess.Popen(
             [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-            stdout=open(d / "daemon2.log", "wb"),
+            stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
             stderr=subprocess.STDOUT,
         )
         snaps = wait_for(
