@@ -151,7 +151,13 @@ def write_report(
     if (gdir / "global.yaml").exists():
         try:
             g = load_map(gdir / "global.yaml")
-            contrib = np.load(gdir / "contributions.npy") if (gdir / "contributions.npy").exists() else None
+            contrib = None
+            if (gdir / "owner.npy").exists() and (gdir / "owner.json").exists():
+                owners = json.loads((gdir / "owner.json").read_text())["robots"]
+                idx = np.load(gdir / "owner.npy")
+                # owner.npy indexes owner.json's names; colour by the robot's place in the fleet
+                lut = np.array([names.index(r) if r in names else -1 for r in owners] + [-1], dtype=np.int16)
+                contrib = np.where(idx >= 0, lut[np.clip(idx, 0, len(owners))], -1)
             Image.fromarray(coloured_global(g, contrib)).save(out / "global_map.png")
             for f in gdir.iterdir():
                 if f.suffix in (".yaml", ".pgm", ".json"):

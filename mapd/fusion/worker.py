@@ -242,6 +242,7 @@ class FusionWorker:
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)
         result = MergeResult(grid=grid, bounds=result.bounds, owner=result.owner)
         self._save(result, placements, stamp)
+        self._save_owner(result.owner, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
 
     def _apply(self, fused: _Fused, publish: bool = True) -> None:
@@ -321,6 +322,22 @@ class FusionWorker:
             self._restored = self._global
             self._restored_robots = {r for r, p in placements.items() if p.accepted}
 
+    def _save_owner(self, owner: np.ndarray, names: list[str]) -> None:
+        """``owner.npy`` (who contributed each cell, for coloured pictures) and the names it indexes."""
+        if self.state_dir is None:
+            return
+        import io
+
+        from mapd.atomic import atomic_write_bytes
+
+        buf = io.BytesIO()
+        np.save(buf, _owner_names(owner, names))
+        try:
+            atomic_write_bytes(self.state_dir / "owner.npy", buf.getvalue())
+            write_json_atomic(self.state_dir / "owner.json", {"robots": names})
+        except OSError as exc:
+            log.warning("fusion: cannot write owner map: %s", exc)
+
     def _save(self, result: MergeResult, placements: dict[str, Placement], stamp: float) -> None:
         if self.state_dir is None:
             return
@@ -342,6 +359,14 @@ class FusionWorker:
             "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
         }
         write_json_atomic(self.state_dir / TRANSFORMS_JSON, doc)
+
+
+def _owner_names(owner: np.ndarray, names: list[str]) -> np.ndarray:
+    """Per cell, the index into sorted robot names of the map that weighed most (-1: none)."""
+    out = np.full(owner.shape, -1, dtype=np.int16)
+    valid = owner != NO_OWNER
+    out[valid] = owner[valid]
+    return out
 
 
 def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
