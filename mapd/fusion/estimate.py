@@ -59,7 +59,7 @@ class EstimateOptions:
     #: refuse pairs whose resolutions differ by more than this factor
     max_resolution_ratio: float = 4.0
     #: the correlation search works on images of about this many cells a side ...
-    coarse_cells: int = 192
+    coarse_cells: int = 256
     #: ... with coarse cells no wider than this (meters)
     max_coarse_m: float = 0.4
     #: fewest wall cells a map needs before it is worth matching
