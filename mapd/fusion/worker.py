@@ -35,7 +35,6 @@ import contextlib
 import json
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from mapd.atomic import atomic_write_bytes
 from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError, StateError
 from mapd.fusion.estimate import EstimateOptions
@@ -328,8 +328,6 @@ class FusionWorker:
             return
         import io
 
-        from mapd.atomic import atomic_write_bytes
-
         buf = io.BytesIO()
         np.save(buf, _owner_names(owner, names))
         try:
@@ -375,13 +373,8 @@ def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
         payload = (json.dumps(doc, indent=2, allow_nan=False, default=_jsonable) + "\n").encode()
     except (TypeError, ValueError) as exc:
         raise StateError(f"{path}: cannot serialise: {exc}") from None
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        with open(tmp, "wb") as fh:
-            fh.write(payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        atomic_write_bytes(path, payload)
     except OSError as exc:
         raise StateError(f"{path}: cannot write: {exc.strerror}") from None
 
