@@ -14,8 +14,9 @@ API for the daemon::
   restart loses neither the map nor the accepted placements), then waits for submissions. After the
   first new map it waits ``cfg.debounce_s`` (collecting whatever else arrives), places every map with
   a :class:`~mapd.fusion.placement.Placer` and merges them in a worker thread (a large merge never
-  stalls the event loop), writes ``global.yaml`` + ``global.pgm`` (map_server files, atomic) and
-  ``transforms.json`` (atomic: temp file, fsync, rename) into the state directory, and calls every
+  stalls the event loop), writes ``global.yaml`` + ``global.pgm`` (map_server files, atomic),
+  ``transforms.json`` (atomic: temp file, fsync, rename) and ``owner.npy`` + ``owner.json`` (which
+  robot weighed most in each cell, for coloured pictures) into the state directory, and calls every
   ``on_global`` callback with the new grid on the event loop's thread.
 * The **fleet frame** is the frame the configured poses are given in, or this robot's own map frame
   when no pose is configured (``cfg.poses``: robot -> ``[x m, y m, yaw rad]`` of that robot's map
