@@ -25,7 +25,7 @@ from typing import Any
 
 from mapd import config as configmod
 from mapd import plugins
-from mapd.codec import decode, encode, get_codec
+from mapd.codec import decode, encode, get_codec, read_header
 from mapd.codec.base import CodecOptions
 from mapd.control import ControlServer
 from mapd.envelope import Envelope, unpack
@@ -309,8 +309,6 @@ class Daemon:
         t0 = time.perf_counter()
         payload = encode(grid, self.cfg.codec.use, base, options=self.codec_options)
         enc_ms = 1000 * (time.perf_counter() - t0)
-        from mapd.codec import read_header
-
         head = read_header(payload, max_cells=self.cfg.limits.max_cells)
         base_version = head.base_version if head.delta else 0
         self.store.data.seq += 1

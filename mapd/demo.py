@@ -10,8 +10,6 @@ socket for live progress, stops them with SIGTERM, and writes the figures and a 
 from __future__ import annotations
 
 import argparse
-import csv
-import math
 import os
 import shutil
 import signal
@@ -287,15 +285,3 @@ def run_demo(args: argparse.Namespace) -> int:
     summary = write_report(args.out, fleet.run_dir, fleet.names, snaps, args)
     print(summary)
     return 0 if not bad else 1
-
-
-def _finite(x: float) -> bool:
-    return isinstance(x, float) and math.isfinite(x)
-
-
-def read_updates(state_dir: Path) -> list[dict[str, str]]:
-    path = state_dir / "updates.csv"
-    if not path.exists():
-        return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
