@@ -34,6 +34,11 @@ if [ ! -f /etc/mapd/config.toml ]; then
   chgrp mapd /etc/mapd/config.toml && chmod 0640 /etc/mapd/config.toml
   echo "wrote /etc/mapd/config.toml for robot '$robot' (edit it, then: systemctl restart mapd)"
 fi
+# Compile the lossless codec's numba kernels now, as the daemon's user, into the cache the unit names
+# (NUMBA_CACHE_DIR): the first compile takes about 30 s, which a robot should not spend at start-up.
+install -d -m 0750 -o mapd -g mapd /var/cache/mapd
+runuser -u mapd -- env NUMBA_CACHE_DIR=/var/cache/mapd/numba MAPD_MODELS=/opt/mapd/models \
+  /opt/mapd/venv/bin/mapd warmup --codec lossless zstd raw paper
 install -m 0644 deploy/mapd.service /etc/systemd/system/mapd.service
 install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
 udevadm control --reload 2>/dev/null || true

@@ -32,6 +32,7 @@ from mapd.envelope import Envelope, unpack
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
+from mapd.inbox import EventInbox
 from mapd.metrics import psnr, ssim
 from mapd.sources.base import MapSource, SourceContext
 from mapd.state import StateStore
@@ -74,11 +75,12 @@ class Daemon:
         self._stop = asyncio.Event()
         self._publish = asyncio.Event()
         self._pending: OccupancyGrid | None = None
-        self._events: asyncio.Queue[TransportEvent] = asyncio.Queue(EVENT_QUEUE)
+        self._events = EventInbox(EVENT_QUEUE, max_peers=EVENT_QUEUE)
         self._sent: dict[int, OccupancyGrid] = {}  # recent own versions, for delta bases
         self._kf_lock = threading.Lock()
         self._kf_cache: Envelope | None = None
         self.own: OccupancyGrid | None = None
+        self.source_finished = False
         self.peer_maps: dict[str, OccupancyGrid] = {}
         self.peer_history: dict[str, dict[int, OccupancyGrid]] = {}
         self.peer_info: dict[str, dict[str, Any]] = {}
@@ -90,7 +92,6 @@ class Daemon:
                 "bad_signature",
                 "duplicates",
                 "decode_errors",
-                "dropped_events",
                 "keyframe_requests",
                 "keyframes_sent",
                 "deltas_sent",
@@ -240,6 +241,7 @@ class Daemon:
             self._pending = own  # latest wins: an unencoded older version is simply replaced
             self._publish.set()
             self.fusion.submit(own)
+        self.source_finished = True
         log.info("source finished; still serving peers")
 
     def _target_peers(self) -> set[str]:
@@ -393,10 +395,7 @@ class Daemon:
 
     # ------------------------------------------------------------------ events in
     def _emit(self, event: TransportEvent) -> None:
-        try:
-            self._events.put_nowait(event)
-        except asyncio.QueueFull:
-            self.counters["dropped_events"] += 1
+        self._events.put(event)
 
     async def _event_loop(self) -> None:
         while True:
@@ -531,6 +530,7 @@ class Daemon:
                 "name": self.cfg.source.use,
                 "version": self.own.version if self.own else 0,
                 "size": [self.own.width, self.own.height] if self.own else None,
+                "finished": self.source_finished,
                 "stats": self.source.stats() if self.source else {},
             },
             "codec": {
@@ -541,7 +541,12 @@ class Daemon:
             "peers": peers,
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "fusion": self.fusion.status(),
-            "counters": dict(self.counters),
+            "counters": {
+                **self.counters,
+                # a flood: older updates replaced by newer ones before decoding, or events dropped
+                "superseded_updates": self._events.counters["superseded"],
+                "dropped_events": self._events.counters["dropped"],
+            },
             "state_dir": str(self.cfg.state.dir),
         }
 

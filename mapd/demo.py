@@ -55,8 +55,10 @@ def write_config(path: Path, tables: dict[str, dict[str, Any]]) -> None:
 class Fleet:
     """Starts, watches and stops the demo's daemons and links."""
 
-    def __init__(self, args: argparse.Namespace) -> None:
+    def __init__(self, args: argparse.Namespace, *, sim_options: dict[str, Any] | None = None) -> None:
+        """``args`` as ``mapd demo`` parses them; ``sim_options`` add or override ``[source.sim]`` keys."""
         self.args = args
+        self.sim_options = sim_options or {}
         self.n = args.robots
         self.names = [f"robot{i}" for i in range(self.n)]
         self.run_dir = args.out / "run"
@@ -119,7 +121,13 @@ class Fleet:
             str(self.args.seed),
             "--dir",
             str(uwb),
+            "--drop",
+            str(getattr(self.args, "drop", 0.0)),
+            "--flip",
+            str(getattr(self.args, "flip", 0.0)),
         ]
+        for outage in getattr(self.args, "outage", []):
+            cmd += ["--outage", outage]
         self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert self.relay.stdout is not None
         deadline = time.monotonic() + 15
@@ -154,6 +162,7 @@ class Fleet:
                 "realtime": 4.0,
                 "beams": 180,
                 "scan_rate": 2.0,
+                **self.sim_options,
             },
         }
 

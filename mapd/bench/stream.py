@@ -114,9 +114,9 @@ def run(args: argparse.Namespace) -> int:
     from mapd import mapping
     from mapd.bench.common import dump_json, table
     from mapd.codec import decode, encode, get_codec, read_header
+    from mapd.codec.api import warm_up
     from mapd.data import shared_log
     from mapd.errors import SourceError
-    from mapd.grid import OccupancyGrid
 
     log = args.log if args.log is not None else shared_log("intel")
     if log is None:
@@ -129,9 +129,7 @@ def run(args: argparse.Namespace) -> int:
     codecs = list(dict.fromkeys(args.codec))
     impls = {name: get_codec(name) for name in codecs}
     for name in codecs:  # one-time costs (JIT cache loading, model files) stay out of the timings
-        tiny = OccupancyGrid(np.full((4, 4), -1, np.int8), args.resolution, version=1)
-        decode(encode(tiny, name))
-        decode(encode(tiny.replace(version=2), name, base=tiny), base=tiny)
+        warm_up(name)
     rows: dict[str, _Row] = {}
     for name in codecs:
         rows[f"{name} whole"] = _Row(f"{name} whole")

@@ -52,7 +52,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
     p.add_argument("--seed", type=int, default=7, help="building and robots seed")
     p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
+    faults = p.add_argument_group("faults on the emulated UWB link (--transport uwb)")
+    faults.add_argument("--drop", type=float, default=0.0, metavar="P", help="frame loss probability")
+    faults.add_argument("--flip", type=float, default=0.0, metavar="P", help="bit-flip probability per byte")
+    faults.add_argument(
+        "--outage",
+        action="append",
+        default=[],
+        type=_outage_arg,
+        metavar="START:SECONDS",
+        help="radio silence from START s for SECONDS (repeatable)",
+    )
     p.set_defaults(func=cmd_demo)
+
+
+def _outage_arg(text: str) -> str:
+    """``START:SECONDS`` for the relay's ``--outage``, checked here so a typo is one clear line."""
+    try:
+        start, seconds = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"outage '{text}' is not START:SECONDS") from None
+    if start < 0 or seconds <= 0:
+        raise argparse.ArgumentTypeError(f"outage '{text}': START must be >= 0 and SECONDS > 0")
+    return text
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -96,7 +118,8 @@ def render_status(s: dict[str, Any]) -> str:
         f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}"
     )
     size = src.get("size") or ["-", "-"]
-    out.append(f"source  {src.get('name')}: map v{src.get('version')} ({size[0]} x {size[1]} cells)")
+    done = ", finished" if src.get("finished") else ""
+    out.append(f"source  {src.get('name')}: map v{src.get('version')} ({size[0]} x {size[1]} cells{done})")
     c = s.get("codec", {})
     out.append(
         f"codec   {c.get('name')}: last v{c.get('last_version', '-')} {c.get('last_kind', '')} "

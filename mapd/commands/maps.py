@@ -55,6 +55,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--base", type=Path, help="the base map, when the payload is a delta")
     p.set_defaults(func=cmd_decode)
 
+    p = sub.add_parser(
+        "warmup",
+        help="compile and cache the codecs' kernels now (install step), not at the robot's first map",
+        description="Encode and decode a tiny map with each codec so numba compiles its kernels into "
+        "the on-disk cache (NUMBA_CACHE_DIR if set) and models load once.",
+    )
+    p.add_argument("--codec", nargs="+", default=["lossless", "zstd", "raw"], help="codecs to warm up")
+    p.set_defaults(func=cmd_warmup)
+
 
 def cmd_plugins(args: argparse.Namespace) -> int:
     from mapd import plugins
@@ -168,4 +177,12 @@ def cmd_decode(args: argparse.Namespace) -> int:
     grid = decode(payload, base)
     save_map(grid, args.output)
     print(f"{args.output}: {grid.width} x {grid.height} cells", file=sys.stderr)
+    return 0
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    from mapd.codec.api import warm_up
+
+    for name in args.codec:
+        print(f"{name}: ready in {warm_up(name):.1f} s", flush=True)
     return 0

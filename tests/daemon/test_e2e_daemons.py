@@ -146,3 +146,105 @@ def test_bad_config_is_one_line(tmp_path: Path) -> None:
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
     assert len(lines) == 1 and "does-not-exist" in lines[0], out.stderr
     assert "Traceback" not in out.stderr
+
+
+def _final_maps(f: Fleet) -> dict[str, Any]:
+    """Each robot's last map, from its own deterministic sim run flat out (no daemon, no link)."""
+    import asyncio
+
+    from mapd import config, plugins
+    from mapd.sources.base import SourceContext
+
+    async def last(i: int, name: str) -> Any:
+        tables = f._source_tables(i)
+        cls = plugins.load("source", "sim")
+        opts = config.validate(cls.Options, {**tables["source.sim"], "realtime": 0.0}, "test")
+        maps = [grid async for grid in cls(opts, SourceContext(robot=name)).maps()]
+        return maps[-1]
+
+    return {name: asyncio.run(last(i, name)) for i, name in enumerate(f.names)}
+
+
+def _same_on_lattice(a: Any, b: Any) -> str | None:
+    """None if two global maps agree cell for cell on the fleet lattice (unknown outside each), else why."""
+    import numpy as np
+
+    res = a.resolution
+    if abs(a.resolution - b.resolution) > 1e-12:
+        return f"resolutions differ: {a.resolution} vs {b.resolution}"
+    off = [(o2 - o1) / res for o1, o2 in ((a.origin.x, b.origin.x), (a.origin.y, b.origin.y))]
+    if any(abs(o - round(o)) > 1e-6 for o in off):
+        return f"origins are not on one lattice: {a.origin} vs {b.origin}"
+    dc, dr = (round(o) for o in off)  # b's cell (r, c) is a's cell (r + dr, c + dc)
+    r0, c0 = min(0, dr), min(0, dc)
+    r1, c1 = max(a.height, dr + b.height), max(a.width, dc + b.width)
+    big_a = np.full((r1 - r0, c1 - c0), -1, np.int8)
+    big_b = big_a.copy()
+    big_a[-r0 : -r0 + a.height, -c0 : -c0 + a.width] = a.data
+    big_b[dr - r0 : dr - r0 + b.height, dc - c0 : dc - c0 + b.width] = b.data
+    diff = int((big_a != big_b).sum())
+    return None if diff == 0 else f"{diff} cells differ of {int((big_a >= 0).sum())} known"
+
+
+def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_path: Path) -> None:
+    """Over a lossy, bit-flipping link with an outage, robot0 is killed mid-transfer and restarted.
+
+    Both sims are finite and deterministic, so the fault-free answer is known without a link: the
+    merge of each robot's last map at the configured start poses. Both daemons must end there.
+    """
+    from mapd.fusion.merge import merge
+    from mapd.grid import Pose2D, load_map
+
+    args = argparse.Namespace(
+        robots=2, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0,
+        drop=0.03, flip=1e-3, outage=["6:2"],
+    )  # fmt: skip
+    f = Fleet(args, sim_options={"duration": 60.0})
+    f.prepare()
+    f.start()
+    try:
+        # Kill robot0 while a map of its own is in flight on the serial link.
+        def mid_transfer(s: dict[str, dict[str, Any]]) -> bool:
+            r0 = s.get("robot0", {})
+            link = r0.get("links", {}).get("uwb", {})
+            return r0.get("source", {}).get("version", 0) >= 3 and link.get("in_flight", 0) > 0
+
+        wait_for(mid_transfer, 90, f)
+        os.kill(f.procs["robot0"].pid, signal.SIGKILL)
+        f.procs["robot0"].wait(10)
+        d = f.run_dir / "robot0"
+        f.procs["robot0"] = subprocess.Popen(
+            [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
+            stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
+            stderr=subprocess.STDOUT,
+        )
+
+        def exchanged_final(s: dict[str, dict[str, Any]]) -> bool:
+            return len(s) == 2 and all(
+                s[me]["source"].get("finished")
+                and s[other]["peers"].get(me, {}).get("version") == s[me]["source"]["version"]
+                for me, other in (("robot0", "robot1"), ("robot1", "robot0"))
+            )
+
+        snaps = wait_for(exchanged_final, 150, f)
+        final = _final_maps(f)
+        poses = {r: Pose2D(*p) for r, p in f._start_poses().items()}
+        expected = merge([final[r] for r in f.names], [poses[r] for r in f.names], "logodds")
+        why: dict[str, str | None] = {}
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:  # the fusion worker debounces: give it a moment
+            for name in f.names:
+                got = load_map(f.run_dir / name / "state" / "global" / "global.yaml")
+                why[name] = _same_on_lattice(expected, got)
+            if not any(why.values()):
+                break
+            time.sleep(1.0)
+        assert not any(why.values()), why
+        links = [snaps[name]["links"]["uwb"] for name in f.names]
+        assert sum(x["resends"] for x in links) > 0  # the faults cost resends ...
+        assert sum(x["crc_errors"] + x["bad_frames"] for x in links) > 0  # ... and were caught
+    finally:
+        codes = f.stop()
+    assert codes["robot1"] == 0
+    stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
+    assert stats["dropped"] > 0 and stats["flipped_bits"] > 0

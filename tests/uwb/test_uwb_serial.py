@@ -19,6 +19,7 @@ from mapd.grid import Pose2D
 from mapd.transport import (
     Delivered,
     Failed,
+    KeyframeNeeded,
     PeerRestarted,
     PeerUp,
     Received,
@@ -296,5 +297,33 @@ def test_mapd_link_send_to_nobody_fails_cleanly(tmp_path: Path) -> None:
             assert proc.returncode == 1
             assert err.decode().strip().startswith("mapd: error: uwb:") and b"Traceback" not in err
             assert len(err.decode().strip().splitlines()) == 1
+
+    asyncio.run(main())
+
+
+def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> None:
+    async def main() -> None:
+        async with FaultRelay(rate_bps=50_000, seed=4) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
+            await a.t.start()
+            await b.t.start()
+            try:
+                await b.t.request_keyframe("alpha")
+                await until(lambda: bool(a.of(KeyframeNeeded)), 10)
+                assert a.of(KeyframeNeeded) == [KeyframeNeeded("uwb", "beta", "alpha")]
+                await b.t.request_keyframe("alpha")  # within keyframe_request_s: not sent again
+                # A map still flows on its own stream, and the control message never shows up as data.
+                env = envelope("alpha", 2, 3000)
+                a.t.offer(env)
+                await until(lambda: bool(b.of(Received)), 10)
+                assert [r.data for r in b.of(Received)] == [env.pack()]
+                assert not a.of(Received)
+                assert b.t.stats()["keyframe_requests_tx"] == 1
+                assert a.t.stats()["keyframe_requests_rx"] == 1
+                assert len(a.of(KeyframeNeeded)) == 1
+            finally:
+                await a.t.close()
+                await b.t.close()
 
     asyncio.run(main())

@@ -31,6 +31,7 @@ from mapd.errors import ConfigError, LimitError, MapdError, TransportError
 from mapd.transport import (
     Delivered,
     Failed,
+    KeyframeNeeded,
     PeerDown,
     PeerRestarted,
     PeerUp,
@@ -39,7 +40,7 @@ from mapd.transport import (
     TransportContext,
     TransportOptions,
 )
-from transports.uwb import arq
+from transports.uwb import arq, control
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.signing import CounterStore, clock_floor
 
@@ -84,6 +85,9 @@ class UwbOptions(TransportOptions):
     beacon_s: float = Field(default=5.0, gt=0, description="HELLO after this long without sending")
     peer_timeout_s: float = Field(default=20.0, gt=0, description="a peer silent this long is down")
     reopen_s: float = Field(default=1.0, gt=0, description="retry a vanished serial port this often")
+    keyframe_request_s: float = Field(
+        default=5.0, gt=0, description="ask a robot for a whole map at most this often"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> UwbOptions:
@@ -375,6 +379,8 @@ class UwbTransport(Transport):
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
         self._link: UwbLink | None = None
+        self._requests = control.KeyframeRequests(opts.keyframe_request_s)
+        self.control_counters = {"keyframe_requests_tx": 0, "keyframe_requests_rx": 0, "bad_control": 0}
 
     def _name(self, link_id: int) -> str:
         return self._names.get(link_id, f"uwb-{link_id}")
@@ -382,7 +388,8 @@ class UwbTransport(Transport):
     def _stream(self, robot: str) -> int:
         if robot not in self._streams:
             n = len(self._streams)
-            self._streams[robot] = n if n < 256 else zlib.crc32(robot.encode()) & 0xFF
+            # Stream 255 carries control messages (keyframe requests), maps use 0..254.
+            self._streams[robot] = n if n < control.CONTROL_STREAM else zlib.crc32(robot.encode()) % 255
         return self._streams[robot]
 
     def _config(self, loop: asyncio.AbstractEventLoop) -> arq.ArqConfig:
@@ -443,6 +450,26 @@ class UwbTransport(Transport):
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
 
+    async def request_keyframe(self, robot: str) -> None:
+        """Ask ``robot`` (over this link) for a whole map: a control message, throttled per robot."""
+        link = self._link
+        if link is None or link.core is None:
+            return
+        wanted = self._requests.want(robot, time.monotonic())
+        if wanted is None:
+            return
+        dests = sorted({self.opts.nodes[r] for r in wanted if r in self.opts.nodes} - {self.node_id})
+        if not dests:  # a robot we know by no link id: ask every peer, the one that has it answers
+            dests = self.peer_ids or link.core.peers_up()
+        if not dests:
+            return
+        try:
+            link.send(control.pack_request(wanted), dests, stream=control.CONTROL_STREAM)
+        except MapdError as exc:
+            log.info("uwb: keyframe request for %s not sent: %s", robot, exc)
+            return
+        self.control_counters["keyframe_requests_tx"] += 1
+
     def peers(self) -> list[str]:
         if self._link is None or self._link.core is None:
             return []
@@ -451,12 +478,16 @@ class UwbTransport(Transport):
     def stats(self) -> dict[str, Any]:
         out = self._link.stats() if self._link is not None else {}
         out["node_id"] = self.node_id
+        out.update(self.control_counters)
         return out
 
     def _on_event(self, e: arq.Event) -> None:
         emit = self.ctx.emit
         if isinstance(e, arq.MessageReceived):
-            emit(Received("uwb", self._name(e.src), e.data))
+            if e.stream == control.CONTROL_STREAM:
+                self._on_control(e)
+            else:
+                emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]
@@ -473,3 +504,14 @@ class UwbTransport(Transport):
             emit(PeerDown("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerRestarted):
             emit(PeerRestarted("uwb", self._name(e.peer)))
+
+    def _on_control(self, e: arq.MessageReceived) -> None:
+        try:
+            robots = control.parse_request(e.data)
+        except MapdError as exc:
+            self.control_counters["bad_control"] += 1
+            log.info("uwb: bad control message from %s: %s", self._name(e.src), exc)
+            return
+        self.control_counters["keyframe_requests_rx"] += 1
+        if self.ctx.robot in robots:
+            self.ctx.emit(KeyframeNeeded("uwb", self._name(e.src), self.ctx.robot))
