@@ -43,12 +43,19 @@ def _toml_value(v: Any) -> str:
 
 
 def write_config(path: Path, tables: dict[str, dict[str, Any]]) -> None:
-    """Write nested tables (``{"source.sim": {...}}``) as TOML."""
-    lines = []
-    for table, values in tables.items():
-        lines.append(f"[{table}]")
-        lines.extend(f"{k} = {_toml_value(v)}" for k, v in values.items())
+    """Write tables (``{"source.sim": {...}}``, or nested dicts as in ``tomllib``'s output) as TOML."""
+    lines: list[str] = []
+
+    def table(name: str, values: dict[str, Any]) -> None:
+        lines.append(f"[{name}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in values.items() if not isinstance(v, dict))
         lines.append("")
+        for k, v in values.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v)
+
+    for name, values in tables.items():
+        table(name, values)
     path.write_text("\n".join(lines))
 
 

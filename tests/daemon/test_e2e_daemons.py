@@ -19,9 +19,9 @@ from mapd.demo import Fleet
 pytestmark = pytest.mark.slow
 
 
-def fleet(tmp: Path, transport: str, duration: float = 30.0) -> Fleet:
+def fleet(tmp: Path, transport: str, duration: float = 30.0, robots: int = 2) -> Fleet:
     args = argparse.Namespace(
-        robots=2, transport=transport, codec="lossless", log=None, seed=7, out=tmp, duration=duration
+        robots=robots, transport=transport, codec="lossless", log=None, seed=7, out=tmp, duration=duration
     )
     f = Fleet(args)
     f.prepare()
@@ -129,12 +129,17 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
     assert codes["robot1"] == 0
 
 
-def test_bad_config_is_one_line(tmp_path: Path) -> None:
+@pytest.mark.parametrize("case", ["serial port", "key file", "state dir"])
+def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
+    (tmp_path / "file").write_text("x")
+    port = "/dev/does-not-exist" if case == "serial port" else str(tmp_path / "file")
+    state = tmp_path / "file" / "state" if case == "state dir" else tmp_path / "s"
+    key = f'key_file = "{tmp_path / "no-such.key"}"\n' if case == "key file" else ""
     cfg = tmp_path / "c.toml"
     cfg.write_text(
-        '[robot]\nname = "a"\n[source]\nuse = "sim"\n[transports]\nuse = ["uwb"]\n'
-        '[transports.uwb]\nport = "/dev/does-not-exist"\n[transports.uwb.nodes]\na = 1\nb = 2\n'
-        f'[state]\ndir = "{tmp_path / "s"}"\nruntime_dir = "{tmp_path / "r"}"\n'
+        f'[robot]\nname = "a"\n{key}[source]\nuse = "sim"\n[transports]\nuse = ["uwb"]\n'
+        f'[transports.uwb]\nport = "{port}"\n[transports.uwb.nodes]\na = 1\nb = 2\n'
+        f'[state]\ndir = "{state}"\nruntime_dir = "{tmp_path / "r"}"\n'
     )
     out = subprocess.run(
         [sys.executable, "-m", "mapd", "run", "--config", str(cfg)],
@@ -144,8 +149,25 @@ def test_bad_config_is_one_line(tmp_path: Path) -> None:
     )
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
-    assert len(lines) == 1 and "does-not-exist" in lines[0], out.stderr
+    expect = {"serial port": "does-not-exist", "key file": "no-such.key", "state dir": "not writable"}[case]
+    assert len(lines) == 1 and expect in lines[0], out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_second_sigint_forces_exit(tmp_path: Path) -> None:
+    f = fleet(tmp_path, "zenoh")
+    f.start()
+    try:
+        wait_for(lambda s: len(s) == 2, 60, f)
+        p = f.procs["robot0"]
+        p.send_signal(signal.SIGINT)
+        p.send_signal(signal.SIGINT)
+        code = p.wait(10)
+        # 0 if the drain finished between the two signals, else 130 from the forced exit; never a hang
+        assert code in (0, 130)
+        assert f.procs["robot1"].poll() is None
+    finally:
+        f.stop()
 
 
 def _final_maps(f: Fleet) -> dict[str, Any]:
@@ -248,3 +270,58 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_p
     assert codes["robot1"] == 0
     stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
     assert stats["dropped"] > 0 and stats["flipped_bits"] > 0
+
+
+def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path) -> None:
+    """robot0 talks UWB (socat + relay) to robot1 and zenoh to robot2, both at once."""
+    import tomllib
+
+    from mapd.demo import write_config
+
+    f = fleet(tmp_path, "zenoh", robots=3)
+    relay = subprocess.Popen(
+        [sys.executable, "-m", "transports.uwb.relay", "--robots", "2", "--dir", str(tmp_path / "uwb")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert relay.stdout is not None
+    ports = [relay.stdout.readline().split(":", 1)[1].strip() for _ in range(2)]
+    cfgs = {n: tomllib.loads((f.run_dir / n / "config.toml").read_text()) for n in f.names}
+    zenoh = {n: cfgs[n]["transports"]["zenoh"] for n in f.names}
+    nodes = {"robot0": 1, "robot1": 2}
+    cfgs["robot0"]["transports"] = {
+        "use": ["uwb", "zenoh"],
+        "uwb": {"port": ports[0], "nodes": nodes},
+        "zenoh": {**zenoh["robot0"], "connect": zenoh["robot2"]["listen"]},
+    }
+    cfgs["robot1"]["transports"] = {"use": ["uwb"], "uwb": {"port": ports[1], "nodes": nodes}}
+    cfgs["robot2"]["transports"] = {"use": ["zenoh"], "zenoh": {**zenoh["robot2"], "connect": []}}
+    for n, c in cfgs.items():
+        write_config(f.run_dir / n / "config.toml", c)
+    f.start()
+    try:
+
+        def holds(s: dict[str, dict[str, Any]], who: str, of: str) -> bool:
+            return s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0) >= 2
+
+        snaps = wait_for(
+            lambda s: (
+                holds(s, "robot0", "robot1")
+                and holds(s, "robot0", "robot2")
+                and holds(s, "robot1", "robot0")
+                and holds(s, "robot2", "robot0")
+            ),
+            120,
+            f,
+        )
+        r0 = snaps["robot0"]
+        assert set(r0["links"]) == {"uwb", "zenoh"}
+        assert r0["peers"]["robot1"]["link"] == "uwb" and r0["peers"]["robot2"]["link"] == "zenoh"
+        # robot1 and robot2 share no link: neither hears the other directly
+        assert "robot2" not in snaps["robot1"]["peers"]
+    finally:
+        codes = f.stop()
+        relay.terminate()
+        relay.wait(10)
+    assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
