@@ -34,11 +34,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tiles-per-epoch", type=int, default=2048, help="tiles drawn per epoch (default 2048)")
     p.add_argument("--batch", type=int, default=16, help="tiles per step (default 16)")
     p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate (default 2e-3)")
+    p.add_argument(
+        "--edge-weight",
+        type=float,
+        default=1.0,
+        help="loss weight of cells on a class boundary, others 1 (default 1: the paper's plain MSE)",
+    )
     p.add_argument("--val-fraction", type=float, default=0.2, help="share of places held out (default 0.2)")
     p.add_argument(
         "--val-tiles", type=int, default=256, help="held-out tiles scored each epoch (default 256)"
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu or cuda")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch CPU threads (default 0: torch's default); CPU weights are reproducible for one count",
+    )
     p.add_argument("--no-eval", action="store_true", help="skip the whole-map evaluation at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -50,8 +62,10 @@ def _command(args: argparse.Namespace, maps: Path) -> list[str]:
         "mapd", "train", "--maps", str(maps), "--epochs", str(args.epochs), "--tile", str(args.tile),
         "--seed", str(args.seed), "--levels", str(args.levels),
         "--tiles-per-epoch", str(args.tiles_per_epoch), "--batch", str(args.batch), "--lr", str(args.lr),
+        *(["--edge-weight", str(args.edge_weight)] if args.edge_weight != 1.0 else []),
         "--val-fraction", str(args.val_fraction), "--val-tiles", str(args.val_tiles),
-        "--device", args.device, "-o", str(args.output),
+        "--device", args.device, *(["--threads", str(args.threads)] if args.threads else []),
+        "-o", str(args.output),
     ]  # fmt: skip
 
 
@@ -78,9 +92,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         tiles_per_epoch=args.tiles_per_epoch,
         batch=args.batch,
         lr=args.lr,
+        edge_weight=args.edge_weight,
         val_fraction=args.val_fraction,
         val_tiles=args.val_tiles,
         device=args.device,
+        threads=args.threads,
         progress=not args.quiet,
         evaluate=not args.no_eval,
         extra={"argv": _command(args, maps)},

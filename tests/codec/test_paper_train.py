@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from mapd import cli
 from mapd.codec import api
@@ -149,9 +150,35 @@ def test_tiles_come_only_from_the_given_maps_and_see_real_context() -> None:
     assert not batch.fmask.all()
 
 
+def test_edge_weight_weighs_boundary_cells_on_both_sides() -> None:
+    grid = _synthetic(41, 51, seed=1)  # odd: some tiles reach past the map (weight 0 there)
+    a = prepare_map("a", grid, 16)
+    plain = sample_tiles([a], 30, 16, np.random.default_rng(5))
+    heavy = sample_tiles([a], 30, 16, np.random.default_rng(5), edge_weight=3.0)
+    assert torch.equal(plain.x, heavy.x)  # the same tiles: the weight does not touch the sampler
+    assert set(np.unique(plain.lmask.numpy()).tolist()) <= {0.0, 1.0}
+    assert set(np.unique(heavy.lmask.numpy()).tolist()) == {0.0, 1.0, 3.0}
+    margin = pn.crop_margin()
+    inner = heavy.x[:, 0, margin:-margin, margin:-margin].numpy()
+    weights = heavy.lmask[:, 0].numpy()
+    # A weighted cell differs from a 4-neighbour (inside the tile or in its context); an unweighted
+    # cell inside the map equals all four.
+    full = heavy.x[:, 0].numpy()
+    c = slice(margin, -margin)
+    differs = np.zeros_like(inner, dtype=bool)
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        shifted = full[
+            :, margin + dr : full.shape[1] - margin + dr, margin + dc : full.shape[2] - margin + dc
+        ]
+        differs |= shifted != full[:, c, c]
+    assert np.array_equal(weights == 3.0, differs & (plain.lmask[:, 0].numpy() > 0))
+
+
 def test_bad_settings_are_config_errors(map_dir: Path, tmp_path: Path) -> None:
     from mapd.errors import ConfigError
 
+    with pytest.raises(ConfigError, match="edge-weight"):
+        train(_cfg(map_dir, tmp_path / "x", edge_weight=0.0))
     with pytest.raises(ConfigError, match="multiple of 4"):
         train(_cfg(map_dir, tmp_path / "x", tile=18))
     with pytest.raises(ConfigError, match="no map_server"):
