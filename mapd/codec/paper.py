@@ -26,6 +26,8 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -61,7 +63,7 @@ DEFAULT_MODEL = "paper-v1"
 
 
 class PaperOptions(CodecOptions):
-    """``[codec.paper]``: which trained model to use, and where model folders live."""
+    """``[codec.paper]``: which trained model to use, where model folders live, and torch's threads."""
 
     model: str = Field(
         default=DEFAULT_MODEL,
@@ -70,6 +72,14 @@ class PaperOptions(CodecOptions):
     )
     model_dir: Path | None = Field(
         default=None, description="folder holding model folders (default: $MAPD_MODELS, else <repo>/models)"
+    )
+    # One thread by default: a robot's CPU has other work (SLAM, planning), and two OpenMP threads
+    # on two busy cores measured 2-5x slower than one (docs/paper.md, "Speed").
+    threads: int = Field(
+        default=1,
+        ge=0,
+        le=256,
+        description="torch threads for the CNNs during encode/decode (0: leave torch's default)",
     )
 
 
@@ -83,6 +93,27 @@ def models_root(options: PaperOptions) -> Path:
     from mapd.data import REPO_ROOT
 
     return REPO_ROOT / "models"
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads, then restore the previous count.
+
+    ``torch.set_num_threads`` is process-wide; restoring it keeps the codec from changing the
+    thread count of anything else in the process (``mapd train`` evaluates through the codec).
+    ``n == 0`` leaves torch alone.
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    if n <= 0 or n == before:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def source_flags(data: np.ndarray) -> int:
@@ -146,6 +177,12 @@ class PaperCodec(Codec):
         assert isinstance(self.options, PaperOptions)
         return models_root(self.options) / self.options.model
 
+    @property
+    def threads(self) -> int:
+        """Torch threads for this codec's inference (``[codec.paper] threads``; 0: torch's default)."""
+        assert isinstance(self.options, PaperOptions)
+        return self.options.threads
+
     def model(self) -> PaperModel:
         """The loaded model (lazily, once, on CPU; torch is imported only here)."""
         with self._lock:
@@ -166,7 +203,8 @@ class PaperCodec(Codec):
 
         model = self.model()
         t0 = time.perf_counter()
-        sym = model.encode_symbols(map_to_input(grid.data))
+        with torch_threads(self.threads):
+            sym = model.encode_symbols(map_to_input(grid.data))
         t1 = time.perf_counter()
         body = bytes([source_flags(grid.data)]) + huffman.encode(sym, model.levels)
         t2 = time.perf_counter()
@@ -184,7 +222,8 @@ class PaperCodec(Codec):
         t0 = time.perf_counter()
         sym = huffman.decode(body, h2 * w2, model.levels, pos=1).reshape(h2, w2)
         t1 = time.perf_counter()
-        values = model.decode_values(sym, target.height, target.width)
+        with torch_threads(self.threads):
+            values = model.decode_values(sym, target.height, target.width)
         cells = snap(values, flags)
         t2 = time.perf_counter()
         self.last_timings = {"huffman_decode_ms": 1000 * (t1 - t0), "cnn_decode_ms": 1000 * (t2 - t1)}

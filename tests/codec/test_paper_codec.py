@@ -102,6 +102,38 @@ def test_stage_timings_are_reported(models: Path) -> None:
     assert all(v >= 0 for v in codec.last_timings.values())
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_threads_option_sets_torch_threads_for_inference_only(
+    models: Path, threads: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    opts = PaperOptions(model="tiny-a", model_dir=models, threads=threads)
+    codec = api.get_codec("paper", opts)
+    assert isinstance(codec, PaperCodec)
+    model = codec.model()
+    seen: list[int] = []
+    for name in ("encode_symbols", "decode_values"):
+        real = getattr(model, name)
+
+        def spy(*a: object, _real: object = real) -> np.ndarray:
+            seen.append(torch.get_num_threads())
+            return _real(*a)  # type: ignore[operator]
+
+        monkeypatch.setattr(model, name, spy)
+    before = torch.get_num_threads()
+    grid = room_grid_of(40, 50, seed=0)
+    back = api.decode(api.encode(grid, "paper", options=opts), options=opts)
+    assert back.data.shape == grid.data.shape
+    assert seen == [threads, threads]  # the CNNs ran with the configured thread count
+    assert torch.get_num_threads() == before  # and the process's own count came back
+
+
+def test_threads_option_is_validated() -> None:
+    assert PaperOptions().threads == 1
+    assert PaperOptions(threads=0).threads == 0  # torch's default
+    with pytest.raises(ValueError, match="threads"):
+        PaperOptions(threads=-1)
+
+
 def test_other_weights_refuse_the_payload(models: Path) -> None:
     grid = room_grid_of(30, 30, seed=4)
     payload = api.encode(grid, "paper", options=_opts(models, "tiny-a"))
