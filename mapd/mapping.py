@@ -337,6 +337,7 @@ def replay_log(
     path: str | os.PathLike[str],
     *,
     every: int = 10,
+    every_s: float | None = None,
     resolution: float = 0.05,
     max_range: float | None = None,
     robots: int = 1,
@@ -349,28 +350,42 @@ def replay_log(
     """Replay a CARMEN log with corrected poses through the mapper, as robot ``index`` of ``robots``.
 
     Yields ``(log time in s, snapshot)`` every ``every`` scans and once more after the last scan, with
-    versions 1, 2, ... The map frame is the robot's first laser pose (see :func:`first_pose` for
-    where that sits in the log's world frame). ``options`` overrides ``resolution``/``max_range``.
+    versions 1, 2, ... With ``every_s``, snapshots go by log time instead of scan count: one at the
+    first scan at or past each multiple of ``every_s`` seconds after the robot's first scan (a gap in
+    the log longer than that gives one snapshot, not several). The map frame is the robot's first
+    laser pose (see :func:`first_pose` for where that sits in the log's world frame). ``options``
+    overrides ``resolution``/``max_range``.
     Bad lines are skipped (logged and counted); a log that cannot be read raises SourceError.
     """
     if every < 1:
         raise ValueError("every must be at least 1")
+    if every_s is not None and not every_s > 0.0:
+        raise ValueError("every_s must be positive")
     opts = options if options is not None else MapperOptions(resolution=resolution, max_range=max_range)
     mapper = Mapper(opts, max_cells=max_cells)
     frame: Pose2D | None = None
     version = 0
     pending = 0
     stamp = 0.0
+    due = math.inf  # log time of the next snapshot when going by time
     for scan in replay_scans(path, robots=robots, index=index, overlap=overlap):
         if frame is None:
             frame = scan.pose
+            if every_s is not None:
+                due = scan.stamp + every_s
         stamp = scan.stamp
         try:
             mapper.integrate(scan.ranges, scan.angles, relative(frame, scan.pose))
         except LimitError as exc:
             raise SourceError(f"{path}: line {scan.line}: {exc}") from None
         pending += 1
-        if pending >= every:
+        if every_s is None:
+            now = pending >= every
+        else:
+            now = stamp >= due
+            while due <= stamp:
+                due += every_s
+        if now:
             version += 1
             pending = 0
             yield stamp, mapper.snapshot(robot=robot, version=version, stamp=stamp)

@@ -28,12 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     bsub = p.add_subparsers(dest="bench", metavar="BENCH", title="benchmarks")
     for name, module_name in BENCHES.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:  # not written yet
-                continue
-            raise
+        module = importlib.import_module(module_name)
         bp = bsub.add_parser(name, help=module.HELP, description=module.__doc__)
         module.add_arguments(bp)
         bp.add_argument("--json", action="store_true", help="print JSON instead of a table")
