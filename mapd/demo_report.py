@@ -62,6 +62,23 @@ def coloured_global(global_map: OccupancyGrid, contributions: np.ndarray | None)
     return img.astype(np.uint8)
 
 
+def with_legend(img: np.ndarray, names: list[str]) -> np.ndarray:
+    """``img`` with a strip below it naming each robot's tint, so the picture reads without the docs."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default()
+    row_h = 16
+    strip = Image.new("RGB", (img.shape[1], row_h * ((len(names) + 3) // 4) + 4), (255, 255, 255))
+    draw = ImageDraw.Draw(strip)
+    col_w = max(1, img.shape[1] // 4)
+    for i, name in enumerate(names):
+        x, y = (i % 4) * col_w + 4, (i // 4) * row_h + 3
+        tint = 0.55 * 250.0 + 0.45 * COLOURS[i % len(COLOURS)]  # a free cell of this robot
+        draw.rectangle((x, y, x + 10, y + 10), fill=tuple(int(v) for v in tint), outline=(30, 30, 30))
+        draw.text((x + 14, y - 1), name, fill=(0, 0, 0), font=font)
+    return np.concatenate([img, np.asarray(strip)], axis=0)
+
+
 def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
     import matplotlib
 
@@ -158,7 +175,7 @@ def write_report(
                 # owner.npy indexes owner.json's names; colour by the robot's place in the fleet
                 lut = np.array([names.index(r) if r in names else -1 for r in owners] + [-1], dtype=np.int16)
                 contrib = np.where(idx >= 0, lut[np.clip(idx, 0, len(owners))], -1)
-            Image.fromarray(coloured_global(g, contrib)).save(out / "global_map.png")
+            Image.fromarray(with_legend(coloured_global(g, contrib), names)).save(out / "global_map.png")
             for f in gdir.iterdir():
                 if f.suffix in (".yaml", ".pgm", ".json"):
                     shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)

@@ -12,12 +12,11 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed"),
-]
+needs_socat = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed")
 
 
+@pytest.mark.slow
+@needs_socat
 def test_demo_runs_two_robots_over_uwb_and_writes_its_report(tmp_path: Path) -> None:
     out = tmp_path / "out"
     proc = subprocess.run(
@@ -47,3 +46,20 @@ def test_demo_runs_two_robots_over_uwb_and_writes_its_report(tmp_path: Path) -> 
         assert all(float(r["ratio"]) > 1 for r in mine)
     relay = json.loads((out / "run" / "uwb" / "relay-stats.json").read_text())
     assert relay["rate_bps"] == 12500 and relay["dropped"] > 0  # the faults reached the radio
+
+
+def test_global_map_picture_names_each_robots_tint() -> None:
+    import numpy as np
+
+    from mapd.demo_report import COLOURS, with_legend
+
+    img = np.full((50, 300, 3), 205, dtype=np.uint8)
+    out = with_legend(img, ["robot0", "robot1", "robot2"])
+    assert out.shape[1] == 300 and out.shape[0] > 50
+    assert np.array_equal(out[:50], img)  # the map itself is untouched
+    strip = out[50:].reshape(-1, 3).astype(int)
+    for i in range(3):
+        tint = (0.55 * 250.0 + 0.45 * COLOURS[i]).astype(int)
+        assert (np.abs(strip - tint).max(axis=1) <= 1).sum() > 50  # a swatch of that robot's colour
+    dark = (strip.max(axis=1) < 80).sum()
+    assert dark > 30  # and text beside the swatches
