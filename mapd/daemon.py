@@ -519,6 +519,12 @@ class Daemon:
             info = dict(self.peer_info.get(robot, {}))
             if "received_at" in info:
                 info["age_s"] = round(now - info.pop("received_at"), 1)
+            held = self.peer_maps.get(robot)
+            if held is not None:
+                # The version we hold, also for a peer restored from the state directory that has
+                # sent nothing since this start (its counters are then empty, its map is not).
+                info["version"] = held.version
+                info.setdefault("restored", "received_at" not in info)
             info["acked_our_version"] = self.store.data.acked.get(robot, 0)
             peers[robot] = info
         return {

@@ -132,6 +132,8 @@ def render_status(s: dict[str, Any]) -> str:
         out.append("  (none yet)")
     for name, p in peers.items():
         state = "up" if p.get("present", True) else "gone"
+        if p.get("restored"):
+            state += " (map from state dir)"
         out.append(
             f"  {name:<12} v{p.get('version', '-'):<5} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
             f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our v{p.get('acked_our_version', 0)}"

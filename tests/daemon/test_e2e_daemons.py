@@ -112,6 +112,10 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
         after = snaps["robot0"]
         # it held the peer's map and the global map from before the crash, and its versions keep rising
         assert after["fusion"]["global"] is not None
+        held = after["peers"]["robot1"]
+        # at least the version the state directory held at the crash (received after it: newer)
+        assert held["version"] >= state["peers"]["robot1"]["version"]
+        assert held["restored"] == ("age_s" not in held)  # status says where the map came from
         snaps = wait_for(
             lambda s: "robot0" in s and s["robot0"]["source"]["version"] > state["own_version"], 60, f
         )
