@@ -44,6 +44,10 @@ def test_demo_runs_two_robots_over_uwb_and_writes_its_report(tmp_path: Path) -> 
         assert len(mine) >= 3 and mine[0]["kind"] == "keyframe"
         assert any(r["kind"] == "delta" for r in mine)  # deltas after the first keyframe
         assert all(float(r["ratio"]) > 1 for r in mine)
+    summary = json.loads((out / "summary.json").read_text())["robots"]
+    for r in summary:
+        # what the radio carried: something, and never more than the paced 12.5 kb/s on average
+        assert 0 < r["link_bps"] <= 12500
     relay = json.loads((out / "run" / "uwb" / "relay-stats.json").read_text())
     assert relay["rate_bps"] == 12500 and relay["dropped"] > 0  # the faults reached the radio
 
