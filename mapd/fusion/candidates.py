@@ -206,18 +206,36 @@ class Correlator:
             corr[max(0, ky - 3) : ky + 4, max(0, kx - 3) : kx + 4] = -np.inf
         return out
 
-    def search(self, angles: list[float], n: int, at: np.ndarray, k: int = 3) -> list[Hyp]:
-        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to 2 n in all)."""
+    def search(
+        self, angles: list[float], n: int, at: np.ndarray, k: int = 3, *, group: int = 1, per_group: int = 0
+    ) -> list[Hyp]:
+        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to 2 n in all),
+        plus the ``per_group`` best of each ranking within each run of ``group`` consecutive angles.
+
+        The per-group share matters in repetitive layouts: a warehouse turned by 90 or 180 degrees
+        fits small patches of itself better, per wall, than the true heading fits its large overlap,
+        so a global top ``n`` can hold no peak of the true heading at all.
+        """
         raw: list[Hyp] = []
         per_wall: list[Hyp] = []
-        for ang in angles:
+        groups: list[tuple[list[Hyp], list[Hyp]]] = []
+        for j, ang in enumerate(angles):
             r, p = self.peaks(ang, k)
             raw += r
             per_wall += p
+            if j % max(group, 1) == 0:
+                groups.append(([], []))
+            groups[-1][0].extend(r)
+            groups[-1][1].extend(p)
         raw.sort(key=lambda h: -h.score)
         per_wall.sort(key=lambda h: -h.score)
         out = distinct(raw, n, at)
-        for h in distinct(per_wall, n, at):
+        extra = distinct(per_wall, n, at)
+        if per_group > 0:
+            for g_raw, g_wall in groups:
+                for ranked in (g_raw, g_wall):
+                    extra += distinct(sorted(ranked, key=lambda h: -h.score), per_group, at)
+        for h in extra:
             if all(not same(h, o, at, 3.0, 3.0) for o in out):
                 out.append(h)
         return out

@@ -12,7 +12,9 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
 2. **Candidates** (:mod:`mapd.fusion.candidates`): SIFT features with a 2-point rigid RANSAC, plus
    a search that needs no features: a wall-orientation signature proposes headings and an FFT
    correlation proposes translations, ranked two ways (total evidence, and evidence per overlapping
-   wall) so that neither large repetitive overlaps nor small chance fits crowd out the truth. When
+   wall) so that neither large repetitive overlaps nor small chance fits crowd out the truth, and
+   every signature heading keeps its own best few peaks (in a warehouse, patches turned by 90 or
+   180 degrees fit better per wall than the true heading, and would fill a global top list). When
    that finds nothing acceptable, every heading is tried in 2 degree steps. A previous answer
    (``prior``) is one more candidate.
 3. **Refinement** (:mod:`mapd.fusion.refine`): every candidate is aligned cheaply and ranked; the best
@@ -20,14 +22,17 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
 4. **Verification** of each refined candidate on the whole overlap: the *agreement* (the acceptance
    index: cells known in both maps whose class agrees, over cells known in both), the *wall fit*
    (walls of each map within 1.5 cells of a wall of the other, where the other map knows the
-   place), and the *constraint* (how many met walls pin the least constrained direction: a bare
-   corridor pins nothing along it). The key of a candidate is fit x support (below ``support_walls``
-   overlapping walls it is discounted) x an agreement factor (agreement 0.8 -> 0, 0.95 -> 1).
-5. **Confidence** = quality (fit 0.65 -> 0, 0.9 -> 1) x support x constrained (``constraint_walls``)
-   x distinct, where distinct compares the best with its strongest *rival*, a candidate more than
-   ``rival_cells`` or ``rival_deg`` away that explains at least half as many walls and is itself
-   pinned down: the rival must leave clearly more walls unexplained than the best. An aliased
-   corridor or a repetitive warehouse gives two placements that fit alike, and then neither is merged.
+   place), the wall *evidence* (met walls for, missed walls against) and the *constraint* (how many
+   met walls pin the least constrained direction: a bare corridor pins nothing along it). The key
+   of a candidate is fit x support (below ``support_walls`` overlapping walls it is discounted) x
+   an agreement factor (agreement 0.8 -> 0, 0.95 -> 1).
+5. **Judging** (:mod:`mapd.fusion.judge`): confidence = quality (fit 0.65 -> 0, 0.9 -> 1) x support
+   x constrained x distinct. Constrained also counts the walls a slide of 3 cells along the weakest
+   direction loses. Distinct is judged against every *rival* (a candidate more than ``rival_cells``
+   or ``rival_deg`` away): one that fits as well vetoes, one that fits worse must fit clearly worse
+   or have clearly less wall evidence (``evidence_margin``). Each candidate is judged so, and the
+   most trusted one is the answer. An aliased corridor or a repetitive warehouse gives two
+   placements that fit alike, and then neither is merged.
 
 An estimate is accepted only when confidence >= ``min_confidence`` and agreement >= ``min_agreement``;
 otherwise ``reason`` says which test failed and why.
@@ -44,7 +49,7 @@ import numpy as np
 from mapd.fusion import candidates as cand
 from mapd.fusion import refine
 from mapd.fusion.candidates import Hyp
-from mapd.fusion.refine import Score
+from mapd.fusion.judge import Result, Verdict, agree_factor, confidence_factors, effective_fit, judge, weakest
 from mapd.fusion.transforms import from_matrix, to_matrix
 from mapd.fusion.views import MAX_SIDE, view
 from mapd.grid import OccupancyGrid, Pose2D
@@ -80,6 +85,14 @@ class EstimateOptions:
     coarse_floor: float = 150.0
     #: distinct correlation peaks proposed per ranking (signature headings; every heading)
     search_peaks: tuple[int, int] = (30, 30)
+    #: a rival that fits worse is beaten when its wall evidence is short of the best's by more than
+    #: twice max(first, second x the best's evidence) (see :func:`mapd.fusion.judge.distinct_by_evidence`)
+    evidence_margin: tuple[float, float] = (30.0, 0.1)
+    #: slide the best along its weakest direction to measure how well it is pinned down
+    slide_test: bool = True
+    #: peaks kept per ranking from each signature heading (and its +-3 degree neighbours), over the
+    #: global best: in repetitive layouts other headings can crowd the true one out
+    heading_peaks: int = 2
 
 
 @dataclass(frozen=True)
@@ -128,85 +141,6 @@ class Estimate:
 def rejected(reason: str, **kw: Any) -> Estimate:
     """A "not accepted" estimate with its reason."""
     return Estimate(accepted=False, reason=reason, **kw)
-
-
-@dataclass
-class _Result:
-    hyp: Hyp
-    score: Score
-    key: float
-
-
-def _agree(sc: Score) -> float:
-    """Agreement factor: 0.8 -> 0, 0.95 -> 1."""
-    return float(np.clip((sc.agreement - 0.8) / 0.15, 0.0, 1.0))
-
-
-def effective_fit(sc: Score, opt: EstimateOptions) -> float:
-    """Key of a candidate: the wall fit x a small-overlap discount (below ``support_walls`` walls)
-    x an agreement factor (0.8 -> 0, 0.95 -> 1): a placement that puts free space on the other
-    map's walls is no placement, however good its wall fit."""
-    return sc.fit * min(1.0, sc.walls / opt.support_walls) * _agree(sc)
-
-
-def _rank(r: _Result, opt: EstimateOptions) -> float:
-    """Order of candidates: effective fit, near-ties broken towards the larger overlap (log)."""
-    return r.key * (1.0 + 0.02 * math.log(max(r.score.walls, opt.support_walls) / opt.support_walls))
-
-
-def confidence(sc: Score, key: float, rival: float, opt: EstimateOptions) -> float:
-    """The product of four factors in [0, 1]; see :func:`confidence_factors`.
-
-    ``key`` is the best's fit x agreement factor, ``rival`` the same of its strongest rival.
-    """
-    return float(np.prod(list(confidence_factors(sc, key, rival, opt).values())))
-
-
-def confidence_factors(sc: Score, key: float, rival: float, opt: EstimateOptions) -> dict[str, float]:
-    """quality: the wall fit (0.65 -> 0, 0.9 -> 1); support: enough overlapping walls;
-    constrained: enough walls pin the least constrained direction (a bare corridor lets a match
-    slide along it); distinct: the best has clearly more evidence than its strongest rival."""
-    return {
-        "quality": float(np.clip((sc.fit - 0.65) / 0.25, 0.0, 1.0)),
-        "support": min(1.0, sc.walls / opt.support_walls),
-        "constrained": float(np.clip(sc.constraint / opt.constraint_walls, 0.0, 1.0)),
-        # the rival must leave clearly more walls unexplained than the best does
-        "distinct": float(np.clip((key - rival) / (0.05 + max(0.0, 1.0 - key)), 0.0, 1.0)),
-    }
-
-
-def _weakest(sc: Score, key: float, rival: float, opt: EstimateOptions) -> str:
-    """Why a confidence is low, in words: its weakest factor."""
-    if sc.agreement < 0.85:
-        return f"overlap agreement {sc.agreement:.2f}: free space of one map lies on walls of the other"
-    factors = confidence_factors(sc, key, rival, opt)
-    weakest = min(factors, key=lambda k: factors[k])
-    return {
-        "quality": f"only {sc.fit:.0%} of overlapping walls meet",
-        "support": f"only {sc.walls} wall cells overlap",
-        "constrained": "the overlap does not pin the match down: it could slide, as along a bare corridor",
-        "distinct": "another placement fits almost as well",
-    }[weakest]
-
-
-def _decide(results: list[_Result], at: np.ndarray, opt: EstimateOptions) -> tuple[_Result, float, float]:
-    """The best candidate, its confidence, and the strength of its strongest rival."""
-    ranked = sorted(results, key=lambda r: -_rank(r, opt))
-    best = ranked[0]
-    rival = 0.0
-    well_pinned = best.score.constraint >= 3.0 * opt.constraint_walls
-    for r in ranked[1:]:
-        if cand.same(best.hyp, r.hyp, at, opt.rival_cells, opt.rival_deg):
-            continue  # the same placement, less well refined: not a rival
-        sc = r.score
-        # A rival is judged by its fit (not discounted for its size: a small patch that fits as
-        # well as the best is an alternative), unless it explains less than a quarter of the
-        # walls the best explains (a patch that happens to fit, against a large true overlap),
-        # or it could slide while the best is well pinned down.
-        few = min(1.0, sc.matched / (0.25 * best.score.matched)) if best.score.matched else 1.0
-        pinned = float(np.clip(sc.constraint / opt.constraint_walls, 0.0, 1.0)) if well_pinned else 1.0
-        rival = max(rival, sc.fit * _agree(sc) * few * pinned)
-    return best, confidence(best.score, best.score.fit * _agree(best.score), rival, opt), rival
 
 
 def _check_input(a: OccupancyGrid, b: OccupancyGrid, opt: EstimateOptions) -> str:
@@ -263,7 +197,13 @@ def estimate_transform(
             )
     rng = np.random.default_rng(seed)
     at = vb.centre()
-    results: list[_Result] = []
+    results: list[Result] = []
+
+    def pinning(r: Result) -> float:
+        return refine.slide_pinning(va, vb, r.hyp, r.score)
+
+    def decide() -> Verdict:
+        return judge(results, at, opt, pinning if opt.slide_test else None, min_conf)
 
     def consider(hyps: list[Hyp], gate0: float) -> None:
         # cheap alignment and ranking of all, full refinement and check of the best few
@@ -286,15 +226,15 @@ def estimate_transform(
             if any(cand.same(final, r.hyp, at, 1.0, 0.5) for r in results):
                 continue
             sc = refine.verify(va, vb, final)
-            results.append(_Result(final, sc, effective_fit(sc, opt)))
+            results.append(Result(final, sc, effective_fit(sc, opt)))
             if len(done) >= opt.refine_top + len(by_fit):
                 break
 
     def good_enough() -> bool:
         if not results:
             return False
-        best, conf, _ = _decide(results, at, opt)
-        return conf >= min_conf and best.score.agreement >= min_agr
+        v = decide()
+        return bool(v.confidence >= min_conf and v.best.score.agreement >= min_agr)
 
     prior_fit: float | None = None
     f = cand.coarse_factor(va, vb, opt.coarse_cells, opt.max_coarse_m)
@@ -310,12 +250,12 @@ def estimate_transform(
         corr = cand.Correlator(va.coarse(f), vb.coarse(f), opt.coarse_floor / f)
         at_coarse = (at - (f - 1) / 2.0) / f
         gate = 1.5 * f + 2.0
-        headings = [
-            h + math.radians(d) for h in cand.signature_angles(va, vb) for d in (-3.0, -1.5, 0.0, 1.5, 3.0)
-        ]
-        consider(
-            [cand.to_fine(h, f) for h in corr.search(headings, opt.search_peaks[0], at_coarse, k=6)], gate
+        offsets = (-3.0, -1.5, 0.0, 1.5, 3.0)
+        headings = [h + math.radians(d) for h in cand.signature_angles(va, vb) for d in offsets]
+        peaks = corr.search(
+            headings, opt.search_peaks[0], at_coarse, k=6, group=len(offsets), per_group=opt.heading_peaks
         )
+        consider([cand.to_fine(h, f) for h in peaks], gate)
         if opt.exhaustive and not good_enough():
             headings = [math.radians(float(d)) for d in np.arange(-180.0, 180.0, 2.0)]
             consider(
@@ -323,7 +263,8 @@ def estimate_transform(
             )
     if not results:
         return rejected("no candidate placement: the maps share no recognisable structure")
-    best, conf, rival = _decide(results, at, opt)
+    verdict = decide()
+    best, conf, rival = verdict.best, verdict.confidence, verdict.rival
     sc = best.score
     t = from_matrix(va.g @ best.hyp.matrix() @ np.linalg.inv(vb.g))
     details = {
@@ -334,6 +275,8 @@ def estimate_transform(
         "rival": rival,
         "candidates": len(results),
         "coarse": f,
+        "factors": verdict.factors,
+        "slide": best.slide,
     }
     if sc.overlap == 0:
         return rejected(
@@ -341,9 +284,7 @@ def estimate_transform(
         )
     reason = ""
     if conf < min_conf:
-        reason = (
-            f"confidence {conf:.2f} below {min_conf:.2f} ({_weakest(sc, sc.fit * _agree(sc), rival, opt)})"
-        )
+        reason = f"confidence {conf:.2f} below {min_conf:.2f} ({weakest(sc, verdict.factors)})"
     elif sc.agreement < min_agr:
         reason = f"overlap agreement {sc.agreement:.2f} below {min_agr:.2f}"
     return Estimate(
@@ -377,7 +318,7 @@ def check_transform(
     va, vb = view(a, res), view(b, res)
     h = Hyp.from_matrix(np.linalg.inv(va.g) @ to_matrix(t) @ vb.g, source="given")
     sc = refine.verify(va, vb, h)
-    conf = confidence(sc, sc.fit * _agree(sc), 0.0, opt)
+    conf = math.prod(confidence_factors(sc, sc.fit * agree_factor(sc), 0.0, opt).values())
     return Estimate(
         x=t.x,
         y=t.y,

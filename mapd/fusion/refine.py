@@ -182,6 +182,8 @@ class Score:
     hits_b: int = 0
     #: walls' worth of constraint in the least constrained direction (0 for a bare corridor)
     constraint: float = 0.0
+    #: direction (radians, in a's pixel index) along which the met walls pin the least
+    weak_dir: float = 0.0
 
     @property
     def fit(self) -> float:
@@ -244,4 +246,31 @@ def verify(a: MapView, b: MapView, h: Hyp) -> Score:
     hits_a = int(met.sum())
     # smallest eigenvalue of sum(n n^T) over the met walls: how many walls pin the weakest direction
     constraint = 0.5 * (hits_a - math.hypot(sc, ss))
-    return Score(agree / n_both, n_both, int(a_on_b.sum()), int(b_on_a.sum()), hits_a, hits_b, constraint)
+    # the dominant normal is at half the angle of (sc, ss); the weak direction is across it
+    weak = 0.5 * math.atan2(ss, sc) + 0.5 * math.pi
+    return Score(
+        agree / n_both, n_both, int(a_on_b.sum()), int(b_on_a.sum()), hits_a, hits_b, constraint, weak
+    )
+
+
+def slide_pinning(a: MapView, b: MapView, h: Hyp, sc: Score, step: float = 3.0) -> float:
+    """Walls' worth that pin ``h`` along its weakest direction, measured rather than inferred.
+
+    b is slid ``step`` cells both ways along ``sc.weak_dir``; the met walls lost (the drop in wall
+    fit times the overlapping walls, averaged over both maps) is the smaller of the two. The normal
+    based ``constraint`` undercounts short wall ends (warehouse shelving: thousands of long faces
+    and a few dozen end cells, whose smoothed normals read as the long side's); sliding loses them
+    all the same. A bare corridor loses nothing. Using the fit, not the hit count, keeps walls that
+    merely leave the overlap at its edge from counting as pinning.
+    """
+    if sc.walls_a == 0 or sc.walls_b == 0:
+        return 0.0
+    lost = math.inf
+    n = 0.5 * (sc.walls_a + sc.walls_b)
+    for sign in (1.0, -1.0):
+        d = np.eye(3)
+        d[0, 2] = sign * step * math.cos(sc.weak_dir)
+        d[1, 2] = sign * step * math.sin(sc.weak_dir)
+        moved = verify(a, b, Hyp.from_matrix(d @ h.matrix(), h.score, h.source))
+        lost = min(lost, (sc.fit - moved.fit) * n)
+    return max(0.0, float(lost))

@@ -1,0 +1,98 @@
+"""Judging candidates: rivals that fit better veto, wide evidence beats a sliver, slides are measured."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapd.fusion import refine
+from mapd.fusion.candidates import Hyp
+from mapd.fusion.estimate import EstimateOptions
+from mapd.fusion.judge import Result, distinct_by_evidence, effective_fit, judge
+from mapd.fusion.refine import Score
+from mapd.fusion.views import MapView
+from mapd.grid import OccupancyGrid
+
+OPT = EstimateOptions()
+AT = np.array([100.0, 100.0])
+
+
+def _result(tx: float, *, walls: int, fit: float, constraint: float, agreement: float = 0.99) -> Result:
+    hits = round(walls * fit)
+    sc = Score(agreement, 40 * walls, walls, walls, hits, hits, constraint)
+    return Result(Hyp(0.0, tx, 0.0), sc, effective_fit(sc, OPT))
+
+
+def test_a_wide_pinned_overlap_beats_a_sliver_that_fits_a_little_better_but_slides() -> None:
+    wide = _result(0.0, walls=800, fit=0.93, constraint=150.0)
+    sliver = _result(300.0, walls=170, fit=0.985, constraint=0.4)
+    # ranked by fit alone the sliver is first; judged against each other the wide overlap wins
+    assert sliver.key > wide.key
+    v = judge([sliver, wide], AT, OPT)
+    assert v.best is wide and v.confidence >= OPT.min_confidence
+    assert v.factors["distinct"] == 1.0
+
+
+def test_a_rival_that_fits_better_vetoes_however_much_less_evidence_it_has() -> None:
+    # a symmetric building: a wide placement and a smaller one that fits better. Evidence alone
+    # would pick the wide one; the smaller one is as good an explanation, so neither is trusted.
+    wide = _result(0.0, walls=200, fit=0.98, constraint=50.0, agreement=0.955)
+    small = _result(60.0, walls=90, fit=0.995, constraint=16.0, agreement=0.967)
+    v = judge([wide, small], AT, OPT)
+    assert v.confidence < OPT.min_confidence
+
+
+def test_a_rival_with_clearly_less_evidence_is_beaten_even_when_it_fits_nearly_as_well() -> None:
+    best = _result(0.0, walls=420, fit=0.91, constraint=60.0, agreement=0.97)
+    rival = _result(200.0, walls=265, fit=0.875, constraint=30.0, agreement=0.97)
+    v = judge([best, rival], AT, OPT)
+    assert v.best is best and v.confidence >= OPT.min_confidence
+    # without the evidence test, fitting 3.5 points worse is not distinct enough
+    assert v.factors["distinct"] > (best.key - rival.key) / (0.05 + 1.0 - best.key)
+
+
+def test_evidence_margin_scales_with_the_evidence() -> None:
+    assert distinct_by_evidence(1000.0, 920.0, OPT) == 0.0  # 8% short: within the margin
+    assert 0.0 < distinct_by_evidence(1000.0, 850.0, OPT) < 1.0
+    assert distinct_by_evidence(1000.0, 700.0, OPT) == 1.0
+    assert distinct_by_evidence(50.0, 0.0, OPT) < 1.0  # small evidence: the absolute floor rules
+    assert distinct_by_evidence(-5.0, -50.0, OPT) == 0.0
+
+
+def _view(data: np.ndarray) -> MapView:
+    return MapView(OccupancyGrid(data=data, resolution=0.05), 0.05)
+
+
+def _corridor(closed: bool) -> np.ndarray:
+    d = np.full((60, 200), -1, np.int8)
+    d[20:40, 10:190] = 0
+    d[20, 10:190] = d[39, 10:190] = 100
+    if closed:
+        d[20:40, 10] = d[20:40, 189] = 100
+    return d
+
+
+def test_slide_test_tells_a_bare_corridor_from_one_with_ends() -> None:
+    for closed, pinned in ((False, False), (True, True)):
+        v = _view(_corridor(closed))
+        h = Hyp(0.0, 0.0, 0.0)
+        sc = refine.verify(v, v, h)
+        # the weak direction of a corridor along x is x (up to sign)
+        assert abs(math.cos(sc.weak_dir)) > 0.99
+        walls = refine.slide_pinning(v, v, h, sc)
+        assert (walls >= OPT.constraint_walls) == pinned, (closed, walls)
+
+
+def test_the_slide_test_is_only_run_when_it_could_decide() -> None:
+    calls: list[Result] = []
+
+    def pinning(r: Result) -> float:
+        calls.append(r)
+        return 100.0
+
+    slides = _result(0.0, walls=400, fit=0.96, constraint=1.0)
+    poor = _result(300.0, walls=400, fit=0.7, constraint=1.0)
+    v = judge([slides, poor], AT, OPT, pinning)
+    assert calls == [slides]  # the poor fit could not reach the threshold however well pinned
+    assert v.best is slides and v.factors["constrained"] == 1.0 and slides.slide == 100.0
