@@ -73,6 +73,7 @@ class Daemon:
         self.store = StateStore(cfg.state.dir, max_cells=cfg.limits.max_cells)
         self.started = time.time()
         self._stop = asyncio.Event()
+        self._stopping_at: float | None = None
         self._publish = asyncio.Event()
         self._pending: OccupancyGrid | None = None
         self._events = EventInbox(EVENT_QUEUE, max_peers=EVENT_QUEUE)
@@ -170,6 +171,7 @@ class Daemon:
                 tg.create_task(self._watchdog(), name="watchdog"),
             ]
             await self._stop.wait()
+            self._stopping_at = time.monotonic()
             notify("STOPPING=1")
             log.info("stopping")
             for task in tasks:
@@ -185,12 +187,28 @@ class Daemon:
                     await self.source.close()
             await self.control.close()
 
+        t_tasks = time.monotonic()
         try:
             await asyncio.wait_for(close_all(), self.shutdown_timeout)
         except TimeoutError:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
+        t_closed = time.monotonic()
         with contextlib.suppress(MapdError, OSError):
             await asyncio.to_thread(self.store.flush)
+        if self._stopping_at is not None:
+            # How long a stop takes, and where: systemd's TimeoutStopSec must cover it.
+            done = time.monotonic()
+            log.info(
+                "stopped",
+                extra={
+                    "fields": {
+                        "seconds": round(done - self._stopping_at, 2),
+                        "tasks_s": round(t_tasks - self._stopping_at, 2),
+                        "transports_s": round(t_closed - t_tasks, 2),
+                        "flush_s": round(done - t_closed, 2),
+                    }
+                },
+            )
 
     def _restore(self) -> None:
         """Resume from the state directory: own version, bases, and every peer's last map."""

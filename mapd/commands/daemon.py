@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import sys
@@ -84,7 +85,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cfg = config.load(args.config)
     setup_logging(cfg.log.level)
-    return run_daemon(cfg)
+    code = run_daemon(cfg)
+    # By now the state directory is written and fsynced, the transports and the control socket are
+    # closed. All the interpreter's finalization would add is tearing down native extensions (numba's
+    # LLVM, zenoh's runtime, OpenCV): 1-3 s on a loaded 2-core robot, measured after the "stopped"
+    # log line, which delays every systemd stop and restart. So flush what is buffered and leave.
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def _socket_path(args: argparse.Namespace) -> Path:
