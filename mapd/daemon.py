@@ -103,7 +103,8 @@ class Daemon:
         self.codec_stats: dict[str, Any] = {"name": cfg.codec.use}
         self.transports: list[Transport] = []
         self._inflight: dict[str, tuple[int, float, set[str]]] = {}  # transport -> (version, since, unacked)
-        self._held: dict[str, Envelope] = {}  # transport -> newest envelope waiting for the link
+        self._offered: dict[str, int] = {}  # transport -> newest own version it was given
+        self._latest: OccupancyGrid | None = None  # newest own version saved, coded or not
         self.source: MapSource | None = None
         codec_opts = self.options["codec"].get(cfg.codec.use)
         self.codec_options = codec_opts if isinstance(codec_opts, CodecOptions) else None
@@ -280,19 +281,37 @@ class Daemon:
         return self._sent.get(acked.pop())
 
     async def _publisher(self) -> None:
+        """Code the newest own version for every transport that is free to take it.
+
+        A version is coded only when some transport can send it now: a busy transport takes the
+        newest version when its current one settles (:meth:`_settled` wakes this loop). So a slow
+        link neither queues stale maps nor makes the robot code versions that would be replaced
+        unsent, and the delta is taken against the base acked *by then*, not the older one acked
+        when the version was made (on the 12.5 kb/s link the first keyframe takes seconds).
+        """
         while True:
             await self._publish.wait()
             self._publish.clear()
             grid, self._pending = self._pending, None
-            if grid is None:
+            if grid is not None:
+                await asyncio.to_thread(self.store.save_own, grid)
+                self._sent[grid.version] = grid
+                for v in sorted(self._sent)[:-KEEP_VERSIONS]:
+                    if self.store.data.base is None or v != self.store.data.base.version:
+                        del self._sent[v]
+                self._latest = grid
+            latest = self._latest
+            if latest is None:
                 continue
-            await asyncio.to_thread(self.store.save_own, grid)
-            self._sent[grid.version] = grid
-            for v in sorted(self._sent)[:-KEEP_VERSIONS]:
-                if self.store.data.base is None or v != self.store.data.base.version:
-                    del self._sent[v]
+            free = [
+                t
+                for t in self.transports
+                if self._offered.get(t.name, 0) < latest.version and not self._busy(t.name)
+            ]
+            if not free:
+                continue  # every transport is busy or has it: they take the newest when they settle
             base = self._choose_base()
-            env = await asyncio.to_thread(self._make_envelope, grid, base)
+            env = await asyncio.to_thread(self._make_envelope, latest, base)
             if env.is_keyframe:
                 self.since_keyframe = 0
                 self.counters["keyframes_sent"] += 1
@@ -301,18 +320,17 @@ class Daemon:
             else:
                 self.since_keyframe += 1
                 self.counters["deltas_sent"] += 1
-            for t in self.transports:
-                self._offer(t, env)
+            for t in free:
+                self._offered[t.name] = env.version
+                self._inflight[t.name] = (env.version, time.monotonic(), set(t.peers()))
+                t.offer(env)
+            if self._pending is not None:
+                self._publish.set()  # a newer version came while coding
 
-    def _offer(self, t: Transport, env: Envelope) -> None:
-        """Offer ``env`` unless an earlier version is still on its way; then hold it (latest wins)."""
-        busy = self._inflight.get(t.name)
-        if busy is not None and busy[2] and time.monotonic() - busy[1] < INFLIGHT_TIMEOUT_S:
-            self._held[t.name] = env
-            return
-        self._held.pop(t.name, None)
-        self._inflight[t.name] = (env.version, time.monotonic(), set(t.peers()))
-        t.offer(env)
+    def _busy(self, transport: str) -> bool:
+        """An earlier version is still on its way on ``transport`` (and not yet given up on)."""
+        busy = self._inflight.get(transport)
+        return busy is not None and bool(busy[2]) and time.monotonic() - busy[1] < INFLIGHT_TIMEOUT_S
 
     def _settled(self, transport: str, peer: str, version: int) -> None:
         busy = self._inflight.get(transport)
@@ -320,10 +338,7 @@ class Daemon:
             return
         busy[2].discard(peer)
         if not busy[2]:
-            held = self._held.pop(transport, None)
-            t = self._transport(transport)
-            if held is not None and t is not None:
-                self._offer(t, held)
+            self._publish.set()  # the link is free: the publisher sends it the newest version
 
     def _make_envelope(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Envelope:
         t0 = time.perf_counter()
@@ -443,6 +458,7 @@ class Daemon:
             self.store.data.acked.pop(ev.peer, None)
             if self.own is not None:
                 self._pending = self._pending or self.own
+                self._offered.clear()  # even a transport that had the newest version gets it whole
                 self._publish.set()
         elif isinstance(ev, PeerUp | PeerDown):
             info = self.peer_info.setdefault(ev.peer, {})
