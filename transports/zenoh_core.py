@@ -43,6 +43,8 @@ NAME = "zenoh"
 _ACK = struct.Struct(">Q")
 ACK_SIG_LEN = 16
 _MAX_VERSION = 1 << 63
+#: Own versions whose offer time is kept for RTT samples.
+RTT_VERSIONS = 16
 
 
 class AckSignatureError(EnvelopeError):
@@ -126,6 +128,10 @@ class ZenohCore:
         self.max_peers = max_peers
         self._robots: dict[str, _Robot] = {}
         self._max_offered = 0
+        # When each recent own version was offered, for the offer-to-ack time (bounded: the oldest
+        # go first; an ack of a forgotten version just gives no sample).
+        self._offered_at: dict[int, float] = {}
+        self._srtt: float | None = None
         self.counters = dict.fromkeys(
             (
                 "bytes_rx",
@@ -161,14 +167,23 @@ class ZenohCore:
         return st.last if st is not None else 0
 
     def stats(self) -> dict[str, Any]:
-        return {**self.counters, "peers": len(self.peers())}
+        rtt = round(1000 * self._srtt, 1) if self._srtt is not None else None
+        return {**self.counters, "peers": len(self.peers()), "rtt_ms": rtt}
 
     # -- inputs ------------------------------------------------------------------------------------
 
-    def offered(self, envelope: Envelope) -> None:
-        """Our daemon offered ``envelope``: acks up to its version are plausible from now on."""
+    def offered(self, envelope: Envelope, now: float | None = None) -> None:
+        """Our daemon offered ``envelope``: acks up to its version are plausible from now on.
+
+        With ``now``, an ack of this version later gives an RTT sample (offer to ack: publish,
+        the peer's verify and decode, and the ack's way back).
+        """
         if envelope.robot == self.robot:
             self._max_offered = max(self._max_offered, envelope.version)
+            if now is not None:
+                self._offered_at[envelope.version] = now
+                while len(self._offered_at) > RTT_VERSIONS:
+                    del self._offered_at[min(self._offered_at)]
 
     def on_update(self, key_expr: str, data: bytes, now: float) -> Step:
         """A sample arrived on an update key."""
@@ -214,8 +229,8 @@ class ZenohCore:
             step.events.append(PeerDown(transport=NAME, peer=robot))
         return step
 
-    def on_ack(self, key_expr: str, data: bytes) -> Step:
-        """A peer's ack of one of our versions arrived."""
+    def on_ack(self, key_expr: str, data: bytes, now: float | None = None) -> Step:
+        """A peer's ack of one of our versions arrived (at ``now``, for the RTT)."""
         peer = keys.parse_ack(self.fleet, self.robot, key_expr)
         if peer is None or peer == self.robot:
             self.counters["dropped"] += 1
@@ -232,6 +247,10 @@ class ZenohCore:
             self.counters["dropped"] += 1  # an ack of a version we never sent: not a usable base
             return Step()
         self.counters["acks_rx"] += 1
+        sent = self._offered_at.get(version)
+        if now is not None and sent is not None and now >= sent:
+            sample = now - sent  # smoothed as TCP does (RFC 6298, alpha 1/8)
+            self._srtt = sample if self._srtt is None else 0.875 * self._srtt + 0.125 * sample
         return Step(events=[Delivered(transport=NAME, peer=peer, robot=self.robot, version=version)])
 
     def on_query(self, asker: str | None) -> Step:

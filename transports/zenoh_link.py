@@ -245,7 +245,7 @@ class ZenohTransport(Transport):
         self._apply(self.core.query_done(robot, time.monotonic()))
 
     def _on_ack(self, key_expr: str, data: bytes) -> None:
-        self._apply(self.core.on_ack(key_expr, data))
+        self._apply(self.core.on_ack(key_expr, data, time.monotonic()))
 
     def _on_presence(self, key_expr: str, alive: bool) -> None:
         self._apply(self.core.on_presence(key_expr, alive, time.monotonic()))
@@ -318,7 +318,7 @@ class ZenohTransport(Transport):
             return
         if envelope.robot == self.ctx.robot and envelope.is_keyframe:
             self._last_keyframe = data
-        self.core.offered(envelope)
+        self.core.offered(envelope, time.monotonic())
         robot = envelope.robot
         key = keys.update_key(self.ctx.fleet, robot)
 

@@ -266,3 +266,21 @@ def test_never_a_delta_on_a_base_not_passed_on(zk, ops) -> None:
                 assert not seen or env.version > seen[-1]
                 assert env.base_version == 0 or env.base_version in seen
                 seen.append(env.version)
+
+
+def test_ack_rtt_is_offer_to_ack_time_smoothed(zk) -> None:
+    c = core(robot="a")
+    assert c.stats()["rtt_ms"] is None
+    k = keys.ack_key("testfleet", "b", "a")
+    c.offered(zk.envelope("a", 1), now=10.0)
+    c.on_ack(k, pack_ack(1, key=None, fleet="testfleet", peer="b", robot="a"), now=10.4)
+    assert c.stats()["rtt_ms"] == 400.0
+    c.offered(zk.envelope("a", 2), now=20.0)
+    c.on_ack(k, pack_ack(2, key=None, fleet="testfleet", peer="b", robot="a"), now=20.8)
+    assert c.stats()["rtt_ms"] == 450.0  # 7/8 of 400 + 1/8 of 800
+    # an ack with no clock, or of a version whose offer time was forgotten, gives no sample
+    for v in range(3, 3 + 20):
+        c.offered(zk.envelope("a", v), now=30.0)
+    c.on_ack(k, pack_ack(3, key=None, fleet="testfleet", peer="b", robot="a"), now=99.0)
+    c.on_ack(k, pack_ack(22, key=None, fleet="testfleet", peer="b", robot="a"))
+    assert c.stats()["rtt_ms"] == 450.0
