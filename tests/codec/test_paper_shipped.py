@@ -89,3 +89,12 @@ def test_small_shared_maps_reproduce_their_recorded_metrics(meta: dict, shared_m
         if checked == 4:
             break
     assert checked == 4
+
+
+def test_cpu_recipe_pins_the_thread_count(meta: dict) -> None:
+    # CPU weights are byte-identical for one seed and one torch thread count (docs/paper.md,
+    # "Shipped weights and reproduction"), so the recorded command must fix the count it ran with.
+    training = meta["training"]
+    if training["device"] == "cpu":
+        assert f"--threads {training['torch_threads']}" in training["command"]
+        assert f"--seed {training['seed']}" in training["command"]
