@@ -206,7 +206,7 @@ def model_card(meta: dict[str, Any]) -> str:
         f"- epochs {tr['epochs']}, {tr['tiles_per_epoch']} tiles per epoch of {tr['tile']} x {tr['tile']}"
         f" cells (plus context), batch {tr['batch']}, {tr['optimizer']}, lr {tr['lr']}, {tr['schedule']},"
         f" seed {tr['seed']}",
-        f"- trained on: {tr['device']} ({tr['device_name']}, {tr['torch_threads']} torch threads),"
+        f"- trained on: {tr['device']} ({tr['device_name']}, torch threads: {tr['torch_threads']}),"
         f" torch {tr['torch']}, Python {tr['python']}; {tr['seconds']:.0f} s wall time",
         "",
         "| epoch | train MSE | validation MSE (tiles) |"

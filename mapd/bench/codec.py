@@ -129,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
             if args.codec:
                 raise
             print(f"note: skipping codec {name}: {exc}", file=sys.stderr)
+    from mapd.codec.api import warm_up
+
+    for name in usable:
+        warm_up(name)  # one-time costs (numba's compile, the model's load) stay out of the timings
     order = [*usable, *BASELINES]
     rows: list[dict[str, Any]] = []
     maps = list(input_maps(args.maps, args.limit))

@@ -37,6 +37,13 @@ def test_card_names_the_weights_sha256(meta: dict) -> None:
     assert meta["training"]["command"] in card
 
 
+def test_card_is_what_mapd_train_writes_from_model_json(meta: dict) -> None:
+    from mapd.train_card import model_card
+
+    # Nobody edited the card by hand: it says exactly what model.json records.
+    assert (MODEL / "MODEL_CARD.md").read_text() == model_card(meta)
+
+
 def test_default_codec_uses_the_shipped_model(meta: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("MAPD_MODELS", raising=False)
     codec = PaperCodec(PaperOptions())
