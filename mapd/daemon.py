@@ -558,7 +558,7 @@ class Daemon:
                 # The version we hold, also for a peer restored from the state directory that has
                 # sent nothing since this start (its counters are then empty, its map is not).
                 info["version"] = held.version
-                info.setdefault("restored", "received_at" not in info)
+                info["restored"] = "age_s" not in info  # nothing received from it since this start
             info["acked_our_version"] = self.store.data.acked.get(robot, 0)
             peers[robot] = info
         return {

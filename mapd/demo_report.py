@@ -192,16 +192,15 @@ def write_report(
         ups = series[n]
         s = snaps.get(n, {})
         duration = (ups[-1]["time"] - ups[0]["time"]) if len(ups) > 1 else float("nan")
-        sent = sum(r["bytes"] for r in ups)
+        coded = sum(r["bytes"] for r in ups)
         raw = sum(r["cells"] for r in ups)
         peers = s.get("peers", {})
         transforms = s.get("fusion", {}).get("robots") or {}
         confs: list[float] = [
             float(t["confidence"]) for t in transforms.values() if isinstance(t, dict) and t.get("confidence")
         ]
-        # What the links carried (every frame, resends and acks included) over the daemon's uptime.
-        # With latest wins it stays under the link rate even when the coded stream needs more: the
-        # newest version replaces one still waiting instead of queueing behind it.
+        # What the links carried (every frame, resends and acks included) over the daemon's uptime;
+        # the pacing keeps it under the link rate, while versions made meanwhile wait uncoded.
         tx_bytes = sum(int(st.get("bytes_tx", 0)) for st in s.get("links", {}).values())
         up = s.get("uptime_s")
         rows.append(
@@ -211,10 +210,10 @@ def write_report(
                 "keyframes": sum(r["kind"] == "keyframe" for r in ups),
                 "deltas": sum(r["kind"] == "delta" for r in ups),
                 "raw_kb": raw / 1000,
-                "sent_kb": sent / 1000,
-                "ratio": raw / sent if sent else float("nan"),
-                "bps": 8 * sent / duration if duration and duration > 0 else float("nan"),
-                "budget": (8 * sent / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
+                "coded_kb": coded / 1000,
+                "ratio": raw / coded if coded else float("nan"),
+                "bps": 8 * coded / duration if duration and duration > 0 else float("nan"),
+                "budget": (8 * coded / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
                 "link_bps": 8 * tx_bytes / up if isinstance(up, int | float) and up > 0 else float("nan"),
                 "peers": " ".join(f"{p}:v{v.get('version', '-')}" for p, v in peers.items()) or "-",
                 "conf": min(confs) if confs else float("nan"),
@@ -226,7 +225,7 @@ def write_report(
         ("keyframes", "keyframes", ""),
         ("deltas", "deltas", ""),
         ("raw_kb", "raw kB", ".1f"),
-        ("sent_kb", "coded kB", ".1f"),
+        ("coded_kb", "coded kB", ".1f"),
         ("ratio", "ratio", ".1f"),
         ("bps", "coded bit/s", ".0f"),
         ("budget", "needs of 12.5 kb/s", ".1%"),

@@ -66,6 +66,7 @@ def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str) -> None:
         assert doc["codec"]["deltas"] + doc["codec"]["keyframes"] >= 3
         # the peer acked our maps, so the link knows its round-trip time
         assert doc["peers"]["robot1"]["acked_our_version"] >= 1
+        assert doc["peers"]["robot1"]["restored"] is False  # a live peer's map came over the link
         assert doc["links"][transport]["rtt_ms"] > 0
         wait_for(lambda s: all(x.get("fusion", {}).get("maps", 0) >= 2 for x in s.values()), 60, f)
         assert snaps
