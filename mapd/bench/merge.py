@@ -39,15 +39,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-real", action="store_true", help="skip the real radish part1/part2 pairs")
     p.add_argument("--merge-size", type=int, default=2000, help="side of the 4 maps in the speed rows")
     p.add_argument("--repeat", type=int, default=3, help="timing repeats for the speed rows (median)")
+    p.add_argument(
+        "--only",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="evaluate only these pairs (numbered as the progress lines print them) and skip the speed rows",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from mapd.data import data_dir, map_label, shared_maps
+    from mapd.data import data_dir, shared_maps
     from mapd.errors import FusionError
-    from mapd.fusion import synth
-    from mapd.grid import load_map
 
     root = data_dir()
     if root is None:
@@ -56,44 +61,29 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.pairs < 0 or args.repeat < 1 or args.merge_size < 16:
         raise FusionError("--pairs must be >= 0, --repeat >= 1 and --merge-size >= 16")
-    paths = shared_maps(root)
-    sources = [p for p in paths if "_part" not in p.stem]
-    rng = np.random.default_rng(args.seed)
-    cache: dict[Path, Any] = {}
+    pairs = build_pairs(root, args.pairs, args.seed, real=not args.no_real)
+    chosen = set(args.only or range(1, len(pairs) + 1))
+    if not chosen <= set(range(1, len(pairs) + 1)):
+        raise FusionError(f"--only takes pair numbers from 1 to {len(pairs)}")
     records: list[dict[str, Any]] = []
-    pairs: list[tuple[str, Any]] = []
-    for k in range(args.pairs):
-        target = 0.15 + 0.65 * (k + float(rng.uniform())) / max(args.pairs, 1)
-        for _ in range(20):
-            path = sources[int(rng.integers(len(sources)))]
-            if path not in cache:
-                cache[path] = load_map(path)
-            pair = synth.make_pair(cache[path], target, rng, label=map_label(path))
-            if pair is not None:
-                pairs.append(("synthetic", pair))
-                break
-    if not args.no_real:
-        for p1 in (p for p in paths if p.stem.endswith("_part1")):
-            p2 = (
-                p1.parent.parent
-                / p1.parent.name.replace("_part1", "_part2")
-                / (p1.stem.replace("_part1", "_part2") + ".yaml")
-            )
-            if p2.exists():
-                pairs.append(
-                    ("real", synth.hide_pose(load_map(p1), load_map(p2), rng, label=p1.parent.name[:-6]))
-                )
     for i, (kind, pair) in enumerate(pairs):
-        records.append(_evaluate(kind, pair))
+        if i + 1 not in chosen:
+            continue
+        records.append({"pair": i + 1, **_evaluate(kind, pair)})
         if not args.json:
             r = records[-1]
+            m = r["mapd"]
+            why = "" if m["success"] else f"  ({_miss(m)})"
             print(
                 f"  [{i + 1}/{len(pairs)}] {r['label']:<32} overlap {r['overlap']:.2f}  mapd "
-                f"{'ok ' if r['mapd']['success'] else '-- '}  m-explore {'ok' if r['baseline']['success'] else '--'}",
+                f"{'ok ' if m['success'] else '-- '}  m-explore {'ok' if r['baseline']['success'] else '--'}{why}",
                 file=sys.stderr,
                 flush=True,
             )
-    speed = _speed(sources, args.merge_size, args.repeat, rng)
+    # the speed maps have their own random stream, so --only and --no-real leave them unchanged
+    rng = np.random.default_rng(args.seed + 1_000_003)
+    sources = [p for p in shared_maps(root) if "_part" not in p.stem]
+    speed = None if args.only else _speed(sources, args.merge_size, args.repeat, rng)
     rows = _rows(records)
     doc = {
         "bench": "merge",
@@ -109,6 +99,45 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_table(doc)
     return 0
+
+
+def build_pairs(root: Path, n: int, seed: int, *, real: bool = True) -> list[tuple[str, Any]]:
+    """The bench's pairs: ``n`` synthetic ones from the shared maps (overlap targets spread evenly
+    over 15-80 %), then the real radish part1/part2 pairs with their poses hidden. The same
+    ``seed`` gives the same pairs, so a miss can be re-run alone (``--only``)."""
+    import numpy as np
+
+    from mapd.data import map_label, shared_maps
+    from mapd.fusion import synth
+    from mapd.grid import load_map
+
+    paths = shared_maps(root)
+    sources = [p for p in paths if "_part" not in p.stem]
+    rng = np.random.default_rng(seed)
+    cache: dict[Path, Any] = {}
+    pairs: list[tuple[str, Any]] = []
+    for k in range(n):
+        target = 0.15 + 0.65 * (k + float(rng.uniform())) / max(n, 1)
+        for _ in range(20):
+            path = sources[int(rng.integers(len(sources)))]
+            if path not in cache:
+                cache[path] = load_map(path)
+            pair = synth.make_pair(cache[path], target, rng, label=map_label(path))
+            if pair is not None:
+                pairs.append(("synthetic", pair))
+                break
+    if real:
+        for p1 in (p for p in paths if p.stem.endswith("_part1")):
+            p2 = (
+                p1.parent.parent
+                / p1.parent.name.replace("_part1", "_part2")
+                / (p1.stem.replace("_part1", "_part2") + ".yaml")
+            )
+            if p2.exists():
+                pairs.append(
+                    ("real", synth.hide_pose(load_map(p1), load_map(p2), rng, label=p1.parent.name[:-6]))
+                )
+    return pairs
 
 
 def _evaluate(kind: str, pair: Any) -> dict[str, Any]:
@@ -232,6 +261,15 @@ def _speed(sources: list[Path], size: int, repeat: int, rng: Any) -> dict[str, A
     return out
 
 
+def _miss(m: dict[str, Any]) -> str:
+    """Why an estimate is not a success, in a few words."""
+    if not m["accepted"]:
+        return f"declined: {m['reason']}"
+    return (
+        f"accepted {m['err_cells']:.1f} cells / {m['err_deg']:.2f} deg off, confidence {m['confidence']:.2f}"
+    )
+
+
 def _fmt(v: Any, spec: str, none: str = "-") -> str:
     return none if v is None else format(v, spec)
 
@@ -253,6 +291,8 @@ def _print_table(doc: dict[str, Any]) -> None:
         if ours is not None and base is not None:
             print(f"{g}: mapd {ours:.0%} vs m-explore {base:.0%} ({100 * (ours - base):+.0f} points)")
     s = doc["speed"]
+    if s is None:
+        return
     print(
         f"merge {s['maps']} maps of {s['size']}x{s['size']} cells (baseline: numpy copy of the 4 maps, {1000 * s['numpy_copy_s']:.1f} ms):"
     )
