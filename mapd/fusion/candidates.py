@@ -21,7 +21,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from mapd.fusion.transforms import to_matrix, wrap_angle
-from mapd.fusion.views import UNK_C, Coarse, MapView, score_fields
+from mapd.fusion.views import OCC_C, UNK_C, Coarse, MapView, evidence_field, score_fields
 from mapd.grid import Pose2D
 
 
@@ -150,10 +150,16 @@ def signature_angles(a: MapView, b: MapView, n: int = 4) -> list[float]:
 class Correlator:
     """FFT correlation of b's coarse walls, turned by a heading, against a's coarse fields.
 
-    Two rankings of the shifts: the raw score (wall evidence summed over the overlap), which favours
-    large overlaps, and the score per overlapping wall (with at least ``floor`` walls), which does
-    not let a large overlap of a repetitive layout outrank the true, smaller one but favours small
-    chance fits. Peaks of both are proposed.
+    Three rankings of the shifts, and peaks of each are proposed:
+
+    * **raw**: a wall likelihood summed over the overlap, which favours large overlaps;
+    * **per wall**: the same per overlapping wall (with at least ``floor`` walls), which does not
+      let a large overlap of a repetitive layout outrank the true, smaller one but favours small
+      chance fits;
+    * **evidence**: met walls for, walls landing on known space away from any wall strongly
+      against (:func:`mapd.fusion.views.evidence_field`), the tally the full check makes. The
+      smooth likelihood forgives a wall that lands a cell beside another, so along a corridor
+      with doors, sliding by a door's pitch scores as well as the truth; the evidence does not.
     """
 
     def __init__(self, a: Coarse, b: Coarse, floor: float) -> None:
@@ -166,9 +172,10 @@ class Correlator:
         self.fa_target = sfft.rfft2(a.target, s=self.shape)
         self.fa_walls = sfft.rfft2(a.walls, s=self.shape)
         self.fa_known = sfft.rfft2((a.cls != UNK_C).astype(np.float32), s=self.shape)
+        self.fa_evidence = sfft.rfft2(a.evidence, s=self.shape)
 
-    def peaks(self, yaw: float, k: int = 3) -> tuple[list[Hyp], list[Hyp]]:
-        """The ``k`` best shifts for b turned by ``yaw`` by raw score and by score per wall."""
+    def peaks(self, yaw: float, k: int = 3) -> tuple[list[Hyp], list[Hyp], list[Hyp]]:
+        """The ``k`` best shifts for b turned by ``yaw`` by each ranking (raw, per wall, evidence)."""
         b, d = self.b, self.diag
         hb, wb = b.cls.shape
         c, s = math.cos(yaw), math.sin(yaw)
@@ -178,9 +185,14 @@ class Correlator:
         cls_r = cv2.warpAffine(
             b.cls, fwd, (d, d), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=UNK_C
         )
-        walls_r, target_r = score_fields(cls_r)
-        # S(t) = sum_q walls_b(q) target_a(q + t) + target_b(q) walls_a(q + t)
+        walls_r = (cls_r == OCC_C).astype(np.float32)
         fb_walls = np.conj(sfft.rfft2(walls_r, s=self.shape))
+        # E(t) = sum_q walls_b(q) evidence_a(q + t) + evidence_b(q) walls_a(q + t)
+        spec = fb_walls * self.fa_evidence
+        spec += np.conj(sfft.rfft2(evidence_field(cls_r), s=self.shape)) * self.fa_walls
+        ev = self._best(sfft.irfft2(spec, s=self.shape), yaw, shift, k)
+        _, target_r = score_fields(cls_r)
+        # S(t) = sum_q walls_b(q) target_a(q + t) + target_b(q) walls_a(q + t)
         spec = fb_walls * self.fa_target
         spec += np.conj(sfft.rfft2(target_r, s=self.shape)) * self.fa_walls
         raw = sfft.irfft2(spec, s=self.shape)
@@ -188,7 +200,7 @@ class Correlator:
         area = fb_walls * self.fa_known
         area += np.conj(sfft.rfft2((cls_r != UNK_C).astype(np.float32), s=self.shape)) * self.fa_walls
         per_wall = raw / np.maximum(sfft.irfft2(area, s=self.shape), self.floor)
-        return self._best(raw, yaw, shift, k), self._best(per_wall, yaw, shift, k)
+        return self._best(raw, yaw, shift, k), self._best(per_wall, yaw, shift, k), ev
 
     def _best(self, corr: np.ndarray, yaw: float, shift: np.ndarray, k: int) -> list[Hyp]:
         rows, cols = self.shape
@@ -209,31 +221,29 @@ class Correlator:
     def search(
         self, angles: list[float], n: int, at: np.ndarray, k: int = 3, *, group: int = 1, per_group: int = 0
     ) -> list[Hyp]:
-        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to 2 n in all),
+        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to 3 n in all),
         plus the ``per_group`` best of each ranking within each run of ``group`` consecutive angles.
 
         The per-group share matters in repetitive layouts: a warehouse turned by 90 or 180 degrees
         fits small patches of itself better, per wall, than the true heading fits its large overlap,
         so a global top ``n`` can hold no peak of the true heading at all.
         """
-        raw: list[Hyp] = []
-        per_wall: list[Hyp] = []
-        groups: list[tuple[list[Hyp], list[Hyp]]] = []
+        rankings: list[list[Hyp]] = [[], [], []]
+        groups: list[list[list[Hyp]]] = []
         for j, ang in enumerate(angles):
-            r, p = self.peaks(ang, k)
-            raw += r
-            per_wall += p
             if j % max(group, 1) == 0:
-                groups.append(([], []))
-            groups[-1][0].extend(r)
-            groups[-1][1].extend(p)
-        raw.sort(key=lambda h: -h.score)
-        per_wall.sort(key=lambda h: -h.score)
-        out = distinct(raw, n, at)
-        extra = distinct(per_wall, n, at)
+                groups.append([[], [], []])
+            for r, found in enumerate(self.peaks(ang, k)):
+                rankings[r] += found
+                groups[-1][r] += found
+        out: list[Hyp] = []
+        extra: list[Hyp] = []
+        for r, ranked in enumerate(rankings):
+            best = distinct(sorted(ranked, key=lambda h: -h.score), n, at)
+            (out if r == 0 else extra).extend(best)
         if per_group > 0:
-            for g_raw, g_wall in groups:
-                for ranked in (g_raw, g_wall):
+            for g in groups:
+                for ranked in g:
                     extra += distinct(sorted(ranked, key=lambda h: -h.score), per_group, at)
         for h in extra:
             if all(not same(h, o, at, 3.0, 3.0) for o in out):

@@ -11,21 +11,24 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
    Matching uses *wall faces*: occupied cells that are not lone speckle nor inside a thick wall.
 2. **Candidates** (:mod:`mapd.fusion.candidates`): SIFT features with a 2-point rigid RANSAC, plus
    a search that needs no features: a wall-orientation signature proposes headings and an FFT
-   correlation proposes translations, ranked two ways (total evidence, and evidence per overlapping
-   wall) so that neither large repetitive overlaps nor small chance fits crowd out the truth, and
+   correlation proposes translations, ranked three ways (total likelihood, likelihood per
+   overlapping wall, and wall evidence with misses counted hard) so that neither large repetitive
+   overlaps, nor small chance fits, nor placements slid along a corridor crowd out the truth, and
    every signature heading keeps its own best few peaks (in a warehouse, patches turned by 90 or
    180 degrees fit better per wall than the true heading, and would fill a global top list). When
    that finds nothing acceptable, every heading is tried in 2 degree steps. A previous answer
    (``prior``) is one more candidate.
-3. **Refinement** (:mod:`mapd.fusion.refine`): every candidate is aligned cheaply and ranked; the best
-   few get ICP and a Gauss-Newton polish on the distance field.
+3. **Refinement** (:mod:`mapd.fusion.refine`): every candidate is aligned cheaply and ranked (wall
+   evidence and fit, times the agreement of a sample of known cells near walls); the best few get
+   ICP and a Gauss-Newton polish on the distance field.
 4. **Verification** of each refined candidate on the whole overlap: the *agreement* (the acceptance
    index: cells known in both maps whose class agrees, over cells known in both), the *wall fit*
    (walls of each map within 1.5 cells of a wall of the other, where the other map knows the
    place), the wall *evidence* (met walls for, missed walls against) and the *constraint* (how many
    met walls pin the least constrained direction: a bare corridor pins nothing along it). The key
    of a candidate is fit x support (below ``support_walls`` overlapping walls it is discounted) x
-   an agreement factor (agreement 0.8 -> 0, 0.95 -> 1).
+   an agreement factor (agreement 0.8 -> 0, 0.95 -> 1; an overlap that is nearly all wall, thick
+   wall on thick wall, counts nothing: :func:`mapd.fusion.judge.agree_factor`).
 5. **Judging** (:mod:`mapd.fusion.judge`): confidence = quality (fit 0.65 -> 0, 0.9 -> 1) x support
    x constrained x distinct. Constrained also counts the walls a slide of 3 cells along the weakest
    direction loses. Distinct is judged against every *rival* (a candidate more than ``rival_cells``

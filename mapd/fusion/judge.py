@@ -58,8 +58,18 @@ class Verdict:
 
 
 def agree_factor(sc: Score) -> float:
-    """Agreement factor: 0.8 -> 0, 0.95 -> 1."""
-    return float(np.clip((sc.agreement - 0.8) / 0.15, 0.0, 1.0))
+    """Agreement factor: 0.8 -> 0, 0.95 -> 1, times an open-overlap factor: the cells known in
+    both maps over the overlapping walls of both, 0.75 -> 0, 1.5 -> 1.
+
+    Two robots that mapped the same place both saw the free space in front of its walls, so a true
+    overlap holds several known cells per wall (at least 1.75 over the 472 true placements of
+    ``mapd bench merge`` seeds 1-3, mostly over 4). A patch of thick wall laid on thick wall is all
+    wall: every wall meets one, and nothing else overlaps to contradict it.
+    """
+    agree = (sc.agreement - 0.8) / 0.15
+    walls = sc.walls_a + sc.walls_b
+    open_ = (sc.overlap / walls - 0.75) / 0.75 if walls else 1.0
+    return float(np.clip(agree, 0.0, 1.0) * np.clip(open_, 0.0, 1.0))
 
 
 def effective_fit(sc: Score, opt: EstimateOptions) -> float:

@@ -9,7 +9,7 @@ import numpy as np
 from mapd.fusion import refine
 from mapd.fusion.candidates import Hyp
 from mapd.fusion.estimate import EstimateOptions
-from mapd.fusion.judge import Result, distinct_by_evidence, effective_fit, judge
+from mapd.fusion.judge import Result, agree_factor, distinct_by_evidence, effective_fit, judge
 from mapd.fusion.refine import Score
 from mapd.fusion.views import MapView
 from mapd.grid import OccupancyGrid
@@ -96,3 +96,24 @@ def test_the_slide_test_is_only_run_when_it_could_decide() -> None:
     v = judge([slides, poor], AT, OPT, pinning)
     assert calls == [slides]  # the poor fit could not reach the threshold however well pinned
     assert v.best is slides and v.factors["constrained"] == 1.0 and slides.slide == 100.0
+
+
+def test_an_overlap_that_is_all_wall_is_no_placement() -> None:
+    # thick wall laid on thick wall: every wall meets one, and nothing else overlaps
+    band = Score(0.94, 102, 99, 99, 99, 99, 13.0)
+    true = Score(0.993, 7782, 121, 129, 117, 125, 32.8)
+    assert agree_factor(band) == 0.0 and agree_factor(true) == 1.0
+    results = [Result(Hyp(0.0, 200.0, 0.0), band, effective_fit(band, OPT))]
+    results.append(Result(Hyp(0.0, 0.0, 0.0), true, effective_fit(true, OPT)))
+    v = judge(results, AT, OPT)
+    assert v.best.score is true and v.factors["distinct"] == 1.0
+
+
+def test_the_cheap_rank_sees_free_space_landing_on_walls(building: OccupancyGrid) -> None:
+    a = MapView(building, building.resolution)
+    b = MapView(building.replace(data=np.ascontiguousarray(building.data[40:200, 60:260])), a.res)
+    truth = Hyp(0.0, 60.0, 40.0)
+    off = Hyp(0.0, 65.0, 45.0)  # every wall moved 5 cells: b's walls on free space, its free on walls
+    assert refine.sample_agreement(a, b, truth.matrix()) == 1.0
+    assert refine.sample_agreement(a, b, off.matrix()) < 0.5
+    assert refine.quick(a, b, truth, OPT.support_walls)[0] > refine.quick(a, b, off, OPT.support_walls)[0]
