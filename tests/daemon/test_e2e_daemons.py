@@ -97,6 +97,8 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
     f.start()
     try:
         wait_for(holds_each_other, 90, f)
+        # the crash must find a global map already written, so that there is one to restore
+        wait_for(lambda s: s.get("robot0", {}).get("fusion", {}).get("global") is not None, 60, f)
         before = f.status()["robot0"]
         v_own = before["source"]["version"]
         os.kill(f.procs["robot0"].pid, signal.SIGKILL)
