@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mapd.fusion.candidates import Hyp
-from mapd.fusion.refine import Score
+from mapd.fusion.refine import Score, agreement_ramp
 
 if TYPE_CHECKING:
     from mapd.fusion.estimate import EstimateOptions
@@ -66,10 +66,9 @@ def agree_factor(sc: Score) -> float:
     ``mapd bench merge`` seeds 1-3, mostly over 4). A patch of thick wall laid on thick wall is all
     wall: every wall meets one, and nothing else overlaps to contradict it.
     """
-    agree = (sc.agreement - 0.8) / 0.15
     walls = sc.walls_a + sc.walls_b
     open_ = (sc.overlap / walls - 0.75) / 0.75 if walls else 1.0
-    return float(np.clip(agree, 0.0, 1.0) * np.clip(open_, 0.0, 1.0))
+    return agreement_ramp(sc.agreement) * float(np.clip(open_, 0.0, 1.0))
 
 
 def effective_fit(sc: Score, opt: EstimateOptions) -> float:

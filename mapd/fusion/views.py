@@ -26,6 +26,8 @@ MAX_SIDE = 32000
 #: when the placement is right (95% of walls meet) against a chance placement (40% meet).
 MEET_WEIGHT = math.log(0.95 / 0.4)
 MISS_WEIGHT = math.log(0.05 / 0.6)
+#: known cells near walls sampled per map for the cheap agreement check of candidates
+KNOWN_SAMPLE = 4000
 
 
 def resample_classes(grid: OccupancyGrid, res: float) -> np.ndarray:
@@ -97,8 +99,8 @@ def score_fields(
 def evidence_field(cls: np.ndarray, tol: float = 1.0) -> np.ndarray:
     """Per-cell evidence (float32) of a wall of the other map landing there: ``MEET_WEIGHT``
     within ``tol`` cells of a wall, ``MISS_WEIGHT`` where the map knows the place farther from any
-    wall, 0 where it is unknown. Correlated with the other map's walls, this is the wall evidence that the full
-    check counts (:func:`mapd.fusion.refine.evidence`), at the search's resolution."""
+    wall, 0 where it is unknown. Correlated with the other map's walls, this is the wall evidence
+    that the full check counts (:func:`mapd.fusion.refine.evidence`), at the search's resolution."""
     walls = cls == OCC_C
     dist = wall_distance(walls)
     near = dist <= tol
@@ -177,13 +179,13 @@ class MapView:
                 self._centre = np.array([xs.mean() * 4.0, ys.mean() * 4.0])
         return self._centre
 
-    def known_sample(self, n: int = 4000) -> tuple[np.ndarray, np.ndarray]:
-        """About ``n`` known cells within 4 cells of a wall, spread evenly: (N, 2) pixel index and
-        their classes. Near walls is where a wrong placement shows (free space on the other map's
-        walls); open floor agrees with open floor anywhere."""
+    def known_sample(self) -> tuple[np.ndarray, np.ndarray]:
+        """About ``KNOWN_SAMPLE`` known cells within 4 cells of a wall, spread evenly: (N, 2) pixel
+        index and their classes. Near walls is where a wrong placement shows (free space on the
+        other map's walls); open floor agrees with open floor anywhere."""
         if self._known_sample is None:
             ys, xs = np.nonzero(self.known & (self.dist <= 4.0))
-            step = max(1, len(xs) // n)
+            step = max(1, len(xs) // KNOWN_SAMPLE)
             ys, xs = ys[::step], xs[::step]
             self._known_sample = (np.column_stack([xs, ys]).astype(np.float64), self.cls[ys, xs])
         return self._known_sample
