@@ -38,6 +38,7 @@ from mapd.envelope import Envelope, unpack
 from mapd.errors import EnvelopeError
 from mapd.transport import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
 from transports import zenoh_keys as keys
+from transports.rtt import RttEstimator
 
 NAME = "zenoh"
 _ACK = struct.Struct(">Q")
@@ -131,7 +132,7 @@ class ZenohCore:
         # When each recent own version was offered, for the offer-to-ack time (bounded: the oldest
         # go first; an ack of a forgotten version just gives no sample).
         self._offered_at: dict[int, float] = {}
-        self._srtt: float | None = None
+        self._rtt = RttEstimator()
         self.counters = dict.fromkeys(
             (
                 "bytes_rx",
@@ -167,7 +168,8 @@ class ZenohCore:
         return st.last if st is not None else 0
 
     def stats(self) -> dict[str, Any]:
-        rtt = round(1000 * self._srtt, 1) if self._srtt is not None else None
+        srtt = self._rtt.srtt
+        rtt = round(1000 * srtt, 1) if srtt is not None else None
         return {**self.counters, "peers": len(self.peers()), "rtt_ms": rtt}
 
     # -- inputs ------------------------------------------------------------------------------------
@@ -249,8 +251,7 @@ class ZenohCore:
         self.counters["acks_rx"] += 1
         sent = self._offered_at.get(version)
         if now is not None and sent is not None and now >= sent:
-            sample = now - sent  # smoothed as TCP does (RFC 6298, alpha 1/8)
-            self._srtt = sample if self._srtt is None else 0.875 * self._srtt + 0.125 * sample
+            self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
         return Step(events=[Delivered(transport=NAME, peer=peer, robot=self.robot, version=version)])
 
     def on_query(self, asker: str | None) -> Step:

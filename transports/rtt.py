@@ -1,4 +1,8 @@
-"""Round-trip time and retransmission timeout, as RFC 6298 computes them for TCP."""
+"""Round-trip time and retransmission timeout, as RFC 6298 computes them for TCP.
+
+Shared by the first-party transports: UWB times its chunk retransmissions with it, zenoh only
+reports the smoothed offer-to-ack time.
+"""
 
 from __future__ import annotations
 
