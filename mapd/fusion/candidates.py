@@ -6,9 +6,10 @@ Two sources, so that one failing does not leave the estimator blind:
   (rotation + translation, no scale: both resolutions are known) that keeps the best few distinct
   models, not just the single best;
 * **search**, which needs no features: a rotation *signature* (histograms of wall orientation,
-  circularly correlated) proposes headings, and for each heading an FFT correlation of b's walls
-  against a's wall likelihood, minus walls landing where a is plainly free (and the same the other
-  way round), proposes translations. Without a usable signature, every heading is tried.
+  circularly correlated) proposes headings, and for each heading FFT correlations propose
+  translations (b's walls against a's wall likelihood and wall evidence, and the two maps' free
+  space against each other: :class:`Correlator`). Without a usable signature, every heading is
+  tried.
 """
 
 from __future__ import annotations
@@ -21,7 +22,17 @@ import numpy as np
 import scipy.fft as sfft
 
 from mapd.fusion.transforms import to_matrix, wrap_angle
-from mapd.fusion.views import OCC_C, UNK_C, Coarse, MapView, evidence_field, score_fields
+from mapd.fusion.views import (
+    AGREE_WEIGHT,
+    DISAGREE_WEIGHT,
+    OCC_C,
+    UNK_C,
+    Coarse,
+    MapView,
+    evidence_field,
+    free_fields,
+    score_fields,
+)
 from mapd.grid import Pose2D
 
 
@@ -45,12 +56,14 @@ class Hyp:
 
 def same(h1: Hyp, h2: Hyp, at: np.ndarray, cells: float, deg: float) -> bool:
     """True when two placements put point ``at`` of b within ``cells`` and turn within ``deg``."""
-    p1 = h1.matrix() @ np.array([at[0], at[1], 1.0])
-    p2 = h2.matrix() @ np.array([at[0], at[1], 1.0])
-    return bool(
-        math.hypot(p1[0] - p2[0], p1[1] - p2[1]) < cells
-        and abs(wrap_angle(h1.yaw - h2.yaw)) < math.radians(deg)
-    )
+    # plain floats, not 3x3 matrices: the search compares candidates pairwise, ~10^5 times a pair
+    if abs(wrap_angle(h1.yaw - h2.yaw)) >= math.radians(deg):
+        return False
+    x, y = float(at[0]), float(at[1])
+    c1, s1, c2, s2 = math.cos(h1.yaw), math.sin(h1.yaw), math.cos(h2.yaw), math.sin(h2.yaw)
+    dx = (c1 - c2) * x - (s1 - s2) * y + h1.tx - h2.tx
+    dy = (s1 - s2) * x + (c1 - c2) * y + h1.ty - h2.ty
+    return math.hypot(dx, dy) < cells
 
 
 def distinct(hyps: list[Hyp], n: int, at: np.ndarray, cells: float = 3.0, deg: float = 3.0) -> list[Hyp]:
@@ -147,10 +160,14 @@ def signature_angles(a: MapView, b: MapView, n: int = 4) -> list[float]:
     return out
 
 
+#: rankings of the correlation search (raw, per wall, evidence, free space)
+RANKINGS = 4
+
+
 class Correlator:
     """FFT correlation of b's coarse walls, turned by a heading, against a's coarse fields.
 
-    Three rankings of the shifts, and peaks of each are proposed:
+    Four rankings of the shifts, and peaks of each are proposed:
 
     * **raw**: a wall likelihood summed over the overlap, which favours large overlaps;
     * **per wall**: the same per overlapping wall (with at least ``floor`` walls), which does not
@@ -159,7 +176,12 @@ class Correlator:
     * **evidence**: met walls for, walls landing on known space away from any wall strongly
       against (:func:`mapd.fusion.views.evidence_field`), the tally the full check makes. The
       smooth likelihood forgives a wall that lands a cell beside another, so along a corridor
-      with doors, sliding by a door's pitch scores as well as the truth; the evidence does not.
+      with doors, sliding by a door's pitch scores as well as the truth; the evidence does not;
+    * **free space**: free cells on free cells for, clear free space under a wall of the other map
+      strongly against (the weights of :attr:`mapd.fusion.refine.Score.free_evidence`). It finds
+      the placement that lays the most of one map's explored space on the other's: on open
+      ground with few walls, and where the truth's walls fit a degraded copy worse than a small
+      aliased patch's do, the wall rankings put the truth twenty places down or more.
     """
 
     def __init__(self, a: Coarse, b: Coarse, floor: float) -> None:
@@ -173,9 +195,12 @@ class Correlator:
         self.fa_walls = sfft.rfft2(a.walls, s=self.shape)
         self.fa_known = sfft.rfft2((a.cls != UNK_C).astype(np.float32), s=self.shape)
         self.fa_evidence = sfft.rfft2(a.evidence, s=self.shape)
+        self.fa_free = sfft.rfft2(a.free, s=self.shape)
+        self.fa_clear = sfft.rfft2(a.clear, s=self.shape)
 
-    def peaks(self, yaw: float, k: int = 3) -> tuple[list[Hyp], list[Hyp], list[Hyp]]:
-        """The ``k`` best shifts for b turned by ``yaw`` by each ranking (raw, per wall, evidence)."""
+    def peaks(self, yaw: float, k: int = 3) -> tuple[list[Hyp], ...]:
+        """The ``k`` best shifts for b turned by ``yaw`` by each ranking (raw, per wall, evidence,
+        free space)."""
         b, d = self.b, self.diag
         hb, wb = b.cls.shape
         c, s = math.cos(yaw), math.sin(yaw)
@@ -200,7 +225,13 @@ class Correlator:
         area = fb_walls * self.fa_known
         area += np.conj(sfft.rfft2((cls_r != UNK_C).astype(np.float32), s=self.shape)) * self.fa_walls
         per_wall = raw / np.maximum(sfft.irfft2(area, s=self.shape), self.floor)
-        return self._best(raw, yaw, shift, k), self._best(per_wall, yaw, shift, k), ev
+        # F(t): free on free for, a clear free cell under a wall of the other map strongly against
+        free_r, clear_r = free_fields(cls_r)
+        spec = AGREE_WEIGHT * np.conj(sfft.rfft2(free_r, s=self.shape)) * self.fa_free
+        spec += DISAGREE_WEIGHT * fb_walls * self.fa_clear
+        spec += DISAGREE_WEIGHT * np.conj(sfft.rfft2(clear_r, s=self.shape)) * self.fa_walls
+        free = self._best(sfft.irfft2(spec, s=self.shape), yaw, shift, k)
+        return self._best(raw, yaw, shift, k), self._best(per_wall, yaw, shift, k), ev, free
 
     def _best(self, corr: np.ndarray, yaw: float, shift: np.ndarray, k: int) -> list[Hyp]:
         rows, cols = self.shape
@@ -228,11 +259,11 @@ class Correlator:
         fits small patches of itself better, per wall, than the true heading fits its large overlap,
         so a global top ``n`` can hold no peak of the true heading at all.
         """
-        rankings: list[list[Hyp]] = [[], [], []]
+        rankings: list[list[Hyp]] = [[] for _ in range(RANKINGS)]
         groups: list[list[list[Hyp]]] = []
         for j, ang in enumerate(angles):
             if j % max(group, 1) == 0:
-                groups.append([[], [], []])
+                groups.append([[] for _ in range(RANKINGS)])
             for r, found in enumerate(self.peaks(ang, k)):
                 rankings[r] += found
                 groups[-1][r] += found

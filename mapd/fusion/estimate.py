@@ -10,10 +10,11 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
    so that thin walls survive). Resolutions more than ``max_resolution_ratio`` apart are refused.
    Matching uses *wall faces*: occupied cells that are not lone speckle nor inside a thick wall.
 2. **Candidates** (:mod:`mapd.fusion.candidates`): SIFT features with a 2-point rigid RANSAC, plus
-   a search that needs no features: a wall-orientation signature proposes headings and an FFT
-   correlation proposes translations, ranked three ways (total likelihood, likelihood per
-   overlapping wall, and wall evidence with misses counted hard) so that neither large repetitive
-   overlaps, nor small chance fits, nor placements slid along a corridor crowd out the truth, and
+   a search that needs no features: a wall-orientation signature proposes headings and FFT
+   correlations propose translations, ranked four ways (total wall likelihood, likelihood per
+   overlapping wall, wall evidence with misses counted hard, and free space laid on free space) so
+   that neither large repetitive overlaps, nor small chance fits, nor placements slid along a
+   corridor, nor patches that fit a degraded copy's walls better crowd out the truth, and
    every signature heading keeps its own best few peaks (in a warehouse, patches turned by 90 or
    180 degrees fit better per wall than the true heading, and would fill a global top list). When
    that finds nothing acceptable, every heading is tried in 2 degree steps. A previous answer
@@ -24,18 +25,21 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
 4. **Verification** of each refined candidate on the whole overlap: the *agreement* (the acceptance
    index: cells known in both maps whose class agrees, over cells known in both), the *wall fit*
    (walls of each map within 1.5 cells of a wall of the other, where the other map knows the
-   place), the wall *evidence* (met walls for, missed walls against) and the *constraint* (how many
+   place), the wall *evidence* (met walls for, missed walls against), the free-space evidence
+   (agreeing known cells for, disagreeing ones strongly against) and the *constraint* (how many
    met walls pin the least constrained direction: a bare corridor pins nothing along it). The key
    of a candidate is fit x support (below ``support_walls`` overlapping walls it is discounted) x
    an agreement factor (agreement 0.8 -> 0, 0.95 -> 1; an overlap that is nearly all wall, thick
    wall on thick wall, counts nothing: :func:`mapd.fusion.judge.agree_factor`).
 5. **Judging** (:mod:`mapd.fusion.judge`): confidence = quality (fit 0.65 -> 0, 0.9 -> 1) x support
-   x constrained x distinct. Constrained also counts the walls a slide of 3 cells along the weakest
-   direction loses. Distinct is judged against every *rival* (a candidate more than ``rival_cells``
-   or ``rival_deg`` away): one that fits as well vetoes, one that fits worse must fit clearly worse
-   or have clearly less wall evidence (``evidence_margin``). Each candidate is judged so, and the
-   most trusted one is the answer. An aliased corridor or a repetitive warehouse gives two
-   placements that fit alike, and then neither is merged.
+   (walls, or free-space evidence) x constrained x distinct. Constrained also counts the walls a
+   slide of 3 cells along the weakest direction loses. Distinct is judged against every *rival* (a
+   candidate more than ``rival_cells`` or ``rival_deg`` away): one that fits worse must fit clearly
+   worse or have clearly less evidence, walls and free space (``evidence_margin``); one that fits as
+   well vetoes, unless it also agrees worse cell for cell and has far less evidence (twice the
+   margin). Each candidate is judged so, and the most trusted one is the answer. An aliased
+   corridor or a repetitive warehouse gives two placements that fit alike, and then neither is
+   merged.
 
 An estimate is accepted only when confidence >= ``min_confidence`` and agreement >= ``min_agreement``;
 otherwise ``reason`` says which test failed and why.
@@ -72,8 +76,12 @@ class EstimateOptions:
     max_coarse_m: float = 0.4
     #: fewest wall cells a map needs before it is worth matching
     min_walls: int = 30
-    #: overlapping wall cells at which the small-overlap discount ends
+    #: overlapping wall cells at which the small-overlap discount ends ...
     support_walls: int = 150
+    #: ... and free-space evidence (:attr:`mapd.fusion.refine.Score.free_evidence`) worth as much
+    #: (about 6,500 cells known in both maps that agree, if none disagree); support adds the two,
+    #: so an overlap whose free space disagrees more than it agrees loses support
+    support_free: float = 50.0
     #: a candidate farther than this from the best (cells at b's centre, or degrees) is a rival
     rival_cells: float = 8.0
     rival_deg: float = 4.0

@@ -11,12 +11,22 @@ Confidence = quality x support x constrained x distinct (see :func:`confidence_f
   actually lost when the placement is slid 3 cells along its weakest direction
   (:func:`mapd.fusion.refine.slide_pinning`): warehouse shelf ends and door frames pin a match that
   the smoothed normals call a corridor;
-* **distinct** is judged rival by rival, the worst one counting. A rival that fits at least as well
-  (fit x agreement, discounted as in :func:`rival_strength`) vetoes, whatever the sizes: a small
-  patch that fits as well as the best is an alternative (symmetric buildings, repeated rooms). A
-  rival that fits worse is beaten either by fitting clearly worse (the old test) or by clearly less
-  wall evidence (:attr:`mapd.fusion.refine.Score.evidence`): a large true overlap whose walls meet
-  a little less often than a small aliased patch's leaves hundreds more walls explained.
+* **distinct** is judged rival by rival, the worst one counting. The evidence of a placement
+  (:func:`total_evidence`) is its walls' (:attr:`mapd.fusion.refine.Score.evidence`: met walls
+  for, missed walls against) plus its free space's (:attr:`mapd.fusion.refine.Score.free_evidence`:
+  cells known in both maps that agree for, those that disagree strongly against). A rival that fits
+  worse (fit x agreement, discounted as in :func:`rival_strength`) is beaten either by fitting
+  clearly worse or by clearly less evidence: a large true overlap whose walls meet a little less
+  often than a small aliased patch's leaves hundreds more walls and thousands more cells explained.
+  A rival that fits at least as well vetoes, whatever the sizes (a small patch that fits as well as
+  the best is an alternative: symmetric buildings, repeated rooms), unless its overlap also agrees
+  worse, cell for cell, and its evidence is short by twice the margin: a few dozen walls that meet
+  on a patch that lays its free space on walls, against a large overlap that agrees nearly
+  everywhere (open ground with few walls, where the truth's walls fit only 0.8).
+* **support** is the overlapping walls (``support_walls`` for full marks) plus the free-space
+  evidence (``support_free`` for full marks): on open ground a true overlap can hold under a
+  hundred walls but tens of thousands of agreeing cells, and an overlap whose free space disagrees
+  more than it agrees loses support (a corner of one building on a corner of another).
 """
 
 from __future__ import annotations
@@ -84,12 +94,15 @@ def rank(r: Result, opt: EstimateOptions) -> float:
 
 
 def confidence_factors(sc: Score, key: float, rival: float, opt: EstimateOptions) -> dict[str, float]:
-    """quality: the wall fit (0.65 -> 0, 0.9 -> 1); support: enough overlapping walls;
+    """quality: the wall fit (0.65 -> 0, 0.9 -> 1); support: enough overlapping walls plus free-space
+    evidence;
     constrained: enough walls pin the least constrained direction (a bare corridor lets a match
     slide along it); distinct: the best fits clearly better than a rival of strength ``rival``."""
     return {
         "quality": float(np.clip((sc.fit - 0.65) / 0.25, 0.0, 1.0)),
-        "support": min(1.0, sc.walls / opt.support_walls),
+        "support": float(
+            np.clip(sc.walls / opt.support_walls + sc.free_evidence / opt.support_free, 0.0, 1.0)
+        ),
         "constrained": float(np.clip(sc.constraint / opt.constraint_walls, 0.0, 1.0)),
         # the rival must leave clearly more walls unexplained than the best does
         "distinct": distinct_by_fit(key, rival),
@@ -101,16 +114,22 @@ def distinct_by_fit(key: float, rival: float) -> float:
     return float(np.clip((key - rival) / (0.05 + max(0.0, 1.0 - key)), 0.0, 1.0))
 
 
-def distinct_by_evidence(best: float, rival: float, opt: EstimateOptions) -> float:
-    """1 when the rival's wall evidence is short of the best's by twice the margin, 0 within it.
+def total_evidence(sc: Score) -> float:
+    """Wall evidence plus free-space evidence (:attr:`Score.free_evidence`), before the agreement
+    factor."""
+    return sc.evidence + sc.free_evidence
 
-    The margin is the larger of ``evidence_margin[0]`` and ``evidence_margin[1]`` x the best's
-    evidence: neighbouring cells' errors are correlated (a wall seen thicker is thicker over a
-    stretch), so the evidence, summed as if cells were independent, is trusted only in bulk.
+
+def distinct_by_evidence(best: float, rival: float, opt: EstimateOptions, times: float = 1.0) -> float:
+    """1 when the rival's evidence is short of the best's by twice the margin, 0 within it.
+
+    The margin is ``times`` the larger of ``evidence_margin[0]`` and ``evidence_margin[1]`` x the
+    best's evidence: neighbouring cells' errors are correlated (a wall seen thicker is thicker over
+    a stretch), so the evidence, summed as if cells were independent, is trusted only in bulk.
     """
     if best <= 0.0:
         return 0.0
-    margin = max(opt.evidence_margin[0], opt.evidence_margin[1] * best)
+    margin = times * max(opt.evidence_margin[0], opt.evidence_margin[1] * best)
     return float(np.clip((best - rival) / margin - 1.0, 0.0, 1.0))
 
 
@@ -171,17 +190,20 @@ def _judge_one(
 ) -> Verdict:
     sc = r.score
     key = sc.fit * agree_factor(sc)
-    ev = sc.evidence * agree_factor(sc)
+    ev = total_evidence(sc) * agree_factor(sc)
     well_pinned = sc.constraint >= 3.0 * opt.constraint_walls
     distinct, limiting = 1.0, 0.0
     for o in rivals:
         s = rival_strength(sc, o.score, opt)
         d = distinct_by_fit(key, s)
+        pinned = float(np.clip(o.score.constraint / opt.constraint_walls, 0.0, 1.0)) if well_pinned else 1.0
+        oev = total_evidence(o.score) * agree_factor(o.score) * pinned
         if s < key:
-            pinned = (
-                float(np.clip(o.score.constraint / opt.constraint_walls, 0.0, 1.0)) if well_pinned else 1.0
-            )
-            d = max(d, distinct_by_evidence(ev, o.score.evidence * agree_factor(o.score) * pinned, opt))
+            d = max(d, distinct_by_evidence(ev, oev, opt))
+        elif sc.agreement >= o.score.agreement:
+            # a rival that fits the walls better but on an overlap that agrees worse, cell for cell:
+            # beaten only by twice the margin of evidence (a far larger overlap that agrees better)
+            d = max(d, distinct_by_evidence(ev, oev, opt, 2.0))
         if d < distinct:
             distinct, limiting = d, s
     factors = confidence_factors(sc, key, 0.0, opt)
@@ -204,7 +226,12 @@ def weakest(sc: Score, factors: dict[str, float]) -> str:
     worst = min(factors, key=lambda k: factors[k])
     return {
         "quality": f"only {sc.fit:.0%} of overlapping walls meet",
-        "support": f"only {sc.walls} wall cells overlap",
+        "support": f"only {sc.walls} wall cells overlap"
+        + (
+            ""
+            if sc.free_evidence >= 0.0
+            else f", and {1.0 - sc.agreement:.0%} of the cells known in both disagree"
+        ),
         "constrained": "the overlap does not pin the match down: it could slide, as along a bare corridor",
         "distinct": "another placement fits almost as well",
     }[worst]

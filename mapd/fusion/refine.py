@@ -19,7 +19,16 @@ import numpy as np
 
 from mapd.fusion.candidates import Hyp
 from mapd.fusion.transforms import to_matrix
-from mapd.fusion.views import MEET_WEIGHT, MISS_WEIGHT, UNK_C, MapView, wall_distance
+from mapd.fusion.views import (
+    AGREE_WEIGHT,
+    DISAGREE_WEIGHT,
+    FREE_CELLS,
+    MEET_WEIGHT,
+    MISS_WEIGHT,
+    UNK_C,
+    MapView,
+    wall_distance,
+)
 from mapd.grid import Pose2D
 
 #: a wall of one map "fits" when a wall of the other lies within this many cells
@@ -225,6 +234,13 @@ class Score:
     def evidence(self) -> float:
         """:func:`evidence` of the overlapping walls of both maps."""
         return evidence(self.hits_a + self.hits_b, self.walls_a + self.walls_b)
+
+    @property
+    def free_evidence(self) -> float:
+        """Evidence of the cells known in both maps: agreeing ones for, disagreeing ones (strongly)
+        against, counted in blocks of ``FREE_CELLS`` (neighbours are not independent)."""
+        agree = self.agreement * self.overlap
+        return (AGREE_WEIGHT * agree + DISAGREE_WEIGHT * (self.overlap - agree)) / FREE_CELLS
 
     @property
     def matched(self) -> int:
