@@ -32,7 +32,7 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
    an agreement factor (agreement 0.8 -> 0, 0.95 -> 1; an overlap that is nearly all wall, thick
    wall on thick wall, counts nothing: :func:`mapd.fusion.judge.agree_factor`).
 5. **Judging** (:mod:`mapd.fusion.judge`): confidence = quality (fit 0.65 -> 0, 0.9 -> 1) x support
-   (walls, or free-space evidence) x constrained x distinct. Constrained also counts the walls a
+   (walls plus free-space evidence) x constrained x distinct. Constrained also counts the walls a
    slide of 3 cells along the weakest direction loses. Distinct is judged against every *rival* (a
    candidate more than ``rival_cells`` or ``rival_deg`` away): one that fits worse must fit clearly
    worse or have clearly less evidence, walls and free space (``evidence_margin``); one that fits as
