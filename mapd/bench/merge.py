@@ -10,7 +10,7 @@ with the second turned and both re-origined to hide it.
 
 Success: accepted, translation error at most 2 cells (measured at the centre of the second map, in
 its cells) and yaw error at most 1 degree. "wrong" counts accepted estimates more than 5 cells off.
-The baseline does what m-explore's map_merge does (ORB, ratio-test matching, estimateAffinePartial2D
+The baseline does what m-explore's map_merge does (AKAZE, ratio-test matching, estimateAffinePartial2D
 RANSAC, confidence = inliers / (8 + 0.3 * matches), accepted at 1.0); see mapd.fusion.mexplore.
 
 The last rows time merging 4 maps of 2000 x 2000 cells (real maps padded or cropped to that size,

@@ -7,9 +7,8 @@ OpenCV stitching's ``AffineBestOf2NearestMatcher`` (nearest/second-nearest ratio
 translation *and scale*; reprojection threshold 3 px), confidence = inliers / (8 + 0.3 * matches)
 (0 when above 3, as OpenCV does for near-identical images), and the pair kept when confidence >= 1.0.
 
-m-explore's default features are AKAZE. OpenCV 5 moved AKAZE out of the main modules (into contrib,
-which is not installed here), so this uses ORB, m-explore's ``estimation_feature_type: orb`` option.
-Unlike m-explore, the result is expressed with both maps' origins and resolutions honoured, so the
+Features are AKAZE with OpenCV's defaults, m-explore's default ``estimation_feature_type`` (OpenCV 5
+moved AKAZE out of the main modules, hence mapd's ``opencv-python-headless<5``). Unlike m-explore, the result is expressed with both maps' origins and resolutions honoured, so the
 comparison measures its matching, not its frame bugs.
 """
 
@@ -47,7 +46,7 @@ class BaselineEstimate:
 
 def _features(grid: OccupancyGrid) -> tuple[list[cv2.KeyPoint], np.ndarray | None]:
     img = np.ascontiguousarray(grid.data.view(np.uint8))
-    kps, desc = cv2.ORB.create().detectAndCompute(img, None)
+    kps, desc = cv2.AKAZE.create().detectAndCompute(img, None)
     return list(kps), desc
 
 
