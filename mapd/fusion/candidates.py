@@ -32,6 +32,7 @@ from mapd.fusion.views import (
     evidence_field,
     free_fields,
     score_fields,
+    wall_distance,
 )
 from mapd.grid import Pose2D
 
@@ -56,7 +57,7 @@ class Hyp:
 
 def same(h1: Hyp, h2: Hyp, at: np.ndarray, cells: float, deg: float) -> bool:
     """True when two placements put point ``at`` of b within ``cells`` and turn within ``deg``."""
-    # plain floats, not 3x3 matrices: the search compares candidates pairwise, ~10^5 times a pair
+    # plain floats, not 3x3 matrices: the search compares candidates pairwise, ~10^4 times a pair
     if abs(wrap_angle(h1.yaw - h2.yaw)) >= math.radians(deg):
         return False
     x, y = float(at[0]), float(at[1])
@@ -210,13 +211,14 @@ class Correlator:
         cls_r = cv2.warpAffine(
             b.cls, fwd, (d, d), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=UNK_C
         )
-        walls_r = (cls_r == OCC_C).astype(np.float32)
+        # one distance transform of b's turned walls serves all four rankings' fields
+        dist = wall_distance(cls_r == OCC_C)
+        walls_r, target_r = score_fields(cls_r, dist=dist)
         fb_walls = np.conj(sfft.rfft2(walls_r, s=self.shape))
         # E(t) = sum_q walls_b(q) evidence_a(q + t) + evidence_b(q) walls_a(q + t)
         spec = fb_walls * self.fa_evidence
-        spec += np.conj(sfft.rfft2(evidence_field(cls_r), s=self.shape)) * self.fa_walls
+        spec += np.conj(sfft.rfft2(evidence_field(cls_r, dist=dist), s=self.shape)) * self.fa_walls
         ev = self._best(sfft.irfft2(spec, s=self.shape), yaw, shift, k)
-        _, target_r = score_fields(cls_r)
         # S(t) = sum_q walls_b(q) target_a(q + t) + target_b(q) walls_a(q + t)
         spec = fb_walls * self.fa_target
         spec += np.conj(sfft.rfft2(target_r, s=self.shape)) * self.fa_walls
@@ -226,7 +228,7 @@ class Correlator:
         area += np.conj(sfft.rfft2((cls_r != UNK_C).astype(np.float32), s=self.shape)) * self.fa_walls
         per_wall = raw / np.maximum(sfft.irfft2(area, s=self.shape), self.floor)
         # F(t): free on free for, a clear free cell under a wall of the other map strongly against
-        free_r, clear_r = free_fields(cls_r)
+        free_r, clear_r = free_fields(cls_r, dist=dist)
         spec = AGREE_WEIGHT * np.conj(sfft.rfft2(free_r, s=self.shape)) * self.fa_free
         spec += DISAGREE_WEIGHT * fb_walls * self.fa_clear
         spec += DISAGREE_WEIGHT * np.conj(sfft.rfft2(clear_r, s=self.shape)) * self.fa_walls
@@ -252,7 +254,7 @@ class Correlator:
     def search(
         self, angles: list[float], n: int, at: np.ndarray, k: int = 3, *, group: int = 1, per_group: int = 0
     ) -> list[Hyp]:
-        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to 3 n in all),
+        """The ``n`` best distinct peaks by each ranking over all ``angles`` (up to ``RANKINGS`` n),
         plus the ``per_group`` best of each ranking within each run of ``group`` consecutive angles.
 
         The per-group share matters in repetitive layouts: a warehouse turned by 90 or 180 degrees

@@ -8,8 +8,9 @@ translation *and scale*; reprojection threshold 3 px), confidence = inliers / (8
 (0 when above 3, as OpenCV does for near-identical images), and the pair kept when confidence >= 1.0.
 
 Features are AKAZE with OpenCV's defaults, m-explore's default ``estimation_feature_type`` (OpenCV 5
-moved AKAZE out of the main modules, hence mapd's ``opencv-python-headless<5``). Unlike m-explore, the result is expressed with both maps' origins and resolutions honoured, so the
-comparison measures its matching, not its frame bugs.
+moved AKAZE out of the main modules, hence mapd's ``opencv-python-headless<5``). Unlike m-explore,
+the result is expressed with both maps' origins and resolutions honoured, so the comparison
+measures its matching, not its frame bugs.
 """
 
 from __future__ import annotations

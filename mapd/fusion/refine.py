@@ -148,6 +148,15 @@ def polish(
     return Hyp.from_matrix(m, h.score, h.source)
 
 
+def _landing(a: MapView, pts: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cells of a where b's points ``pts`` land under ``m`` (nearest), and which lie inside a."""
+    q = pts @ m[:2, :2].T + m[:2, 2]
+    ha, wa = a.shape
+    xi = np.rint(q[:, 0]).astype(np.int64)
+    yi = np.rint(q[:, 1]).astype(np.int64)
+    return xi, yi, (xi >= 0) & (xi < wa) & (yi >= 0) & (yi < ha)
+
+
 def quick(a: MapView, b: MapView, h: Hyp, support_walls: int) -> tuple[float, float]:
     """Cheap ranks of an aligned candidate from b's walls where a knows the place: their
     :func:`evidence`, and the share of them within 1.5 cells of a wall of a (discounted below
@@ -158,11 +167,7 @@ def quick(a: MapView, b: MapView, h: Hyp, support_walls: int) -> tuple[float, fl
     step = max(1, len(b.pts) // 3000)
     pts = b.pts[::step]
     m = h.matrix()
-    q = pts @ m[:2, :2].T + m[:2, 2]
-    ha, wa = a.shape
-    xi = np.rint(q[:, 0]).astype(np.int64)
-    yi = np.rint(q[:, 1]).astype(np.int64)
-    inside = (xi >= 0) & (xi < wa) & (yi >= 0) & (yi < ha)
+    xi, yi, inside = _landing(a, pts, m)
     xi, yi = xi[inside], yi[inside]
     known = a.known[yi, xi]
     n = int(known.sum())
@@ -187,11 +192,7 @@ def sample_agreement(a: MapView, b: MapView, m: np.ndarray) -> float:
     """:func:`agreement_ramp` of b's sampled known cells near its walls that land on known cells
     of a; 1 when too few land there to tell."""
     pts, cls = b.known_sample()
-    q = pts @ m[:2, :2].T + m[:2, 2]
-    ha, wa = a.shape
-    xi = np.rint(q[:, 0]).astype(np.int64)
-    yi = np.rint(q[:, 1]).astype(np.int64)
-    inside = (xi >= 0) & (xi < wa) & (yi >= 0) & (yi < ha)
+    xi, yi, inside = _landing(a, pts, m)
     ac = a.cls[yi[inside], xi[inside]]
     both = ac != UNK_C
     if int(both.sum()) < 30:

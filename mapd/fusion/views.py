@@ -90,40 +90,47 @@ def wall_distance(walls: np.ndarray) -> np.ndarray:
 
 
 def score_fields(
-    cls: np.ndarray, sigma: float = 1.0, free_weight: float = 0.5
+    cls: np.ndarray, sigma: float = 1.0, free_weight: float = 0.5, dist: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(walls, target) float32 images for the correlation search.
 
     ``target`` is a wall likelihood (a Gaussian of the distance to the nearest wall) minus
     ``free_weight`` where the map is plainly free (known free, farther than 2.5 cells from a wall):
-    a wall of the other map landing there is evidence against the placement.
+    a wall of the other map landing there is evidence against the placement. ``dist`` is
+    :func:`wall_distance` of ``cls``'s walls when the caller has it already (the search fields share
+    one).
     """
     walls = cls == OCC_C
-    dist = wall_distance(walls)
+    if dist is None:
+        dist = wall_distance(walls)
     like = np.exp(-(dist.astype(np.float32) ** 2) / (2.0 * sigma**2))
     free_far = (cls == FREE_C) & (dist > 2.5)
     return walls.astype(np.float32), (like - free_weight * free_far).astype(np.float32)
 
 
-def evidence_field(cls: np.ndarray, tol: float = 1.0) -> np.ndarray:
+def evidence_field(cls: np.ndarray, tol: float = 1.0, dist: np.ndarray | None = None) -> np.ndarray:
     """Per-cell evidence (float32) of a wall of the other map landing there: ``MEET_WEIGHT``
     within ``tol`` cells of a wall, ``MISS_WEIGHT`` where the map knows the place farther from any
     wall, 0 where it is unknown. Correlated with the other map's walls, this is the wall evidence
     that the full check counts (:func:`mapd.fusion.refine.evidence`), at the search's resolution."""
-    walls = cls == OCC_C
-    dist = wall_distance(walls)
+    if dist is None:
+        dist = wall_distance(cls == OCC_C)
     near = dist <= tol
     out = np.where(near, np.float32(MEET_WEIGHT), np.float32(0.0))
     out[~near & (cls != UNK_C)] = MISS_WEIGHT
     return out.astype(np.float32)
 
 
-def free_fields(cls: np.ndarray, clear: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+def free_fields(
+    cls: np.ndarray, clear: float = 1.5, dist: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(free, clear) float32 masks for the free-space correlation: cells known free, and those of
     them farther than ``clear`` cells from any wall (a wall of the other map landing beside a wall
     is a wall seen thicker, not a contradiction)."""
     free = cls == FREE_C
-    far = free & (wall_distance(cls == OCC_C) > clear)
+    if dist is None:
+        dist = wall_distance(cls == OCC_C)
+    far = free & (dist > clear)
     return free.astype(np.float32), far.astype(np.float32)
 
 
@@ -141,9 +148,10 @@ class Coarse:
         self.cls: np.ndarray = np.full(wall.shape, UNK_C, dtype=np.uint8)
         self.cls[known] = FREE_C
         self.cls[wall] = OCC_C
-        self.walls, self.target = score_fields(self.cls)
-        self.evidence = evidence_field(self.cls)
-        self.free, self.clear = free_fields(self.cls)
+        dist = wall_distance(self.cls == OCC_C)
+        self.walls, self.target = score_fields(self.cls, dist=dist)
+        self.evidence = evidence_field(self.cls, dist=dist)
+        self.free, self.clear = free_fields(self.cls, dist=dist)
 
 
 class MapView:
