@@ -1,7 +1,7 @@
 """The paper's two networks, the quantizer between them, and fast whole-map inference.
 
 Zhang & Deng (2024) give the layers; what they leave open is our choice and says so (see
-``models/paper-v1/MODEL_CARD.md`` for the full list):
+``models/paper-v2/MODEL_CARD.md`` for the full list):
 
 * **Input.** A cell becomes its map_server grey level minus the unknown grey, over 255:
   ``x = (grey - 205) / 255``, so unknown is 0.0, free (254) is +0.192 and occupied (0) is -0.804.
