@@ -454,7 +454,14 @@ def load_model(model_dir: Path) -> PaperModel:
     meta_path = model_dir / META_FILE
     weights_path = model_dir / WEIGHTS_FILE
     if not meta_path.is_file() or not weights_path.is_file():
-        raise CodecError(f"paper model not found: {model_dir} needs {META_FILE} and {WEIGHTS_FILE}")
+        # Name what is there: after an upgrade renames the shipped model (paper-v1 -> paper-v2), a
+        # config that still names the old one should say which names would work.
+        parent = model_dir.parent
+        have = sorted(m.parent.name for m in parent.glob(f"*/{META_FILE}")) if parent.is_dir() else []
+        raise CodecError(
+            f"paper model not found: {model_dir} needs {META_FILE} and {WEIGHTS_FILE}"
+            f" (models in {parent}: {', '.join(have) or 'none'})"
+        )
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
         levels = int(meta["levels"])

@@ -154,8 +154,16 @@ def test_unknown_model_id_in_a_payload_is_refused(models: Path) -> None:
 
 def test_missing_model_folder_is_a_codec_error(tmp_path: Path) -> None:
     grid = room_grid_of(10, 10, seed=0)
-    with pytest.raises(CodecError, match="paper model not found"):
+    with pytest.raises(CodecError, match=r"paper model not found.*models in .*: none\)"):
         api.encode(grid, "paper", options=PaperOptions(model="nope", model_dir=tmp_path))
+
+
+def test_missing_model_names_the_models_that_are_there(tmp_path: Path) -> None:
+    # A config still naming the model an upgrade replaced gets told what it could name instead.
+    make_model(tmp_path / "paper-v9", seed=5)
+    make_model(tmp_path / "other", seed=6)
+    with pytest.raises(CodecError, match=r"paper-v1 needs .*: other, paper-v9\)"):
+        pn.load_model(tmp_path / "paper-v1")
 
 
 def test_tampered_weights_are_refused(tmp_path: Path) -> None:
