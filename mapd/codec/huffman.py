@@ -6,7 +6,7 @@ as a bit string with ``T``, read the bit string as a hex string ``h``, and run-l
 (each run of one hex character becomes its count and its character) into ``e``. Algorithm 2 undoes
 the three steps. This module does exactly that, vectorised with numpy (no Python loop over cells).
 
-What the paper leaves open, and our choice (documented in ``models/paper-v2/MODEL_CARD.md``):
+What the paper leaves open, and our choice (documented in ``models/paper-v3/MODEL_CARD.md``):
 
 * ``T`` on the wire is a *canonical* Huffman code (DEFLATE style): only the code length of each
   symbol is sent, and both ends derive the same codes from the lengths. Lengths are capped at

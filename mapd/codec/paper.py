@@ -7,7 +7,7 @@ coded hex string ``e``. Decode: Algorithm 2 gives the symbols back exactly, CNN_
 full-resolution map, and every cell is snapped to the nearest value the source map could hold.
 
 Body layout (after mapd's payload header, which carries size, resolution, origin and the model
-id ``paper-v2:<sha256[:12]>`` as the codec variant)::
+id ``paper-v3:<sha256[:12]>`` as the codec variant)::
 
     u8     flags: bit 0 free cells present, bit 1 occupied present, bit 2 unknown present,
            bit 3 graded map (values other than -1/0/100); bits 4-7 zero
@@ -59,7 +59,7 @@ FLAG_OCCUPIED = 0x02
 FLAG_UNKNOWN = 0x04
 FLAG_GRADED = 0x08
 _FLAGS_KNOWN = FLAG_FREE | FLAG_OCCUPIED | FLAG_UNKNOWN | FLAG_GRADED
-DEFAULT_MODEL = "paper-v2"
+DEFAULT_MODEL = "paper-v3"
 
 
 class PaperOptions(CodecOptions):

@@ -1,7 +1,7 @@
 """The paper's two networks, the quantizer between them, and fast whole-map inference.
 
 Zhang & Deng (2024) give the layers; what they leave open is our choice and says so (see
-``models/paper-v2/MODEL_CARD.md`` for the full list):
+``models/paper-v3/MODEL_CARD.md`` for the full list):
 
 * **Input.** A cell becomes its map_server grey level minus the unknown grey, over 255:
   ``x = (grey - 205) / 255``, so unknown is 0.0, free (254) is +0.192 and occupied (0) is -0.804.
@@ -454,7 +454,7 @@ def load_model(model_dir: Path) -> PaperModel:
     meta_path = model_dir / META_FILE
     weights_path = model_dir / WEIGHTS_FILE
     if not meta_path.is_file() or not weights_path.is_file():
-        # Name what is there: after an upgrade renames the shipped model (paper-v1 -> paper-v2), a
+        # Name what is there: after an upgrade renames the shipped model (paper-v1 -> paper-v3), a
         # config that still names the old one should say which names would work.
         parent = model_dir.parent
         have = sorted(m.parent.name for m in parent.glob(f"*/{META_FILE}")) if parent.is_dir() else []

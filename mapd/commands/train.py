@@ -7,9 +7,9 @@ from pathlib import Path
 
 EPILOG = """\
 example (the shipped model):
-  mapd train --maps ../shared/data/maps --epochs 100 --tile 64 --seed 0 --levels 16 \\
+  mapd train --maps ../shared/data/maps --epochs 200 --tile 64 --seed 0 --levels 16 \\
     --tiles-per-epoch 3072 --batch 16 --lr 0.002 --val-fraction 0.2 --val-tiles 256 \\
-    --device cpu --threads 1 -o models/paper-v2
+    --device cpu --threads 1 -o models/paper-v3
 
 The folder gets weights.npz, model.json (settings, split, metrics, sha256) and MODEL_CARD.md.
 Use it with [codec.paper] model = "NAME" (and model_dir = "DIR" when it is not under models/).

@@ -1,4 +1,4 @@
-"""The shipped model (models/paper-v2): its card and sha256, and that it reproduces its recorded metrics."""
+"""The shipped model (models/paper-v3): its card and sha256, and that it reproduces its recorded metrics."""
 
 from __future__ import annotations
 
