@@ -19,7 +19,7 @@ from typing import Any
 
 import msgpack
 
-from mapd.errors import EnvelopeError
+from mapd.errors import EnvelopeError, SignatureError
 from mapd.grid import Pose2D
 
 FORMAT = 1
@@ -173,15 +173,15 @@ def unpack(
     payload = _want(obj, "p", bytes)
     sig = obj.get("s", b"")
     if not isinstance(sig, bytes) or (sig and len(sig) != SIG_LEN):
-        raise EnvelopeError("envelope signature has the wrong form")
+        raise SignatureError("envelope signature has the wrong form")
     if fleet is not None and strs["fl"] != fleet:
         raise EnvelopeError(f"envelope is for fleet '{strs['fl']}', not '{fleet}'")
     if key is not None:
         if not sig:
-            raise EnvelopeError(f"unsigned envelope from '{strs['r']}' while a fleet key is set")
+            raise SignatureError(f"unsigned envelope from '{strs['r']}' while a fleet key is set")
         fields = {k: v for k, v in obj.items() if k != "s"}
         if not hmac.compare_digest(sig, _mac(key, fields)):
-            raise EnvelopeError(f"bad signature on envelope from '{strs['r']}'")
+            raise SignatureError(f"bad signature on envelope from '{strs['r']}'")
     return Envelope(
         fleet=strs["fl"],
         robot=strs["r"],

@@ -36,6 +36,14 @@ class EnvelopeError(MapdError):
     """An update envelope is malformed, too large, unsigned or badly signed."""
 
 
+class SignatureError(EnvelopeError):
+    """A message is unsigned while a key is required, or its signature does not verify.
+
+    Raised by envelope (and ack) verification; transports and the daemon catch it by type to count
+    forgeries apart from damaged bytes.
+    """
+
+
 class PluginError(MapdError):
     """A plugin cannot be found or imported (for example, an optional dependency is missing)."""
 

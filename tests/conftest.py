@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import gzip
+import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +12,8 @@ import pytest
 
 from mapd.data import data_dir as _data_dir
 from mapd.data import shared_maps as _shared_maps
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D
+from mapd.mapping.lidar import Lidar
 
 NO_DATA = "shared data folder not found: set MAPD_DATA or place ../shared/data beside the checkout"
 
@@ -64,3 +68,68 @@ def make_room_grid(
 @pytest.fixture
 def room_grid() -> OccupancyGrid:
     return make_room_grid()
+
+
+# Small CARMEN logs drawn from a known world (mapping and source tests).
+
+
+def make_box_world(size_m: float = 8.0, resolution: float = 0.05) -> OccupancyGrid:
+    """A square room with 0.15 m walls and a pillar, in a frame whose origin is the room's corner."""
+    n = round(size_m / resolution)
+    d = np.zeros((n, n), dtype=np.int8)
+    t = 3
+    d[:t, :] = d[-t:, :] = d[:, :t] = d[:, -t:] = OCCUPIED
+    c = n // 2
+    d[c - 8 : c + 8, c + 20 : c + 36] = OCCUPIED
+    return OccupancyGrid(d, resolution, Pose2D(0.0, 0.0, 0.0), frame_id="world")
+
+
+def flaser_line(ranges: np.ndarray, pose: Pose2D, stamp: float) -> str:
+    rs = " ".join(f"{r:.3f}" for r in ranges)
+    p = f"{pose.x:.6f} {pose.y:.6f} {pose.yaw:.6f}"
+    return f"FLASER {len(ranges)} {rs} {p} {p} {stamp:.6f} testhost {stamp:.6f}\n"
+
+
+def write_box_log(
+    path: Path, scans: int = 30, *, extra: list[str] | None = None, dt: float = 0.1
+) -> list[Pose2D]:
+    """A CARMEN log of a robot driving a circle in :func:`box_world`; returns the laser poses."""
+    world = make_box_world()
+    # CARMEN FLASER: 180 beams over 180 degrees starting at -90 degrees.
+    lidar = Lidar(world.data >= 65, world.resolution, world.origin, beams=180, fov_deg=180.0, max_range=30.0)
+    lidar.angles = -math.pi / 2 + math.pi / 180 * np.arange(180)
+    poses = []
+    lines = ["# synthetic CARMEN log\n", "PARAM robot_front_laser_max 81.9 nohost 0\n"]
+    for i in range(scans):
+        a = 2 * math.pi * i / scans
+        pose = Pose2D(4.0 + 1.5 * math.cos(a), 4.0 + 1.5 * math.sin(a), a + math.pi / 2)
+        poses.append(pose)
+        ranges = lidar.scan(pose)
+        ranges[~np.isfinite(ranges)] = 81.83
+        lines.append(flaser_line(ranges, pose, 100.0 + dt * i))
+        lines.append(f"ODOM 0 0 0 0 0 0 {100.0 + dt * i:.6f} testhost {100.0 + dt * i:.6f}\n")
+    if extra:
+        # Bad lines go in the middle, so the replay must carry on past them.
+        mid = len(lines) // 2
+        lines[mid:mid] = extra
+    text = "".join(lines).encode()
+    if path.suffix == ".gz":
+        path.write_bytes(gzip.compress(text))
+    else:
+        path.write_bytes(text)
+    return poses
+
+
+@pytest.fixture
+def box_log(tmp_path: Path) -> Callable[..., tuple[Path, list[Pose2D]]]:
+    def make(name: str = "box.log.gz", **kw: object) -> tuple[Path, list[Pose2D]]:
+        p = tmp_path / name
+        poses = write_box_log(p, **kw)  # type: ignore[arg-type]
+        return p, poses
+
+    return make
+
+
+@pytest.fixture
+def box_world() -> OccupancyGrid:
+    return make_box_world()

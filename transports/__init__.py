@@ -1,0 +1,1 @@
+"""First-party transport plugins. :mod:`transports.base` is the interface every transport implements."""

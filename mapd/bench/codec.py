@@ -47,9 +47,8 @@ def _baseline(name: str, cells: bytes) -> tuple[bytes, Any, Any]:
 def _measure(name: str, label: str, grid: Any, repeat: int) -> dict[str, Any]:
     import numpy as np
 
-    from mapd import metrics
     from mapd.bench.common import timed
-    from mapd.codec import decode, encode, get_codec
+    from mapd.codec import decode, encode, get_codec, metrics
 
     row: dict[str, Any] = {"codec": name, "map": label, "cells": grid.cells}
     if name in BASELINES:

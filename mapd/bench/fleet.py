@@ -52,7 +52,7 @@ def _percentile(xs: list[float], q: float) -> float:
 
 
 def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
-    from mapd.demo import Fleet
+    from mapd.demo.fleet import Fleet
 
     fa = argparse.Namespace(
         robots=n,

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _replay(path: Any) -> tuple[Any, float, float]:
     """Final map, wall seconds and CPU seconds of this process for a whole replay."""
-    from mapd.mapping import replay_log
+    from mapd.mapping.mapper import replay_log
 
     t0, c0 = time.perf_counter(), time.process_time()
     last = None
@@ -49,7 +49,7 @@ def _per_beam(scans: list[Any]) -> float:
     import numpy as np
     from skimage.draw import line
 
-    from mapd.mapping import MapperOptions, relative
+    from mapd.mapping.mapper import MapperOptions, relative
 
     o = MapperOptions()
     res = o.resolution
@@ -82,7 +82,7 @@ def _per_beam(scans: list[Any]) -> float:
 
 
 def _mapd_on(scans: list[Any]) -> float:
-    from mapd.mapping import Mapper, relative
+    from mapd.mapping.mapper import Mapper, relative
 
     m = Mapper()
     frame = scans[0].pose
@@ -93,10 +93,10 @@ def _mapd_on(scans: list[Any]) -> float:
 
 
 def _f1(name: str, grid: Any, path: Any) -> float:
-    from mapd import metrics
+    from mapd.codec import metrics
     from mapd.data import data_dir
     from mapd.grid import load_map
-    from mapd.mapping import first_pose, resample
+    from mapd.mapping.mapper import first_pose, resample
 
     base = data_dir()
     ref_path = base / "maps" / "radish_derived" / name / f"{name}.yaml" if base else None
@@ -108,8 +108,8 @@ def _f1(name: str, grid: Any, path: Any) -> float:
 
 
 def _sim_row(sim_seconds: float) -> dict[str, Any]:
-    from mapd import worldgen
-    from mapd.simrobot import SimRobot
+    from mapd.mapping import worldgen
+    from mapd.mapping.simrobot import SimRobot
 
     t0 = time.perf_counter()
     robot = SimRobot(worldgen.generate(7), seed=7)
@@ -131,10 +131,10 @@ def _sim_row(sim_seconds: float) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mapd import carmen
     from mapd.bench.common import dump_json, table
     from mapd.data import shared_log
     from mapd.errors import SourceError
+    from mapd.mapping import carmen
 
     rows: list[dict[str, Any]] = []
     for name in args.log:

@@ -110,9 +110,8 @@ class Coder:
     ) -> tuple[dict[str, Any], np.ndarray]:
         import numpy as np
 
-        from mapd import metrics
         from mapd.bench.common import timed
-        from mapd.codec import decode, encode, read_header
+        from mapd.codec import decode, encode, metrics, read_header
 
         if row == "zstd-19":
             raw = np.ascontiguousarray(grid.data).tobytes()

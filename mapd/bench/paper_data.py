@@ -25,13 +25,13 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from mapd import mapping
 from mapd.errors import SourceError
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.mapping import mapper as mapping
 
 if TYPE_CHECKING:
-    from mapd.lidar import Lidar
-    from mapd.simrobot import SimRobot
+    from mapd.mapping.lidar import Lidar
+    from mapd.mapping.simrobot import SimRobot
 
 #: Readings at or beyond this are "no return" (the mapper's default; CARMEN logs use about 81.8 m).
 MAX_RANGE = 80.0
@@ -72,7 +72,7 @@ def _progress(text: str) -> None:
 
 
 def log_run(path: Path, *, robots: int, period: float, limit: int | None, resolution: float) -> Run:
-    """Replay ``path`` as ``robots`` robots (overlapping slices, see :func:`mapd.mapping.split_range`)."""
+    """Replay ``path`` as ``robots`` robots (overlapping slices, see :func:`mapd.mapping.mapper.split_range`)."""
     streams: dict[str, list[tuple[float, OccupancyGrid]]] = {}
     frames: dict[str, Pose2D] = {}
     world = mapping.first_pose(path)
@@ -132,8 +132,8 @@ class _ScanTap:
 
 def sim_run(seed: int, *, robots: int, period: float, duration: float, limit: int | None) -> Run:
     """``robots`` simulated robots sharing the generated building of ``seed`` for ``duration`` sim seconds."""
-    from mapd import worldgen
-    from mapd.simrobot import SimRobot
+    from mapd.mapping import worldgen
+    from mapd.mapping.simrobot import SimRobot
 
     world = worldgen.generate(seed)
     sims = [SimRobot(world, seed=seed, index=i, robots=robots) for i in range(robots)]

@@ -1,6 +1,6 @@
 """The figures of ``mapd bench paper``: Figure 8a, 8b and 9 equivalents, as PNG files (matplotlib, Agg).
 
-Colours are the demo's (:data:`mapd.demo_report.COLOURS`), one per codec; line styles tell robots
+Colours are the demo's (:data:`mapd.demo.report.COLOURS`), one per codec; line styles tell robots
 apart. The paper's reported values are drawn as dotted reference lines where a figure has one.
 """
 
@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mapd.demo_report import COLOURS
+from mapd.demo.report import COLOURS
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -3,7 +3,7 @@
 Test poses are picked from the run's scans by farthest-point sampling of their positions, so they
 spread over the whole map; scans with few returns (under half the beams) are not picked, since the
 paper localizes where the lidar sees the building. Each scan is matched with the correlative scan
-matcher (:class:`mapd.localize.ScanMatcher`) in every map from the same start: its true pose plus a
+matcher (:class:`mapd.mapping.localize.ScanMatcher`) in every map from the same start: its true pose plus a
 seeded offset, uniform in a disc of ``MAX_OFFSET_M`` and in +-``MAX_OFFSET_DEG``. The matcher
 searches a window a little wider than the offset (0.4 m, 12 degrees), so a miss is the map's fault,
 not the window's. Errors are reported two ways: against the original map's result (the paper's
@@ -21,7 +21,7 @@ import numpy as np
 
 from mapd.bench.paper_data import MAX_RANGE, Sample
 from mapd.grid import OccupancyGrid, Pose2D
-from mapd.localize import ScanMatcher
+from mapd.mapping.localize import ScanMatcher
 
 MAX_OFFSET_M = 0.3
 MAX_OFFSET_DEG = 10.0

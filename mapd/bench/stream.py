@@ -1,6 +1,6 @@
 """Map-stream benchmark: what it costs to send every version of a growing map, whole or as deltas.
 
-A CARMEN log is replayed through the log-odds mapper (:func:`mapd.mapping.replay_log`) and a
+A CARMEN log is replayed through the log-odds mapper (:func:`mapd.mapping.mapper.replay_log`) and a
 snapshot is taken every ``--every`` scans. Each snapshot is encoded with each codec twice: as a
 whole map, and against the previous snapshot as base (``encode(grid, codec, base=prev)``; the codec
 decides whether the delta pays, so "delta" rows may hold some whole maps, counted in "deltas"). The
@@ -111,12 +111,12 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import zstandard
 
-    from mapd import mapping
     from mapd.bench.common import dump_json, table
     from mapd.codec import decode, encode, get_codec, read_header
     from mapd.codec.api import warm_up
     from mapd.data import shared_log
     from mapd.errors import SourceError
+    from mapd.mapping import mapper as mapping
 
     log = args.log if args.log is not None else shared_log("intel")
     if log is None:

@@ -80,8 +80,8 @@ def _outage_arg(text: str) -> str:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from mapd import config
-    from mapd.daemon import run_daemon
-    from mapd.systemd import setup_logging
+    from mapd.daemon.server import run_daemon
+    from mapd.daemon.systemd import setup_logging
 
     cfg = config.load(args.config)
     setup_logging(cfg.log.level)
@@ -173,7 +173,7 @@ def render_status(s: dict[str, Any]) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mapd.control import query
+    from mapd.daemon.status_socket import query
 
     path = _socket_path(args)
     while True:
@@ -191,6 +191,6 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from mapd.demo import run_demo
+    from mapd.demo.fleet import run_demo
 
     return run_demo(args)

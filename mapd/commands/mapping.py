@@ -39,10 +39,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     import yaml
     from tqdm import tqdm
 
-    from mapd import carmen
     from mapd.errors import ConfigError, MapFileError
     from mapd.grid import save_map
-    from mapd.mapping import first_pose, replay_log, split_range
+    from mapd.mapping import carmen
+    from mapd.mapping.mapper import first_pose, replay_log, split_range
 
     if args.every < 1:
         raise ConfigError("--every must be at least 1")

@@ -74,7 +74,7 @@ def _command(args: argparse.Namespace, maps: Path) -> list[str]:
 def cmd_train(args: argparse.Namespace) -> int:
     from mapd.data import data_dir
     from mapd.errors import ConfigError
-    from mapd.train import TrainConfig, main_train
+    from mapd.train.loop import TrainConfig, main_train
 
     maps = args.maps
     if maps is None:

@@ -1,7 +1,7 @@
 """``ros2``: take the robot's map from a ROS 2 ``nav_msgs/msg/OccupancyGrid`` topic over zenoh.
 
 No ROS install is needed: the source opens a zenoh session, subscribes to the topic's key and
-decodes the CDR payload with ``rosbags`` (:mod:`mapd.ros2cdr`). Two key formats:
+decodes the CDR payload with ``rosbags`` (:mod:`mapd.ros2.cdr`). Two key formats:
 
 * ``rmw_zenoh`` (ROS 2 running on rmw_zenoh): ``<domain>/<topic>/nav_msgs::msg::dds_::OccupancyGrid_/*``
   (any type hash). rmw_zenoh publishes ``/map`` as transient-local through an advanced publisher, so
@@ -37,9 +37,9 @@ from typing import Any, Literal
 
 from pydantic import Field, field_validator
 
-from mapd import ros2cdr
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.ros2 import cdr as ros2cdr
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 
 log = logging.getLogger(__name__)

@@ -3,7 +3,7 @@
 Each daemon simulates ONE robot: ``robots = N`` and ``index = i`` make it robot ``i`` of a fleet of
 ``N``; N daemons given the same ``seed`` simulate the same building and split its rooms between them,
 each deterministically and without talking to the others. The robot drives its route, scans at
-``scan_rate`` Hz of sim time and maps with :mod:`mapd.mapping`; a snapshot is emitted after the first
+``scan_rate`` Hz of sim time and maps with :mod:`mapd.mapping.mapper`; a snapshot is emitted after the first
 scan and then every ``emit_period`` sim seconds. ``realtime`` is the real-time factor (sim seconds
 per wall second; 1 is live-like, 0 runs as fast as possible). The defaults (5x real time, a version
 every 5 sim seconds) suit the two-robot demo: two robots map about 95 % of the default 30 x 20 m building
@@ -36,11 +36,11 @@ from pydantic import Field, field_validator, model_validator
 
 from mapd.errors import LimitError, MapFileError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, load_map
-from mapd.mapping import MapperOptions
+from mapd.mapping.mapper import MapperOptions
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 
 if TYPE_CHECKING:
-    from mapd.simrobot import SimRobot
+    from mapd.mapping.simrobot import SimRobot
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +124,8 @@ class SimSource(MapSource):
         return p
 
     def _build(self) -> SimRobot:
-        from mapd import worldgen
-        from mapd.simrobot import SimRobot
+        from mapd.mapping import worldgen
+        from mapd.mapping.simrobot import SimRobot
 
         o = self.opts
         if o.world is not None:

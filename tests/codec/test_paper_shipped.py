@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapd import metrics
-from mapd.codec import api
+from mapd.codec import api, metrics
 from mapd.codec import paper_net as pn
 from mapd.codec.paper import DEFAULT_MODEL, PaperCodec, PaperOptions
 from mapd.data import REPO_ROOT, map_label
@@ -38,7 +37,7 @@ def test_card_names_the_weights_sha256(meta: dict) -> None:
 
 
 def test_card_is_what_mapd_train_writes_from_model_json(meta: dict) -> None:
-    from mapd.train_card import model_card
+    from mapd.train.card import model_card
 
     # Nobody edited the card by hand: it says exactly what model.json records.
     assert (MODEL / "MODEL_CARD.md").read_text() == model_card(meta)

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from mapd.demo import Fleet
+from mapd.demo.fleet import Fleet
 
 pytestmark = pytest.mark.slow
 
@@ -286,7 +286,7 @@ def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path) -
     """robot0 talks UWB (socat + relay) to robot1 and zenoh to robot2, both at once."""
     import tomllib
 
-    from mapd.demo import write_config
+    from mapd.demo.fleet import write_config
 
     f = fleet(tmp_path, "zenoh", robots=3)
     relay = subprocess.Popen(

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from mapd.codec import encode
-from mapd.control import query
-from mapd.demo import _free_port, write_config
+from mapd.daemon.status_socket import query
+from mapd.demo.fleet import _free_port, write_config
 from mapd.envelope import Envelope
 from mapd.errors import DaemonError
 from mapd.grid import OccupancyGrid, Pose2D, save_map

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import asyncio
 
-from mapd.inbox import EventInbox
-from mapd.transport import Delivered, PeerUp, Received
+from mapd.daemon.events import EventQueue
+from transports.base import Delivered, PeerUp, Received
 
 
 def test_newest_update_per_peer_wins_and_control_goes_first() -> None:
-    box = EventInbox(max_events=4, max_peers=2)
+    box = EventQueue(max_events=4, max_peers=2)
     for v in range(100):
         box.put(Received("zenoh", "a", bytes([v])))
     box.put(Received("zenoh", "b", b"b1"))
@@ -24,7 +24,7 @@ def test_newest_update_per_peer_wins_and_control_goes_first() -> None:
 
 
 def test_control_events_are_bounded() -> None:
-    box = EventInbox(max_events=3)
+    box = EventQueue(max_events=3)
     for i in range(5):
         box.put(PeerUp("zenoh", f"p{i}"))
     assert [box.get_nowait() for _ in range(4)] == [PeerUp("zenoh", f"p{i}") for i in range(3)] + [None]
@@ -33,7 +33,7 @@ def test_control_events_are_bounded() -> None:
 
 def test_get_waits_for_the_next_event() -> None:
     async def main() -> list[object]:
-        box = EventInbox()
+        box = EventQueue()
         got: list[object] = []
 
         async def reader() -> None:

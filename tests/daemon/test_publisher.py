@@ -11,10 +11,10 @@ import numpy as np
 
 from mapd import config as configmod
 from mapd.codec import read_header
-from mapd.daemon import Daemon
+from mapd.daemon.server import Daemon
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid
-from mapd.transport import Delivered, Transport
+from transports.base import Delivered, Transport
 
 
 class SlowLink(Transport):

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from mapd.control import ControlServer, query
+from mapd.daemon.state import StateStore
+from mapd.daemon.status_socket import StatusServer, query
+from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
 from mapd.grid import OccupancyGrid
-from mapd.state import StateStore
-from mapd.systemd import JournalFormatter, notify, watchdog_interval
 
 
 def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
@@ -85,7 +85,7 @@ def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
         return {"robot": "alpha", "n": calls["n"]}
 
     async def main() -> None:
-        server = ControlServer(path, snap)
+        server = StatusServer(path, snap)
         await server.start()
         assert stat.S_IMODE(path.stat().st_mode) == 0o660
         doc = await asyncio.to_thread(query, path)
@@ -98,7 +98,7 @@ def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
         assert reply["robot"] == "alpha"
         w.close()
         with pytest.raises(DaemonError, match="already serving"):
-            await ControlServer(path, snap).start()
+            await StatusServer(path, snap).start()
         await server.close()
         assert not path.exists()
 

@@ -15,9 +15,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd import plugins, ros2cdr
+from mapd import plugins
 from mapd.errors import CodecError, LimitError
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.ros2 import cdr as ros2cdr
 from mapd.sources.base import SourceContext
 from mapd.sources.ros2 import Ros2Options, Ros2Source
 

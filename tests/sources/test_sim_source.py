@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from mapd import plugins, worldgen
+from mapd import plugins
 from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D, save_map
-from mapd.lidar import Lidar
-from mapd.mapping import resample
-from mapd.simrobot import Planner
+from mapd.mapping import worldgen
+from mapd.mapping.lidar import Lidar
+from mapd.mapping.mapper import resample
+from mapd.mapping.simrobot import Planner
 from mapd.sources.base import SourceContext
 from mapd.sources.sim import SimOptions, SimSource
 

@@ -1,0 +1,1 @@
+"""The ``uwb`` transport: chunk/ack/resend over a UWB module's serial port (see ``docs/uwb.md``)."""

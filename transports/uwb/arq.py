@@ -68,9 +68,9 @@ from mapd.errors import LimitError, ProtocolError, TransportError
 from transports.rtt import RttEstimator
 from transports.uwb import wire
 from transports.uwb.framing import CRC_LEN, MIN_FRAME, FrameReader, cobs_max_len, encode_frame, max_body
-from transports.uwb.inbox import Partial, PeerState
-from transports.uwb.outbox import HASH_LEN, Outgoing
 from transports.uwb.pacing import MacMode, MediumAccess, Pacer
+from transports.uwb.receiving import Partial, PeerState
+from transports.uwb.sending import HASH_LEN, Outgoing
 from transports.uwb.signing import TRAILER_LEN, Signer, Verifier, strip_unverified
 
 MAX_CHUNKS = 0xFFFF

@@ -7,7 +7,7 @@ until the core's next deadline or new input. A port that vanishes (a USB radio u
 every ``reopen_s``; meanwhile the core sees an outage and resumes where the receiver left off.
 
 :class:`UwbLink` carries raw byte messages (``mapd link`` uses it); :class:`UwbTransport` is the
-daemon's ``uwb`` transport: envelopes in, :mod:`mapd.transport` events out.
+daemon's ``uwb`` transport: envelopes in, :mod:`transports.base` events out.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pydantic import Field, model_validator
 
 from mapd.envelope import Envelope
 from mapd.errors import ConfigError, LimitError, MapdError, TransportError
-from mapd.transport import (
+from transports.base import (
     Delivered,
     Failed,
     KeyframeNeeded,
@@ -40,7 +40,8 @@ from mapd.transport import (
     TransportContext,
     TransportOptions,
 )
-from transports.uwb import arq, control
+from transports.uwb import arq
+from transports.uwb import keyframe_requests as control
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.signing import CounterStore, clock_floor
 

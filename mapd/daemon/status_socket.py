@@ -1,0 +1,99 @@
+"""The read-only control socket: the daemon's status as one JSON document per connection.
+
+The socket lives in the systemd ``RuntimeDirectory`` with mode 0660. A client connects and reads
+until EOF; anything it sends is ignored, so nothing on the socket can change the daemon.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mapd.errors import DaemonError
+
+log = logging.getLogger(__name__)
+
+
+class StatusServer:
+    """Serves ``snapshot()`` as JSON on a Unix socket."""
+
+    def __init__(self, path: Path, snapshot: Callable[[], dict[str, Any]]) -> None:
+        self.path = path
+        self.snapshot = snapshot
+        self._server: asyncio.AbstractServer | None = None
+
+    async def start(self) -> None:
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.exists() or self.path.is_symlink():
+                if _alive(self.path):
+                    raise DaemonError(f"another mapd is already serving {self.path}")
+                self.path.unlink()
+            self._server = await asyncio.start_unix_server(self._serve, path=str(self.path))
+            os.chmod(self.path, 0o660)
+        except OSError as exc:
+            raise DaemonError(f"cannot create control socket {self.path}: {exc.strerror}") from None
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            doc = json.dumps(self.snapshot(), default=str).encode() + b"\n"
+            writer.write(doc)
+            await asyncio.wait_for(writer.drain(), timeout=5)
+        except (OSError, TimeoutError):
+            pass
+        except Exception:  # a status bug must never take the daemon down
+            log.exception("status snapshot failed")
+        finally:
+            writer.close()
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+
+
+def _alive(path: Path) -> bool:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(0.5)
+        try:
+            s.connect(str(path))
+            return True
+        except OSError:
+            return False
+
+
+def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
+    """Read the daemon's status from ``path``; raises :class:`DaemonError` when none answers."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(timeout)
+        try:
+            s.connect(str(path))
+            s.shutdown(socket.SHUT_WR)
+            chunks = []
+            while chunk := s.recv(65536):
+                chunks.append(chunk)
+        except FileNotFoundError:
+            raise DaemonError(f"no mapd daemon is running (no control socket at {path})") from None
+        except ConnectionRefusedError:
+            raise DaemonError(f"no mapd daemon is running (stale control socket at {path})") from None
+        except PermissionError:
+            raise DaemonError(f"permission denied on {path} (are you in the mapd group?)") from None
+        except OSError as exc:
+            raise DaemonError(f"cannot read status from {path}: {exc}") from None
+    try:
+        doc = json.loads(b"".join(chunks))
+    except ValueError:
+        raise DaemonError(f"daemon at {path} sent malformed status") from None
+    if not isinstance(doc, dict):
+        raise DaemonError(f"daemon at {path} sent malformed status")
+    return doc

@@ -1,0 +1,303 @@
+"""``mapd demo``: a small fleet on one machine, every robot a real ``mapd run`` process.
+
+Each robot gets its own config, state and runtime directory under ``<out>/run``. Over UWB, the
+robots' serial ports are socat pty pairs joined by the emulated radio in :mod:`transports.uwb.relay`
+(12.5 kb/s, shared by everyone on the channel); over zenoh, each daemon listens on a loopback port
+and connects to the others with multicast scouting off. The demo polls every daemon's control
+socket for live progress, stops them with SIGTERM, and writes the figures and a metrics table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from mapd.daemon.status_socket import query
+from mapd.errors import DaemonError, MapdError
+
+UWB_RATE = 12500
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def write_config(path: Path, tables: dict[str, dict[str, Any]]) -> None:
+    """Write tables (``{"source.sim": {...}}``, or nested dicts as in ``tomllib``'s output) as TOML."""
+    lines: list[str] = []
+
+    def table(name: str, values: dict[str, Any]) -> None:
+        lines.append(f"[{name}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in values.items() if not isinstance(v, dict))
+        lines.append("")
+        for k, v in values.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v)
+
+    for name, values in tables.items():
+        table(name, values)
+    path.write_text("\n".join(lines))
+
+
+class Fleet:
+    """Starts, watches and stops the demo's daemons and links."""
+
+    def __init__(self, args: argparse.Namespace, *, sim_options: dict[str, Any] | None = None) -> None:
+        """``args`` as ``mapd demo`` parses them; ``sim_options`` add or override ``[source.sim]`` keys."""
+        self.args = args
+        self.sim_options = sim_options or {}
+        self.n = args.robots
+        self.names = [f"robot{i}" for i in range(self.n)]
+        self.run_dir = args.out / "run"
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.relay: subprocess.Popen[str] | None = None
+        self.ports: dict[str, str] = {}
+
+    # ------------------------------------------------------------------ setup
+    def prepare(self) -> None:
+        if self.run_dir.exists():
+            shutil.rmtree(self.run_dir)
+        self.run_dir.mkdir(parents=True)
+        if self.args.transport == "uwb":
+            self._start_relay()
+        zenoh_ports = [_free_port() for _ in self.names]
+        poses = self._start_poses()
+        for i, name in enumerate(self.names):
+            d = self.run_dir / name
+            (d / "state").mkdir(parents=True)
+            tables: dict[str, dict[str, Any]] = {
+                "robot": {"name": name, "fleet": "demo"},
+                "state": {"dir": str((d / "state").resolve()), "runtime_dir": str((d / "run").resolve())},
+                "log": {"level": "info"},
+            }
+            tables.update(self._source_tables(i))
+            tables["codec"] = {"use": self.args.codec, "keyframe_every": 10, "measure_quality": True}
+            if self.args.transport == "uwb":
+                tables["transports"] = {"use": ["uwb"]}
+                tables["transports.uwb"] = {
+                    "port": self.ports[name],
+                    "link_rate_bps": UWB_RATE,
+                    "mac": "tdma" if self.n > 2 else "none",
+                }
+                tables["transports.uwb.nodes"] = {r: j + 1 for j, r in enumerate(self.names)}
+            else:
+                tables["transports"] = {"use": ["zenoh"]}
+                tables["transports.zenoh"] = {
+                    "mode": "peer",
+                    "listen": [f"tcp/127.0.0.1:{zenoh_ports[i]}"],
+                    "connect": [f"tcp/127.0.0.1:{p}" for j, p in enumerate(zenoh_ports) if j != i],
+                    "multicast_scouting": False,
+                }
+            tables["fusion"] = {"mode": "logodds", "debounce_s": 1.0}
+            tables["fusion.poses"] = {r: list(p) for r, p in poses.items()} if poses else {}
+            write_config(d / "config.toml", tables)
+
+    def _start_relay(self) -> None:
+        """The emulated radio: a separate process joining every robot's socat pty at 12.5 kb/s."""
+        uwb = self.run_dir / "uwb"
+        uwb.mkdir()
+        cmd = [
+            sys.executable,
+            "-m",
+            "transports.uwb.relay",
+            "--robots",
+            str(self.n),
+            "--rate-bps",
+            str(UWB_RATE),
+            "--seed",
+            str(self.args.seed),
+            "--dir",
+            str(uwb),
+            "--drop",
+            str(getattr(self.args, "drop", 0.0)),
+            "--flip",
+            str(getattr(self.args, "flip", 0.0)),
+        ]
+        for outage in getattr(self.args, "outage", []):
+            cmd += ["--outage", outage]
+        self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert self.relay.stdout is not None
+        deadline = time.monotonic() + 15
+        while len(self.ports) < self.n:
+            line = self.relay.stdout.readline()
+            if not line or time.monotonic() > deadline:
+                raise DaemonError(f"the UWB relay did not start: {line.strip() or 'no output'}")
+            if line.startswith("robot "):
+                idx, port = line[len("robot ") :].split(":", 1)
+                self.ports[self.names[int(idx)]] = port.strip()
+
+    def _source_tables(self, i: int) -> dict[str, dict[str, Any]]:
+        if self.args.log is not None:
+            return {
+                "source": {"use": "laserlog"},
+                "source.laserlog": {
+                    "log": str(Path(self.args.log).resolve()),
+                    "robots": self.n,
+                    "index": i,
+                    "every": 20,
+                    # The intel log spans 45 minutes; replay each robot's part within the demo.
+                    "realtime": max(2700.0 / self.args.duration, 1.0),
+                },
+            }
+        return {
+            "source": {"use": "sim"},
+            "source.sim": {
+                "seed": self.args.seed,
+                "robots": self.n,
+                "index": i,
+                "emit_period": 5.0,
+                "realtime": 4.0,
+                "beams": 180,
+                "scan_rate": 2.0,
+                **self.sim_options,
+            },
+        }
+
+    def _start_poses(self) -> dict[str, tuple[float, float, float]]:
+        """Known start poses for known-pose fusion, from the deterministic source itself."""
+        from mapd import config, plugins
+        from mapd.sources.base import SourceContext
+
+        poses = {}
+        for i, name in enumerate(self.names):
+            tables = self._source_tables(i)
+            use = tables["source"]["use"]
+            cls = plugins.load("source", use)
+            opts = config.validate(cls.Options, tables[f"source.{use}"], "demo")
+            pose = cls(opts, SourceContext(robot=name)).start_pose()
+            if pose is None:
+                return {}
+            poses[name] = (round(pose.x, 6), round(pose.y, 6), round(pose.yaw, 6))
+        return poses
+
+    def start(self) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        for name in self.names:
+            d = self.run_dir / name
+            log = open(d / "daemon.log", "wb")  # noqa: SIM115 - lives as long as the process
+            self.procs[name] = subprocess.Popen(
+                [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+
+    def status(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        for name in self.names:
+            sock = self.run_dir / name / "run" / "mapd.sock"
+            try:
+                out[name] = query(sock, timeout=2.0)
+            except DaemonError:
+                continue
+        return out
+
+    def check_alive(self) -> None:
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                tail = (
+                    (self.run_dir / name / "daemon.log").read_text(errors="replace").strip().splitlines()[-5:]
+                )
+                raise DaemonError(f"{name} exited with code {p.returncode}: " + " | ".join(tail))
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int | None]:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        codes: dict[str, int | None] = {}
+        deadline = time.monotonic() + timeout
+        for name, p in self.procs.items():
+            try:
+                codes[name] = p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                codes[name] = None
+        if self.relay is not None and self.relay.poll() is None:
+            self.relay.send_signal(signal.SIGTERM)
+            try:
+                out, _ = self.relay.communicate(timeout=5)
+                (self.run_dir / "uwb" / "relay-stats.json").write_text(
+                    out[out.find("{") :] if "{" in out else out
+                )
+            except subprocess.TimeoutExpired:
+                self.relay.kill()
+        return codes
+
+
+def _progress_line(t: float, snaps: dict[str, dict[str, Any]]) -> str:
+    parts = [f"t={t:5.1f}s"]
+    for name, s in snaps.items():
+        link: dict[str, Any] = next(iter(s.get("links", {}).values()), {})
+        rate = link.get("rate_bps") or UWB_RATE
+        tx = link.get("tx_bps", link.get("goodput_bps"))
+        use = f"{100 * tx / rate:3.0f}%" if isinstance(tx, int | float) else "  -"
+        conf: list[float] = [
+            t["confidence"]
+            for t in (s.get("fusion", {}).get("robots") or {}).values()
+            if isinstance(t, dict) and t.get("confidence") is not None
+        ]
+        peers = ",".join(f"{p}:v{v.get('version', '-')}" for p, v in s.get("peers", {}).items()) or "-"
+        c = s.get("codec", {})
+        parts.append(
+            f"{name} v{s.get('source', {}).get('version', 0)} sent {c.get('keyframes', 0)}k+{c.get('deltas', 0)}d "
+            f"link {use} has[{peers}] conf {min(conf) if conf else float('nan'):.2f}"
+        )
+    return " | ".join(parts)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """Run the demo end to end; returns the exit code."""
+    from mapd.demo.report import write_report
+
+    if args.robots < 2:
+        raise MapdError("the demo needs at least 2 robots")
+    if args.transport == "uwb" and shutil.which("socat") is None:
+        raise MapdError("the UWB demo needs socat: sudo apt-get install -y socat")
+    fleet = Fleet(args)
+    print(
+        f"mapd demo: {args.robots} robots, {args.transport} link, codec {args.codec}, "
+        f"{'log ' + str(args.log) if args.log else 'simulated building seed ' + str(args.seed)}, "
+        f"{args.duration:.0f} s",
+        flush=True,
+    )
+    fleet.prepare()
+    fleet.start()
+    t0 = time.monotonic()
+    snaps: dict[str, dict[str, Any]] = {}
+    try:
+        while (t := time.monotonic() - t0) < args.duration:
+            time.sleep(2.0)
+            fleet.check_alive()
+            snaps = fleet.status() or snaps
+            if snaps:
+                print(_progress_line(t, snaps), flush=True)
+    except KeyboardInterrupt:
+        print("interrupted; stopping robots", flush=True)
+    finally:
+        codes = fleet.stop()
+    bad = {n: c for n, c in codes.items() if c != 0}
+    if bad:
+        print(f"warning: daemons exited with {bad}", file=sys.stderr)
+    summary = write_report(args.out, fleet.run_dir, fleet.names, snaps, args)
+    print(summary)
+    return 0 if not bad else 1

@@ -1,0 +1,1 @@
+"""ROS 2 without a ROS install: ``nav_msgs`` CDR and rmw_zenoh's key expressions (:mod:`~mapd.ros2.cdr`)."""

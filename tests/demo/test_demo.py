@@ -1,0 +1,69 @@
+"""``mapd demo``, the main job, end to end as a user runs it (shortened): outputs exist and make sense."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+needs_socat = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed")
+
+
+@pytest.mark.slow
+@needs_socat
+def test_demo_runs_two_robots_over_uwb_and_writes_its_report(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "mapd", "demo", "--duration", "25", "--out", str(out), "--drop", "0.05"],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    # live progress lines, then the summary table
+    progress = [ln for ln in proc.stdout.splitlines() if ln.startswith("t=")]
+    assert len(progress) >= 5 and "robot0 v" in progress[-1] and "link" in progress[-1]
+    assert "global map" in proc.stdout
+    for name in ("global_map.png", "bandwidth.png", "quality.png"):
+        with Image.open(out / name) as im:
+            assert im.width > 100 and im.height > 100
+    assert (out / "global.yaml").exists() and (out / "global.pgm").exists()
+    with open(out / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    robots = {r["robot"] for r in rows}
+    assert robots == {"robot0", "robot1"}
+    for robot in robots:
+        mine = [r for r in rows if r["robot"] == robot]
+        assert len(mine) >= 3 and mine[0]["kind"] == "keyframe"
+        assert any(r["kind"] == "delta" for r in mine)  # deltas after the first keyframe
+        assert all(float(r["ratio"]) > 1 for r in mine)
+    summary = json.loads((out / "summary.json").read_text())["robots"]
+    for r in summary:
+        # what the radio carried: something, and never more than the paced 12.5 kb/s on average
+        assert 0 < r["link_bps"] <= 12500
+    relay = json.loads((out / "run" / "uwb" / "relay-stats.json").read_text())
+    assert relay["rate_bps"] == 12500 and relay["dropped"] > 0  # the faults reached the radio
+
+
+def test_global_map_picture_names_each_robots_tint() -> None:
+    import numpy as np
+
+    from mapd.demo.report import COLOURS, with_legend
+
+    img = np.full((50, 300, 3), 205, dtype=np.uint8)
+    out = with_legend(img, ["robot0", "robot1", "robot2"])
+    assert out.shape[1] == 300 and out.shape[0] > 50
+    assert np.array_equal(out[:50], img)  # the map itself is untouched
+    strip = out[50:].reshape(-1, 3).astype(int)
+    for i in range(3):
+        tint = (0.55 * 250.0 + 0.45 * COLOURS[i]).astype(int)
+        assert (np.abs(strip - tint).max(axis=1) <= 1).sum() > 50  # a swatch of that robot's colour
+    dark = (strip.max(axis=1) < 80).sum()
+    assert dark > 30  # and text beside the swatches

@@ -1,0 +1,55 @@
+"""Keyframe requests over UWB: the control message and its throttle (the serial test is in test_uwb_serial)."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapd.errors import ProtocolError
+from transports.uwb import keyframe_requests as control
+
+
+def test_request_round_trips_sorted_and_deduplicated() -> None:
+    data = control.pack_request(["robot1", "robot0", "robot1"])
+    assert data.startswith(control.MAGIC)
+    assert control.parse_request(data) == ["robot0", "robot1"]
+    with pytest.raises(ValueError):
+        control.pack_request([])
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"",
+        b"MKFR",
+        b"MKFR\x01",
+        b"MKFR\x02robot0",
+        b"XKFR\x01robot0",
+        b"MKFR\x01robot0\n",
+        b"MKFR\x01\xff\xfe",
+        b"MKFR\x01" + b"a" * 2000,
+    ],
+)
+def test_bad_control_messages_raise_protocol_error(data: bytes) -> None:
+    with pytest.raises(ProtocolError):
+        control.parse_request(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=1100))
+def test_fuzz_parse_only_returns_names_or_raises_protocol_error(data: bytes) -> None:
+    try:
+        names = control.parse_request(data)
+    except ProtocolError:
+        return
+    assert names and all(isinstance(n, str) and n for n in names)
+
+
+def test_throttle_names_every_robot_still_wanted() -> None:
+    r = control.KeyframeRequests(hold_s=5.0)
+    assert r.want("a", 0.0) == ["a"]
+    assert r.want("a", 1.0) is None  # throttled: one request per robot per hold_s
+    assert r.want("b", 2.0) == ["a", "b"]  # supersedes the first message, so it names both
+    assert r.want("a", 5.5) == ["a", "b"]
+    assert r.want("c", 11.0) == ["c"]  # a and b expired

@@ -1,0 +1,329 @@
+"""The asyncio adapter on real serial ports: socat pty pairs joined by the seeded fault relay."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from mapd.envelope import Envelope
+from mapd.errors import TransportError
+from mapd.grid import Pose2D
+from transports.base import (
+    Delivered,
+    Failed,
+    KeyframeNeeded,
+    PeerRestarted,
+    PeerUp,
+    Received,
+    TransportContext,
+    TransportEvent,
+)
+from transports.uwb.faults import Faults
+from transports.uwb.link import UwbOptions, UwbTransport
+from transports.uwb.relay import FaultRelay, MediumRelay
+
+pytestmark = [
+    pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed"),
+    pytest.mark.timeout(60),
+]
+
+RATE = 200_000
+NODES = {"alpha": 1, "beta": 2, "gamma": 3}
+
+
+def envelope(robot: str, version: int, size: int) -> Envelope:
+    return Envelope(
+        fleet="f",
+        robot=robot,
+        version=version,
+        base_version=0,
+        codec="raw",
+        width=10,
+        height=10,
+        resolution=0.05,
+        origin=Pose2D(0.0, 0.0, 0.0),
+        payload=os.urandom(size),
+    )
+
+
+class Robot:
+    """A transport plus the events it emitted."""
+
+    def __init__(
+        self, name: str, port: str, *, key: bytes | None = None, state: Path | None = None, **kw: Any
+    ):
+        self.events: list[TransportEvent] = []
+        self.name = name
+        ctx = TransportContext(
+            robot=name,
+            fleet="f",
+            key=key,
+            max_message_bytes=1 << 20,
+            emit=self.events.append,
+            state_dir=state,
+        )
+        kw.setdefault("link_rate_bps", RATE)
+        names = kw.pop("names", list(NODES))
+        opts = UwbOptions(port=port, nodes={k: v for k, v in NODES.items() if k in names}, **kw)
+        self.t = UwbTransport(opts, ctx)
+
+    def of(self, cls: type) -> list[Any]:
+        return [e for e in self.events if isinstance(e, cls)]
+
+
+async def until(pred: Callable[[], bool], timeout: float) -> None:
+    end = asyncio.get_running_loop().time() + timeout
+    while not pred():
+        if asyncio.get_running_loop().time() > end:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.02)
+
+
+def test_envelope_crosses_a_faulty_link_intact() -> None:
+    async def main() -> None:
+        faults = Faults(drop=0.03, dup=0.03, flip=2e-4, reorder=0.03, outages=((0.4, 0.4),))
+        async with FaultRelay(rate_bps=RATE, faults=faults, seed=7) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"])
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"])
+            await a.t.start()
+            await b.t.start()
+            try:
+                env = envelope("alpha", 3, 30_000)
+                a.t.offer(env)
+                await until(lambda: bool(a.of(Delivered)), 20)
+                await asyncio.sleep(0.3)
+                assert [r.data for r in b.of(Received)] == [env.pack()]
+                assert b.of(Received)[0].peer == "alpha"
+                assert a.of(Delivered) == [Delivered("uwb", "beta", "alpha", 3)]
+                assert PeerUp("uwb", "beta") in a.events and PeerUp("uwb", "alpha") in b.events
+                assert a.t.peers() == ["beta"]
+                sa, sb = a.t.stats(), b.t.stats()
+                for key in (
+                    "bytes_tx",
+                    "bytes_rx",
+                    "goodput_bps",
+                    "resends",
+                    "crc_errors",
+                    "duplicates",
+                    "rtt_ms",
+                ):
+                    assert key in sa
+                assert sa["resends"] > 0 and sb["crc_errors"] + sb["bad_frames"] + sb["duplicates"] > 0
+                # The adapter's own record of its writes: never over the rate in any 1 s window.
+                assert 0 < sa["write_peak_bps_1s"] <= RATE
+                assert relay.stats()["dropped"] > 0
+            finally:
+                await a.t.close()
+                await b.t.close()
+
+    asyncio.run(main())
+
+
+def test_missing_port_is_one_clear_error() -> None:
+    async def main() -> None:
+        r = Robot("alpha", "/dev/does-not-exist-uwb", names=["alpha", "beta"])
+        with pytest.raises(TransportError, match="uwb: serial port /dev/does-not-exist-uwb does not exist"):
+            await r.t.start()
+
+    asyncio.run(main())
+
+
+def test_close_is_prompt_with_a_message_in_flight() -> None:
+    async def main() -> None:
+        async with FaultRelay(rate_bps=12500) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=12500)
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=12500)
+            await a.t.start()
+            await b.t.start()
+            a.t.offer(envelope("alpha", 1, 50_000))
+            await asyncio.sleep(0.5)
+            t0 = time.monotonic()
+            await a.t.close()
+            await b.t.close()
+            assert time.monotonic() - t0 < 1.0
+            assert not a.of(Delivered)
+
+    asyncio.run(main())
+
+
+def test_latest_wins_over_serial() -> None:
+    async def main() -> None:
+        async with FaultRelay(rate_bps=50_000, seed=2) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
+            await a.t.start()
+            await b.t.start()
+            try:
+                v1, v2 = envelope("alpha", 1, 40_000), envelope("alpha", 2, 2_000)
+                a.t.offer(v1)
+                await asyncio.sleep(0.3)
+                a.t.offer(v2)
+                await until(lambda: bool(a.of(Delivered)), 10)
+                await asyncio.sleep(0.3)
+                assert a.of(Delivered) == [Delivered("uwb", "beta", "alpha", 2)]
+                assert [r.data for r in b.of(Received)] == [v2.pack()]
+                assert a.t.stats()["superseded"] == 1
+            finally:
+                await a.t.close()
+                await b.t.close()
+
+    asyncio.run(main())
+
+
+def test_broadcast_medium_three_robots() -> None:
+    async def main() -> None:
+        async with MediumRelay(robots=3, rate_bps=RATE, faults=Faults(drop=0.03), seed=5) as relay:
+            robots = [Robot(n, p, mac="backoff") for n, p in zip(NODES, relay.ports, strict=True)]
+            for r in robots:
+                await r.t.start()
+            try:
+                env = envelope("alpha", 9, 12_000)
+                robots[0].t.offer(env)
+                await until(lambda: len(robots[0].of(Delivered)) == 2, 20)
+                await asyncio.sleep(0.2)
+                assert sorted(d.peer for d in robots[0].of(Delivered)) == ["beta", "gamma"]
+                for r in robots[1:]:
+                    assert [x.data for x in r.of(Received)] == [env.pack()]
+            finally:
+                for r in robots:
+                    await r.t.close()
+
+    asyncio.run(main())
+
+
+def test_signed_link_persists_counter_and_detects_restart(tmp_path: Path) -> None:
+    key = os.urandom(32)
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=RATE, seed=3) as relay:
+            state_a = tmp_path / "a"
+            a = Robot("alpha", relay.ports[0], key=key, state=state_a, names=["alpha", "beta"])
+            b = Robot("beta", relay.ports[1], key=key, state=tmp_path / "b", names=["alpha", "beta"])
+            await a.t.start()
+            await b.t.start()
+            try:
+                a.t.offer(envelope("alpha", 1, 5000))
+                await until(lambda: bool(a.of(Delivered)), 10)
+                counter_file = state_a / "uwb-1.counter"
+                first = int(counter_file.read_text())
+                await a.t.close()
+                # A restart: new session, counters continue above everything the first run reserved.
+                a2 = Robot("alpha", relay.ports[0], key=key, state=state_a, names=["alpha", "beta"])
+                await a2.t.start()
+                env = envelope("alpha", 2, 5000)
+                a2.t.offer(env)
+                await until(lambda: bool(a2.of(Delivered)), 10)
+                assert PeerRestarted("uwb", "alpha") in b.events
+                assert int(counter_file.read_text()) > first
+                assert [r.data for r in b.of(Received)][-1] == env.pack()
+                assert b.t.stats()["replayed"] == 0
+                await a2.t.close()
+            finally:
+                await a.t.close()
+                await b.t.close()
+
+    asyncio.run(main())
+
+
+def test_unsigned_robot_is_ignored_by_a_signed_one() -> None:
+    async def main() -> None:
+        async with FaultRelay(rate_bps=RATE) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], deadline_s=1.5)
+            b = Robot("beta", relay.ports[1], key=os.urandom(32), names=["alpha", "beta"])
+            await a.t.start()
+            await b.t.start()
+            try:
+                a.t.offer(envelope("alpha", 1, 3000))
+                await asyncio.sleep(2.0)
+                assert not b.of(Received) and not b.of(PeerUp)
+                assert b.t.stats()["unsigned"] > 0
+                assert [f.reason for f in a.of(Failed)] == ["deadline"]
+            finally:
+                await a.t.close()
+                await b.t.close()
+
+    asyncio.run(main())
+
+
+def test_mapd_link_send_and_recv_commands(tmp_path: Path) -> None:
+    src = tmp_path / "map.bin"
+    src.write_bytes(os.urandom(15_000))
+    out = tmp_path / "got.bin"
+    exe = [sys.executable, "-m", "mapd.cli"]
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=100_000, faults=Faults(drop=0.02), seed=4) as relay:
+            common = ["--rate-bps", "100000"]
+            recv = await asyncio.create_subprocess_exec(
+                *exe, "link", "recv", "--port", relay.ports[1], "-o", str(out), "--linger", "0.5", *common,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            )  # fmt: skip
+            await asyncio.sleep(0.3)
+            send = await asyncio.create_subprocess_exec(
+                *exe, "link", "send", "--port", relay.ports[0], str(src), *common,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            )  # fmt: skip
+            s_out, s_err = await asyncio.wait_for(send.communicate(), 40)
+            r_out, r_err = await asyncio.wait_for(recv.communicate(), 40)
+            assert send.returncode == 0, s_err.decode()
+            assert recv.returncode == 0, r_err.decode()
+            assert b"goodput" in s_out and b"resends=" in s_out
+            assert b"hash verified" in r_out and b"crc_errors=" in r_out
+            assert out.read_bytes() == src.read_bytes()
+
+    asyncio.run(main())
+
+
+def test_mapd_link_send_to_nobody_fails_cleanly(tmp_path: Path) -> None:
+    src = tmp_path / "x.bin"
+    src.write_bytes(b"hello")
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=100_000) as relay:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "mapd.cli", "link", "send", "--port", relay.ports[0], str(src),
+                "--rate-bps", "100000", "--deadline", "1",
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            )  # fmt: skip
+            _, err = await asyncio.wait_for(proc.communicate(), 20)
+            assert proc.returncode == 1
+            assert err.decode().strip().startswith("mapd: error: uwb:") and b"Traceback" not in err
+            assert len(err.decode().strip().splitlines()) == 1
+
+    asyncio.run(main())
+
+
+def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> None:
+    async def main() -> None:
+        async with FaultRelay(rate_bps=50_000, seed=4) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
+            await a.t.start()
+            await b.t.start()
+            try:
+                await b.t.request_keyframe("alpha")
+                await until(lambda: bool(a.of(KeyframeNeeded)), 10)
+                assert a.of(KeyframeNeeded) == [KeyframeNeeded("uwb", "beta", "alpha")]
+                await b.t.request_keyframe("alpha")  # within keyframe_request_s: not sent again
+                # A map still flows on its own stream, and the control message never shows up as data.
+                env = envelope("alpha", 2, 3000)
+                a.t.offer(env)
+                await until(lambda: bool(b.of(Received)), 10)
+                assert [r.data for r in b.of(Received)] == [env.pack()]
+                assert not a.of(Received)
+                assert b.t.stats()["keyframe_requests_tx"] == 1
+                assert a.t.stats()["keyframe_requests_rx"] == 1
+                assert len(a.of(KeyframeNeeded)) == 1
+            finally:
+                await a.t.close()
+                await b.t.close()
+
+    asyncio.run(main())

@@ -1,0 +1,289 @@
+"""Two and three real zenoh sessions in this process, on loopback TCP with multicast scouting off."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import zenoh
+
+from mapd.codec.api import decode, encode
+from mapd.envelope import Envelope, unpack
+from transports.base import Delivered, KeyframeNeeded, PeerDown, Received
+from transports.zenoh import keys
+
+KEY = bytes(range(32))
+
+
+def run(coro) -> None:  # type: ignore[no-untyped-def]
+    asyncio.run(asyncio.wait_for(coro, 30))
+
+
+def test_an_update_arrives_and_decodes(zk, room_grid) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep]).start()
+        b = await zk.Bot("b", connect=[ep]).start()
+        try:
+            await zk.meet(a, b)
+            payload = encode(room_grid, "raw")
+            env = Envelope(
+                fleet=zk.FLEET,
+                robot="a",
+                version=1,
+                base_version=0,
+                codec="raw",
+                width=room_grid.width,
+                height=room_grid.height,
+                resolution=room_grid.resolution,
+                origin=room_grid.origin,
+                payload=payload,
+            )
+            a.offer(env)
+            await b.wait(lambda: b.received("a"))
+            got = unpack(b.of(Received)[0].data)
+            assert got == env
+            assert decode(got.payload).digest() == room_grid.digest()
+            st_a, st_b = a.t.stats(), b.t.stats()
+            assert st_a["updates_tx"] == 1 and st_a["bytes_tx"] == len(env.pack())
+            # b may also hear v1 again as the reply to its join query: counted as stale, not passed on.
+            assert st_b["updates_rx"] == 1 and len(b.of(Received)) == 1
+            assert st_b["bytes_rx"] == len(env.pack()) * (1 + st_b["stale"])
+            assert st_b["peers"] == 1 and b.t.peers() == ["a"]
+            # The daemon acks after decoding: the sender hears it as Delivered.
+            b.t.ack("a", 1)
+            await a.wait(lambda: a.of(Delivered))
+            assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 1)]
+        finally:
+            await b.t.close()
+            await a.t.close()
+
+    run(main())
+
+
+def test_late_joiner_gets_the_keyframe_then_deltas(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep]).start()
+        a.offer(zk.envelope("a", 1))
+        a.offer(zk.envelope("a", 2, 1))  # nobody hears these two
+        a.offer(zk.envelope("a", 3))
+        a.offer(zk.envelope("a", 4, 3))
+        b = await zk.Bot("b", connect=[ep]).start()
+        try:
+            # b asks for a's latest keyframe (v3) as soon as it sees a.
+            await b.wait(lambda: b.received("a"))
+            assert b.received("a") == [("a", 3, 0)]
+            await a.wait(lambda: a.of(KeyframeNeeded))
+            assert a.of(KeyframeNeeded)[0] == KeyframeNeeded("zenoh", "b", "a")
+            # The next delta on the keyframe it now holds applies in order.
+            a.offer(zk.envelope("a", 5, 3))
+            await b.wait(lambda: len(b.received("a")) == 2)
+            assert b.received("a") == [("a", 3, 0), ("a", 5, 3)]
+            assert b.t.stats()["keyframe_queries"] == 1 and b.t.stats()["gaps"] == 0
+        finally:
+            await a.t.close()
+            await b.t.close()
+
+    run(main())
+
+
+def test_a_gap_leads_to_recovery_within_one_update(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        b = await zk.Bot("b", listen=[ep]).start()
+        a = await zk.Bot("a", connect=[ep]).start()
+        try:
+            await zk.meet(a, b)
+            a.offer(zk.envelope("a", 1))
+            await b.wait(lambda: b.received("a"))
+            queries = b.t.stats()["keyframe_queries"]
+            # Version 2 (a keyframe) is lost on the way: a's daemon holds it, b never saw it.
+            a.keyframe = zk.envelope("a", 2)
+            a.offer(zk.envelope("a", 3, 2))
+            # b must not pass on the delta (its base is unknown), and fetches keyframe 2 at once.
+            await b.wait(lambda: len(b.received("a")) == 2)
+            assert b.received("a") == [("a", 1, 0), ("a", 2, 0)]
+            st = b.t.stats()
+            assert st["gaps"] == 1 and st["keyframe_queries"] == queries + 1
+            a.offer(zk.envelope("a", 4, 2))
+            await b.wait(lambda: len(b.received("a")) == 3)
+            assert b.received("a")[-1] == ("a", 4, 2)
+        finally:
+            await a.t.close()
+            await b.t.close()
+
+    run(main())
+
+
+def test_request_keyframe_on_demand(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep]).start()
+        b = await zk.Bot("b", connect=[ep]).start()
+        try:
+            await zk.meet(a, b)
+            a.offer(zk.envelope("a", 1))
+            await b.wait(lambda: len(b.received("a")) == 1)
+            a.offer(zk.envelope("a", 2, 1))
+            await b.wait(lambda: len(b.received("a")) == 2)
+            # The daemon failed to decode v2: it asks again and gets the keyframe, even though v1 is older.
+            await b.t.request_keyframe("a")
+            await b.wait(lambda: len(b.received("a")) == 3)
+            assert b.received("a")[-1] == ("a", 1, 0)
+        finally:
+            await a.t.close()
+            await b.t.close()
+
+    run(main())
+
+
+def test_three_sessions_presence_appears_and_disappears(zk) -> None:
+    async def main() -> None:
+        pa, pb, pc = (zk.free_port() for _ in range(3))
+        a = await zk.Bot("a", listen=[zk.endpoint(pa)]).start()
+        b = await zk.Bot("b", listen=[zk.endpoint(pb)], connect=[zk.endpoint(pa)]).start()
+        c = await zk.Bot("c", listen=[zk.endpoint(pc)], connect=[zk.endpoint(pa), zk.endpoint(pb)]).start()
+        try:
+            for bot, others in ((a, ["b", "c"]), (b, ["a", "c"]), (c, ["a", "b"])):
+                await bot.wait(lambda bot=bot, others=others: bot.t.peers() == others)
+            a.offer(zk.envelope("a", 1))
+            await b.wait(lambda: b.received("a"))
+            await c.wait(lambda: c.received("a"))
+            start = time.monotonic()
+            await c.t.close()
+            await a.wait(lambda: PeerDown("zenoh", "c") in a.events)
+            await b.wait(lambda: PeerDown("zenoh", "c") in b.events)
+            assert time.monotonic() - start < 2.0  # undeclared on close, not left to a lease timeout
+            assert a.t.peers() == ["b"] and b.t.peers() == ["a"]
+            assert a.t.stats()["peers"] == 1
+        finally:
+            for bot in (a, b, c):
+                await bot.t.close()
+
+    run(main())
+
+
+def test_bad_signatures_are_dropped_and_counted(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep], key=KEY).start()
+        b = await zk.Bot("b", connect=[ep], key=KEY).start()
+        rogue = await zk.Bot("m", connect=[ep], key=b"not the fleet key, not at all!!!").start()
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", f'["{ep}"]')
+        raw = zenoh.open(conf)
+        try:
+            await zk.meet(a, b, rogue)
+            # raw learns b's token after b's subscriber (gossip connects it to b directly).
+            seen: list[str] = []
+            token_sub = raw.liveliness().declare_subscriber(
+                keys.presence_key(zk.FLEET, "b"), lambda s: seen.append(str(s.key_expr)), history=True
+            )
+            await b.wait(lambda: bool(seen))
+            rogue.offer(zk.envelope("m", 1, key=b"not the fleet key, not at all!!!"))
+            raw.put(keys.update_key(zk.FLEET, "a"), zk.envelope("a", 7).pack())  # unsigned, as if from a
+            raw.put(keys.update_key(zk.FLEET, "a"), b"\xc1 not msgpack")
+            raw.put(keys.ack_key(zk.FLEET, "b", "a"), (1).to_bytes(8, "big") + bytes(16))  # forged ack
+            # m's update may be heard twice (published, and as the reply to b's join query of m).
+            await b.wait(lambda: b.t.stats()["bad_signature"] >= 2 and b.t.stats()["dropped"] == 1)
+            await a.wait(lambda: a.t.stats()["bad_signature"] >= 1)
+            # A properly signed update still arrives, and nothing forged was ever emitted.
+            a.offer(zk.envelope("a", 2, key=KEY))
+            await b.wait(lambda: b.received())
+            assert b.received() == [("a", 2, 0)]
+            assert not a.of(Delivered)
+            b.t.ack("a", 2)
+            await a.wait(lambda: a.of(Delivered))
+            assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 2)]
+        finally:
+            token_sub.undeclare()
+            raw.close()
+            for bot in (rogue, b, a):
+                await bot.t.close()
+
+    run(main())
+
+
+def test_latest_wins_under_a_burst(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep]).start()
+        b = await zk.Bot("b", connect=[ep]).start()
+        try:
+            await zk.meet(a, b)
+            blob = bytes(512 * 1024)
+            n = 60
+            for v in range(1, n + 1):  # offered faster than they can be sent
+                a.offer(zk.envelope("a", v, payload=blob))
+            await b.wait(lambda: b.received() and b.received()[-1][1] == n)
+            got = [v for _, v, _ in b.received()]
+            assert got == sorted(set(got))  # in order, never a stale one after a newer one
+            st = a.t.stats()
+            assert st["replaced"] > 0 and st["updates_tx"] + st["replaced"] == n
+            assert len(got) == st["updates_tx"]
+        finally:
+            await a.t.close()
+            await b.t.close()
+
+    run(main())
+
+
+def test_close_is_prompt_idempotent_and_final(zk) -> None:
+    async def main() -> None:
+        ep = zk.endpoint(zk.free_port())
+        a = await zk.Bot("a", listen=[ep]).start()
+        b = await zk.Bot("b", connect=[ep]).start()
+        await zk.meet(a, b)
+        start = time.monotonic()
+        await a.t.close()
+        await a.t.close()
+        assert time.monotonic() - start < 1.0
+        a.offer(zk.envelope("a", 1))  # after close: ignored, not an error
+        await b.wait(lambda: b.of(PeerDown))
+        await asyncio.sleep(0.1)
+        assert not b.of(Received) and a.t.stats()["updates_tx"] == 0
+        await b.t.close()
+        # zenoh's callback threads have ended too: one still ending at exit would abort the process.
+        assert not [t.name for t in threading.enumerate() if "pyo3-closure" in t.name]
+
+    run(main())
+
+
+def test_oversized_messages_never_reach_mapd(zk) -> None:
+    async def main() -> None:
+        limit = 256 * 1024
+        ep = zk.endpoint(zk.free_port())
+        b = await zk.Bot("b", listen=[ep], max_message_bytes=limit).start()
+        a = await zk.Bot("a", connect=[ep], max_message_bytes=limit).start()
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", f'["{ep}"]')
+        raw = zenoh.open(conf)
+        seen: list[str] = []
+        token_sub = raw.liveliness().declare_subscriber(
+            keys.presence_key(zk.FLEET, "b"), lambda s: seen.append(str(s.key_expr)), history=True
+        )
+        try:
+            await zk.meet(a, b)
+            await b.wait(lambda: bool(seen))
+            # zenoh itself refuses a message past the cap, so it is never even allocated for mapd.
+            raw.put(keys.update_key(zk.FLEET, "x"), bytes(4 * limit))
+            raw.put(keys.update_key(zk.FLEET, "x"), bytes(limit // 2))  # under the cap: mapd sees it
+            await b.wait(lambda: b.t.stats()["dropped"] >= 1)
+            await asyncio.sleep(0.1)
+            assert b.t.stats()["bytes_rx"] == limit // 2 and b.t.stats()["dropped"] == 1
+            # And we never send one: the offer is refused and counted.
+            a.offer(zk.envelope("a", 1, payload=bytes(limit)))
+            a.offer(zk.envelope("a", 2, payload=b"small"))
+            await b.wait(lambda: b.received("a"))
+            assert b.received("a") == [("a", 2, 0)] and a.t.stats()["oversize"] == 1
+        finally:
+            token_sub.undeclare()
+            raw.close()
+            await a.t.close()
+            await b.t.close()
+
+    run(main())

@@ -1,0 +1,133 @@
+"""The receiver's view of a peer: its session, the messages being reassembled, what was delivered.
+
+Pure, bounded bookkeeping used by :mod:`transports.uwb.arq` (the rules are written there). Every
+table here has a fixed cap, so a peer (or a forger with a valid CRC) cannot grow memory without
+bound: a few partial messages per peer, a short memory of completed and rejected message ids, and a
+short list of acks owed.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+
+from transports.uwb.sending import HASH_LEN, message_hash
+from transports.uwb.wire import MAX_BITMAP
+
+MAX_ACKS_OWED = 16
+REMEMBER_COMPLETED = 64
+REMEMBER_REJECTED = 16
+
+
+@dataclass
+class Partial:
+    """A message being reassembled from chunks addressed by index."""
+
+    msg: int
+    stream: int
+    count: int
+    total: int
+    gen: int
+    last: float
+    chunks: dict[int, bytes] = field(default_factory=dict)
+    held: int = 0
+    base: int = 0  # lowest index not held
+    top: int = -1  # highest index held
+    fresh: int = 0  # chunks added since the last ack
+
+    def add(self, index: int, payload: bytes, now: float) -> bool:
+        """Store a chunk; False when it was already held (a duplicate)."""
+        if index in self.chunks:
+            return False
+        self.chunks[index] = payload
+        self.held += len(payload)
+        self.top = max(self.top, index)
+        self.fresh += 1
+        self.last = now
+        while self.base in self.chunks:
+            self.base += 1
+        return True
+
+    def complete(self) -> bool:
+        return len(self.chunks) == self.count
+
+    def verified(self) -> bytes | None:
+        """The message without its hash trailer when lengths and hash agree; else None."""
+        body = b"".join(self.chunks[i] for i in range(self.count))
+        if len(body) != self.total or len(body) < HASH_LEN:
+            return None
+        data, digest = body[:-HASH_LEN], body[-HASH_LEN:]
+        return data if message_hash(data) == digest else None
+
+    def bitmap(self) -> bytes:
+        out = bytearray(MAX_BITMAP)
+        for i in range(self.base + 1, min(self.count, self.base + 1 + 8 * MAX_BITMAP)):
+            if i in self.chunks:
+                k = i - self.base - 1
+                out[k >> 3] |= 1 << (k & 7)
+        return bytes(out.rstrip(b"\x00"))
+
+
+class PeerState:
+    """Everything one node knows about one peer as a receiver: its session and its messages."""
+
+    def __init__(self, peer: int, session: int, now: float, max_partials: int) -> None:
+        self.id = peer
+        self.session = session
+        self.retired: deque[int] = deque(maxlen=4)
+        self.last_heard = now
+        self.up = True
+        self.max_partials = max_partials
+        self.partials: dict[int, Partial] = {}
+        self.stream_top: dict[int, int] = {}
+        self.completed: OrderedDict[int, int] = OrderedDict()
+        self.rejected: OrderedDict[int, None] = OrderedDict()
+        self.acks_due: OrderedDict[int, float] = OrderedDict()
+        self._gen = 0
+
+    def next_gen(self) -> int:
+        self._gen = (self._gen + 1) & 0xFF
+        return self._gen
+
+    def held(self) -> int:
+        return sum(p.held for p in self.partials.values())
+
+    def restart(self, session: int) -> int:
+        """The peer came back with a new session: forget everything; return the bytes released."""
+        self.retired.append(self.session)
+        self.session = session
+        released = self.held()
+        self.partials.clear()
+        self.stream_top.clear()
+        self.completed.clear()
+        self.rejected.clear()
+        self.acks_due.clear()
+        return released
+
+    def owe_ack(self, msg: int, due: float) -> None:
+        """Schedule an ack for ``msg`` no later than ``due``; the oldest owed ack goes when full."""
+        if msg in self.acks_due:
+            self.acks_due[msg] = min(self.acks_due[msg], due)
+            return
+        if len(self.acks_due) >= MAX_ACKS_OWED:
+            self.acks_due.popitem(last=False)
+        self.acks_due[msg] = due
+
+    def remember_completed(self, msg: int, gen: int) -> None:
+        self.completed[msg] = gen
+        while len(self.completed) > REMEMBER_COMPLETED:
+            self.completed.popitem(last=False)
+
+    def remember_rejected(self, msg: int) -> None:
+        self.rejected[msg] = None
+        while len(self.rejected) > REMEMBER_REJECTED:
+            self.rejected.popitem(last=False)
+
+    def drop_partial(self, msg: int) -> int:
+        """Forget a partial message; return the bytes released."""
+        p = self.partials.pop(msg, None)
+        return p.held if p else 0
+
+    def oldest_partial(self, exclude: int | None = None) -> Partial | None:
+        cands = [p for p in self.partials.values() if p.msg != exclude]
+        return min(cands, key=lambda p: p.last) if cands else None

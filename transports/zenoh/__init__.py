@@ -1,0 +1,8 @@
+"""The ``zenoh`` transport: pub/sub over Wi-Fi with liveliness and a keyframe queryable.
+
+* :mod:`~transports.zenoh.core` holds the rules, sans-I/O (what to publish, what to ack, when);
+* :mod:`~transports.zenoh.link` is the asyncio adapter registered as the ``zenoh`` plugin;
+* :mod:`~transports.zenoh.keys` names the key expressions; :mod:`~transports.zenoh.session` builds
+  the zenoh config; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
+  :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads.
+"""

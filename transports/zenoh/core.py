@@ -1,0 +1,331 @@
+"""The sans-I/O core of the zenoh transport: what to do with each thing that arrives.
+
+No zenoh, asyncio or clock in here: the adapter (:mod:`transports.zenoh.link`) feeds it key
+expressions, payload bytes and ``now``, and carries out the :class:`Step` it gets back (events to
+emit, keyframe queries to send). The rules:
+
+* **Verify before anything.** An update or query reply is unpacked with the fleet key, fleet id and
+  size limit; a bad or missing signature counts in ``bad_signature``, anything else malformed (or an
+  envelope whose robot differs from the key it came on) in ``dropped``. Neither is ever emitted.
+* **Bases.** Per robot, the core remembers the last version it passed on and the last
+  ``base_window`` versions passed on. A keyframe newer than the last version is passed on. A delta
+  newer than the last version is passed on when its base is one of the remembered versions (the
+  sender codes against the newest version every peer *acked*, which may trail the newest one seen).
+  Anything else newer is a **gap** (a lost update, a late join, an unknown base): it is dropped,
+  counted, and the robot's latest keyframe is queried. Versions at or below the last one are stale
+  (a duplicate, or a query reply older than what we hold) and are dropped.
+* **Queries** go to ``mapd/<fleet>/<robot>/latest?from=<us>``; at most one per robot is in flight
+  until its replies end or ``query_timeout_s`` passes; a gap seen meanwhile asks once more when it
+  ends (the reply may predate the gap). A peer that appears with no map known yet is
+  queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
+  robot's versions, so the keyframe that answers is accepted whatever its version.
+* **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
+  forgets the robot's versions (a restarted robot counts from 1 again).
+* **Acks** (see :func:`pack_ack`): 8 bytes of big-endian version, plus a 16-byte HMAC when the
+  fleet has a key. A valid ack of one of our own offered versions becomes ``Delivered``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapd.envelope import Envelope, unpack
+from mapd.errors import EnvelopeError
+from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
+from transports.rtt import RttEstimator
+from transports.zenoh import keys
+
+NAME = "zenoh"
+_ACK = struct.Struct(">Q")
+ACK_SIG_LEN = 16
+_MAX_VERSION = 1 << 63
+#: Own versions whose offer time is kept for RTT samples.
+RTT_VERSIONS = 16
+
+
+class AckSignatureError(EnvelopeError):
+    """An ack is unsigned while the fleet has a key, or its signature does not match."""
+
+
+def _ack_mac(key: bytes, fleet: str, peer: str, robot: str, body: bytes) -> bytes:
+    msg = b"mapd-ack/1\0" + "\0".join((fleet, peer, robot)).encode() + b"\0" + body
+    return hmac.new(key, msg, hashlib.sha256).digest()[:ACK_SIG_LEN]
+
+
+def pack_ack(version: int, *, key: bytes | None, fleet: str, peer: str, robot: str) -> bytes:
+    """The payload ``peer`` publishes to say it applied ``robot``'s ``version``."""
+    if not 0 < version < _MAX_VERSION:
+        raise ValueError(f"ack version {version} is out of range")
+    body = _ACK.pack(version)
+    return body + _ack_mac(key, fleet, peer, robot, body) if key is not None else body
+
+
+def unpack_ack(data: bytes, *, key: bytes | None, fleet: str, peer: str, robot: str) -> int:
+    """The version in an ack from ``peer``; :class:`EnvelopeError` when malformed or badly signed."""
+    if len(data) not in (_ACK.size, _ACK.size + ACK_SIG_LEN):
+        raise EnvelopeError(f"ack from '{peer}' is {len(data)} bytes, expected 8 or 24")
+    (version,) = _ACK.unpack_from(data)
+    if key is not None:
+        sig = data[_ACK.size :]
+        if not sig:
+            raise AckSignatureError(f"unsigned ack from '{peer}' while a fleet key is set")
+        if not hmac.compare_digest(sig, _ack_mac(key, fleet, peer, robot, data[: _ACK.size])):
+            raise AckSignatureError(f"bad signature on ack from '{peer}'")
+    if not 0 < version < _MAX_VERSION:
+        raise EnvelopeError(f"ack from '{peer}' names version {version}")
+    return int(version)
+
+
+@dataclass
+class Step:
+    """What the adapter must do after feeding the core one input."""
+
+    events: list[TransportEvent] = field(default_factory=list)
+    #: Robots whose latest keyframe to query now.
+    queries: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Robot:
+    last: int = 0
+    bases: deque[int] = field(default_factory=deque)
+    alive: bool = False
+    query_until: float | None = None
+    #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
+    regap: bool = False
+
+    def forget(self) -> None:
+        self.last = 0
+        self.bases.clear()
+
+
+class ZenohCore:
+    """Receive-side state and counters of one robot's zenoh link (see the module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        robot: str,
+        fleet: str,
+        key: bytes | None,
+        max_message_bytes: int,
+        query_timeout_s: float = 2.0,
+        base_window: int = 8,
+        max_peers: int = 64,
+    ) -> None:
+        if not keys.valid_name(robot) or not keys.valid_name(fleet):
+            raise ValueError(f"robot '{robot}' or fleet '{fleet}' is not a valid id")
+        self.robot = robot
+        self.fleet = fleet
+        self.key = key
+        self.max_message_bytes = max_message_bytes
+        self.query_timeout_s = query_timeout_s
+        self.base_window = base_window
+        self.max_peers = max_peers
+        self._robots: dict[str, _Robot] = {}
+        self._max_offered = 0
+        # When each recent own version was offered, for the offer-to-ack time (bounded: the oldest
+        # go first; an ack of a forgotten version just gives no sample).
+        self._offered_at: dict[int, float] = {}
+        self._rtt = RttEstimator()
+        self.counters = dict.fromkeys(
+            (
+                "bytes_rx",
+                "updates_rx",
+                "gaps",
+                "keyframe_queries",
+                "bad_signature",
+                "dropped",
+                "stale",
+                "acks_rx",
+                "queries_served",
+            ),
+            0,
+        )
+
+    # -- state -------------------------------------------------------------------------------------
+
+    def _state(self, robot: str) -> _Robot | None:
+        st = self._robots.get(robot)
+        if st is None:
+            if len(self._robots) >= self.max_peers:
+                return None
+            st = self._robots[robot] = _Robot()
+        return st
+
+    def peers(self) -> list[str]:
+        """Robots whose liveliness token is up."""
+        return sorted(r for r, st in self._robots.items() if st.alive)
+
+    def last_version(self, robot: str) -> int:
+        """The last version of ``robot`` passed on (0: none, or forgotten)."""
+        st = self._robots.get(robot)
+        return st.last if st is not None else 0
+
+    def stats(self) -> dict[str, Any]:
+        srtt = self._rtt.srtt
+        rtt = round(1000 * srtt, 1) if srtt is not None else None
+        return {**self.counters, "peers": len(self.peers()), "rtt_ms": rtt}
+
+    # -- inputs ------------------------------------------------------------------------------------
+
+    def offered(self, envelope: Envelope, now: float | None = None) -> None:
+        """Our daemon offered ``envelope``: acks up to its version are plausible from now on.
+
+        With ``now``, an ack of this version later gives an RTT sample (offer to ack: publish,
+        the peer's verify and decode, and the ack's way back).
+        """
+        if envelope.robot == self.robot:
+            self._max_offered = max(self._max_offered, envelope.version)
+            if now is not None:
+                self._offered_at[envelope.version] = now
+                while len(self._offered_at) > RTT_VERSIONS:
+                    del self._offered_at[min(self._offered_at)]
+
+    def on_update(self, key_expr: str, data: bytes, now: float) -> Step:
+        """A sample arrived on an update key."""
+        robot = keys.parse_update(self.fleet, key_expr)
+        if robot is None or robot == self.robot:
+            self.counters["dropped"] += 1
+            return Step()
+        return self._on_envelope(robot, data, now, from_query=False)
+
+    def on_reply(self, robot: str, data: bytes, now: float) -> Step:
+        """A reply to our keyframe query of ``robot`` arrived."""
+        return self._on_envelope(robot, data, now, from_query=True)
+
+    def query_done(self, robot: str, now: float) -> Step:
+        """Our query of ``robot`` has ended (all replies in, or timed out)."""
+        step = Step()
+        st = self._robots.get(robot)
+        if st is not None:
+            st.query_until = None
+            if st.regap:
+                self._query(robot, st, now, step)
+        return step
+
+    def on_presence(self, key_expr: str, alive: bool, now: float) -> Step:
+        """A liveliness token appeared (``alive``) or vanished."""
+        robot = keys.parse_presence(self.fleet, key_expr)
+        if robot is None or robot == self.robot:
+            return Step()
+        st = self._state(robot) if alive else self._robots.get(robot)
+        if st is None:
+            if alive:
+                self.counters["dropped"] += 1
+            return Step()
+        step = Step()
+        if alive and not st.alive:
+            st.alive = True
+            step.events.append(PeerUp(transport=NAME, peer=robot))
+            if st.last == 0:
+                self._query(robot, st, now, step)
+        elif not alive and st.alive:
+            # Forget it all: a restarted robot counts from 1 again, and its slot is free.
+            del self._robots[robot]
+            step.events.append(PeerDown(transport=NAME, peer=robot))
+        return step
+
+    def on_ack(self, key_expr: str, data: bytes, now: float | None = None) -> Step:
+        """A peer's ack of one of our versions arrived (at ``now``, for the RTT)."""
+        peer = keys.parse_ack(self.fleet, self.robot, key_expr)
+        if peer is None or peer == self.robot:
+            self.counters["dropped"] += 1
+            return Step()
+        try:
+            version = unpack_ack(data, key=self.key, fleet=self.fleet, peer=peer, robot=self.robot)
+        except AckSignatureError:
+            self.counters["bad_signature"] += 1
+            return Step()
+        except EnvelopeError:
+            self.counters["dropped"] += 1
+            return Step()
+        if version > self._max_offered:
+            self.counters["dropped"] += 1  # an ack of a version we never sent: not a usable base
+            return Step()
+        self.counters["acks_rx"] += 1
+        sent = self._offered_at.get(version)
+        if now is not None and sent is not None and now >= sent:
+            self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
+        return Step(events=[Delivered(transport=NAME, peer=peer, robot=self.robot, version=version)])
+
+    def on_query(self, asker: str | None) -> Step:
+        """A peer queried our latest keyframe; ``asker`` is its ``from`` parameter, if any."""
+        self.counters["queries_served"] += 1
+        if asker is None or not keys.valid_name(asker) or asker == self.robot:
+            return Step()
+        return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
+
+    def request_keyframe(self, robot: str, now: float) -> Step:
+        """The daemon cannot use what it holds of ``robot``: forget it and query a keyframe."""
+        step = Step()
+        if not keys.valid_name(robot) or robot == self.robot:
+            return step
+        st = self._state(robot)
+        if st is not None:
+            st.forget()
+            self._query(robot, st, now, step)
+        return step
+
+    def ack(self, robot: str, version: int) -> tuple[str, bytes]:
+        """Key and payload of our ack of ``robot``'s ``version``."""
+        payload = pack_ack(version, key=self.key, fleet=self.fleet, peer=self.robot, robot=robot)
+        return keys.ack_key(self.fleet, self.robot, robot), payload
+
+    # -- rules -------------------------------------------------------------------------------------
+
+    def _query(self, robot: str, st: _Robot, now: float, step: Step) -> None:
+        if st.query_until is not None and now < st.query_until:
+            st.regap = True
+            return
+        st.regap = False
+        st.query_until = now + self.query_timeout_s
+        self.counters["keyframe_queries"] += 1
+        step.queries.append(robot)
+
+    def _verify(self, data: bytes) -> Envelope | None:
+        try:
+            return unpack(data, max_bytes=self.max_message_bytes, key=self.key, fleet=self.fleet)
+        except EnvelopeError:
+            pass
+        # Rare path: tell a signature problem from other damage, for the counters.
+        if self.key is not None:
+            try:
+                unpack(data, max_bytes=self.max_message_bytes, key=None, fleet=self.fleet)
+            except EnvelopeError:
+                pass
+            else:
+                self.counters["bad_signature"] += 1
+                return None
+        self.counters["dropped"] += 1
+        return None
+
+    def _on_envelope(self, robot: str, data: bytes, now: float, *, from_query: bool) -> Step:
+        self.counters["bytes_rx"] += len(data)
+        env = self._verify(data)
+        if env is None:
+            return Step()
+        st = self._state(robot)
+        if env.robot != robot or st is None:
+            self.counters["dropped"] += 1
+            return Step()
+        if env.version <= st.last:
+            self.counters["stale"] += 1
+            return Step()
+        if env.is_keyframe or env.base_version in st.bases:
+            st.last = env.version
+            st.bases.append(env.version)
+            while len(st.bases) > self.base_window:
+                st.bases.popleft()
+            self.counters["updates_rx"] += 1
+            return Step(events=[Received(transport=NAME, peer=robot, data=data)])
+        self.counters["gaps"] += 1
+        step = Step()
+        if not from_query:
+            self._query(robot, st, now, step)
+        return step

@@ -1,0 +1,374 @@
+"""Transport ``zenoh``: map updates over eclipse-zenoh (pub/sub, liveliness, a keyframe queryable).
+
+Where robots have Wi-Fi, and in every multi-robot test on one machine, maps move over zenoh: peer
+to peer with no server, through zenoh routers as a fleet grows, and on the same bus as ROS 2's
+rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens to each arrival
+(verification, gaps, keyframe queries, presence, acks) is decided by the sans-I/O core in
+:mod:`transports.zenoh.core`. This module is the adapter between zenoh's threads and asyncio:
+
+* **Threads.** zenoh's callbacks run on zenoh's threads; they copy the key and payload and hand
+  them to the loop with ``call_soon_threadsafe``, nothing more. Every blocking zenoh call (open,
+  declare, put, get, reply, undeclare, close) runs on one daemon thread, the
+  :class:`~transports.zenoh.jobs.JobQueue`.
+* **Latest wins.** ``offer`` packs the envelope and puts it in the outbox under the key
+  ``("update", robot)``: while a put is in flight, a newer offer replaces the one still waiting, so
+  no stale version is ever queued. Acks are latest-wins per robot too.
+* **Keyframes.** The queryable ``mapd/<fleet>/<robot>/latest`` answers with
+  ``ctx.latest_keyframe()`` (the daemon's latest keyframe), or else the last keyframe offered here.
+  A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one.
+* **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
+  decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
+  ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, HMAC-signed with the fleet key). The robot
+  that sent it hears the ack and emits ``Delivered(peer=us, robot=it, version)``, which makes that
+  version a delta base for us. Acks are only accepted for versions that robot actually offered.
+* **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
+  outbox thread, bounded by ``close_timeout_s``) undeclares the liveliness token first, so peers
+  see us leave at once, then subscribers, queryable and publisher, closes the session, and waits
+  for zenoh's callback threads to end (one still ending at interpreter exit aborts the process;
+  see :mod:`transports.zenoh.handlers`). ``close`` never takes much longer than ``close_timeout_s``;
+  the outbox thread is a daemon thread, so even a zenoh call stuck past it cannot hold the exit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable, Hashable
+from typing import Any
+
+from mapd.envelope import Envelope
+from mapd.errors import TransportError
+from transports.base import Transport, TransportContext, TransportOptions
+from transports.zenoh import keys
+from transports.zenoh.core import NAME, Step, ZenohCore
+from transports.zenoh.handlers import HandlerSet
+from transports.zenoh.jobs import JobQueue
+from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
+
+log = logging.getLogger(__name__)
+
+
+class ZenohTransport(Transport):
+    """The ``zenoh`` transport plugin (options: :class:`~transports.zenoh.session.ZenohOptions`)."""
+
+    name = NAME
+    Options = ZenohOptions
+
+    def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
+        super().__init__(options, ctx)
+        opts = self.options
+        if not isinstance(opts, ZenohOptions):
+            raise TransportError(f"zenoh: options must be ZenohOptions, not {type(opts).__name__}")
+        self.opts: ZenohOptions = opts
+        if not keys.valid_name(ctx.robot) or not keys.valid_name(ctx.fleet):
+            raise TransportError(f"zenoh: robot '{ctx.robot}' or fleet '{ctx.fleet}' is not a valid id")
+        self.core = ZenohCore(
+            robot=ctx.robot,
+            fleet=ctx.fleet,
+            key=ctx.key,
+            max_message_bytes=ctx.max_message_bytes,
+            query_timeout_s=opts.query_timeout_s,
+            base_window=opts.base_window,
+            max_peers=opts.max_peers,
+        )
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._jobs: JobQueue | None = None
+        self._session: Any = None
+        self._publisher: Any = None
+        self._entities: list[Any] = []  # undeclared in reverse order at close
+        self._token: Any = None
+        self._closing = False
+        self._closed = False
+        self._last_keyframe: bytes | None = None
+        self._kf_cache: tuple[Envelope, bytes] | None = None
+        self._handlers = HandlerSet()
+        self._tx_lock = threading.Lock()
+        self._tx = {"bytes_tx": 0, "updates_tx": 0, "acks_tx": 0, "errors": 0, "oversize": 0}
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open the zenoh session and declare everything; :class:`TransportError` on failure."""
+        if self._jobs is not None:
+            raise TransportError("zenoh: transport already started")
+        conf = build_config(self.opts, self.ctx.max_message_bytes)
+        self._loop = asyncio.get_running_loop()
+        self._jobs = JobQueue(
+            f"mapd-zenoh-{self.ctx.robot}", max_pending=self.opts.max_pending, on_error=self._send_failed
+        )
+        try:
+            await asyncio.wrap_future(self._jobs.call(lambda: self._open(conf)))
+        except BaseException as exc:
+            # Cancelled mid-open, the session may still come up: close whatever did, then end.
+            outbox, self._jobs = self._jobs, None
+            outbox.call(lambda: self._shutdown(time.monotonic() + self.opts.close_timeout_s))
+            outbox.finish()
+            if isinstance(exc, Exception) and not isinstance(exc, TransportError):
+                raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
+            raise
+
+    def _open(self, conf: Any) -> None:
+        import zenoh
+
+        fleet, me, cb = self.ctx.fleet, self.ctx.robot, self._handlers.callback
+        session = zenoh.open(conf)
+        try:
+            remote = zenoh.Locality.REMOTE
+            cc = (
+                zenoh.CongestionControl.BLOCK
+                if self.opts.congestion == "block"
+                else zenoh.CongestionControl.DROP
+            )
+            ents = self._entities
+            ents.append(
+                session.declare_subscriber(
+                    keys.all_updates(fleet), cb(self._cb_update), allowed_origin=remote
+                )
+            )
+            ents.append(
+                session.declare_subscriber(keys.acks_for(fleet, me), cb(self._cb_ack), allowed_origin=remote)
+            )
+            ents.append(
+                session.liveliness().declare_subscriber(
+                    keys.all_presence(fleet), cb(self._cb_presence), history=True
+                )
+            )
+            ents.append(
+                session.declare_queryable(keys.latest_key(fleet, me), cb(self._cb_query), complete=True)
+            )
+            self._publisher = session.declare_publisher(keys.update_key(fleet, me), congestion_control=cc)
+            ents.append(self._publisher)
+            # Last, so a peer that sees us can already query us.
+            self._token = session.liveliness().declare_token(keys.presence_key(fleet, me))
+        except BaseException:
+            self._entities.clear()
+            self._publisher = None
+            session.close()
+            raise
+        self._session = session
+
+    async def close(self) -> None:
+        """Undeclare and close, in order, within ``close_timeout_s``; safe to call twice."""
+        if self._closed:
+            return
+        self._closed = self._closing = True
+        outbox = self._jobs
+        if outbox is None:
+            return
+        outbox.discard_pending()
+        deadline = time.monotonic() + self.opts.close_timeout_s
+        fut = outbox.call(lambda: self._shutdown(deadline))
+        try:
+            await asyncio.wait_for(asyncio.wrap_future(fut), self.opts.close_timeout_s)
+        except TimeoutError:
+            log.warning(
+                "zenoh: session did not close within %.1f s; leaving it to the exit",
+                self.opts.close_timeout_s,
+            )
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if task is not None and task.cancelling():
+                outbox.stop(0.0)
+                raise
+            # Otherwise the outbox had stopped already and cancelled the job: nothing is open.
+        except Exception as exc:
+            log.warning("zenoh: error while closing: %s", zenoh_message(exc))
+        outbox.stop(0.2)
+
+    def _shutdown(self, deadline: float) -> None:
+        for ent in [self._token, *reversed(self._entities)]:
+            if ent is None:
+                continue
+            try:
+                ent.undeclare()
+            except Exception as exc:
+                log.debug("zenoh: undeclare failed: %s", exc)
+        self._token = self._publisher = None
+        self._entities.clear()
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        # zenoh's callback threads end after the close; one still ending at interpreter exit
+        # would abort the process (see transports.zenoh.handlers).
+        if not self._handlers.wait(deadline):
+            log.warning("zenoh: %d callback threads still running after close", self._handlers.live)
+
+    # -- zenoh threads: copy and hand over, nothing else -------------------------------------------
+
+    def _post(self, fn: Callable[..., None], *args: Any) -> bool:
+        loop = self._loop
+        if self._closing or loop is None:
+            return False
+        try:
+            loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:
+            return False  # the loop has closed under us: we are shutting down
+        return True
+
+    def _cb_update(self, sample: Any) -> None:
+        self._post(self._on_update, str(sample.key_expr), sample.payload.to_bytes())
+
+    def _cb_ack(self, sample: Any) -> None:
+        self._post(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
+
+    def _cb_presence(self, sample: Any) -> None:
+        import zenoh
+
+        self._post(self._on_presence, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+    def _cb_query(self, query: Any) -> None:
+        if not self._post(self._on_query, query):
+            query.drop()  # finalize it, so the asker is not left waiting for its timeout
+
+    def _cb_reply(self, robot: str, reply: Any) -> None:
+        sample = reply.ok
+        if sample is not None:
+            self._post(self._on_reply, robot, sample.payload.to_bytes())
+
+    # -- loop thread -------------------------------------------------------------------------------
+
+    def _apply(self, step: Step) -> None:
+        for event in step.events:
+            self.ctx.emit(event)
+        for robot in step.queries:
+            self._send_query(robot)
+
+    def _on_update(self, key_expr: str, data: bytes) -> None:
+        self._apply(self.core.on_update(key_expr, data, time.monotonic()))
+
+    def _on_reply(self, robot: str, data: bytes) -> None:
+        self._apply(self.core.on_reply(robot, data, time.monotonic()))
+
+    def _on_query_done(self, robot: str) -> None:
+        self._apply(self.core.query_done(robot, time.monotonic()))
+
+    def _on_ack(self, key_expr: str, data: bytes) -> None:
+        self._apply(self.core.on_ack(key_expr, data, time.monotonic()))
+
+    def _on_presence(self, key_expr: str, alive: bool) -> None:
+        self._apply(self.core.on_presence(key_expr, alive, time.monotonic()))
+
+    def _on_query(self, query: Any) -> None:
+        asker = query.parameters.get("from")
+        self._apply(self.core.on_query(asker))
+        payload = self._keyframe_bytes()
+        reply_key = keys.latest_key(self.ctx.fleet, self.ctx.robot)
+
+        def job() -> None:
+            try:
+                if payload is not None:
+                    query.reply(reply_key, payload)
+            finally:
+                query.drop()  # finalizes the query so the asker is not left waiting
+
+        assert self._jobs is not None
+        if not self._jobs.submit(("reply", id(query)), job):
+            query.drop()
+
+    def _send_query(self, robot: str) -> None:
+        selector = f"{keys.latest_key(self.ctx.fleet, robot)}?from={self.ctx.robot}"
+        timeout = self.opts.query_timeout_s
+
+        def job() -> None:
+            if self._session is None:
+                return
+            handler = self._handlers.callback(
+                lambda reply: self._cb_reply(robot, reply), lambda: self._post(self._on_query_done, robot)
+            )
+            self._session.get(selector, handler, timeout=timeout)
+
+        if self._jobs is None or not self._jobs.submit(("get", robot), job):
+            self.core.query_done(robot, time.monotonic())  # not sent: do not wait for it
+
+    def _keyframe_bytes(self) -> bytes | None:
+        env = self.ctx.latest_keyframe()
+        if env is None:
+            return self._last_keyframe
+        if self._kf_cache is None or self._kf_cache[0] is not env:
+            self._kf_cache = (env, env.pack())
+        return self._kf_cache[1]
+
+    # -- outbox thread -----------------------------------------------------------------------------
+
+    def _count(self, name: str, n: int = 1) -> None:
+        with self._tx_lock:
+            self._tx[name] += n
+
+    def _send_failed(self, key: Hashable, exc: BaseException) -> None:
+        self._count("errors")
+        log.warning("zenoh: %s failed: %s", key[0] if isinstance(key, tuple) else key, zenoh_message(exc))
+
+    # -- the Transport API -------------------------------------------------------------------------
+
+    def offer(self, envelope: Envelope) -> None:
+        """Publish ``envelope`` on its robot's update key; replaces a still-unsent older one."""
+        if self._closing or self._jobs is None:
+            return
+        data = envelope.pack()
+        if len(data) > self.ctx.max_message_bytes:
+            self._count("oversize")
+            log.warning(
+                "zenoh: not sending %s v%d: %d bytes is over limits.max_message_bytes",
+                envelope.robot,
+                envelope.version,
+                len(data),
+            )
+            return
+        if envelope.robot == self.ctx.robot and envelope.is_keyframe:
+            self._last_keyframe = data
+        self.core.offered(envelope, time.monotonic())
+        robot = envelope.robot
+        key = keys.update_key(self.ctx.fleet, robot)
+
+        def job() -> None:
+            if self._session is None:
+                return
+            if robot == self.ctx.robot and self._publisher is not None:
+                self._publisher.put(data)
+            else:
+                self._session.put(key, data)
+            with self._tx_lock:
+                self._tx["bytes_tx"] += len(data)
+                self._tx["updates_tx"] += 1
+
+        self._jobs.submit(("update", robot), job)
+
+    def ack(self, robot: str, version: int) -> None:
+        """Tell ``robot`` that its ``version`` has been decoded here (call after a successful decode).
+
+        The robot's transport turns this into ``Delivered`` for us, so it may code deltas against
+        ``version``. Latest wins: a newer ack of the same robot replaces one not yet sent. A
+        ``version`` outside 1..2**63-1 is a caller bug (``ValueError``).
+        """
+        if self._closing or self._jobs is None or not keys.valid_name(robot) or robot == self.ctx.robot:
+            return
+        key, payload = self.core.ack(robot, version)
+
+        def job() -> None:
+            if self._session is not None:
+                self._session.put(key, payload)
+                self._count("acks_tx")
+
+        self._jobs.submit(("ack", robot), job)
+
+    async def request_keyframe(self, robot: str) -> None:
+        """Forget what we hold of ``robot`` and query its latest keyframe (the daemon cannot decode)."""
+        if self._closing or self._jobs is None:
+            return
+        self._apply(self.core.request_keyframe(robot, time.monotonic()))
+
+    def peers(self) -> list[str]:
+        """Robots whose liveliness token we see."""
+        return self.core.peers()
+
+    def stats(self) -> dict[str, Any]:
+        """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers."""
+        with self._tx_lock:
+            tx = dict(self._tx)
+        out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0}
+        if self._jobs is not None:
+            out["replaced"] = self._jobs.replaced
+            out["dropped"] += self._jobs.rejected
+        return out
