@@ -36,6 +36,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check mapd transports tests
 	$(BIN)/ruff format --check mapd transports tests
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 
 test: $(STAMP) socat lint
 	$(BIN)/pytest -n 2 $(PYTEST_ARGS)

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from mapd import plugins
 from mapd.errors import ConfigError, MapdError
 from mapd.grid import DEFAULT_MAX_CELLS
+from mapd.keys import read_key_file
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -42,7 +43,7 @@ class RobotSection(Strict):
         default="default", pattern=_NAME, description="fleet id; updates from other fleets are dropped"
     )
     key_file: Path | None = Field(
-        default=None, description="fleet signing key (32+ bytes, or hex); unset: no signing"
+        default=None, description="fleet signing key (16+ bytes, raw or hex); unset: no signing"
     )
 
 
@@ -259,19 +260,5 @@ def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict
 
 
 def read_key(cfg: MapdConfig) -> bytes | None:
-    """The fleet key from ``robot.key_file``: hex text or raw bytes, at least 16 bytes."""
-    path = cfg.robot.key_file
-    if path is None:
-        return None
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"robot.key_file: cannot read {path}: {exc.strerror}") from None
-    text = raw.strip()
-    try:
-        key = bytes.fromhex(text.decode("ascii"))
-    except (UnicodeDecodeError, ValueError):
-        key = raw
-    if len(key) < 16:
-        raise ConfigError(f"robot.key_file: {path} holds {len(key)} bytes; a fleet key needs at least 16")
-    return key
+    """The fleet key from ``robot.key_file`` (see :func:`mapd.keys.read_key_file`); None when unset."""
+    return read_key_file(cfg.robot.key_file, "robot.key_file")

@@ -12,14 +12,26 @@ for that plugin, and then it is one clear :class:`~mapd.errors.PluginError`.
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Literal, overload
 
 from mapd.errors import PluginError
 
+if TYPE_CHECKING:  # the interfaces live above this module; only their types are needed here
+    from mapd.codec.base import Codec
+    from mapd.sources.base import MapSource
+    from transports.base import Transport
+
 Kind = Literal["source", "codec", "transport"]
 GROUPS: dict[str, str] = {"source": "mapd.sources", "codec": "mapd.codecs", "transport": "mapd.transports"}
+#: The class every plugin of a group must subclass, imported only when a plugin is loaded.
+INTERFACES: dict[str, str] = {
+    "source": "mapd.sources.base:MapSource",
+    "codec": "mapd.codec.base:Codec",
+    "transport": "transports.base:Transport",
+}
 
 # Import names that differ from the pip distribution a user must install.
 _DIST_FOR_MODULE = {
@@ -29,7 +41,6 @@ _DIST_FOR_MODULE = {
     "cv2": "opencv-python-headless",
     "rosbags": "rosbags (pip install 'mapd[ros2]')",
     "torch": "torch",
-    "constriction": "constriction",
     "zstandard": "zstandard",
 }
 
@@ -69,11 +80,31 @@ def names(kind: str) -> list[str]:
     return sorted(_entry_points(kind))
 
 
-def load(kind: str, name: str) -> Any:
-    """Import and return the class registered as ``name`` for ``kind``.
+def interface(kind: str) -> type:
+    """The class every plugin of ``kind`` subclasses (:class:`~mapd.sources.base.MapSource`, ...)."""
+    if kind not in INTERFACES:
+        raise PluginError(f"unknown plugin kind '{kind}' (expected one of {', '.join(GROUPS)})")
+    module, _, attr = INTERFACES[kind].partition(":")
+    cls: type = getattr(importlib.import_module(module), attr)
+    return cls
 
-    Raises :class:`PluginError` when no such plugin is registered or its import fails, naming the
-    distribution to install when the cause is a missing dependency.
+
+@overload
+def load(kind: Literal["source"], name: str) -> type[MapSource]: ...
+@overload
+def load(kind: Literal["codec"], name: str) -> type[Codec]: ...
+@overload
+def load(kind: Literal["transport"], name: str) -> type[Transport]: ...
+@overload
+def load(kind: str, name: str) -> type: ...
+
+
+def load(kind: str, name: str) -> type:
+    """Import and return the class registered as ``name`` for ``kind``, typed as the group's interface.
+
+    Raises :class:`PluginError` when no such plugin is registered, its import fails (naming the
+    distribution to install when the cause is a missing dependency), or what it names is not a
+    subclass of the group's interface.
     """
     key = (kind, name)
     if key in _cache:
@@ -96,5 +127,10 @@ def load(kind: str, name: str) -> Any:
         raise PluginError(
             f"{kind} plugin '{name}' points at '{eps[name].value}', which does not exist"
         ) from None
+    base = interface(kind)
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise PluginError(
+            f"{kind} plugin '{name}' points at '{eps[name].value}', which is not a {base.__name__}"
+        )
     _cache[key] = cls
     return cls

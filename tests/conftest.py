@@ -14,6 +14,7 @@ from mapd.data import data_dir as _data_dir
 from mapd.data import shared_maps as _shared_maps
 from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D
 from mapd.mapping.lidar import Lidar
+from mapd.mapping.synthetic import room_grid as make_room_grid
 
 NO_DATA = "shared data folder not found: set MAPD_DATA or place ../shared/data beside the checkout"
 
@@ -43,28 +44,8 @@ def intel_log(data_dir: Path) -> Path:
     return p
 
 
-def make_room_grid(
-    height: int = 60,
-    width: int = 80,
-    *,
-    seed: int = 0,
-    resolution: float = 0.05,
-    origin: Pose2D | None = None,
-) -> OccupancyGrid:
-    """A small synthetic trinary map: unknown outside, a walled room with a box inside, some speckle."""
-    rng = np.random.default_rng(seed)
-    d = np.full((height, width), -1, dtype=np.int8)
-    r0, r1, c0, c1 = height // 6, height - height // 6, width // 8, width - width // 8
-    d[r0:r1, c0:c1] = 0
-    d[r0, c0:c1] = d[r1 - 1, c0:c1] = 100
-    d[r0:r1, c0] = d[r0:r1, c1 - 1] = 100
-    br, bc = height // 2, width // 2
-    d[br - 3 : br + 3, bc - 4 : bc + 4] = 100
-    speck = rng.random((height, width)) < 0.01
-    d[speck & (d == 0)] = 100
-    return OccupancyGrid(data=d, resolution=resolution, origin=origin or Pose2D(-1.0, -2.0, 0.0))
-
-
+# make_room_grid (mapd.mapping.synthetic.room_grid) keeps its name here: the lossless corpus's
+# make_corpus.py imports it from this file.
 @pytest.fixture
 def room_grid() -> OccupancyGrid:
     return make_room_grid()

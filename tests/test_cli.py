@@ -43,6 +43,9 @@ def test_errors_are_one_line_without_traceback(tmp_path: Path) -> None:
         ("info", str(tmp_path / "missing.yaml")),
         ("decode", str(tmp_path / "junk.mapd"), "-o", str(tmp_path / "x.yaml")),
         ("check-config", str(tmp_path / "absent.toml")),
+        # caller mistakes that the ARQ core raises as ValueError are checked by the command first
+        ("link", "send", str(tmp_path / "junk.mapd"), "--port", "/dev/null", "--peer", "300"),
+        ("link", "send", str(tmp_path / "junk.mapd"), "--port", "/dev/null", "--peer", "1", "--node", "1"),
     ]
     for args in cases:
         out = run(*args)

@@ -102,11 +102,18 @@ class TransportContext:
     emit: Callable[[TransportEvent], None]
     state_dir: Path | None = None
     #: Returns the robot's latest keyframe envelope (for late joiners), or None before the first map.
+    #: It may encode the map first (seconds for a large one): call it from a worker thread, never on
+    #: the event loop's thread.
     latest_keyframe: Callable[[], Envelope | None] = field(default=lambda: None)
 
 
 class Transport(ABC):
-    """A pluggable link. Subclasses set ``name`` and ``Options`` and implement the methods."""
+    """A pluggable link. Subclasses set ``name`` and ``Options`` and implement the methods.
+
+    These are all the methods the daemon calls: start and close; offer (own maps out); ack and
+    request_keyframe (answers to what was received); peers and stats (for the publisher's choice of
+    base and for ``mapd status``).
+    """
 
     name: ClassVar[str]
     Options: ClassVar[type[TransportOptions]] = TransportOptions
@@ -129,6 +136,13 @@ class Transport(ABC):
 
     async def request_keyframe(self, robot: str) -> None:  # noqa: B027 - optional hook
         """Ask peers for a whole map of ``robot`` (after a gap or an unknown base)."""
+
+    def ack(self, robot: str, version: int) -> None:  # noqa: B027 - optional hook
+        """The daemon applied ``robot``'s map ``version``: tell its sender, if this link acks that way.
+
+        A link that acknowledges below the daemon (the ``uwb`` ARQ acks every whole message) keeps
+        this default, which does nothing.
+        """
 
     def peers(self) -> list[str]:
         """Peers this transport currently sees."""

@@ -15,6 +15,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mapd.tables import emit, table
+
 HELP = "codec size, speed and quality on the shared maps, beside zstd -19 and brotli -11"
 BASELINES = ("zstd-19", "brotli-11")
 
@@ -47,8 +49,8 @@ def _baseline(name: str, cells: bytes) -> tuple[bytes, Any, Any]:
 def _measure(name: str, label: str, grid: Any, repeat: int) -> dict[str, Any]:
     import numpy as np
 
-    from mapd.bench.common import timed
-    from mapd.codec import decode, encode, get_codec, metrics
+    from mapd.bench.common import quality, timed
+    from mapd.codec import decode, encode, get_codec
 
     row: dict[str, Any] = {"codec": name, "map": label, "cells": grid.cells}
     if name in BASELINES:
@@ -70,11 +72,7 @@ def _measure(name: str, label: str, grid: Any, repeat: int) -> dict[str, Any]:
     row["bytes"] = len(payload)
     row["ratio"] = grid.cells / len(payload)
     row["bpc"] = 8.0 * len(payload) / grid.cells
-    if exact:
-        # Identical images: PSNR is infinite and SSIM is exactly 1 by definition.
-        row.update(psnr=math.inf, ssim=1.0, f1=1.0, changed=0.0, exact=True)
-    else:
-        row.update(metrics.quality(grid.data, recovered), exact=False)
+    row.update(quality(grid.data, recovered, exact), exact=exact)
     return row
 
 
@@ -113,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mapd import plugins
-    from mapd.bench.common import dump_json, input_maps, table
+    from mapd.bench.common import input_maps
     from mapd.errors import MapdError
 
     codecs = args.codec or plugins.names("codec")
@@ -141,10 +139,17 @@ def run(args: argparse.Namespace) -> int:
             rows.append(_measure(name, label, grid, args.repeat))
     zstd_total = sum(r["bytes"] for r in rows if r["codec"] == "zstd-19")
     summary = [_aggregate(rows, name, zstd_total, largest) for name in order]
-    if args.json:
-        print(dump_json({"maps": len(maps), "largest": largest, "rows": rows, "aggregate": summary}))
-        return 0
-    per_map = [
+    doc = {"maps": len(maps), "largest": largest, "rows": rows, "aggregate": summary}
+    emit(doc, args.json, lambda: _text(rows, summary, largest, len(maps), per_map=not args.summary))
+    return 0
+
+
+def _text(
+    rows: list[dict[str, Any]], summary: list[dict[str, Any]], largest: str, maps: int, *, per_map: bool
+) -> str:
+    """The terminal's tables: every (map, codec) row unless only the summary is asked for, then the
+    aggregate per codec."""
+    map_cols = [
         ("map", "map", ""),
         ("codec", "codec", ""),
         ("cells", "cells", ""),
@@ -159,10 +164,7 @@ def run(args: argparse.Namespace) -> int:
         ("changed", "changed", ".4f"),
     ]
     extra = sorted({k for r in rows for k in r if k.endswith("_ms") and k not in ("enc_ms", "dec_ms")})
-    per_map += [(k, k.replace("_ms", " ms"), ".1f") for k in extra]
-    if not args.summary:
-        print(table(rows, per_map))
-        print()
+    map_cols += [(k, k.replace("_ms", " ms"), ".1f") for k in extra]
     agg_cols = [
         ("codec", "codec", ""),
         ("maps", "maps", ""),
@@ -181,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         ("changed", "changed", ".4f"),
     ]
     agg_cols += [(k, k.replace("_ms", " ms"), ".1f") for k in extra]
-    print(f"aggregate over {len(maps)} maps (ratio = total cells / total bytes; largest map: {largest})")
-    print(table(summary, agg_cols))
-    return 0
+    lines = [table(rows, map_cols), ""] if per_map else []
+    lines.append(f"aggregate over {maps} maps (ratio = total cells / total bytes; largest map: {largest})")
+    lines.append(table(summary, agg_cols))
+    return "\n".join(lines)

@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mapd.tables import emit, table
+
 HELP = "N daemons over zenoh on loopback: latency publish->fused, bytes/robot/s, CPU per daemon"
 
 
@@ -101,8 +103,6 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mapd.bench.common import dump_json, table
-
     rows = []
     for n in args.robots:
         print(f"fleet of {n}: running {args.duration:.0f} s ...", file=sys.stderr, flush=True)
@@ -111,20 +111,23 @@ def run(args: argparse.Namespace) -> int:
     for r in rows:
         for k in ("latency_p50_ms", "latency_p95_ms", "cpu_per_daemon", "payload_bps_per_robot"):
             r[f"{k}_x"] = r[k] / base[k] if base[k] else float("nan")
-    if args.json:
-        print(dump_json(rows))
-        return 0
+    emit(rows, args.json, lambda: _text(rows))
+    return 0
+
+
+def _text(rows: list[dict[str, Any]]) -> str:
+    """The terminal's table: one row per fleet size, ratios against the first."""
+    base = rows[0]["robots"]
     cols = [
         ("robots", "robots", ""),
         ("samples", "updates fused", ""),
         ("latency_p50_ms", "p50 ms", ".0f"),
         ("latency_p95_ms", "p95 ms", ".0f"),
-        ("latency_p95_ms_x", f"p95 x N={base['robots']}", ".2f"),
+        ("latency_p95_ms_x", f"p95 x N={base}", ".2f"),
         ("payload_bps_per_robot", "payload b/s/robot", ".0f"),
         ("wire_bps_per_robot", "wire b/s/robot", ".0f"),
         ("cpu_per_daemon", "CPU/daemon", ".2f"),
-        ("cpu_per_daemon_x", f"CPU x N={base['robots']}", ".2f"),
+        ("cpu_per_daemon_x", f"CPU x N={base}", ".2f"),
     ]
-    print(table(rows, cols))
-    print(f"(CPU/daemon is CPU seconds per wall second; this machine has {os.cpu_count()} cores)")
-    return 0
+    note = f"(CPU/daemon is CPU seconds per wall second; this machine has {os.cpu_count()} cores)"
+    return f"{table(rows, cols)}\n{note}"

@@ -19,9 +19,31 @@ import argparse
 import os
 from typing import Any
 
+from mapd.tables import emit, table
+
 HELP = "UWB transport goodput through the fault relay at 12.5 kb/s: clean, faulty, vs the raw line"
 SCENARIOS = ("line", "clean", "faulty", "signed")
 TARGETS = {"clean": 0.85, "faulty": 0.60}
+#: The terminal's table.
+COLUMNS = [
+    ("scenario", "scenario", ""),
+    ("intact", "intact", ""),
+    ("seconds", "s", ".1f"),
+    ("goodput_bps", "goodput b/s", ".0f"),
+    ("of_rate", "x link rate", ".3f"),
+    ("of_line", "x raw line", ".3f"),
+    ("target", "target", ""),
+    ("met", "met", ""),
+    ("bytes_tx", "bytes tx", ""),
+    ("resends", "resends", ""),
+    ("timeouts", "RTOs", ""),
+    ("crc_errors", "CRC err", ""),
+    ("duplicates", "dups", ""),
+    ("acks", "acks", ""),
+    ("rtt_ms", "RTT ms", ".0f"),
+    ("peak_bps_1s", "peak b/s (1 s)", ".0f"),
+    ("faults", "relay faults", ""),
+]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -139,8 +161,6 @@ async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: floa
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from mapd.bench.common import dump_json, table
-
     rows: list[dict[str, Any]] = []
     line_bps: float | None = None
     for sc in args.scenarios:
@@ -161,28 +181,12 @@ def run(args: argparse.Namespace) -> int:
         r["faults"] = f"drop {rs['dropped']} cut {rs['cut']} flip {rs['flipped_bits']}"
         rows.append(r)
         print(f"  {sc}: {r['seconds']:.1f} s", flush=True) if not args.json else None
-    if args.json:
-        print(dump_json({"size": args.size, "rate_bps": args.rate_bps, "seed": args.seed, "rows": rows}))
-    else:
-        print(f"\nmapd bench link: {args.size} bytes at {args.rate_bps:.0f} b/s, seed {args.seed}")
-        cols = [
-            ("scenario", "scenario", ""),
-            ("intact", "intact", ""),
-            ("seconds", "s", ".1f"),
-            ("goodput_bps", "goodput b/s", ".0f"),
-            ("of_rate", "x link rate", ".3f"),
-            ("of_line", "x raw line", ".3f"),
-            ("target", "target", ""),
-            ("met", "met", ""),
-            ("bytes_tx", "bytes tx", ""),
-            ("resends", "resends", ""),
-            ("timeouts", "RTOs", ""),
-            ("crc_errors", "CRC err", ""),
-            ("duplicates", "dups", ""),
-            ("acks", "acks", ""),
-            ("rtt_ms", "RTT ms", ".0f"),
-            ("peak_bps_1s", "peak b/s (1 s)", ".0f"),
-            ("faults", "relay faults", ""),
-        ]
-        print(table(rows, cols))
+    doc = {"size": args.size, "rate_bps": args.rate_bps, "seed": args.seed, "rows": rows}
+    emit(doc, args.json, lambda: _text(args, rows))
     return 0 if all(r["intact"] for r in rows) else 1
+
+
+def _text(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
+    """The terminal's table, one row per scenario, under a line of the settings."""
+    head = f"\nmapd bench link: {args.size} bytes at {args.rate_bps:.0f} b/s, seed {args.seed}"
+    return f"{head}\n{table(rows, COLUMNS)}"

@@ -19,8 +19,22 @@ import argparse
 import time
 from typing import Any
 
+from mapd.tables import emit, table
+
 HELP = "mapper speed on the intel and freiburg-079 logs (target: under 5 s / 20 s), beside a per-beam loop"
 TARGETS = {"intel": 5.0, "freiburg-079": 20.0}
+#: The terminal's table.
+COLUMNS = [
+    ("what", "run", ""),
+    ("scans", "scans", ""),
+    ("seconds", "seconds", ".2f"),
+    ("cpu_s", "cpu s", ".2f"),
+    ("scans_per_s", "scans/s", ".0f"),
+    ("target_s", "target s", ".0f"),
+    ("vs_target", "s/target", ".2f"),
+    ("f1", "F1 vs ref", ".3f"),
+    ("note", "note", ""),
+]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -131,7 +145,6 @@ def _sim_row(sim_seconds: float) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mapd.bench.common import dump_json, table
     from mapd.data import shared_log
     from mapd.errors import SourceError
     from mapd.mapping import carmen
@@ -175,19 +188,5 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.sim_seconds > 0:
         rows.append(_sim_row(args.sim_seconds))
-    if args.json:
-        print(dump_json(rows))
-        return 0
-    cols = [
-        ("what", "run", ""),
-        ("scans", "scans", ""),
-        ("seconds", "seconds", ".2f"),
-        ("cpu_s", "cpu s", ".2f"),
-        ("scans_per_s", "scans/s", ".0f"),
-        ("target_s", "target s", ".0f"),
-        ("vs_target", "s/target", ".2f"),
-        ("f1", "F1 vs ref", ".3f"),
-        ("note", "note", ""),
-    ]
-    print(table(rows, cols))
+    emit(rows, args.json, lambda: table(rows, COLUMNS))
     return 0

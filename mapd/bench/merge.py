@@ -20,13 +20,14 @@ placed within 25 m of each other) into the global map, against a plain numpy cop
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from mapd.tables import emit
 
 HELP = "map-merge success rate vs the m-explore baseline, by overlap; merge speed"
 
@@ -94,10 +95,7 @@ def run(args: argparse.Namespace) -> int:
         "speed": speed,
         "records": records,
     }
-    if args.json:
-        print(json.dumps(doc, indent=2))
-    else:
-        _print_table(doc)
+    emit(doc, args.json, lambda: _text(doc))
     return 0
 
 
@@ -274,13 +272,13 @@ def _fmt(v: Any, spec: str, none: str = "-") -> str:
     return none if v is None else format(v, spec)
 
 
-def _print_table(doc: dict[str, Any]) -> None:
-    print(f"mapd bench merge: {doc['pairs']} pairs (seed {doc['seed']}); success = {doc['success_rule']}")
+def _text(doc: dict[str, Any]) -> str:
+    """The terminal's summary: success by group and method, the headline comparison, merge speed."""
+    lines = [f"mapd bench merge: {doc['pairs']} pairs (seed {doc['seed']}); success = {doc['success_rule']}"]
     head = f"{'group':<24} {'method':<10} {'pairs':>5} {'success':>8} {'accepted':>8} {'wrong':>5} {'med err':>8} {'med yaw':>8} {'mean s':>7}"
-    print(head)
-    print("-" * len(head))
+    lines += [head, "-" * len(head)]
     for r in doc["rows"]:
-        print(
+        lines.append(
             f"{r['group']:<24} {r['method']:<10} {r['pairs']:>5} {_fmt(r['success'], '8.0%'):>8} "
             f"{_fmt(r['accepted'], '8.0%'):>8} {r['wrong']:>5} {_fmt(r['median_err_cells'], '8.2f'):>8} "
             f"{_fmt(r['median_err_deg'], '8.2f'):>8} {_fmt(r['mean_seconds'], '7.2f'):>7}"
@@ -289,15 +287,15 @@ def _print_table(doc: dict[str, Any]) -> None:
     for g in ("all, overlap >= 40%", "all, overlap < 40%"):
         ours, base = rows[(g, "mapd")]["success"], rows[(g, "m-explore")]["success"]
         if ours is not None and base is not None:
-            print(f"{g}: mapd {ours:.0%} vs m-explore {base:.0%} ({100 * (ours - base):+.0f} points)")
+            lines.append(f"{g}: mapd {ours:.0%} vs m-explore {base:.0%} ({100 * (ours - base):+.0f} points)")
     s = doc["speed"]
-    if s is None:
-        return
-    print(
-        f"merge {s['maps']} maps of {s['size']}x{s['size']} cells (baseline: numpy copy of the 4 maps, {1000 * s['numpy_copy_s']:.1f} ms):"
-    )
-    for mode in ("logodds", "occupied_wins"):
-        m = s[mode]
-        print(
-            f"  {mode:<14} {m['seconds']:.3f} s  ({_fmt(m['ratio_to_copy'], '.0f')}x the copy)  global map {m['cells']} cells"
+    if s is not None:
+        lines.append(
+            f"merge {s['maps']} maps of {s['size']}x{s['size']} cells (baseline: numpy copy of the 4 maps, {1000 * s['numpy_copy_s']:.1f} ms):"
         )
+        for mode in ("logodds", "occupied_wins"):
+            m = s[mode]
+            lines.append(
+                f"  {mode:<14} {m['seconds']:.3f} s  ({_fmt(m['ratio_to_copy'], '.0f')}x the copy)  global map {m['cells']} cells"
+            )
+    return "\n".join(lines)

@@ -32,6 +32,11 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from mapd.bench import paper_report
+from mapd.bench.common import UWB_BPS, quality, timed
+from mapd.bench.paper_report import ROWS
+from mapd.tables import emit
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -39,11 +44,6 @@ if TYPE_CHECKING:
     from mapd.grid import OccupancyGrid
 
 HELP = "the paper's Figures 8a, 8b and 9 on a log or a simulation: report.md and PNG figures"
-#: The paper's UWB link budget (Zhang & Deng 2024): 12.5 kb/s.
-UWB_BPS = 12_500.0
-#: Rows of Figure 8, in order: the paper's codec, mapd's, mapd's as a delta stream, and zstd -19.
-ROWS = ("paper", "lossless", "lossless+delta", "zstd-19")
-EXACT = {"psnr": math.inf, "ssim": 1.0, "f1": 1.0, "changed": 0.0}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -110,8 +110,7 @@ class Coder:
     ) -> tuple[dict[str, Any], np.ndarray]:
         import numpy as np
 
-        from mapd.bench.common import timed
-        from mapd.codec import decode, encode, metrics, read_header
+        from mapd.codec import decode, encode, read_header
 
         if row == "zstd-19":
             raw = np.ascontiguousarray(grid.data).tobytes()
@@ -126,9 +125,15 @@ class Coder:
             out, dec_ms = timed(lambda: decode(payload, base=use))
             cells, nbytes, delta = out.data, len(payload), read_header(payload).delta
         exact = bool(np.array_equal(cells, grid.data))
-        # Identical maps: PSNR is infinite and SSIM exactly 1 by definition, as in `mapd bench codec`.
-        quality = dict(EXACT) if exact else metrics.quality(grid.data, cells)
-        rec = {"bytes": nbytes, "delta": delta, "enc_ms": enc_ms, "dec_ms": dec_ms, "exact": exact, **quality}
+        measured = quality(grid.data, cells, exact)
+        rec = {
+            "bytes": nbytes,
+            "delta": delta,
+            "enc_ms": enc_ms,
+            "dec_ms": dec_ms,
+            "exact": exact,
+            **measured,
+        }
         return rec, cells
 
 
@@ -217,8 +222,7 @@ def _torch_threads() -> int | None:
 
 def run(args: argparse.Namespace) -> int:
     from mapd import __version__
-    from mapd.bench import paper_data, paper_localize, paper_report
-    from mapd.bench.common import dump_json
+    from mapd.bench import paper_data, paper_localize
     from mapd.codec.api import warm_up
     from mapd.errors import ConfigError
 
@@ -282,9 +286,7 @@ def run(args: argparse.Namespace) -> int:
     results["date"] = datetime.date.today().isoformat()
     results["wall_s"] = time.perf_counter() - t_start
     paper_report.write(args.out, results, maps, fig9)
-    if args.json:
-        print(dump_json(results))
-    else:
-        print(paper_report.text_summary(results))
-        print(f"report: {args.out / 'report.md'}")
+    emit(
+        results, args.json, lambda: f"{paper_report.text_summary(results)}\nreport: {args.out / 'report.md'}"
+    )
     return 0

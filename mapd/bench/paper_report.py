@@ -9,14 +9,16 @@ from __future__ import annotations
 import csv
 import math
 import os
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mapd.bench.common import dump_json, fmt, table
-from mapd.bench.paper import ROWS
 from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid
+from mapd.tables import dump_json, md_table, table
+
+#: Rows of Figure 8, in order: the paper's codec, mapd's, mapd's as a delta stream, and zstd -19.
+#: ``mapd bench paper`` measures these and every table and figure of the report shows them.
+ROWS = ("paper", "lossless", "lossless+delta", "zstd-19")
 
 #: What Zhang & Deng (Sensors 2024) report: Fig. 8a (mean PSNR, SSIM; "compression rate up to 99 %"),
 #: Fig. 8b (bandwidth without and with compression, UWB budget) and Fig. 9 (28 poses, mean errors).
@@ -32,19 +34,6 @@ PAPER: dict[str, float] = {
     "loc_y_cm": 3.43,
     "loc_yaw_deg": 0.72,
 }
-
-
-def md_table(rows: Sequence[dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> str:
-    """A Markdown table; ``columns`` holds (key, title, format spec); text left, numbers right."""
-    head = "| " + " | ".join(t for _, t, _ in columns) + " |"
-    # Numbers align right, text (and yes/no) left.
-    numeric = [
-        all(isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool) for r in rows)
-        for k, _, _ in columns
-    ]
-    align = "|" + "|".join("---:" if n else "---" for n in numeric) + "|"
-    body = ["| " + " | ".join(fmt(r.get(k, ""), s) for k, _, s in columns) + " |" for r in rows]
-    return "\n".join([head, align, *body])
 
 
 def _pct(v: float) -> str:

@@ -23,9 +23,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from mapd.bench.common import UWB_BPS, timed
+from mapd.tables import emit, table
 
 if TYPE_CHECKING:
     import numpy as np
@@ -33,8 +36,22 @@ if TYPE_CHECKING:
     from mapd.grid import OccupancyGrid
 
 HELP = "replay a log: whole and delta payloads per snapshot, beside zstd -19 of snapshots and differences"
-#: The paper's UWB link budget (Zhang & Deng 2024): 12.5 kb/s.
-UWB_BPS = 12_500.0
+#: The terminal's table.
+COLUMNS = [
+    ("row", "payloads", ""),
+    ("snapshots", "snapshots", ""),
+    ("deltas", "deltas", ""),
+    ("bytes", "bytes", ""),
+    ("ratio", "ratio", ".1f"),
+    ("mean_bytes", "mean B", ".0f"),
+    ("max_bytes", "max B", ""),
+    ("bps", "bit/s", ".1f"),
+    ("uwb_share", "of 12.5 kb/s", ".4f"),
+    ("vs_zstd_diff", "x zstd-19 diff", ".2f"),
+    ("enc_ms", "enc ms", ".1f"),
+    ("dec_ms", "dec ms", ".1f"),
+    ("exact", "exact", ""),
+]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -111,7 +128,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import zstandard
 
-    from mapd.bench.common import dump_json, table
     from mapd.codec import decode, encode, get_codec, read_header
     from mapd.codec.api import warm_up
     from mapd.data import shared_log
@@ -138,12 +154,6 @@ def run(args: argparse.Namespace) -> int:
     rows["zstd-19 diff"] = _Row("zstd-19 diff")
     zc = zstandard.ZstdCompressor(level=19)
     zd = zstandard.ZstdDecompressor()
-
-    def timed(fn: Any) -> tuple[Any, float]:
-        t0 = time.perf_counter()
-        out = fn()
-        return out, 1000.0 * (time.perf_counter() - t0)
-
     cells = 0
     last_stamp = first.stamp
     prev: OccupancyGrid | None = None
@@ -157,22 +167,22 @@ def run(args: argparse.Namespace) -> int:
             lossless = impls[name].lossless
             pairs: tuple[tuple[str, OccupancyGrid | None], ...] = (("whole", None), ("delta", prev))
             for kind, base in pairs:
-                payload, enc_ms = timed(lambda g=grid, c=name, b=base: encode(g, c, base=b))
-                back, dec_ms = timed(lambda p=payload, b=base: decode(p, base=b))
+                payload, enc_ms = timed(partial(encode, grid, name, base=base))
+                back, dec_ms = timed(partial(decode, payload, base=base))
                 exact = back.same_map(grid) if lossless else True
                 is_delta = read_header(payload).delta
                 rows[f"{name} {kind}"].add(len(payload), enc_ms, dec_ms, delta=is_delta, exact=exact)
         raw = np.ascontiguousarray(grid.data).tobytes()
-        z, enc_ms = timed(lambda r=raw: zc.compress(r))
-        _, dec_ms = timed(lambda z=z: zd.decompress(z))
+        z, enc_ms = timed(partial(zc.compress, raw))
+        _, dec_ms = timed(partial(zd.decompress, z))
         rows["zstd-19 whole"].add(len(z), enc_ms, dec_ms)
         old = _aligned_previous(prev, grid) if prev is not None else None
         if old is None:
             rows["zstd-19 diff"].add(len(z), enc_ms, dec_ms)
         else:
             diff = (grid.data.astype(np.int16) - old).astype(np.int8).tobytes()
-            zdiff, enc_ms = timed(lambda d=diff: zc.compress(d))
-            _, dec_ms = timed(lambda z=zdiff: zd.decompress(z))
+            zdiff, enc_ms = timed(partial(zc.compress, diff))
+            _, dec_ms = timed(partial(zd.decompress, zdiff))
             rows["zstd-19 diff"].add(len(zdiff), enc_ms, dec_ms, delta=True)
         prev = grid
         print(f"\rsnapshot {n + 1}", end="", file=sys.stderr, flush=True)
@@ -191,27 +201,16 @@ def run(args: argparse.Namespace) -> int:
         "uwb_bps": UWB_BPS,
         "last_map": [prev.height, prev.width],
     }
-    if args.json:
-        print(dump_json({**info, "rows": results}))
-        return 0
-    print(
-        f"{log.name}: {info['snapshots']} snapshots every {args.every} scans over {duration:.0f} s of log, "
-        f"{cells} raw cells in all, last map {prev.width}x{prev.height}"
-    )
-    cols = [
-        ("row", "payloads", ""),
-        ("snapshots", "snapshots", ""),
-        ("deltas", "deltas", ""),
-        ("bytes", "bytes", ""),
-        ("ratio", "ratio", ".1f"),
-        ("mean_bytes", "mean B", ".0f"),
-        ("max_bytes", "max B", ""),
-        ("bps", "bit/s", ".1f"),
-        ("uwb_share", "of 12.5 kb/s", ".4f"),
-        ("vs_zstd_diff", "x zstd-19 diff", ".2f"),
-        ("enc_ms", "enc ms", ".1f"),
-        ("dec_ms", "dec ms", ".1f"),
-        ("exact", "exact", ""),
-    ]
-    print(table(results, cols))
+    last = prev
+    emit({**info, "rows": results}, args.json, lambda: _text(log, info, last, results))
     return 0
+
+
+def _text(log: Path, info: dict[str, Any], last: OccupancyGrid, results: list[dict[str, Any]]) -> str:
+    """The terminal's table, one row per kind of payload, under a line about the replay."""
+    head = (
+        f"{log.name}: {info['snapshots']} snapshots every {info['every']} scans over "
+        f"{info['duration_s']:.0f} s of log, {info['raw_cells']} raw cells in all, last map "
+        f"{last.width}x{last.height}"
+    )
+    return f"{head}\n{table(results, COLUMNS)}"

@@ -166,6 +166,28 @@ def flush_encoder(x1: int, x2: int, buf: np.ndarray, pos: int) -> tuple[np.ndarr
 
 
 @njit(cache=True, inline="always")
+def start_coder(dec: bool, src: np.ndarray, capacity: int) -> tuple[int, int, int, np.ndarray, int, int]:
+    """Coder state ``(x1, x2, x, buf, pos, end)`` at the start of a stream.
+
+    The decoder reads ``src`` and must stop exactly at ``end`` (see the stream rules above); the
+    encoder writes into a new buffer of ``capacity`` bytes, which grows when it fills.
+    """
+    if dec:
+        x, pos = start_decoder(src)
+        return 0, 0xFFFFFFFF, x, src, pos, src.shape[0] + OVERREAD
+    return 0, 0xFFFFFFFF, 0, np.empty(capacity, np.uint8), 0, 0
+
+
+@njit(cache=True, inline="always")
+def finish_coder(dec: bool, x1: int, x2: int, buf: np.ndarray, pos: int, end: int) -> tuple[np.ndarray, int]:
+    """What a kernel returns at the end of the grid: the encoder's flushed buffer and its length, or
+    the decoder's ``buf`` and 0 when the stream ended exactly where it should, -1 when it did not."""
+    if dec:
+        return buf, 0 if pos == end else -1
+    return flush_encoder(x1, x2, buf, pos)
+
+
+@njit(cache=True, inline="always")
 def update_counter(t: np.ndarray, i: int, y: int, rates: np.ndarray, limit: int, pmin: int) -> None:
     """Move counter ``t[i]`` towards bit ``y`` by its count-dependent rate, within [pmin, 1 - pmin]."""
     v = int(t[i])
@@ -397,6 +419,17 @@ def code_escape(
     return out, x1, x2, x, buf, pos
 
 
+@njit(cache=True, inline="always")
+def neighbour_byte(data: np.ndarray, r: int, c: int, west: int, north: int) -> int:
+    """The escape path's predictor byte: the value of the west neighbour if its class (``west``) is
+    "other", else of the north one if that is, else 256 (none)."""
+    if west == 3:
+        return int(data[r, c - 1]) & 255
+    if north == 3:
+        return int(data[r - 1, c]) & 255
+    return 256
+
+
 # ----------------------------------------------------------------------------------------------------
 # The whole-map model
 # ----------------------------------------------------------------------------------------------------
@@ -407,6 +440,30 @@ PAD = 10
 NM = 6
 #: All twelve template cells (2 bits each) hold class q: q * UNIFORM.
 UNIFORM = 0x555555
+
+
+@njit(cache=True, inline="always")
+def model_tables(
+    direct: np.ndarray, hbits: int, quiet_contexts: int, mix1_rows: int, mix2_rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fresh state of a model (both kernels have the same layout, sized differently).
+
+    Returns ``(off, t, vt, quiet, wts1, wts2, idx, sti)``: the counter offsets of the :data:`NM`
+    models (``direct`` context counts of the direct ones, then hashed tables of ``2**hbits``) and
+    their counters, the escape path's value counters, the quiet-cell counters, the two mixers'
+    weight sets, and the scratch rows of context indices and stretched inputs (the bias input
+    fixed at 256).
+    """
+    off = model_offsets(direct, NM - 2, hbits)
+    t = np.full(off[NM], COUNTER_INIT, np.uint32)
+    vt = np.full(VALUE_TABLE, COUNTER_INIT, np.uint32)
+    quiet = np.full(quiet_contexts, COUNTER_INIT, np.uint32)
+    wts1 = np.full((mix1_rows, NM + 1), W_INIT, np.int64)
+    wts2 = np.full((mix2_rows, NM + 1), W_INIT, np.int64)
+    idx = np.zeros(NM, np.int64)
+    sti = np.zeros(NM + 1, np.int64)
+    sti[NM] = 256
+    return off, t, vt, quiet, wts1, wts2, idx, sti
 
 
 @njit(cache=True, nogil=True)
@@ -461,30 +518,13 @@ def code_whole(
     cls = np.zeros((4, WP), np.uint8)  # ring of class rows; outside the grid reads as unknown (0)
     nxt = np.zeros((4, WP), np.uint8)  # per row: distance to the next class change, capped at 15
     cnt3 = np.zeros((4, WP), np.int32)  # per column: class counts over the three rows above
-    off = model_offsets(np.array([256, 65536], np.int64), NM - 2, hbits)
-    t = np.full(off[NM], COUNTER_INIT, np.uint32)
-    vt = np.full(VALUE_TABLE, COUNTER_INIT, np.uint32)
-    quiet = np.full(4, COUNTER_INIT, np.uint32)
-    wts1 = np.full((4 * 256, NM + 1), W_INIT, np.int64)
-    wts2 = np.full((4 * 8192, NM + 1), W_INIT, np.int64)
-    idx = np.zeros(NM, np.int64)
-    sti = np.zeros(NM + 1, np.int64)
-    sti[NM] = 256
+    off, t, vt, quiet, wts1, wts2, idx, sti = model_tables(
+        np.array([256, 65536], np.int64), hbits, 4, 4 * 256, 4 * 8192
+    )
     win = np.zeros(4, np.int64)
     row_cnt = np.zeros(4, np.int64)
     cands = np.zeros(4, np.int64)
-
-    x1 = 0
-    x2 = 0xFFFFFFFF
-    x = 0
-    if dec:
-        buf = src
-        x, pos = start_decoder(buf)
-        end = buf.shape[0] + OVERREAD
-    else:
-        buf = np.empty(max(4096, (H * W) // 32), np.uint8)
-        pos = 0
-        end = 0
+    x1, x2, x, buf, pos, end = start_coder(dec, src, max(4096, (H * W) // 32))
 
     for r in range(H):
         cur = cls[r & 3]
@@ -555,11 +595,7 @@ def code_whole(
                 s = cands[k]
             if s == 3:
                 # Escape: the exact byte, predicted from a west or north neighbour's "other" value.
-                pv = 256
-                if Wc == 3:
-                    pv = int(data[r, c - 1]) & 255
-                elif N == 3:
-                    pv = int(data[r - 1, c]) & 255
+                pv = neighbour_byte(data, r, c, Wc, N)
                 v, x1, x2, x, buf, pos = code_escape(dec, v, pv, vt, rates, x1, x2, x, buf, pos)
             elif dec:
                 v = class_value(s)
@@ -581,9 +617,7 @@ def code_whole(
         nn[PAD + W - 1] = 15
         for j in range(PAD + W - 2, PAD - 1, -1):
             nn[j] = 1 if cur[j] != cur[j + 1] else min(nn[j + 1] + 1, 15)
-    if dec:
-        return buf, 0 if pos == end else -1
-    return flush_encoder(x1, x2, buf, pos)
+    return finish_coder(dec, x1, x2, buf, pos, end)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -663,28 +697,11 @@ def code_delta(
     bcl = np.full((4, WP), OUTSIDE, np.uint8)  # aligned base classes, rows r - 1, r, r + 1
     bvl = np.full((4, W), -1, np.int64)  # aligned base values, same rows
     ccol = np.zeros(WP, np.int32)  # per column: changes over the three rows above
-    off = model_offsets(np.array([512, 32768], np.int64), NM - 2, hbits)
-    t = np.full(off[NM], COUNTER_INIT, np.uint32)
-    vt = np.full(VALUE_TABLE, COUNTER_INIT, np.uint32)
-    quiet = np.full(16, COUNTER_INIT, np.uint32)
-    wts1 = np.full((4 * 128, NM + 1), W_INIT, np.int64)
-    wts2 = np.full((4 * 1024, NM + 1), W_INIT, np.int64)
-    idx = np.zeros(NM, np.int64)
-    sti = np.zeros(NM + 1, np.int64)
-    sti[NM] = 256
+    off, t, vt, quiet, wts1, wts2, idx, sti = model_tables(
+        np.array([512, 32768], np.int64), hbits, 16, 4 * 128, 4 * 1024
+    )
     cands = np.zeros(4, np.int64)
-
-    x1 = 0
-    x2 = 0xFFFFFFFF
-    x = 0
-    if dec:
-        buf = src
-        x, pos = start_decoder(buf)
-        end = buf.shape[0] + OVERREAD
-    else:
-        buf = np.empty(max(4096, (H * W) // 256), np.uint8)
-        pos = 0
-        end = 0
+    x1, x2, x, buf, pos, end = start_coder(dec, src, max(4096, (H * W) // 256))
 
     fill_base_row(base, off_r - 1, off_c, W, bcl[3], bvl[3])
     fill_base_row(base, off_r, off_c, W, bcl[0], bvl[0])
@@ -778,13 +795,8 @@ def code_delta(
                 if dec:
                     v = bv
             elif s == 3:
-                pv = 256
-                if B == 3:
-                    pv = bv & 255
-                elif Wc == 3:
-                    pv = int(data[r, c - 1]) & 255
-                elif N == 3:
-                    pv = int(data[r - 1, c]) & 255
+                # The base's own "other" value predicts best; else a neighbour's, as in the whole map.
+                pv = (bv & 255) if B == 3 else neighbour_byte(data, r, c, Wc, N)
                 v, x1, x2, x, buf, pos = code_escape(dec, v, pv, vt, rates, x1, x2, x, buf, pos)
             elif dec:
                 v = class_value(s)
@@ -800,6 +812,4 @@ def code_delta(
                 crow -= ch[p - 8]
         for j in range(PAD, PAD + W):
             ccol[j] += np.int32(ch[j]) - (np.int32(ch3[j]) if r >= 3 else 0)
-    if dec:
-        return buf, 0 if pos == end else -1
-    return flush_encoder(x1, x2, buf, pos)
+    return finish_coder(dec, x1, x2, buf, pos, end)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapd.codec.varint import VarintErrors, get_uvarint, put_uvarint
 from mapd.errors import CodecError
 
 MAX_CODE_LEN = 15
@@ -225,30 +226,12 @@ def _unpack_nibbles(buf: bytes, start: int, nbytes: int) -> np.ndarray:
     return nib
 
 
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte = value & 0x7F
-        value >>= 7
-        if value:
-            out.append(byte | 0x80)
-        else:
-            out.append(byte)
-            return bytes(out)
-
-
-def _read_varint(buf: bytes, pos: int) -> tuple[int, int]:
-    value = 0
-    for i in range(_MAX_VARINT_BYTES):
-        if pos + i >= len(buf):
-            raise CodecError("run-length code is truncated (in the run count)")
-        byte = buf[pos + i]
-        value |= (byte & 0x7F) << (7 * i)
-        if not byte & 0x80:
-            if byte == 0 and i > 0:
-                raise CodecError("run-length code is corrupt (non-minimal run count)")
-            return value, pos + i + 1
-    raise CodecError("run-length code is corrupt (run count too long)")
+#: How the run count (the one LEB128 varint of the stage) reports a bad form.
+_RUN_COUNT_ERRORS = VarintErrors(
+    truncated="run-length code is truncated (in the run count)",
+    non_minimal="run-length code is corrupt (non-minimal run count)",
+    overlong="run-length code is corrupt (run count too long)",
+)
 
 
 def pack_runs(counts: np.ndarray, chars: np.ndarray) -> bytes:
@@ -265,12 +248,12 @@ def pack_runs(counts: np.ndarray, chars: np.ndarray) -> bytes:
     j = np.arange(width, dtype=np.int64)
     mat = ((v[:, None] >> (3 * j)[None, :]) & 7) | np.where(j[None, :] < groups[:, None] - 1, 8, 0)
     nib = mat[j[None, :] < groups[:, None]].astype(np.uint8)
-    return _varint(int(v.size)) + _pack_nibbles(np.asarray(chars, dtype=np.uint8)) + _pack_nibbles(nib)
+    return put_uvarint(int(v.size)) + _pack_nibbles(np.asarray(chars, dtype=np.uint8)) + _pack_nibbles(nib)
 
 
 def unpack_runs(buf: bytes, pos: int, max_hex: int) -> tuple[np.ndarray, np.ndarray]:
     """Read ``e`` from ``pos`` to the end of ``buf``; refuse more than ``max_hex`` characters in all."""
-    runs, pos = _read_varint(buf, pos)
+    runs, pos = get_uvarint(buf, pos, _MAX_VARINT_BYTES, _RUN_COUNT_ERRORS)
     if runs == 0 or runs > max_hex:
         raise CodecError(f"run-length code is corrupt ({runs} runs for at most {max_hex} hex digits)")
     nbytes = (runs + 1) // 2

@@ -40,6 +40,7 @@ from mapd.codec.ctx_kernels import (
     code_whole,
     hash_bits,
 )
+from mapd.codec.varint import VarintErrors, get_uvarint, put_uvarint, unzigzag, zigzag
 from mapd.errors import CodecError
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -50,6 +51,8 @@ FLAG_TRINARY = 0x04
 VERSION_SHIFT = 3
 #: Offsets must fit in 32 signed bits (a grid is at most 2**26 cells, so real ones are far smaller).
 MAX_OFFSET = (1 << 31) - 1
+#: A zigzagged offset of 32 bits takes at most five varint bytes.
+_MAX_OFFSET_BYTES = 5
 #: How far from a whole cell an origin offset may be and still align (in cells).
 ALIGN_TOL = 1e-3
 
@@ -101,34 +104,25 @@ def alignment(resolution: float, origin: Pose2D, base: OccupancyGrid) -> tuple[i
     return int(orow), int(oc)
 
 
-def _put_varint(n: int) -> bytes:
-    z = (n << 1) ^ (n >> 63)  # zigzag
-    out = bytearray()
-    while True:
-        b = z & 0x7F
-        z >>= 7
-        if z:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
+_OFFSET_ERRORS = VarintErrors(
+    truncated="body is truncated in its delta offsets",
+    non_minimal="body has a non-minimal offset varint",
+    overlong="body has an overlong offset varint",
+)
 
 
-def _get_varint(body: bytes, pos: int) -> tuple[int, int]:
-    z = 0
-    for i in range(5):
-        if pos + i >= len(body):
-            raise CodecError("body is truncated in its delta offsets")
-        b = body[pos + i]
-        z |= (b & 0x7F) << (7 * i)
-        if not b & 0x80:
-            if i and b == 0:
-                raise CodecError("body has a non-minimal offset varint")
-            n = (z >> 1) ^ -(z & 1)
-            if abs(n) > MAX_OFFSET:
-                raise CodecError(f"body has an absurd delta offset {n}")
-            return n, pos + i + 1
-    raise CodecError("body has an overlong offset varint")
+def _put_offset(n: int) -> bytes:
+    """One delta offset on the wire: zigzag, then LEB128."""
+    return put_uvarint(zigzag(n))
+
+
+def _get_offset(body: bytes, pos: int) -> tuple[int, int]:
+    """Read one delta offset at ``pos``; refuse any that no aligned base could give."""
+    z, pos = get_uvarint(body, pos, _MAX_OFFSET_BYTES, _OFFSET_ERRORS)
+    n = unzigzag(z)
+    if abs(n) > MAX_OFFSET:
+        raise CodecError(f"body has an absurd delta offset {n}")
+    return n, pos
 
 
 class LosslessCodec(Codec):
@@ -153,7 +147,7 @@ class LosslessCodec(Codec):
                 buf, n = code_delta(
                     False, data, bdata, off[0], off[1], trinary, _EMPTY, hbits, _SQ, _ST, _RATES
                 )
-                head = bytes([MODE_DELTA | flags]) + _put_varint(off[0]) + _put_varint(off[1])
+                head = bytes([MODE_DELTA | flags]) + _put_offset(off[0]) + _put_offset(off[1])
                 delta = head + buf[:n].tobytes()
                 if self.options.delta == "always":
                     return Encoded(delta, delta=True)
@@ -185,8 +179,8 @@ class LosslessCodec(Codec):
         elif mode == MODE_DELTA:
             if base is None:
                 raise CodecError("body is a delta, but the header says it is a whole map")
-            off_r, pos = _get_varint(body, 1)
-            off_c, pos = _get_varint(body, pos)
+            off_r, pos = _get_offset(body, 1)
+            off_c, pos = _get_offset(body, pos)
             expect = alignment(target.resolution, target.origin, base)
             if expect != (off_r, off_c):
                 raise CodecError(

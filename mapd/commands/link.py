@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.errors import ConfigError, TransportError
+from mapd.keys import read_key_file
 
 _SHOWN = (
     "bytes_tx",
@@ -67,32 +68,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda args: p.print_help() or 2)
 
 
-def read_key(path: Path | None) -> bytes | None:
-    """A fleet key from a file: hex text or raw bytes, at least 16 bytes."""
-    if path is None:
-        return None
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"--key: cannot read {path}: {exc.strerror}") from None
-    try:
-        key = bytes.fromhex(raw.strip().decode("ascii"))
-    except (UnicodeDecodeError, ValueError):
-        key = raw
-    if len(key) < 16:
-        raise ConfigError(f"--key: {path} holds {len(key)} bytes; a fleet key needs at least 16")
-    return key
-
-
 def _config(args: argparse.Namespace, max_message: int) -> Any:
     from transports.uwb.arq import ArqConfig
     from transports.uwb.framing import MIN_FRAME
 
     if not 1 <= args.node <= 254:
         raise ConfigError(f"--node {args.node} is not a link id in 1..254")
-    if args.max_frame < MIN_FRAME or args.rate_bps / 8 < args.max_frame:
+    if args.max_frame < MIN_FRAME or args.rate_bps / 8 < 2 * args.max_frame:
         raise ConfigError(
-            f"--max-frame {args.max_frame} must be >= {MIN_FRAME} and fit in one second of --rate-bps"
+            f"--max-frame {args.max_frame} must be >= {MIN_FRAME}, and two such frames must fit in one second of --rate-bps"
         )
     return ArqConfig(
         node_id=args.node,
@@ -100,7 +84,7 @@ def _config(args: argparse.Namespace, max_message: int) -> Any:
         rate_bps=float(args.rate_bps),
         max_message_bytes=max(max_message, 1024),
         deadline_s=getattr(args, "deadline", 300.0),
-        key=read_key(args.key),
+        key=read_key_file(args.key, "--key"),
     )
 
 
@@ -120,6 +104,9 @@ def cmd_send(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise TransportError(f"{args.file}: cannot read: {exc.strerror}") from None
     peers = args.peer or [2]
+    bad = [p for p in peers if not 1 <= p <= 254 or p == args.node]
+    if bad:
+        raise ConfigError(f"--peer {bad[0]} is not a link id in 1..254 other than --node {args.node}")
     return asyncio.run(_send(args, data, peers))
 
 

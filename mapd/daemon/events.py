@@ -15,8 +15,17 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
+from dataclasses import dataclass
 
 from transports.base import Received, TransportEvent
+
+
+@dataclass
+class EventQueueCounters:
+    """Updates replaced by a newer one from the same peer before the daemon took them, and events dropped."""
+
+    superseded: int = 0
+    dropped: int = 0
 
 
 class EventQueue:
@@ -28,7 +37,7 @@ class EventQueue:
         self._control: deque[TransportEvent] = deque()
         self._updates: dict[tuple[str, str], Received] = {}
         self._wake = asyncio.Event()
-        self.counters = {"superseded": 0, "dropped": 0}
+        self.counters = EventQueueCounters()
 
     def __len__(self) -> int:
         return len(self._control) + len(self._updates)
@@ -39,14 +48,14 @@ class EventQueue:
             key = (event.transport, event.peer)
             if key in self._updates:
                 del self._updates[key]  # re-insert at the end: peers take turns in arrival order
-                self.counters["superseded"] += 1
+                self.counters.superseded += 1
             elif len(self._updates) >= self.max_peers:
-                self.counters["dropped"] += 1
+                self.counters.dropped += 1
                 return
             self._updates[key] = event
         else:
             if len(self._control) >= self.max_events:
-                self.counters["dropped"] += 1
+                self.counters.dropped += 1
                 return
             self._control.append(event)
         self._wake.set()

@@ -1,38 +1,45 @@
-"""``mapd run``: start-up, the running daemon, and graceful shutdown, in one place.
+"""``mapd run``: start-up, the running daemon, and graceful shutdown (as uvicorn's ``Server.serve``).
 
 One update's way through the robot::
 
-    source --grid--> publish slot --encode(base = newest version every peer acked)--> Envelope
-                                       --offer--> every transport (latest wins inside each)
-    transport --Received--> events queue --verify, decode against the held base--> fusion worker
+    source --grid--> save (worker) --> PublisherCore.poll: what to code, against which base, for
+        which free links --> encode + sign (worker) --> offer to those transports (latest wins inside)
+    transport --Received--> EventQueue --> verify (worker) --> Receiver.plan --> decode (worker)
+        --> Receiver.accept --> save (worker), fusion worker, ack
 
-Every queue is bounded and latest-wins where order does not matter: a new own version replaces
-an unsent older one, a full event queue drops (and counts) rather than grow. Blocking work
-(encode, decode, state writes) runs in threads so the loop keeps serving status and timers.
+The decisions live in sans-I/O cores (:mod:`~mapd.daemon.publisher`, :mod:`~mapd.daemon.receiver`);
+this module is the asyncio adapter around them. The event loop only moves bytes and decisions:
+encode, decode, verify, merge and file writes run in worker threads, so a large map never stalls
+the links, timers or ``mapd status``. Every queue is bounded and latest-wins where order does not
+matter.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
 import logging
 import os
 import signal
 import threading
 import time
-from typing import Any
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, TypeVar
+
+from pydantic import BaseModel
 
 from mapd import config as configmod
 from mapd import plugins
-from mapd.codec import decode, encode, get_codec, read_header
+from mapd.codec import get_codec
 from mapd.codec.base import CodecOptions
-from mapd.codec.metrics import psnr, ssim
+from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
+from mapd.daemon.publisher import PublisherCore
+from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
-from mapd.envelope import Envelope, unpack
+from mapd.envelope import Envelope
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
@@ -50,21 +57,20 @@ from transports.base import (
     TransportEvent,
 )
 
-log = logging.getLogger("mapd.daemon.server")
+log = logging.getLogger("mapd.daemon")
 EVENT_QUEUE = 256
-KEEP_VERSIONS = 16
-#: Recent versions of each peer's map kept in memory: a delta may be coded against a version the
-#: sender saw acked while newer ones were still in flight.
-KEEP_PEER_VERSIONS = 8
-#: A transport gets the next version only when the previous one is acked by every peer, failed,
-#: or older than this. Superseding a half-sent map with every new version starves a slow link.
-INFLIGHT_TIMEOUT_S = 30.0
+M = TypeVar("M", bound=BaseModel)
 
 
 class Daemon:
-    """One robot's mapd. Construct with a validated config, then ``await run()``."""
+    """One robot's mapd. Construct with a validated config, then ``await run()``.
 
-    def __init__(self, cfg: configmod.MapdConfig, *, shutdown_timeout: float = 5.0) -> None:
+    ``source`` replaces the configured source plugin (tests and embedding).
+    """
+
+    def __init__(
+        self, cfg: configmod.MapdConfig, *, shutdown_timeout: float = 5.0, source: MapSource | None = None
+    ) -> None:
         self.cfg = cfg
         self.me = cfg.robot.name
         self.shutdown_timeout = shutdown_timeout
@@ -72,43 +78,36 @@ class Daemon:
         self.key = configmod.read_key(cfg)
         self.store = StateStore(cfg.state.dir, max_cells=cfg.limits.max_cells)
         self.started = time.time()
+        self.source = source
+        self.source_finished = False
+        self.own: OccupancyGrid | None = None
+        self.transports: list[Transport] = []
         self._stop = asyncio.Event()
         self._stopping_at: float | None = None
-        self._publish = asyncio.Event()
-        self._pending: OccupancyGrid | None = None
+        self._wake = asyncio.Event()  # the publisher has something to look at
+        self._pending: OccupancyGrid | None = None  # newest own version, not yet saved
         self._events = EventQueue(EVENT_QUEUE, max_peers=EVENT_QUEUE)
-        self._sent: dict[int, OccupancyGrid] = {}  # recent own versions, for delta bases
         self._kf_lock = threading.Lock()
-        self._kf_cache: Envelope | None = None
-        self.own: OccupancyGrid | None = None
-        self.source_finished = False
-        self.peer_maps: dict[str, OccupancyGrid] = {}
-        self.peer_history: dict[str, dict[int, OccupancyGrid]] = {}
-        self.peer_info: dict[str, dict[str, Any]] = {}
-        self.since_keyframe = 0
-        self.counters: dict[str, int] = dict.fromkeys(
-            (
-                "bad_envelopes",
-                "foreign_fleet",
-                "bad_signature",
-                "duplicates",
-                "decode_errors",
-                "keyframe_requests",
-                "keyframes_sent",
-                "deltas_sent",
-                "updates_received",
-            ),
-            0,
-        )
-        self.codec_stats: dict[str, Any] = {"name": cfg.codec.use}
-        self.transports: list[Transport] = []
-        self._inflight: dict[str, tuple[int, float, set[str]]] = {}  # transport -> (version, since, unacked)
-        self._offered: dict[str, int] = {}  # transport -> newest own version it was given
-        self._latest: OccupancyGrid | None = None  # newest own version saved, coded or not
-        self.source: MapSource | None = None
+        # File appends that the loop hands off (fused.csv); one thread keeps them in order.
+        self._files = ThreadPoolExecutor(1, thread_name_prefix="mapd-files")
         codec_opts = self.options["codec"].get(cfg.codec.use)
-        self.codec_options = codec_opts if isinstance(codec_opts, CodecOptions) else None
-        self.codec = get_codec(cfg.codec.use, self.codec_options)
+        options = codec_opts if isinstance(codec_opts, CodecOptions) else None
+        codec = get_codec(cfg.codec.use, options)
+        self.publisher = PublisherCore(uses_base=codec.uses_base, keyframe_every=cfg.codec.keyframe_every)
+        self.receiver = Receiver(self.me, cfg.robot.fleet)
+        self.coder = Coder(
+            robot=self.me,
+            fleet=cfg.robot.fleet,
+            codec=cfg.codec.use,
+            options=options,
+            lossless=codec.lossless,
+            measure_quality=cfg.codec.measure_quality,
+            key=self.key,
+            max_cells=cfg.limits.max_cells,
+            store=self.store,
+            log=CsvLog(cfg.state.dir / "updates.csv"),
+        )
+        self._fused_log = CsvLog(cfg.state.dir / "fused.csv")
         self.fusion = FusionWorker(
             self.me,
             cfg.fusion,
@@ -116,9 +115,7 @@ class Daemon:
             on_global=[self._on_global],
             max_cells=cfg.limits.max_cells,
         )
-        self._fused_csv = cfg.state.dir / "fused.csv"
-        self.control = StatusServer(cfg.control_socket(), self.snapshot)
-        self._updates_csv = cfg.state.dir / "updates.csv"
+        self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -126,30 +123,31 @@ class Daemon:
 
     async def run(self) -> None:
         """Start everything, run until asked to stop, then shut down within the timeout."""
-        await asyncio.to_thread(self.store.open)
-        self._restore()
-        source_cls = plugins.load("source", self.cfg.source.use)
-        self.source = source_cls(
-            self.options["source"].get(self.cfg.source.use),
-            SourceContext(robot=self.me, max_cells=self.cfg.limits.max_cells),
-        )
+        await self._restore()
+        if self.source is None:
+            source_cls = plugins.load("source", self.cfg.source.use)
+            self.source = source_cls(
+                self._options("source", self.cfg.source.use, source_cls.Options),
+                SourceContext(robot=self.me, max_cells=self.cfg.limits.max_cells),
+            )
         for name in self.cfg.transports.use:
             cls = plugins.load("transport", name)
+            state_dir = self.cfg.state.dir / "links" / name
+            state_dir.mkdir(parents=True, exist_ok=True)
             ctx = TransportContext(
                 robot=self.me,
                 fleet=self.cfg.robot.fleet,
                 key=self.key,
                 max_message_bytes=self.cfg.limits.max_message_bytes,
-                emit=self._emit,
-                state_dir=self.cfg.state.dir / "links" / name,
+                emit=self._events.put,
+                state_dir=state_dir,
                 latest_keyframe=self.latest_keyframe,
             )
-            (self.cfg.state.dir / "links" / name).mkdir(parents=True, exist_ok=True)
-            self.transports.append(cls(self.options["transports"].get(name), ctx))
+            self.transports.append(cls(self._options("transports", name, cls.Options), ctx))
         try:
             for t in self.transports:
                 await t.start()
-            await self.control.start()
+            await self.status_server.start()
             notify("READY=1\nSTATUS=running")
             log.info(
                 "mapd started",
@@ -162,11 +160,16 @@ class Daemon:
         finally:
             await self._shutdown()
 
+    def _options(self, section: str, name: str, model: type[M]) -> M | None:
+        """A plugin's validated options (``check_plugins`` built them with ``model``)."""
+        opts = self.options[section].get(name)
+        return opts if isinstance(opts, model) else None
+
     async def _run_tasks(self) -> None:
         async with asyncio.TaskGroup() as tg:
             tasks = [
                 tg.create_task(self._source_loop(), name="source"),
-                tg.create_task(self._publisher(), name="publisher"),
+                tg.create_task(self._publish_loop(), name="publisher"),
                 tg.create_task(self._event_loop(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
@@ -186,7 +189,7 @@ class Daemon:
             if self.source is not None:
                 with contextlib.suppress(Exception):
                     await self.source.close()
-            await self.control.close()
+            await self.status_server.close()
 
         t_tasks = time.monotonic()
         try:
@@ -194,6 +197,7 @@ class Daemon:
         except TimeoutError:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
         t_closed = time.monotonic()
+        await asyncio.to_thread(self._files.shutdown, wait=True)
         with contextlib.suppress(MapdError, OSError):
             await asyncio.to_thread(self.store.flush)
         if self._stopping_at is not None:
@@ -211,29 +215,38 @@ class Daemon:
                 },
             )
 
-    def _restore(self) -> None:
-        """Resume from the state directory: own version, bases, and every peer's last map."""
-        data = self.store.data
-        base = self.store.base_map()
-        if base is not None:
-            self._sent[base.version] = base
+    def _load_state(self) -> tuple[OccupancyGrid | None, OccupancyGrid | None, list[OccupancyGrid]]:
+        """Open the state directory and read what a previous run left (blocking: a worker thread)."""
+        self.store.open()
         own = self.store.own_map()
-        if own is not None:
-            self.own = own.replace(robot=self.me)
-            self._sent[own.version] = self.own
-            self.fusion.submit(self.own)
-        for robot in list(data.peers):
+        peers = []
+        for robot in list(self.store.data.peers):
             grid = self.store.peer_map(robot)
             if grid is None:
-                data.peers.pop(robot, None)
-                continue
-            self.peer_maps[robot] = grid
-            self.peer_history[robot] = {grid.version: grid}
+                self.store.forget_peer(robot)
+            else:
+                peers.append(grid)
+        return own, self.store.base_map(), peers
+
+    async def _restore(self) -> None:
+        """Resume from the state directory: own version, bases, and every peer's last map."""
+        own, base, peers = await asyncio.to_thread(self._load_state)
+        if own is not None:
+            own = self.own = own.replace(robot=self.me)
+            self.fusion.submit(own)
+        self.publisher.restore(own, base, self.store.acked())
+        for grid in peers:
+            self.receiver.restore(grid)
             self.fusion.submit(grid)
-        if data.own_version:
+        if self.store.data.own_version:
             log.info(
                 "resumed from state",
-                extra={"fields": {"own_version": data.own_version, "peers": ",".join(self.peer_maps) or "-"}},
+                extra={
+                    "fields": {
+                        "own_version": self.store.data.own_version,
+                        "peers": ",".join(self.receiver.maps) or "-",
+                    }
+                },
             )
 
     async def _watchdog(self) -> None:
@@ -252,315 +265,166 @@ class Daemon:
                 log.warning("source map of %d cells is over the limit; skipped", grid.cells)
                 continue
             # Versions are the daemon's, so they keep increasing across restarts.
-            self.store.data.own_version += 1
             own = grid.replace(
-                robot=self.me, version=self.store.data.own_version, stamp=grid.stamp or time.time()
+                robot=self.me, version=self.store.next_own_version(), stamp=grid.stamp or time.time()
             )
             self.own = own
-            self._pending = own  # latest wins: an unencoded older version is simply replaced
-            self._publish.set()
+            self._pending = own  # latest wins: an unsaved older version is simply replaced
+            self._wake.set()
             self.fusion.submit(own)
         self.source_finished = True
         log.info("source finished; still serving peers")
 
-    def _target_peers(self) -> set[str]:
-        peers: set[str] = set()
-        for t in self.transports:
-            peers.update(t.peers())
-        return peers
+    def _peers_by_transport(self) -> dict[str, list[str]]:
+        return {t.name: t.peers() for t in self.transports}
 
-    def _choose_base(self) -> OccupancyGrid | None:
-        if not self.codec.uses_base or self.since_keyframe + 1 >= self.cfg.codec.keyframe_every:
-            return None
-        peers = self._target_peers()
-        if not peers:
-            return None
-        acked = {self.store.data.acked.get(p, 0) for p in peers}
-        if len(acked) != 1:
-            return None  # peers hold different versions: only a keyframe suits them all
-        return self._sent.get(acked.pop())
+    async def _publish_loop(self) -> None:
+        """The publisher core's adapter: save new versions, ask what to code, code it in a worker, offer it.
 
-    async def _publisher(self) -> None:
-        """Code the newest own version for every transport that is free to take it.
-
-        A version is coded only when some transport can send it now: a busy transport takes the
-        newest version when its current one settles (:meth:`_settled` wakes this loop). So a slow
-        link neither queues stale maps nor makes the robot code versions that would be replaced
-        unsent, and the delta is taken against the base acked *by then*, not the older one acked
-        when the version was made (on the 12.5 kb/s link the first keyframe takes seconds).
+        A version is coded only when some transport can send it now (rule P1): a busy transport
+        takes the newest version when its current one settles or times out, so the delta is taken
+        against the base acked *by then* (on the 12.5 kb/s link the first keyframe takes seconds).
         """
+        core = self.publisher
         while True:
-            await self._publish.wait()
-            self._publish.clear()
+            deadline = core.next_deadline()
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout)
+            self._wake.clear()
             grid, self._pending = self._pending, None
             if grid is not None:
                 await asyncio.to_thread(self.store.save_own, grid)
-                self._sent[grid.version] = grid
-                for v in sorted(self._sent)[:-KEEP_VERSIONS]:
-                    if self.store.data.base is None or v != self.store.data.base.version:
-                        del self._sent[v]
-                self._latest = grid
-            latest = self._latest
-            if latest is None:
-                continue
-            free = [
-                t
-                for t in self.transports
-                if self._offered.get(t.name, 0) < latest.version and not self._busy(t.name)
-            ]
-            if not free:
+                core.new_version(grid)
+            job = core.poll(time.monotonic(), self._peers_by_transport())
+            if job is None:
                 continue  # every transport is busy or has it: they take the newest when they settle
-            base = self._choose_base()
-            env = await asyncio.to_thread(self._make_envelope, latest, base)
-            if env.is_keyframe:
-                self.since_keyframe = 0
-                self.counters["keyframes_sent"] += 1
-                with self._kf_lock:
-                    self._kf_cache = env
-            else:
-                self.since_keyframe += 1
-                self.counters["deltas_sent"] += 1
-            for t in free:
-                self._offered[t.name] = env.version
-                self._inflight[t.name] = (env.version, time.monotonic(), set(t.peers()))
-                t.offer(env)
+            env = await asyncio.to_thread(self.coder.envelope, job.grid, job.base)
+            for name in core.encoded(job, env, time.monotonic(), self._peers_by_transport()):
+                transport = self._transport(name)
+                if transport is not None:
+                    transport.offer(env)
             if self._pending is not None:
-                self._publish.set()  # a newer version came while coding
+                self._wake.set()  # a newer version came while coding
 
-    def _busy(self, transport: str) -> bool:
-        """An earlier version is still on its way on ``transport`` (and not yet given up on)."""
-        busy = self._inflight.get(transport)
-        return busy is not None and bool(busy[2]) and time.monotonic() - busy[1] < INFLIGHT_TIMEOUT_S
+    def latest_keyframe(self) -> Envelope | None:
+        """The newest own map as a keyframe, for late joiners.
 
-    def _settled(self, transport: str, peer: str, version: int) -> None:
-        busy = self._inflight.get(transport)
-        if busy is None or version < busy[0]:
-            return
-        busy[2].discard(peer)
-        if not busy[2]:
-            self._publish.set()  # the link is free: the publisher sends it the newest version
-
-    def _make_envelope(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Envelope:
-        t0 = time.perf_counter()
-        payload = encode(grid, self.cfg.codec.use, base, options=self.codec_options)
-        enc_ms = 1000 * (time.perf_counter() - t0)
-        head = read_header(payload, max_cells=self.cfg.limits.max_cells)
-        base_version = head.base_version if head.delta else 0
-        self.store.data.seq += 1
-        env = Envelope(
-            fleet=self.cfg.robot.fleet,
-            robot=self.me,
-            version=grid.version,
-            base_version=base_version,
-            codec=self.cfg.codec.use,
-            variant=head.variant,
-            width=grid.width,
-            height=grid.height,
-            resolution=grid.resolution,
-            origin=grid.origin,
-            frame_id=grid.frame_id,
-            stamp=grid.stamp,
-            seq=self.store.data.seq,
-            payload=payload,
-        )
-        if self.key is not None:
-            env = env.signed(self.key)
-        row: dict[str, Any] = {
-            "time": round(time.time(), 3),
-            "version": grid.version,
-            "kind": "delta" if head.delta else "keyframe",
-            "cells": grid.cells,
-            "bytes": len(payload),
-            "ratio": round(grid.cells / len(payload), 2),
-            "encode_ms": round(enc_ms, 2),
-            "psnr": "",
-            "ssim": "",
-        }
-        if self.cfg.codec.measure_quality and not self.codec.lossless:
-            back = decode(payload, base, max_cells=self.cfg.limits.max_cells, options=self.codec_options)
-            row["psnr"], row["ssim"] = (
-                round(psnr(grid.data, back.data), 3),
-                round(ssim(grid.data, back.data), 5),
-            )
-        self.codec_stats.update(
-            last_version=grid.version,
-            last_bytes=len(payload),
-            last_ratio=row["ratio"],
-            last_encode_ms=row["encode_ms"],
-            last_kind=row["kind"],
-        )
-        self._log_update(row)
-        return env
-
-    def _log_update(self, row: dict[str, Any]) -> None:
-        new = not self._updates_csv.exists()
-        with open(self._updates_csv, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        Called by transports from worker threads (a zenoh query is answered on its job thread): it
+        may encode, so it must never run on the event loop. One encode per version however many
+        queries wait; the publisher's own keyframes are reused.
+        """
+        own = self.own
+        if own is None:
+            return None
+        with self._kf_lock:
+            cached = self.publisher.cached_keyframe(own.version)
+            if cached is not None:
+                return cached
+            env = self.coder.envelope(own, None)
+            self.publisher.remember_keyframe(env)
+            return env
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """Log which version of each robot's map the new global map holds (for latency benches)."""
         now = round(time.time(), 3)
         robots = self.fusion.status().get("robots", {})
-        new = not self._fused_csv.exists()
-        with open(self._fused_csv, "a", newline="") as fh:
-            w = csv.writer(fh)
-            if new:
-                w.writerow(["time", "robot", "version"])
-            for robot, info in robots.items():
-                if isinstance(info, dict) and info.get("accepted") and info.get("version"):
-                    w.writerow([now, robot, info["version"]])
-
-    def latest_keyframe(self) -> Envelope | None:
-        """The newest own map as a keyframe, for late joiners (thread-safe; encodes at most once)."""
-        own = self.own
-        if own is None:
-            return None
-        with self._kf_lock:
-            if self._kf_cache is not None and self._kf_cache.version == own.version:
-                return self._kf_cache
-        env = self._make_envelope(own, None)
-        with self._kf_lock:
-            self._kf_cache = env
-        return env
+        rows = [
+            {"time": now, "robot": robot, "version": info["version"]}
+            for robot, info in robots.items()
+            if isinstance(info, dict) and info.get("accepted") and info.get("version")
+        ]
+        if rows:
+            self._files.submit(self._fused_log.write, rows)
 
     # ------------------------------------------------------------------ events in
-    def _emit(self, event: TransportEvent) -> None:
-        self._events.put(event)
-
     async def _event_loop(self) -> None:
         while True:
             ev = await self._events.get()
             try:
                 await self._handle(ev)
             except MapdError as exc:
-                log.warning("event from %s dropped: %s", getattr(ev, "peer", "?"), exc)
+                log.warning("event from %s dropped: %s", ev.peer, exc)
 
     def _transport(self, name: str) -> Transport | None:
         return next((t for t in self.transports if t.name == name), None)
 
     async def _handle(self, ev: TransportEvent) -> None:
+        core = self.publisher
         if isinstance(ev, Received):
             await self._on_received(ev)
         elif isinstance(ev, Delivered):
             if ev.robot != self.me:
                 return
-            self._settled(ev.transport, ev.peer, ev.version)
-            prev = self.store.data.acked.get(ev.peer, 0)
-            if ev.version > prev:
-                self.store.data.acked[ev.peer] = ev.version
-                await self._maybe_save_base()
+            free, newer = core.acked(ev.transport, ev.peer, ev.version)
+            if free:
+                self._wake.set()  # the link is free: the publisher sends it the newest version
+            if newer and self.store.set_acked(ev.peer, ev.version):
+                await self._save_base()
         elif isinstance(ev, KeyframeNeeded | PeerRestarted):
             # The peer may not hold our base any more: the next update goes out whole.
-            self.since_keyframe = self.cfg.codec.keyframe_every
-            self.store.data.acked.pop(ev.peer, None)
-            if self.own is not None:
-                self._pending = self._pending or self.own
-                self._offered.clear()  # even a transport that had the newest version gets it whole
-                self._publish.set()
+            self.store.forget_acked(ev.peer)
+            if core.keyframe_needed(ev.peer):
+                self._wake.set()
         elif isinstance(ev, PeerUp | PeerDown):
-            info = self.peer_info.setdefault(ev.peer, {})
-            info["present"] = isinstance(ev, PeerUp)
-            info["link"] = ev.transport
+            self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
         elif isinstance(ev, Failed):
-            self._settled(ev.transport, ev.peer, ev.version)
+            if core.failed(ev.transport, ev.peer, ev.version):
+                self._wake.set()
             log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
 
-    async def _maybe_save_base(self) -> None:
-        peers = self._target_peers() or set(self.store.data.acked)
-        versions = {self.store.data.acked.get(p, 0) for p in peers}
-        if len(versions) == 1:
-            v = versions.pop()
-            grid = self._sent.get(v)
-            if grid is not None and (self.store.data.base is None or self.store.data.base.version != v):
-                await asyncio.to_thread(self.store.save_base, grid)
-                return
-        await asyncio.to_thread(self.store.flush)
+    async def _save_base(self) -> None:
+        peers = {p for t in self.transports for p in t.peers()}
+        grid = self.publisher.base_to_save(peers)
+        if grid is None:
+            await asyncio.to_thread(self.store.flush)
+            return
+        await asyncio.to_thread(self.store.save_base, grid)
+        self.publisher.set_base(grid.version)
 
     async def _on_received(self, ev: Received) -> None:
+        rx = self.receiver
         try:
-            env = unpack(ev.data, max_bytes=self.cfg.limits.max_message_bytes, key=self.key)
+            env = await asyncio.to_thread(
+                open_envelope, ev.data, max_bytes=self.cfg.limits.max_message_bytes, key=self.key
+            )
         except EnvelopeError as exc:
-            msg = str(exc)
-            key = "bad_signature" if "signature" in msg or "unsigned" in msg else "bad_envelopes"
-            self.counters[key] += 1
-            log.info("dropped envelope from %s: %s", ev.peer, msg)
+            rx.refused(exc)
+            log.info("dropped envelope from %s: %s", ev.peer, exc)
             return
-        if env.fleet != self.cfg.robot.fleet:
-            self.counters["foreign_fleet"] += 1
-            return
-        if env.robot == self.me:
-            return
-        held = self.peer_maps.get(env.robot)
-        if held is not None and env.version <= held.version:
-            self.counters["duplicates"] += 1
-            return
-        base = None
+        plan = rx.plan(env)
         transport = self._transport(ev.transport)
-        if not env.is_keyframe:
-            base = self.peer_history.get(env.robot, {}).get(env.base_version)
-            if base is None:
-                self.counters["keyframe_requests"] += 1
-                if transport is not None:
-                    await transport.request_keyframe(env.robot)
-                return
+        if isinstance(plan, AskKeyframe):
+            if transport is not None:
+                await transport.request_keyframe(plan.robot)
+            return
+        if not isinstance(plan, Decode):
+            return
         try:
-            grid = await asyncio.to_thread(decode, env.payload, base, max_cells=self.cfg.limits.max_cells)
+            grid = await asyncio.to_thread(
+                decode_envelope, env, plan.base, max_cells=self.cfg.limits.max_cells
+            )
         except CodecError as exc:
-            self.counters["decode_errors"] += 1
             log.info("cannot decode v%d from %s: %s", env.version, env.robot, exc)
-            if transport is not None and base is not None:
-                self.counters["keyframe_requests"] += 1
-                await transport.request_keyframe(env.robot)
+            ask = rx.undecodable(env, plan.base)
+            if ask is not None and transport is not None:
+                await transport.request_keyframe(ask.robot)
             return
-        if (grid.width, grid.height) != (env.width, env.height):
-            self.counters["decode_errors"] += 1
-            return
-        grid = grid.replace(robot=env.robot, version=env.version, stamp=env.stamp, frame_id=env.frame_id)
-        self.peer_maps[env.robot] = grid
-        history = self.peer_history.setdefault(env.robot, {})
-        history[env.version] = grid
-        for v in sorted(history)[:-KEEP_PEER_VERSIONS]:
-            del history[v]
-        self.counters["updates_received"] += 1
-        info = self.peer_info.setdefault(env.robot, {})
-        info.update(
-            version=env.version,
-            received_at=time.time(),
-            link=ev.transport,
-            present=True,
-            bytes=info.get("bytes", 0) + len(ev.data),
-            updates=info.get("updates", 0) + 1,
-            last_kind="keyframe" if env.is_keyframe else "delta",
-        )
+        rx.accept(grid, env, ev.transport, len(ev.data), time.time())
         try:
             await asyncio.to_thread(self.store.save_peer, grid)
         except StateError as exc:
             log.error("%s", exc)
         self.fusion.submit(grid)
-        ack = getattr(transport, "ack", None)
-        if callable(ack):
-            ack(env.robot, env.version)
+        if transport is not None:
+            transport.ack(env.robot, env.version)
 
     # ------------------------------------------------------------------ status
     def snapshot(self) -> dict[str, Any]:
         """Everything ``mapd status`` shows, as JSON-able data."""
         now = time.time()
-        peers = {}
-        for robot in sorted(set(self.peer_info) | set(self.peer_maps)):
-            info = dict(self.peer_info.get(robot, {}))
-            if "received_at" in info:
-                info["age_s"] = round(now - info.pop("received_at"), 1)
-            held = self.peer_maps.get(robot)
-            if held is not None:
-                # The version we hold, also for a peer restored from the state directory that has
-                # sent nothing since this start (its counters are then empty, its map is not).
-                info["version"] = held.version
-                info["restored"] = "age_s" not in info  # nothing received from it since this start
-            info["acked_our_version"] = self.store.data.acked.get(robot, 0)
-            peers[robot] = info
+        own = self.own
+        pub = self.publisher.counters
         return {
             "robot": self.me,
             "fleet": self.cfg.robot.fleet,
@@ -568,24 +432,22 @@ class Daemon:
             "uptime_s": round(now - self.started, 1),
             "source": {
                 "name": self.cfg.source.use,
-                "version": self.own.version if self.own else 0,
-                "size": [self.own.width, self.own.height] if self.own else None,
+                "version": own.version if own else 0,
+                "size": [own.width, own.height] if own else None,
                 "finished": self.source_finished,
                 "stats": self.source.stats() if self.source else {},
             },
-            "codec": {
-                **self.codec_stats,
-                "keyframes": self.counters["keyframes_sent"],
-                "deltas": self.counters["deltas_sent"],
-            },
-            "peers": peers,
+            "codec": {**self.coder.stats, "keyframes": pub.keyframes_sent, "deltas": pub.deltas_sent},
+            "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "fusion": self.fusion.status(),
             "counters": {
-                **self.counters,
+                **vars(self.receiver.counters),
+                "keyframes_sent": pub.keyframes_sent,
+                "deltas_sent": pub.deltas_sent,
                 # a flood: older updates replaced by newer ones before decoding, or events dropped
-                "superseded_updates": self._events.counters["superseded"],
-                "dropped_events": self._events.counters["dropped"],
+                "superseded_updates": self._events.counters.superseded,
+                "dropped_events": self._events.counters.dropped,
             },
             "state_dir": str(self.cfg.state.dir),
         }

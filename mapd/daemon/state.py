@@ -55,7 +55,7 @@ class StateData:
             "own": rec(self.own),
             "base": rec(self.base),
             "peers": {k: rec(v) for k, v in self.peers.items()},
-            "acked": self.acked,
+            "acked": dict(self.acked),
             "seq": self.seq,
         }
 
@@ -79,14 +79,23 @@ class StateData:
 
 
 class StateStore:
-    """Reads and writes the state directory. Methods are blocking: call them from a thread."""
+    """Reads and writes the state directory, and owns the counters in it.
+
+    Versions, the envelope sequence and the acks change only through this class's methods, under
+    its lock: the event loop and worker threads both touch them. ``data`` may be read anywhere (a
+    snapshot is :meth:`acked`), never written. Methods that write files block: call them from a
+    worker thread.
+    """
 
     def __init__(self, root: Path, *, max_cells: int = DEFAULT_MAX_CELLS) -> None:
         self.root = root
         self.max_cells = max_cells
         self.data = StateData()
-        # Callers write from worker threads; one writer at a time keeps state.json consistent.
-        self._lock = threading.RLock()
+        # Two locks, so the event loop never waits on the disk: ``_lock`` guards the records and
+        # counters and is held for microseconds; ``_io`` lets one worker write files at a time
+        # (state.json written last, from a copy of the records taken under ``_lock``).
+        self._lock = threading.Lock()
+        self._io = threading.Lock()
 
     # ------------------------------------------------------------------ setup
     def open(self) -> StateData:
@@ -107,6 +116,42 @@ class StateStore:
                 log.warning("state.json unreadable (%s); starting with empty state", exc)
                 self.data = StateData()
         return self.data
+
+    # ------------------------------------------------------------------ counters (no file I/O)
+    def next_own_version(self) -> int:
+        """Reserve the next own map version (versions keep increasing across restarts)."""
+        with self._lock:
+            self.data.own_version += 1
+            return self.data.own_version
+
+    def next_seq(self) -> int:
+        """Reserve the next envelope sequence number."""
+        with self._lock:
+            self.data.seq += 1
+            return self.data.seq
+
+    def acked(self) -> dict[str, int]:
+        """A copy of peer -> newest own version that peer acknowledged."""
+        with self._lock:
+            return dict(self.data.acked)
+
+    def set_acked(self, peer: str, version: int) -> bool:
+        """Record that ``peer`` holds own ``version``; True when that is newer than what it held."""
+        with self._lock:
+            if version <= self.data.acked.get(peer, 0):
+                return False
+            self.data.acked[peer] = version
+            return True
+
+    def forget_acked(self, peer: str) -> None:
+        """``peer`` may have lost what it acked (it restarted, or asked for a whole map)."""
+        with self._lock:
+            self.data.acked.pop(peer, None)
+
+    def forget_peer(self, robot: str) -> None:
+        """Drop the record of ``robot``'s map (its files are unreadable or gone)."""
+        with self._lock:
+            self.data.peers.pop(robot, None)
 
     def _peer_dir(self, robot: str) -> Path:
         if not robot or not set(robot) <= _SAFE:
@@ -138,25 +183,31 @@ class StateStore:
         return None if grid is None else grid.replace(robot=robot)
 
     def save_own(self, grid: OccupancyGrid) -> None:
-        with self._lock:
+        with self._io:
             self._save(grid, self.root / "own" / "map.yaml")
-            self.data.own = MapRecord(grid.version, grid.digest().hex())
-            self.data.own_version = max(self.data.own_version, grid.version)
-            self.flush()
+            record = MapRecord(grid.version, grid.digest().hex())
+            with self._lock:
+                self.data.own = record
+                self.data.own_version = max(self.data.own_version, grid.version)
+            self._write_state()
 
     def save_base(self, grid: OccupancyGrid) -> None:
-        with self._lock:
+        with self._io:
             self._save(grid, self.root / "own" / "base.yaml")
-            self.data.base = MapRecord(grid.version, grid.digest().hex())
-            self.flush()
+            record = MapRecord(grid.version, grid.digest().hex())
+            with self._lock:
+                self.data.base = record
+            self._write_state()
 
     def save_peer(self, grid: OccupancyGrid) -> None:
-        with self._lock:
-            d = self._peer_dir(grid.robot)
+        d = self._peer_dir(grid.robot)
+        with self._io:
             d.mkdir(parents=True, exist_ok=True)
             self._save(grid, d / "map.yaml")
-            self.data.peers[grid.robot] = MapRecord(grid.version, grid.digest().hex())
-            self.flush()
+            record = MapRecord(grid.version, grid.digest().hex())
+            with self._lock:
+                self.data.peers[grid.robot] = record
+            self._write_state()
 
     def _save(self, grid: OccupancyGrid, path: Path) -> None:
         try:
@@ -165,8 +216,14 @@ class StateStore:
             raise StateError(str(exc)) from None
 
     def flush(self) -> None:
+        """Write ``state.json`` now (blocking)."""
+        with self._io:
+            self._write_state()
+
+    def _write_state(self) -> None:
         with self._lock:
-            try:
-                atomic_write_json(self.root / "state.json", self.data.to_json())
-            except OSError as exc:
-                raise StateError(f"cannot write {self.root / 'state.json'}: {exc.strerror}") from None
+            doc = self.data.to_json()
+        try:
+            atomic_write_json(self.root / "state.json", doc)
+        except OSError as exc:
+            raise StateError(f"cannot write {self.root / 'state.json'}: {exc.strerror}") from None

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from mapd.bench.common import table
 from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid, load_map
+from mapd.tables import table
 
 UWB_RATE = 12500
 COLOURS = np.array(

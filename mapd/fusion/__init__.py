@@ -20,7 +20,7 @@ from typing import Any
 
 _EXPORTS = {
     "Estimate": "mapd.fusion.estimate",
-    "EstimateOptions": "mapd.fusion.estimate",
+    "EstimateOptions": "mapd.fusion.options",
     "estimate_transform": "mapd.fusion.estimate",
     "check_transform": "mapd.fusion.estimate",
     "Bounds": "mapd.fusion.merge",

@@ -57,53 +57,10 @@ from mapd.fusion import candidates as cand
 from mapd.fusion import refine
 from mapd.fusion.candidates import Hyp
 from mapd.fusion.judge import Result, Verdict, agree_factor, confidence_factors, effective_fit, judge, weakest
+from mapd.fusion.options import EstimateOptions
 from mapd.fusion.transforms import from_matrix, to_matrix
 from mapd.fusion.views import MAX_SIDE, view
 from mapd.grid import OccupancyGrid, Pose2D
-
-
-@dataclass(frozen=True)
-class EstimateOptions:
-    """Knobs of :func:`estimate_transform`; the defaults are what ``mapd bench merge`` measures."""
-
-    min_confidence: float = 0.5
-    min_agreement: float = 0.8
-    #: refuse pairs whose resolutions differ by more than this factor
-    max_resolution_ratio: float = 4.0
-    #: the correlation search works on images of about this many cells a side ...
-    coarse_cells: int = 256
-    #: ... with coarse cells no wider than this (meters)
-    max_coarse_m: float = 0.4
-    #: fewest wall cells a map needs before it is worth matching
-    min_walls: int = 30
-    #: overlapping wall cells at which the small-overlap discount ends ...
-    support_walls: int = 150
-    #: ... and free-space evidence (:attr:`mapd.fusion.refine.Score.free_evidence`) worth as much
-    #: (about 6,500 cells known in both maps that agree, if none disagree); support adds the two,
-    #: so an overlap whose free space disagrees more than it agrees loses support
-    support_free: float = 50.0
-    #: a candidate farther than this from the best (cells at b's centre, or degrees) is a rival
-    rival_cells: float = 8.0
-    rival_deg: float = 4.0
-    use_features: bool = True
-    #: try every heading when the signature and the features propose nothing acceptable
-    exhaustive: bool = True
-    #: candidates that get the full refinement and check, per search stage
-    refine_top: int = 8
-    #: walls that must pin the least constrained direction (see :func:`confidence_factors`)
-    constraint_walls: float = 6.0
-    #: the per-wall ranking of correlation peaks counts at least this many walls (fine cells)
-    coarse_floor: float = 150.0
-    #: distinct correlation peaks proposed per ranking (signature headings; every heading)
-    search_peaks: tuple[int, int] = (30, 30)
-    #: a rival that fits worse is beaten when its wall evidence is short of the best's by more than
-    #: twice max(first, second x the best's evidence) (see :func:`mapd.fusion.judge.distinct_by_evidence`)
-    evidence_margin: tuple[float, float] = (30.0, 0.1)
-    #: slide the best along its weakest direction to measure how well it is pinned down
-    slide_test: bool = True
-    #: peaks kept per ranking from each signature heading (and its +-3 degree neighbours), over the
-    #: global best: in repetitive layouts other headings can crowd the true one out
-    heading_peaks: int = 2
 
 
 @dataclass(frozen=True)
@@ -147,6 +104,20 @@ class Estimate:
             "method": self.method,
             "overlap": self.overlap,
         }
+
+
+def _measured(t: Pose2D, conf: float, sc: refine.Score, **kw: Any) -> Estimate:
+    """An estimate placing b at ``t``, with ``conf`` and what verifying it measured (``sc``)."""
+    return Estimate(
+        x=t.x,
+        y=t.y,
+        yaw=t.yaw,
+        confidence=conf,
+        agreement=sc.agreement,
+        inliers=sc.hits_b,
+        overlap=sc.overlap,
+        **kw,
+    )
 
 
 def rejected(reason: str, **kw: Any) -> Estimate:
@@ -298,19 +269,7 @@ def estimate_transform(
         reason = f"confidence {conf:.2f} below {min_conf:.2f} ({weakest(sc, verdict.factors)})"
     elif sc.agreement < min_agr:
         reason = f"overlap agreement {sc.agreement:.2f} below {min_agr:.2f}"
-    return Estimate(
-        x=t.x,
-        y=t.y,
-        yaw=t.yaw,
-        confidence=conf,
-        agreement=sc.agreement,
-        inliers=sc.hits_b,
-        accepted=not reason,
-        reason=reason,
-        method=best.hyp.source,
-        overlap=sc.overlap,
-        details=details,
-    )
+    return _measured(t, conf, sc, accepted=not reason, reason=reason, method=best.hyp.source, details=details)
 
 
 def check_transform(
@@ -330,15 +289,4 @@ def check_transform(
     h = Hyp.from_matrix(np.linalg.inv(va.g) @ to_matrix(t) @ vb.g, source="given")
     sc = refine.verify(va, vb, h)
     conf = math.prod(confidence_factors(sc, sc.fit * agree_factor(sc), 0.0, opt).values())
-    return Estimate(
-        x=t.x,
-        y=t.y,
-        yaw=t.yaw,
-        confidence=conf,
-        agreement=sc.agreement,
-        inliers=sc.hits_b,
-        accepted=True,
-        method="given",
-        overlap=sc.overlap,
-        details={"fit": sc.fit, "walls": sc.walls},
-    )
+    return _measured(t, conf, sc, accepted=True, method="given", details={"fit": sc.fit, "walls": sc.walls})

@@ -34,15 +34,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mapd.fusion.candidates import Hyp
+from mapd.fusion.options import EstimateOptions
 from mapd.fusion.refine import Score, agreement_ramp
-
-if TYPE_CHECKING:
-    from mapd.fusion.estimate import EstimateOptions
 
 
 @dataclass

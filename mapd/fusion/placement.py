@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from mapd.fusion.estimate import Estimate, EstimateOptions, check_transform, estimate_transform
+from mapd.fusion.estimate import Estimate, check_transform, estimate_transform
+from mapd.fusion.options import EstimateOptions
 from mapd.fusion.transforms import IDENTITY, compose, inverse, pose_distance
 from mapd.grid import OccupancyGrid, Pose2D
 

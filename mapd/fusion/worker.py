@@ -2,7 +2,7 @@
 
 API for the daemon::
 
-    worker = FusionWorker(robot, cfg.fusion, state_dir, on_global=[zenoh_sink, ros2_sink])
+    worker = FusionWorker(robot, cfg.fusion, state_dir, on_global=[callback])
     task = asyncio.create_task(worker.run())
     worker.submit(grid)          # own map or a peer's decoded map; grid.robot names it
     worker.status()              # JSON-able dict for `mapd status`

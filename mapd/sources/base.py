@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
 
@@ -17,6 +17,19 @@ class SourceOptions(BaseModel):
     """Options a source reads from its ``[source.<name>]`` table. Subclass to add fields."""
 
     model_config = ConfigDict(extra="forbid")
+
+
+class FleetSliceOptions(SourceOptions):
+    """Options of a source that drives robot ``index`` of ``robots`` (a shared log or simulated building)."""
+
+    robots: int = Field(default=1, ge=1, le=64, description="robots sharing the log or the building")
+    index: int = Field(default=0, ge=0, description="which of them this daemon is (0-based)")
+
+    @model_validator(mode="after")
+    def _check_index(self) -> FleetSliceOptions:
+        if self.index >= self.robots:
+            raise ValueError(f"index {self.index} must be below robots ({self.robots})")
+        return self
 
 
 @dataclass

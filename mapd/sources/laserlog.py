@@ -38,7 +38,7 @@ from mapd.errors import LimitError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, first_pose, relative, replay_scans
-from mapd.sources.base import MapSource, SourceContext, SourceOptions
+from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 MAX_BEHIND_S = 1.0
 
 
-class LaserLogOptions(SourceOptions, MapperOptions):
+class LaserLogOptions(FleetSliceOptions, MapperOptions):
     """``[source.laserlog]``: the log, the fleet slot, when to emit, pacing, and mapper keys."""
 
     log: Path = Field(
@@ -56,15 +56,11 @@ class LaserLogOptions(SourceOptions, MapperOptions):
     every: int | None = Field(default=10, ge=1, description="emit a snapshot every N scans")
     every_s: float | None = Field(default=None, gt=0.0, description="emit a snapshot every T s of log time")
     realtime: float = Field(default=1.0, ge=0.0, description="replay speed: 1.0 as recorded, 0 flat out")
-    robots: int = Field(default=1, ge=1, le=64, description="robots sharing the log")
-    index: int = Field(default=0, ge=0, description="this robot's slice (0-based)")
     overlap: float = Field(default=0.2, ge=0.0, lt=1.0, description="share of the log neighbours share")
     fov_deg: float = Field(default=180.0, gt=0.0, le=360.0, description="FLASER field of view")
 
     @model_validator(mode="after")
     def _check(self) -> LaserLogOptions:
-        if self.index >= self.robots:
-            raise ValueError(f"index {self.index} must be below robots ({self.robots})")
         if self.every is None and self.every_s is None:
             raise ValueError("set every (scans) or every_s (log seconds), or both")
         return self

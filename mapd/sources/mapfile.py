@@ -63,6 +63,16 @@ def _stat(p: Path) -> tuple[int, int, int]:
     return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
+def _stat_or_error(p: Path, yaml_path: Path, what: str) -> tuple[int, int, int]:
+    """:func:`_stat`, or one :class:`MapFileError` naming the map and ``what`` could not be read."""
+    try:
+        return _stat(p)
+    except FileNotFoundError:
+        raise MapFileError(f"{yaml_path}: {what} vanished or not written yet") from None
+    except OSError as exc:
+        raise MapFileError(f"{yaml_path}: cannot stat {what}: {exc.strerror}") from None
+
+
 class MapFileSource(MapSource):
     """Emits a new version whenever a watched map_server map changes and loads cleanly."""
 
@@ -98,20 +108,9 @@ class MapFileSource(MapSource):
     def _signature(self) -> Signature:
         """Stats of the YAML and its image; raises MapFileError when either is missing or unreadable."""
         path = self.path
-        try:
-            ystat = _stat(path)
-        except FileNotFoundError:
-            raise MapFileError(f"{path}: map file vanished or not written yet") from None
-        except OSError as exc:
-            raise MapFileError(f"{path}: cannot stat: {exc.strerror}") from None
+        ystat = _stat_or_error(path, path, "map file")
         image = read_map_yaml(path)["image"]
-        try:
-            istat = _stat(image)
-        except FileNotFoundError:
-            raise MapFileError(f"{path}: image '{image}' vanished or not written yet") from None
-        except OSError as exc:
-            raise MapFileError(f"{path}: cannot stat image '{image}': {exc.strerror}") from None
-        return (ystat, istat)
+        return (ystat, _stat_or_error(image, path, f"image '{image}'"))
 
     def check(self, state: dict[str, object], now: float) -> OccupancyGrid | None:
         """One poll (blocking file I/O; the stream runs it in a thread): a new map to emit, or None.

@@ -32,12 +32,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
 from mapd.errors import LimitError, MapFileError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, load_map
 from mapd.mapping.mapper import MapperOptions
-from mapd.sources.base import MapSource, SourceContext, SourceOptions
+from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
 
 if TYPE_CHECKING:
     from mapd.mapping.simrobot import SimRobot
@@ -48,12 +48,10 @@ log = logging.getLogger(__name__)
 MAX_BEHIND_S = 1.0
 
 
-class SimOptions(SourceOptions, MapperOptions):
+class SimOptions(FleetSliceOptions, MapperOptions):
     """``[source.sim]``: the world, the fleet slot, the robot, its lidar, pacing, and mapper keys."""
 
     seed: int = Field(default=0, description="world and noise seed; the same seed gives the same building")
-    robots: int = Field(default=1, ge=1, le=64, description="robots in the simulated fleet")
-    index: int = Field(default=0, ge=0, description="which of them this daemon drives (0-based)")
     world: Path | None = Field(
         default=None, description="map_server YAML to use as the world (relative: to the data folder)"
     )
@@ -85,12 +83,6 @@ class SimOptions(SourceOptions, MapperOptions):
         if isinstance(v, list) and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
             raise ValueError("start must be [x, y, yaw] (m, m, rad), 'auto' or 'random'")
         return v
-
-    @model_validator(mode="after")
-    def _check_index(self) -> SimOptions:
-        if self.index >= self.robots:
-            raise ValueError(f"index {self.index} must be below robots ({self.robots})")
-        return self
 
 
 class SimSource(MapSource):

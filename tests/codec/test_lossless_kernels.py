@@ -81,15 +81,11 @@ def test_bitstream_is_pinned_to_the_model_version() -> None:
     # different versions refuse each other's payloads clearly), then update the digests here and
     # rebuild tests/codec/corpus_lossless with its make_corpus.py.
     import hashlib
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from conftest import make_room_grid
 
     from mapd.codec import encode, read_header
+    from mapd.mapping.synthetic import room_grid
 
-    base = make_room_grid(seed=0).replace(version=1)
+    base = room_grid(seed=0).replace(version=1)
     d = base.data.copy()
     d[10:20, 10:20] = 0
     odd = base.data.copy()

@@ -5,57 +5,13 @@ from __future__ import annotations
 import asyncio
 import csv
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
-
-from mapd import config as configmod
 from mapd.codec import read_header
 from mapd.daemon.server import Daemon
-from mapd.envelope import Envelope
-from mapd.grid import OccupancyGrid
-from transports.base import Delivered, Transport
-
-
-class SlowLink(Transport):
-    """A transport that holds what it was offered until the test says the peer acked it."""
-
-    name = "slow"
-
-    def __init__(self) -> None:
-        self.offers: list[Envelope] = []
-
-    async def start(self) -> None:
-        pass
-
-    async def close(self) -> None:
-        pass
-
-    def offer(self, envelope: Envelope) -> None:
-        self.offers.append(envelope)
-
-    def peers(self) -> list[str]:
-        return ["robot1"]
-
-
-def growing_map(version: int) -> OccupancyGrid:
-    """A cluttered room whose explored part grows a little with each version (so deltas pay)."""
-    rng = np.random.default_rng(0)
-    room = np.where(rng.random((200, 200)) < 0.04, 100, 0).astype(np.int8)
-    data = np.full((200, 200), -1, np.int8)
-    data[:, : 100 + 5 * version] = room[:, : 100 + 5 * version]
-    return OccupancyGrid(data, 0.05, robot="robot0", version=version)
-
-
-def daemon(tmp_path: Path) -> Daemon:
-    cfg_file = tmp_path / "c.toml"
-    cfg_file.write_text(
-        '[robot]\nname = "robot0"\n[source]\nuse = "sim"\n[codec]\nuse = "lossless"\nkeyframe_every = 50\n'
-        f'[state]\ndir = "{tmp_path / "state"}"\nruntime_dir = "{tmp_path / "run"}"\n'
-    )
-    d = Daemon(configmod.load(cfg_file))
-    d.store.open()
-    return d
+from transports.base import Received, TransportContext, TransportEvent
+from transports.virtual import VirtualOptions, VirtualTransport
 
 
 def coded(d: Daemon) -> list[dict[str, Any]]:
@@ -68,35 +24,50 @@ async def settle() -> None:
         await asyncio.sleep(0.01)
 
 
-def test_busy_link_codes_only_the_newest_version_against_the_base_acked_by_then(tmp_path: Path) -> None:
+def test_busy_link_codes_only_the_newest_version_against_the_base_acked_by_then(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
     async def main() -> None:
-        d = daemon(tmp_path)
-        link = SlowLink()
-        d.transports.append(link)
-        task = asyncio.create_task(d._publisher())
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        heard: list[TransportEvent] = []
+        peer = VirtualTransport(
+            VirtualOptions(channel=channel),
+            TransportContext(
+                robot="robot1", fleet="default", key=None, max_message_bytes=1 << 20, emit=heard.append
+            ),
+        )
+        task = asyncio.create_task(d.run())
         try:
-            d._pending = growing_map(1)
-            d._publish.set()
-            await settle()
+            await dk.wait_for(lambda: bool(d.transports) and d.transports[0].peers() == [], what="daemon up")
+            await peer.start()
+            await dk.wait_for(lambda: d.transports[0].peers() == ["robot1"], what="peer seen")
+            link = d.transports[0]
+            assert isinstance(link, VirtualTransport)
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
             assert [e.version for e in link.offers] == [1] and link.offers[0].is_keyframe
             for v in (2, 3, 4):  # the link is still busy with v1: nothing is coded or offered
-                d._pending = growing_map(v)
-                d._publish.set()
+                await source.queue.put(dk.growing_map(v))
                 await settle()
             assert len(link.offers) == 1
             assert [int(r["version"]) for r in coded(d)] == [1]
+            assert len([e for e in heard if isinstance(e, Received)]) == 1  # the peer got v1 as bytes
             # the peer acks v1: the newest version goes out, as a delta against v1
-            await d._handle(Delivered("slow", "robot1", "robot0", 1))
-            await settle()
+            peer.ack("robot0", 1)
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v4 offered")
             assert [e.version for e in link.offers] == [1, 4]
             head = read_header(link.offers[1].payload)
             assert head.delta and head.base_version == 1
             assert [(int(r["version"]), r["kind"]) for r in coded(d)] == [(1, "keyframe"), (4, "delta")]
             # acked again, and nothing newer: nothing more is coded
-            await d._handle(Delivered("slow", "robot1", "robot0", 4))
+            peer.ack("robot0", 4)
             await settle()
             assert len(link.offers) == 2
+            assert d.store.acked() == {"robot1": 4}
         finally:
-            task.cancel()
+            d.request_stop()
+            await task
+            await peer.close()
 
     asyncio.run(main())

@@ -26,7 +26,7 @@ def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
     store.save_own(own)
     store.save_base(own)
     store.save_peer(peer)
-    store.data.acked["beta"] = 4
+    assert store.set_acked("beta", 4) and not store.set_acked("beta", 3)
     store.flush()
     again = StateStore(tmp_path / "s")
     data = again.open()

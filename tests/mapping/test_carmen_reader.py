@@ -134,6 +134,11 @@ def test_fuzz_lines_never_escape_as_anything_but_counted_skips(tmp_path: Path, j
     p = tmp_path / "fuzz.log"
     p.write_bytes(b"\n".join(junk) + b"\n" + _flaser().encode())
     stats = carmen.LogStats()
+    if p.read_bytes()[:2] == b"\x1f\x8b":
+        # gzip's magic: the reader takes it for a compressed log, which this is not: one clear error
+        with pytest.raises(SourceError, match="corrupt or truncated"):
+            list(carmen.read_scans(p, stats=stats))
+        return
     scans = list(carmen.read_scans(p, stats=stats))
     # The good last line always comes through; every scan read is finite and non-negative.
     assert scans and scans[-1].ranges.size == 4

@@ -58,147 +58,50 @@ Pacing and access
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 from collections import OrderedDict, deque
-from dataclasses import dataclass, field
 from typing import Any
 
-from mapd.errors import LimitError, ProtocolError, TransportError
+from mapd.errors import LimitError, ProtocolError
 from transports.rtt import RttEstimator
 from transports.uwb import wire
+from transports.uwb.arq_types import (
+    ArqConfig,
+    ArqCounters,
+    Event,
+    MessageClosed,
+    MessageDelivered,
+    MessageFailed,
+    MessageReceived,
+    PeerDown,
+    PeerRestarted,
+    PeerUp,
+)
 from transports.uwb.framing import CRC_LEN, MIN_FRAME, FrameReader, cobs_max_len, encode_frame, max_body
-from transports.uwb.pacing import MacMode, MediumAccess, Pacer
+from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.receiving import Partial, PeerState
 from transports.uwb.sending import HASH_LEN, Outgoing
 from transports.uwb.signing import TRAILER_LEN, Signer, Verifier, strip_unverified
 
-MAX_CHUNKS = 0xFFFF
-
-
-@dataclass(frozen=True)
-class ArqConfig:
-    """Settings of one endpoint (the adapter builds it from the transport's options)."""
-
-    node_id: int
-    max_frame: int = 224
-    rate_bps: float = 12500.0
-    max_message_bytes: int = 8 << 20
-    window: int = 128
-    deadline_s: float = 120.0
-    initial_rto_s: float = 1.0
-    min_rto_s: float = 0.3
-    max_rto_s: float = 4.0
-    ack_delay_s: float = 0.0  # 0: four max-size frame times at rate_bps
-    ack_every: int = 8
-    ack_min_gap_s: float = 0.05
-    reorder_tolerance: int = 3
-    beacon_s: float = 5.0
-    peer_timeout_s: float = 20.0
-    max_peers: int = 64
-    max_partials_per_peer: int = 4
-    rx_budget_bytes: int = 0  # 0: twice max_message_bytes
-    partial_ttl_s: float = 0.0  # 0: twice deadline_s
-    mac: MacMode = "none"
-    slot_s: float = 0.25
-    slots: int = 1
-    slot_index: int = 0
-    guard_s: float = 0.01
-    clock_offset: float = 0.0
-    sense_s: float = 0.02
-    backoff_min_s: float = 0.0
-    backoff_max_s: float = 0.1
-    key: bytes | None = field(default=None, repr=False)
-    counter_start: int = 0
-
-    def __post_init__(self) -> None:
-        if not 1 <= self.node_id <= 254:
-            raise ProtocolError(f"uwb: node id {self.node_id} is not in 1..254")
-        if not 1 <= self.window <= 8 * wire.MAX_BITMAP:
-            raise ProtocolError(f"uwb: window {self.window} is not in 1..{8 * wire.MAX_BITMAP}")
-
-
-# --- events -------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class MessageReceived:
-    src: int
-    stream: int
-    msg: int
-    data: bytes
-
-
-@dataclass(frozen=True)
-class MessageDelivered:
-    msg: int
-    peer: int
-
-
-@dataclass(frozen=True)
-class MessageFailed:
-    msg: int
-    peer: int
-    reason: str
-
-
-@dataclass(frozen=True)
-class MessageClosed:
-    """A message left the send queue: ``delivered`` (to all), ``failed`` (some) or ``superseded``."""
-
-    msg: int
-    outcome: str
-
-
-@dataclass(frozen=True)
-class PeerUp:
-    peer: int
-
-
-@dataclass(frozen=True)
-class PeerDown:
-    peer: int
-
-
-@dataclass(frozen=True)
-class PeerRestarted:
-    peer: int
-
-
-Event = MessageReceived | MessageDelivered | MessageFailed | MessageClosed | PeerUp | PeerDown | PeerRestarted
-
-_COUNTERS = [
-    "bytes_tx",
-    "bytes_rx",
-    "frames_tx",
-    "frames_rx",
-    "data_tx",
-    "resends",
-    "acks_tx",
-    "acks_rx",
-    "hellos_tx",
-    "timeouts",
-    "bad_frames",
-    "duplicates",
-    "stale",
-    "stale_session",
-    "not_for_me",
-    "own_id",
-    "rejected",
-    "hash_errors",
-    "evicted",
-    "superseded",
-    "superseded_rx",
-    "unknown_acks",
-    "stale_acks",
-    "gen_resets",
-    "peers_full",
-    "messages_tx",
-    "messages_delivered",
-    "messages_failed",
-    "messages_rx",
-    "bytes_delivered",
+# The config, events and counters live in arq_types; callers reach them through this module.
+__all__ = [
+    "MAX_CHUNKS",
+    "ArqConfig",
+    "ArqCounters",
+    "ArqEndpoint",
+    "Event",
+    "MessageClosed",
+    "MessageDelivered",
+    "MessageFailed",
+    "MessageReceived",
+    "PeerDown",
+    "PeerRestarted",
+    "PeerUp",
 ]
+
+MAX_CHUNKS = 0xFFFF
 
 
 class ArqEndpoint:
@@ -234,7 +137,7 @@ class ArqEndpoint:
         self.frame_size = min(config.max_frame, int(budget // math.ceil(budget / config.max_frame)))
         self.chunk_size = max_body(max(self.frame_size, MIN_FRAME)) - wire.DATA_HEADER_LEN - self._trailer
         if self.chunk_size < 8:
-            raise ProtocolError(f"uwb: max_frame {config.max_frame} leaves no room for data")
+            raise ValueError(f"uwb: max_frame {config.max_frame} leaves no room for data")
         self._max_total = config.max_message_bytes + HASH_LEN
         self._rx_budget = config.rx_budget_bytes or 2 * self._max_total
         self._partial_ttl = config.partial_ttl_s or 2 * config.deadline_s
@@ -249,7 +152,7 @@ class ArqEndpoint:
         self._housekeeping_at = -math.inf
         self._rx_held = 0
         self._goodput_bps = 0.0
-        self.counters: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
+        self.counters = ArqCounters()
 
     # --- the API an adapter drives --------------------------------------------------------------
 
@@ -262,7 +165,11 @@ class ArqEndpoint:
         stream: int = 0,
         deadline: float | None = None,
     ) -> int:
-        """Queue ``data`` for ``dests`` (link ids); return its message id (latest wins per stream)."""
+        """Queue ``data`` for ``dests`` (link ids); return its message id (latest wins per stream).
+
+        :class:`LimitError` when the message is too large to send; ValueError for a stream outside
+        0..255 or no valid peer in ``dests`` (the caller's mistakes).
+        """
         self._now = now
         if len(data) > self.cfg.max_message_bytes:
             raise LimitError(
@@ -271,13 +178,13 @@ class ArqEndpoint:
         if -(-(len(data) + HASH_LEN) // self.chunk_size) > MAX_CHUNKS:
             raise LimitError(f"uwb: message of {len(data)} bytes needs more than {MAX_CHUNKS} chunks")
         if not 0 <= stream <= 255:
-            raise ProtocolError(f"uwb: stream {stream} is not in 0..255")
+            raise ValueError(f"uwb: stream {stream} is not in 0..255")
         targets = sorted({d for d in dests if d != self.node})
         if not targets or not all(1 <= d <= 254 for d in targets):
-            raise TransportError(f"uwb: no valid peer to send to (got {dests})")
+            raise ValueError(f"uwb: no valid peer to send to (got {dests})")
         for old in [m for m in self._out.values() if m.stream == stream]:
             del self._out[old.msg]
-            self.counters["superseded"] += 1
+            self.counters.superseded += 1
             self._events.append(MessageClosed(old.msg, "superseded"))
         msg = self._next_msg
         self._next_msg = (self._next_msg + 1) & 0xFFFFFFFF
@@ -286,13 +193,13 @@ class ArqEndpoint:
         self._out[msg] = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
         for d in targets:
             self._rtt_of(d)
-        self.counters["messages_tx"] += 1
+        self.counters.messages_tx += 1
         return msg
 
     def receive_data(self, data: bytes, now: float) -> None:
         """Bytes from the line (any split, any garbage)."""
         self._now = now
-        self.counters["bytes_rx"] += len(data)
+        self.counters.bytes_rx += len(data)
         if data:
             self._mac.heard(now)
         for body in self._reader.feed(data):
@@ -320,8 +227,8 @@ class ArqEndpoint:
         self._pacer.consume(len(out), now)
         self._mac.sent(len(out), now)
         self._hello_due = now + self.cfg.beacon_s
-        self.counters["bytes_tx"] += len(out)
-        self.counters["frames_tx"] += 1
+        self.counters.bytes_tx += len(out)
+        self.counters.frames_tx += 1
         return out
 
     def get_timer(self) -> float | None:
@@ -348,7 +255,7 @@ class ArqEndpoint:
             if now >= m.deadline:
                 for p in m.pending():
                     p.failed = True
-                    self.counters["messages_failed"] += 1
+                    self.counters.messages_failed += 1
                     self._events.append(MessageFailed(m.msg, p.peer, "deadline"))
                 self._close(m)
                 continue
@@ -362,7 +269,7 @@ class ArqEndpoint:
                     m.queue_resend(m.count - 1)  # all acked but COMPLETE not heard: ask again
                 rtt = self._rtt_of(p.peer)
                 rtt.backoff()
-                self.counters["timeouts"] += 1
+                self.counters.timeouts += 1
                 p.rto_at = now + rtt.rto if (missing or p.n_acked == m.count) else None
         for peer in self._peers.values():
             if peer.up and now >= peer.last_heard + self.cfg.peer_timeout_s:
@@ -373,7 +280,7 @@ class ArqEndpoint:
             for peer in self._peers.values():
                 for part in [p for p in peer.partials.values() if now - p.last > self._partial_ttl]:
                     self._rx_held -= peer.drop_partial(part.msg)
-                    self.counters["evicted"] += 1
+                    self.counters.evicted += 1
 
     def events(self) -> list[Event]:
         """Drain the events produced so far."""
@@ -386,23 +293,25 @@ class ArqEndpoint:
         return self._signer.reservation() if self._signer is not None else None
 
     def confirm_counter(self, upto: int) -> None:
+        """The adapter has persisted ``upto`` (from :meth:`counter_reservation`): sign below it."""
         if self._signer is not None:
             self._signer.confirm(upto)
 
     def peers_up(self) -> list[int]:
+        """Link ids of the peers heard within ``peer_timeout_s``."""
         return sorted(p.id for p in self._peers.values() if p.up)
 
     def in_flight(self) -> int:
+        """Messages still in the send queue (neither delivered to all, failed nor superseded)."""
         return len(self._out)
 
     def stats(self) -> dict[str, Any]:
         """Flat counters and gauges (bytes, frames, resends, errors, RTT, goodput, peak rate)."""
         r = self._reader.stats
-        out: dict[str, Any] = dict(self.counters)
+        out: dict[str, Any] = dataclasses.asdict(self.counters)
         out.update(crc_errors=r.crc_errors, cobs_errors=r.cobs_errors, oversize=r.oversize, runts=r.runts)
         if self._verifier is not None:
-            v = self._verifier.stats
-            out.update(unsigned=v.unsigned, bad_signature=v.bad_signature, replayed=v.replayed)
+            out.update(dataclasses.asdict(self._verifier.stats))
         srtts = [e.srtt for e in self._rtt.values() if e.srtt is not None]
         out["rtt_ms"] = round(1000 * sum(srtts) / len(srtts), 1) if srtts else None
         out["rto_ms"] = round(1000 * max((e.rto for e in self._rtt.values()), default=0.0), 1)
@@ -425,16 +334,17 @@ class ArqEndpoint:
                 return
         else:
             plain = strip_unverified(body) if signed else body
+            if plain is None:  # marked signed, but too short to hold the trailer
+                self.counters.bad_frames += 1
+                return
         try:
-            if plain is None:
-                raise ProtocolError("uwb: signed frame too short")
             frame = wire.parse(plain)
         except ProtocolError:
-            self.counters["bad_frames"] += 1
+            self.counters.bad_frames += 1
             return
-        self.counters["frames_rx"] += 1
+        self.counters.frames_rx += 1
         if frame.src == self.node:
-            self.counters["own_id"] += 1  # another node uses our id, or the medium echoes
+            self.counters.own_id += 1  # another node uses our id, or the medium echoes
             return
         peer = self._peer_for(frame, now)
         if peer is None:
@@ -448,14 +358,14 @@ class ArqEndpoint:
         peer = self._peers.get(f.src)
         if peer is None:
             if len(self._peers) >= self.cfg.max_peers and not self._evict_peer():
-                self.counters["peers_full"] += 1
+                self.counters.peers_full += 1
                 return None
             peer = PeerState(f.src, f.session, now, self.cfg.max_partials_per_peer)
             self._peers[f.src] = peer
             self._events.append(PeerUp(f.src))
         elif f.session != peer.session:
             if f.session in peer.retired:
-                self.counters["stale_session"] += 1
+                self.counters.stale_session += 1
                 return None
             self._rx_held -= peer.restart(f.session)
             self._events.append(PeerRestarted(f.src))
@@ -483,47 +393,47 @@ class ArqEndpoint:
     def _on_data(self, peer: PeerState, d: wire.Data, now: float) -> None:
         cfg = self.cfg
         if d.dst not in (self.node, wire.BROADCAST):
-            self.counters["not_for_me"] += 1
+            self.counters.not_for_me += 1
             return
         if d.total > self._max_total:
             if d.msg not in peer.rejected:
-                self.counters["rejected"] += 1
+                self.counters.rejected += 1
             peer.remember_rejected(d.msg)
             peer.owe_ack(d.msg, now)
             return
         if d.msg in peer.completed or d.msg in peer.rejected:
-            self.counters["duplicates"] += 1
+            self.counters.duplicates += 1
             peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
             return
         part = peer.partials.get(d.msg)
         if part is None:
             top = peer.stream_top.get(d.stream)
             if top is not None and d.msg < top:
-                self.counters["stale"] += 1
+                self.counters.stale += 1
                 return
             for old in [p for p in peer.partials.values() if p.stream == d.stream]:
                 self._rx_held -= peer.drop_partial(old.msg)
-                self.counters["superseded_rx"] += 1
+                self.counters.superseded_rx += 1
             if len(peer.partials) >= peer.max_partials:
                 victim = peer.oldest_partial()
                 if victim is not None:
                     self._rx_held -= peer.drop_partial(victim.msg)
-                    self.counters["evicted"] += 1
+                    self.counters.evicted += 1
             part = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
             peer.partials[d.msg] = part
             peer.stream_top[d.stream] = d.msg
         elif part.count != d.count or part.total != d.total:
-            self.counters["bad_frames"] += 1
+            self.counters.bad_frames += 1
             return
         if d.index in part.chunks:
-            self.counters["duplicates"] += 1
+            self.counters.duplicates += 1
             peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
             return
         if part.held + len(d.payload) > part.total:
-            self.counters["bad_frames"] += 1
+            self.counters.bad_frames += 1
             return
         if not self._make_room(len(d.payload), keep=part):
-            self.counters["evicted"] += 1
+            self.counters.evicted += 1
             return
         gap = d.index != part.top + 1
         part.add(d.index, d.payload, now)
@@ -532,11 +442,11 @@ class ArqEndpoint:
             self._rx_held -= peer.drop_partial(d.msg)
             data = part.verified()
             if data is None:
-                self.counters["hash_errors"] += 1
+                self.counters.hash_errors += 1
                 peer.partials[d.msg] = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
             else:
                 peer.remember_completed(d.msg, part.gen)
-                self.counters["messages_rx"] += 1
+                self.counters.messages_rx += 1
                 self._events.append(MessageReceived(peer.id, d.stream, d.msg, data))
             peer.owe_ack(d.msg, now)
             return
@@ -552,31 +462,31 @@ class ArqEndpoint:
                 return False
             _, peer, p = min(victims, key=lambda v: v[0])
             self._rx_held -= peer.drop_partial(p.msg)
-            self.counters["evicted"] += 1
+            self.counters.evicted += 1
         return True
 
     def _on_ack(self, peer: PeerState, a: wire.Ack, now: float) -> None:
-        self.counters["acks_rx"] += 1
+        self.counters.acks_rx += 1
         if a.dst != self.node:
-            self.counters["not_for_me"] += 1
+            self.counters.not_for_me += 1
             return
         if a.target_session != self.session:
-            self.counters["stale_acks"] += 1
+            self.counters.stale_acks += 1
             return
         m = self._out.get(a.msg)
         prog = m.peers.get(peer.id) if m is not None else None
         if m is None or prog is None or not prog.pending:
-            self.counters["unknown_acks"] += 1
+            self.counters.unknown_acks += 1
             return
         if a.flags & wire.REJECT:
             prog.failed = True
-            self.counters["messages_failed"] += 1
+            self.counters.messages_failed += 1
             self._events.append(MessageFailed(m.msg, peer.id, "refused by peer (over its message limit)"))
             self._maybe_close(m, now)
             return
         if prog.gen is not None and a.gen != prog.gen:
             prog.reset()
-            self.counters["gen_resets"] += 1
+            self.counters.gen_resets += 1
             for i in range(m.next_new):
                 m.queue_resend(i)
         prog.gen = a.gen
@@ -646,7 +556,7 @@ class ArqEndpoint:
 
     def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
         if kind == "hello":
-            self.counters["hellos_tx"] += 1
+            self.counters.hellos_tx += 1
             return wire.Hello(self.node, wire.BROADCAST, self.session)
         if kind == "ack":
             peer, msg = ref
@@ -657,9 +567,9 @@ class ArqEndpoint:
         for p in m.pending():
             if p.rto_at is None:
                 p.rto_at = now + self._rtt_of(p.peer).rto
-        self.counters["data_tx"] += 1
+        self.counters.data_tx += 1
         if resend:
-            self.counters["resends"] += 1
+            self.counters.resends += 1
         return wire.Data(self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i))
 
     def _build_ack(self, peer: PeerState, msg: int, now: float) -> wire.Ack | None:
@@ -675,15 +585,15 @@ class ArqEndpoint:
             gen, flags = 0, wire.REJECT
         else:
             return None  # forgotten since (evicted): nothing true to say
-        self.counters["acks_tx"] += 1
+        self.counters.acks_tx += 1
         return wire.Ack(self.node, peer.id, self.session, peer.session, msg, gen, flags, base, bitmap)
 
     def _maybe_close(self, m: Outgoing, now: float) -> None:
         if not m.finished():
             return
         if all(p.done for p in m.peers.values()):
-            self.counters["messages_delivered"] += 1
-            self.counters["bytes_delivered"] += m.size
+            self.counters.messages_delivered += 1
+            self.counters.bytes_delivered += m.size
             self._goodput_bps = 8 * m.size / max(now - m.created, 1e-9)
         self._close(m)
 

@@ -22,6 +22,18 @@ CRC_LEN = 4
 MIN_FRAME = 48
 
 
+class CobsError(ProtocolError):
+    """A frame's COBS encoding is broken (a zero code, a block past the end, a zero inside)."""
+
+
+class RuntFrameError(ProtocolError):
+    """A frame too short to hold its CRC."""
+
+
+class CrcError(ProtocolError):
+    """A frame whose CRC does not match its body (bits flipped on the line)."""
+
+
 def cobs_encode(data: bytes) -> bytes:
     """COBS-encode ``data``: the result has no zero byte and is at most ``1 + len // 254`` longer."""
     out = bytearray()
@@ -37,19 +49,19 @@ def cobs_encode(data: bytes) -> bytes:
 
 
 def cobs_decode(data: bytes) -> bytes:
-    """Invert :func:`cobs_encode`; raise :class:`ProtocolError` on a zero or truncated block."""
+    """Invert :func:`cobs_encode`; raise :class:`CobsError` on a zero or truncated block."""
     out = bytearray()
     i, n = 0, len(data)
     while i < n:
         code = data[i]
         if code == 0:
-            raise ProtocolError("uwb: COBS block code is zero")
+            raise CobsError("uwb: COBS block code is zero")
         j = i + code
         if j > n:
-            raise ProtocolError("uwb: COBS block runs past the end of the frame")
+            raise CobsError("uwb: COBS block runs past the end of the frame")
         block = data[i + 1 : j]
         if b"\x00" in block:
-            raise ProtocolError("uwb: zero byte inside a COBS block")
+            raise CobsError("uwb: zero byte inside a COBS block")
         out += block
         if code < 0xFF and j < n:
             out.append(0)
@@ -65,7 +77,7 @@ def cobs_max_len(n: int) -> int:
 def max_body(max_frame: int) -> int:
     """The largest frame body whose wire form (COBS + CRC + delimiter) fits in ``max_frame`` bytes."""
     if max_frame < MIN_FRAME:
-        raise ProtocolError(f"uwb: max_frame {max_frame} is below the minimum of {MIN_FRAME}")
+        raise ValueError(f"uwb: max_frame {max_frame} is below the minimum of {MIN_FRAME}")
     n = max_frame - 2 - CRC_LEN
     while cobs_max_len(n + CRC_LEN) + 1 > max_frame:
         n -= 1
@@ -78,13 +90,17 @@ def encode_frame(body: bytes) -> bytes:
 
 
 def decode_frame(wire: bytes) -> bytes:
-    """The body of one frame given without its delimiter; :class:`ProtocolError` when bad."""
+    """The body of one frame given without its delimiter.
+
+    Raises a :class:`ProtocolError` whose type says what was wrong (:class:`CobsError`,
+    :class:`RuntFrameError`, :class:`CrcError`), so :class:`FrameReader` counts each apart.
+    """
     raw = cobs_decode(wire)
     if len(raw) <= CRC_LEN:
-        raise ProtocolError("uwb: frame shorter than its CRC")
+        raise RuntFrameError("uwb: frame shorter than its CRC")
     body, crc = raw[:-CRC_LEN], raw[-CRC_LEN:]
     if zlib.crc32(body).to_bytes(CRC_LEN, "little") != crc:
-        raise ProtocolError("uwb: frame CRC mismatch")
+        raise CrcError("uwb: frame CRC mismatch")
     return body
 
 
@@ -141,15 +157,14 @@ class FrameReader:
 
     def _one(self, wire: bytes) -> bytes | None:
         try:
-            raw = cobs_decode(wire)
-        except ProtocolError:
+            body = decode_frame(wire)
+        except CobsError:
             self.stats.cobs_errors += 1
             return None
-        if len(raw) <= CRC_LEN:
+        except RuntFrameError:
             self.stats.runts += 1
             return None
-        body, crc = raw[:-CRC_LEN], raw[-CRC_LEN:]
-        if zlib.crc32(body).to_bytes(CRC_LEN, "little") != crc:
+        except CrcError:
             self.stats.crc_errors += 1
             return None
         self.stats.frames += 1

@@ -14,6 +14,8 @@ Everything here is sans-I/O: the caller passes ``now``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from mapd.errors import ProtocolError
 
 #: The ARQ stream reserved for control messages; map streams use 0..254.
@@ -25,12 +27,16 @@ MAX_CONTROL_BYTES = 1024
 
 
 def pack_request(robots: list[str]) -> bytes:
-    """The keyframe request naming ``robots`` (at least one)."""
+    """The keyframe request naming ``robots`` (at least one); ValueError when it cannot be built.
+
+    Too many (or too long) names to fit :data:`MAX_CONTROL_BYTES` is the caller's problem, not a
+    protocol fault: nothing has been on a link yet.
+    """
     if not robots:
         raise ValueError("a keyframe request names at least one robot")
     body = MAGIC + bytes([VERSION]) + "\n".join(sorted(set(robots))).encode()
     if len(body) > MAX_CONTROL_BYTES:
-        raise ProtocolError(f"uwb: keyframe request of {len(body)} bytes is over {MAX_CONTROL_BYTES}")
+        raise ValueError(f"uwb: keyframe request of {len(body)} bytes is over {MAX_CONTROL_BYTES}")
     return body
 
 
@@ -49,6 +55,15 @@ def parse_request(data: bytes) -> list[str]:
     if any(not n for n in names):
         raise ProtocolError("uwb: keyframe request with an empty robot name")
     return names
+
+
+@dataclass
+class ControlCounters:
+    """Control messages a ``uwb`` transport sent, took and refused (its ``stats()`` shows these names)."""
+
+    keyframe_requests_tx: int = 0
+    keyframe_requests_rx: int = 0
+    bad_control: int = 0
 
 
 class KeyframeRequests:

@@ -19,7 +19,6 @@ import logging
 import os
 import time
 import zlib
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
@@ -43,6 +42,7 @@ from transports.base import (
 from transports.uwb import arq
 from transports.uwb import keyframe_requests as control
 from transports.uwb.framing import MIN_FRAME
+from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import CounterStore, clock_floor
 
 log = logging.getLogger("mapd.uwb")
@@ -97,9 +97,10 @@ class UwbOptions(TransportOptions):
                 raise ValueError(f"nodes.{name}: link id {i} is not in 1..254")
         if len(set(self.nodes.values())) != len(self.nodes):
             raise ValueError("nodes: two robots share a link id")
-        if self.link_rate_bps / 8 < self.max_frame:
+        if self.link_rate_bps / 8 < 2 * self.max_frame:
+            # the pacer's burst is two frames (a data frame and an ack back to back)
             raise ValueError(
-                f"link_rate_bps {self.link_rate_bps} cannot carry one {self.max_frame}-byte frame a second"
+                f"link_rate_bps {self.link_rate_bps} cannot carry two {self.max_frame}-byte frames a second"
             )
         if self.backoff_max_ms < self.backoff_min_ms:
             raise ValueError("backoff_max_ms is below backoff_min_ms")
@@ -189,8 +190,7 @@ class UwbLink:
         self._wake = asyncio.Event()
         self._closing = False
         self._reopen_at = 0.0
-        self._writes: deque[tuple[float, int]] = deque()
-        self._window_bytes = 0
+        self._writes = ByteWindow(1.0)
         self.write_peak_bps = 0.0
         self.reconnects = 0
         self.started_at = 0.0
@@ -298,11 +298,8 @@ class UwbLink:
                 log.exception("uwb: event handler failed on %s", event)
 
     def _record_write(self, now: float, n: int) -> None:
-        self._writes.append((now, n))
-        self._window_bytes += n
-        while self._writes and self._writes[0][0] <= now - 1.0:
-            self._window_bytes -= self._writes.popleft()[1]
-        self.write_peak_bps = max(self.write_peak_bps, 8.0 * self._window_bytes)
+        self._writes.add(n, now)
+        self.write_peak_bps = 8.0 * self._writes.peak
 
     async def _maybe_reopen(self, now: float) -> None:
         if self._proto is not None and not self._proto.lost:
@@ -381,7 +378,7 @@ class UwbTransport(Transport):
         self._msgs: dict[int, tuple[str, int]] = {}
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
-        self.control_counters = {"keyframe_requests_tx": 0, "keyframe_requests_rx": 0, "bad_control": 0}
+        self.control_counters = control.ControlCounters()
 
     def _name(self, link_id: int) -> str:
         return self._names.get(link_id, f"uwb-{link_id}")
@@ -466,10 +463,10 @@ class UwbTransport(Transport):
             return
         try:
             link.send(control.pack_request(wanted), dests, stream=control.CONTROL_STREAM)
-        except MapdError as exc:
+        except (MapdError, ValueError) as exc:  # ValueError: too many names for one message
             log.info("uwb: keyframe request for %s not sent: %s", robot, exc)
             return
-        self.control_counters["keyframe_requests_tx"] += 1
+        self.control_counters.keyframe_requests_tx += 1
 
     def peers(self) -> list[str]:
         if self._link is None or self._link.core is None:
@@ -479,7 +476,7 @@ class UwbTransport(Transport):
     def stats(self) -> dict[str, Any]:
         out = self._link.stats() if self._link is not None else {}
         out["node_id"] = self.node_id
-        out.update(self.control_counters)
+        out.update(dataclasses.asdict(self.control_counters))
         return out
 
     def _on_event(self, e: arq.Event) -> None:
@@ -510,9 +507,9 @@ class UwbTransport(Transport):
         try:
             robots = control.parse_request(e.data)
         except MapdError as exc:
-            self.control_counters["bad_control"] += 1
+            self.control_counters.bad_control += 1
             log.info("uwb: bad control message from %s: %s", self._name(e.src), exc)
             return
-        self.control_counters["keyframe_requests_rx"] += 1
+        self.control_counters.keyframe_requests_rx += 1
         if self.ctx.robot in robots:
             self.ctx.emit(KeyframeNeeded("uwb", self._name(e.src), self.ctx.robot))

@@ -29,6 +29,29 @@ MacMode = Literal["none", "tdma", "backoff"]
 _EPS = 1e-9
 
 
+class ByteWindow:
+    """Bytes written in the last ``window_s`` seconds, and the most any such window has held.
+
+    The pacer bounds it; the adapter and the fault relay measure what really went over a line with
+    it, so "peak bytes in any 1 s" means the same thing in all three.
+    """
+
+    def __init__(self, window_s: float = 1.0) -> None:
+        self.window = window_s
+        #: (time, bytes) of each write still inside the window, oldest first.
+        self.entries: deque[tuple[float, int]] = deque()
+        self.bytes = 0
+        self.peak = 0
+
+    def add(self, n: int, now: float) -> None:
+        """Record ``n`` bytes written at ``now`` (times never go backwards)."""
+        while self.entries and self.entries[0][0] <= now - self.window:
+            self.bytes -= self.entries.popleft()[1]
+        self.entries.append((now, n))
+        self.bytes += n
+        self.peak = max(self.peak, self.bytes)
+
+
 class Pacer:
     """Token bucket (one frame deep) plus an exact sliding-window byte budget."""
 
@@ -45,14 +68,13 @@ class Pacer:
             )
         self._tokens = self.burst
         self._t: float | None = None
-        self._log: deque[tuple[float, int]] = deque()
-        self._in_window = 0
+        self._sent = ByteWindow(window_s)
         self.bytes_total = 0
-        self.peak_window_bytes = 0
 
-    def _expire(self, now: float) -> None:
-        while self._log and self._log[0][0] <= now - self.window:
-            self._in_window -= self._log.popleft()[1]
+    @property
+    def peak_window_bytes(self) -> int:
+        """The most bytes written in any one window so far."""
+        return self._sent.peak
 
     def _tokens_at(self, now: float) -> float:
         if self._t is None:
@@ -63,7 +85,7 @@ class Pacer:
         """The earliest time (>= now) at which ``n`` bytes may be written (pure: state is unchanged)."""
         tokens = self._tokens_at(now)
         t_bucket = now if tokens >= n else now + (n - tokens) / self.rate + _EPS
-        live = [(t_e, n_e) for t_e, n_e in self._log if t_e > now - self.window]
+        live = [(t_e, n_e) for t_e, n_e in self._sent.entries if t_e > now - self.window]
         excess = sum(n_e for _, n_e in live) + n - self.budget
         t_window = now
         if excess > 0:
@@ -79,11 +101,8 @@ class Pacer:
         """Record that ``n`` bytes were written at ``now`` (callers check :meth:`ready_at` first)."""
         self._tokens = self._tokens_at(now) - n
         self._t = now
-        self._expire(now)
-        self._log.append((now, n))
-        self._in_window += n
+        self._sent.add(n, now)
         self.bytes_total += n
-        self.peak_window_bytes = max(self.peak_window_bytes, self._in_window)
 
 
 class MediumAccess:

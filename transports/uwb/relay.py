@@ -37,7 +37,6 @@ import signal
 import sys
 import tempfile
 import tty
-from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import TracebackType
@@ -45,6 +44,7 @@ from typing import Any
 
 from mapd.errors import TransportError
 from transports.uwb.faults import FaultInjector, Faults
+from transports.uwb.pacing import ByteWindow
 
 _MAX_PENDING = 4096  # bytes without a delimiter before the relay forwards them anyway
 _IDLE_FLUSH_S = 0.02  # and how long it waits for more before forwarding a tail without a delimiter
@@ -113,15 +113,11 @@ class _Port:
         self.flush_timer: asyncio.TimerHandle | None = None
         self.out = bytearray()
         self.stats = PortStats()
-        self._arrivals: deque[tuple[float, int]] = deque()
-        self._window = 0
+        self._arrivals = ByteWindow(1.0)
 
     def note_arrival(self, now: float, n: int) -> None:
-        self._arrivals.append((now, n))
-        self._window += n
-        while self._arrivals and self._arrivals[0][0] <= now - 1.0:
-            self._window -= self._arrivals.popleft()[1]
-        self.stats.peak_in_bps_1s = max(self.stats.peak_in_bps_1s, 8.0 * self._window)
+        self._arrivals.add(n, now)
+        self.stats.peak_in_bps_1s = 8.0 * self._arrivals.peak
 
 
 class FaultRelay:

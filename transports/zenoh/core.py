@@ -31,11 +31,11 @@ import hashlib
 import hmac
 import struct
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.envelope import Envelope, unpack
-from mapd.errors import EnvelopeError
+from mapd.errors import EnvelopeError, SignatureError
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
 from transports.rtt import RttEstimator
 from transports.zenoh import keys
@@ -46,10 +46,6 @@ ACK_SIG_LEN = 16
 _MAX_VERSION = 1 << 63
 #: Own versions whose offer time is kept for RTT samples.
 RTT_VERSIONS = 16
-
-
-class AckSignatureError(EnvelopeError):
-    """An ack is unsigned while the fleet has a key, or its signature does not match."""
 
 
 def _ack_mac(key: bytes, fleet: str, peer: str, robot: str, body: bytes) -> bytes:
@@ -66,16 +62,20 @@ def pack_ack(version: int, *, key: bytes | None, fleet: str, peer: str, robot: s
 
 
 def unpack_ack(data: bytes, *, key: bytes | None, fleet: str, peer: str, robot: str) -> int:
-    """The version in an ack from ``peer``; :class:`EnvelopeError` when malformed or badly signed."""
+    """The version in an ack from ``peer``.
+
+    :class:`~mapd.errors.SignatureError` when unsigned while a key is set or badly signed,
+    :class:`EnvelopeError` when malformed otherwise.
+    """
     if len(data) not in (_ACK.size, _ACK.size + ACK_SIG_LEN):
         raise EnvelopeError(f"ack from '{peer}' is {len(data)} bytes, expected 8 or 24")
     (version,) = _ACK.unpack_from(data)
     if key is not None:
         sig = data[_ACK.size :]
         if not sig:
-            raise AckSignatureError(f"unsigned ack from '{peer}' while a fleet key is set")
+            raise SignatureError(f"unsigned ack from '{peer}' while a fleet key is set")
         if not hmac.compare_digest(sig, _ack_mac(key, fleet, peer, robot, data[: _ACK.size])):
-            raise AckSignatureError(f"bad signature on ack from '{peer}'")
+            raise SignatureError(f"bad signature on ack from '{peer}'")
     if not 0 < version < _MAX_VERSION:
         raise EnvelopeError(f"ack from '{peer}' names version {version}")
     return int(version)
@@ -88,6 +88,24 @@ class Step:
     events: list[TransportEvent] = field(default_factory=list)
     #: Robots whose latest keyframe to query now.
     queries: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CoreCounters:
+    """What the core has counted; :meth:`ZenohCore.stats` reports each field under its name."""
+
+    bytes_rx: int = 0
+    updates_rx: int = 0
+    gaps: int = 0
+    keyframe_queries: int = 0
+    #: Updates, replies and acks refused with a SignatureError (unsigned while the fleet has a key,
+    #: badly signed, or a signature field of the wrong form).
+    bad_signature: int = 0
+    #: Anything else refused: malformed, on a key it does not belong to, an ack of a version never sent.
+    dropped: int = 0
+    stale: int = 0
+    acks_rx: int = 0
+    queries_served: int = 0
 
 
 @dataclass
@@ -133,20 +151,7 @@ class ZenohCore:
         # go first; an ack of a forgotten version just gives no sample).
         self._offered_at: dict[int, float] = {}
         self._rtt = RttEstimator()
-        self.counters = dict.fromkeys(
-            (
-                "bytes_rx",
-                "updates_rx",
-                "gaps",
-                "keyframe_queries",
-                "bad_signature",
-                "dropped",
-                "stale",
-                "acks_rx",
-                "queries_served",
-            ),
-            0,
-        )
+        self.counters = CoreCounters()
 
     # -- state -------------------------------------------------------------------------------------
 
@@ -168,9 +173,10 @@ class ZenohCore:
         return st.last if st is not None else 0
 
     def stats(self) -> dict[str, Any]:
+        """The counters by name, then ``peers`` (tokens up) and ``rtt_ms`` (offer to ack, smoothed)."""
         srtt = self._rtt.srtt
         rtt = round(1000 * srtt, 1) if srtt is not None else None
-        return {**self.counters, "peers": len(self.peers()), "rtt_ms": rtt}
+        return {**asdict(self.counters), "peers": len(self.peers()), "rtt_ms": rtt}
 
     # -- inputs ------------------------------------------------------------------------------------
 
@@ -191,7 +197,7 @@ class ZenohCore:
         """A sample arrived on an update key."""
         robot = keys.parse_update(self.fleet, key_expr)
         if robot is None or robot == self.robot:
-            self.counters["dropped"] += 1
+            self.counters.dropped += 1
             return Step()
         return self._on_envelope(robot, data, now, from_query=False)
 
@@ -217,7 +223,7 @@ class ZenohCore:
         st = self._state(robot) if alive else self._robots.get(robot)
         if st is None:
             if alive:
-                self.counters["dropped"] += 1
+                self.counters.dropped += 1
             return Step()
         step = Step()
         if alive and not st.alive:
@@ -235,20 +241,17 @@ class ZenohCore:
         """A peer's ack of one of our versions arrived (at ``now``, for the RTT)."""
         peer = keys.parse_ack(self.fleet, self.robot, key_expr)
         if peer is None or peer == self.robot:
-            self.counters["dropped"] += 1
+            self.counters.dropped += 1
             return Step()
         try:
             version = unpack_ack(data, key=self.key, fleet=self.fleet, peer=peer, robot=self.robot)
-        except AckSignatureError:
-            self.counters["bad_signature"] += 1
-            return Step()
-        except EnvelopeError:
-            self.counters["dropped"] += 1
+        except EnvelopeError as exc:
+            self._refused(exc)
             return Step()
         if version > self._max_offered:
-            self.counters["dropped"] += 1  # an ack of a version we never sent: not a usable base
+            self.counters.dropped += 1  # an ack of a version we never sent: not a usable base
             return Step()
-        self.counters["acks_rx"] += 1
+        self.counters.acks_rx += 1
         sent = self._offered_at.get(version)
         if now is not None and sent is not None and now >= sent:
             self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
@@ -256,7 +259,7 @@ class ZenohCore:
 
     def on_query(self, asker: str | None) -> Step:
         """A peer queried our latest keyframe; ``asker`` is its ``from`` parameter, if any."""
-        self.counters["queries_served"] += 1
+        self.counters.queries_served += 1
         if asker is None or not keys.valid_name(asker) or asker == self.robot:
             return Step()
         return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
@@ -285,46 +288,43 @@ class ZenohCore:
             return
         st.regap = False
         st.query_until = now + self.query_timeout_s
-        self.counters["keyframe_queries"] += 1
+        self.counters.keyframe_queries += 1
         step.queries.append(robot)
+
+    def _refused(self, exc: EnvelopeError) -> None:
+        """Count an update, reply or ack that failed verification, by what was wrong with it."""
+        if isinstance(exc, SignatureError):
+            self.counters.bad_signature += 1
+        else:
+            self.counters.dropped += 1
 
     def _verify(self, data: bytes) -> Envelope | None:
         try:
             return unpack(data, max_bytes=self.max_message_bytes, key=self.key, fleet=self.fleet)
-        except EnvelopeError:
-            pass
-        # Rare path: tell a signature problem from other damage, for the counters.
-        if self.key is not None:
-            try:
-                unpack(data, max_bytes=self.max_message_bytes, key=None, fleet=self.fleet)
-            except EnvelopeError:
-                pass
-            else:
-                self.counters["bad_signature"] += 1
-                return None
-        self.counters["dropped"] += 1
-        return None
+        except EnvelopeError as exc:
+            self._refused(exc)
+            return None
 
     def _on_envelope(self, robot: str, data: bytes, now: float, *, from_query: bool) -> Step:
-        self.counters["bytes_rx"] += len(data)
+        self.counters.bytes_rx += len(data)
         env = self._verify(data)
         if env is None:
             return Step()
         st = self._state(robot)
         if env.robot != robot or st is None:
-            self.counters["dropped"] += 1
+            self.counters.dropped += 1
             return Step()
         if env.version <= st.last:
-            self.counters["stale"] += 1
+            self.counters.stale += 1
             return Step()
         if env.is_keyframe or env.base_version in st.bases:
             st.last = env.version
             st.bases.append(env.version)
             while len(st.bases) > self.base_window:
                 st.bases.popleft()
-            self.counters["updates_rx"] += 1
+            self.counters.updates_rx += 1
             return Step(events=[Received(transport=NAME, peer=robot, data=data)])
-        self.counters["gaps"] += 1
+        self.counters.gaps += 1
         step = Step()
         if not from_query:
             self._query(robot, st, now, step)

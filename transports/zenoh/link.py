@@ -36,6 +36,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Hashable
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from mapd.envelope import Envelope
@@ -50,6 +51,19 @@ from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
 log = logging.getLogger(__name__)
 
 
+@dataclass
+class SendCounters:
+    """What the outbox thread sent or refused; :meth:`ZenohTransport.stats` shows these names."""
+
+    bytes_tx: int = 0
+    updates_tx: int = 0
+    acks_tx: int = 0
+    #: zenoh calls that raised (a put, a reply, a query).
+    errors: int = 0
+    #: Own envelopes over limits.max_message_bytes, never sent.
+    oversize: int = 0
+
+
 class ZenohTransport(Transport):
     """The ``zenoh`` transport plugin (options: :class:`~transports.zenoh.session.ZenohOptions`)."""
 
@@ -60,7 +74,7 @@ class ZenohTransport(Transport):
         super().__init__(options, ctx)
         opts = self.options
         if not isinstance(opts, ZenohOptions):
-            raise TransportError(f"zenoh: options must be ZenohOptions, not {type(opts).__name__}")
+            raise TypeError(f"zenoh: options must be ZenohOptions, not {type(opts).__name__}")
         self.opts: ZenohOptions = opts
         if not keys.valid_name(ctx.robot) or not keys.valid_name(ctx.fleet):
             raise TransportError(f"zenoh: robot '{ctx.robot}' or fleet '{ctx.fleet}' is not a valid id")
@@ -84,8 +98,9 @@ class ZenohTransport(Transport):
         self._last_keyframe: bytes | None = None
         self._kf_cache: tuple[Envelope, bytes] | None = None
         self._handlers = HandlerSet()
+        # Written on the outbox thread and read on the loop's (stats), hence the lock.
         self._tx_lock = threading.Lock()
-        self._tx = {"bytes_tx": 0, "updates_tx": 0, "acks_tx": 0, "errors": 0, "oversize": 0}
+        self._tx = SendCounters()
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -253,11 +268,13 @@ class ZenohTransport(Transport):
     def _on_query(self, query: Any) -> None:
         asker = query.parameters.get("from")
         self._apply(self.core.on_query(asker))
-        payload = self._keyframe_bytes()
         reply_key = keys.latest_key(self.ctx.fleet, self.ctx.robot)
 
         def job() -> None:
             try:
+                # On the job thread: the daemon may have to encode a keyframe first (seconds for a
+                # large map), which must never stall the event loop.
+                payload = self._keyframe_bytes()
                 if payload is not None:
                     query.reply(reply_key, payload)
             finally:
@@ -292,12 +309,9 @@ class ZenohTransport(Transport):
 
     # -- outbox thread -----------------------------------------------------------------------------
 
-    def _count(self, name: str, n: int = 1) -> None:
-        with self._tx_lock:
-            self._tx[name] += n
-
     def _send_failed(self, key: Hashable, exc: BaseException) -> None:
-        self._count("errors")
+        with self._tx_lock:
+            self._tx.errors += 1
         log.warning("zenoh: %s failed: %s", key[0] if isinstance(key, tuple) else key, zenoh_message(exc))
 
     # -- the Transport API -------------------------------------------------------------------------
@@ -308,7 +322,8 @@ class ZenohTransport(Transport):
             return
         data = envelope.pack()
         if len(data) > self.ctx.max_message_bytes:
-            self._count("oversize")
+            with self._tx_lock:
+                self._tx.oversize += 1
             log.warning(
                 "zenoh: not sending %s v%d: %d bytes is over limits.max_message_bytes",
                 envelope.robot,
@@ -330,8 +345,8 @@ class ZenohTransport(Transport):
             else:
                 self._session.put(key, data)
             with self._tx_lock:
-                self._tx["bytes_tx"] += len(data)
-                self._tx["updates_tx"] += 1
+                self._tx.bytes_tx += len(data)
+                self._tx.updates_tx += 1
 
         self._jobs.submit(("update", robot), job)
 
@@ -349,7 +364,8 @@ class ZenohTransport(Transport):
         def job() -> None:
             if self._session is not None:
                 self._session.put(key, payload)
-                self._count("acks_tx")
+                with self._tx_lock:
+                    self._tx.acks_tx += 1
 
         self._jobs.submit(("ack", robot), job)
 
@@ -366,7 +382,7 @@ class ZenohTransport(Transport):
     def stats(self) -> dict[str, Any]:
         """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers."""
         with self._tx_lock:
-            tx = dict(self._tx)
+            tx = asdict(self._tx)
         out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0}
         if self._jobs is not None:
             out["replaced"] = self._jobs.replaced

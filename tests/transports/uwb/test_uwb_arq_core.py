@@ -7,9 +7,11 @@ import random
 from collections import Counter
 from typing import Any
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapd.errors import MapdError
 from transports.uwb import arq, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import Faults
@@ -358,3 +360,29 @@ def test_silent_peer_goes_down_and_comes_back_up() -> None:
     net.run(9.0)
     assert net.events[1] == [arq.PeerUp(2), arq.PeerDown(2), arq.PeerUp(2)]
     assert a.peers_up() == [2]
+
+
+@pytest.mark.parametrize("bad", [{"node_id": 0}, {"node_id": 255}, {"window": 0}, {"window": 257}])
+def test_bad_config_is_a_value_error(bad: dict[str, int]) -> None:
+    # A caller's mistake, not bytes breaking the protocol: no MapdError, so it is never counted.
+    with pytest.raises(ValueError) as info:
+        ArqConfig(**{"node_id": 1, **bad})
+    assert not isinstance(info.value, MapdError)
+
+
+def test_bad_send_arguments_are_value_errors() -> None:
+    a = ep(1)
+    with pytest.raises(ValueError, match="stream 256"):
+        a.send(b"x", 0.0, dests=[2], stream=256)
+    for dests in ([], [1], [0], [2, 255]):
+        with pytest.raises(ValueError, match="no valid peer") as info:
+            a.send(b"x", 0.0, dests=dests)
+        assert not isinstance(info.value, MapdError)
+    assert a.in_flight() == 0
+
+
+def test_signed_frame_too_short_for_its_trailer_is_a_bad_frame() -> None:
+    b = ep(2)  # no key: the trailer is stripped unchecked, and here there is none to strip
+    b.receive_data(encode_frame(bytes([wire.SIGNED]) + bytes(5)), 0.0)
+    s = b.stats()
+    assert s["bad_frames"] == 1 and s["frames_rx"] == 0 and s["crc_errors"] == 0

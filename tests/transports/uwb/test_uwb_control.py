@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+from types import SimpleNamespace
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd.errors import ProtocolError
+from transports.base import TransportContext
 from transports.uwb import keyframe_requests as control
+from transports.uwb.link import UwbOptions, UwbTransport
 
 
 def test_request_round_trips_sorted_and_deduplicated() -> None:
@@ -16,6 +21,34 @@ def test_request_round_trips_sorted_and_deduplicated() -> None:
     assert control.parse_request(data) == ["robot0", "robot1"]
     with pytest.raises(ValueError):
         control.pack_request([])
+
+
+def test_request_too_large_to_build_is_a_value_error() -> None:
+    # Too many names is the caller's problem (nothing was on a link), not a protocol fault.
+    with pytest.raises(ValueError, match="over 1024") as info:
+        control.pack_request([f"robot{i:04d}" for i in range(200)])
+    assert not isinstance(info.value, ProtocolError)
+
+
+def _transport_with_stub_link(sent: list[bytes]) -> UwbTransport:
+    ctx = TransportContext(robot="a", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}), ctx)
+    t._link = SimpleNamespace(  # type: ignore[assignment]
+        core=SimpleNamespace(peers_up=lambda: [2]),
+        send=lambda data, dests, stream: sent.append(data),
+        stats=dict,
+    )
+    return t
+
+
+def test_transport_drops_a_request_too_large_to_build() -> None:
+    sent: list[bytes] = []
+    t = _transport_with_stub_link(sent)
+    asyncio.run(t.request_keyframe("b"))
+    assert control.parse_request(sent[0]) == ["b"] and t.stats()["keyframe_requests_tx"] == 1
+    t = _transport_with_stub_link(sent)
+    asyncio.run(t.request_keyframe("x" * 2000))  # logged and dropped, never raised
+    assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 0
 
 
 @pytest.mark.parametrize(

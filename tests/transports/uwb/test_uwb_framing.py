@@ -12,7 +12,11 @@ from hypothesis import strategies as st
 from mapd.errors import ProtocolError
 from transports.uwb import wire
 from transports.uwb.framing import (
+    MIN_FRAME,
+    CobsError,
+    CrcError,
     FrameReader,
+    RuntFrameError,
     cobs_decode,
     cobs_encode,
     cobs_max_len,
@@ -46,6 +50,32 @@ def test_cobs_decode_rejects_zero_and_truncation() -> None:
         cobs_decode(b"\x03a\x00")
     with pytest.raises(ProtocolError):
         cobs_decode(b"\x05ab")
+
+
+def test_decode_frame_says_what_was_wrong_and_the_reader_counts_the_same() -> None:
+    good = encode_frame(b"body")[:-1]
+    flipped = bytearray(good)
+    flipped[2] ^= 0x01
+    cases = [
+        (b"\x05ab", CobsError, "cobs_errors"),
+        (cobs_encode(b"abc"), RuntFrameError, "runts"),
+        (bytes(flipped), CrcError, "crc_errors"),
+    ]
+    for wire_bytes, error, counter in cases:
+        with pytest.raises(error):
+            decode_frame(wire_bytes)
+        assert issubclass(error, ProtocolError)
+        reader = FrameReader(224)
+        assert reader.feed(wire_bytes + b"\x00") == []
+        counts = (reader.stats.cobs_errors, reader.stats.runts, reader.stats.crc_errors)
+        assert counts == tuple(int(c == counter) for c in ("cobs_errors", "runts", "crc_errors"))
+    assert decode_frame(good) == b"body"
+
+
+def test_max_frame_below_the_minimum_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match="below the minimum") as info:
+        max_body(MIN_FRAME - 1)
+    assert not isinstance(info.value, ProtocolError)
 
 
 @pytest.mark.parametrize("max_frame", [48, 64, 100, 224, 255, 256, 300, 600, 1024])

@@ -21,7 +21,7 @@ from transports.base import TransportContext
 from transports.uwb import wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import FaultInjector, Faults
-from transports.uwb.framing import encode_frame
+from transports.uwb.framing import MIN_FRAME, encode_frame
 from transports.uwb.link import UwbOptions, UwbTransport
 from transports.uwb.relay import FaultRelay
 
@@ -46,6 +46,12 @@ def test_options_defaults_and_errors() -> None:
         validate(UwbOptions, {"mac": "tdma", "slot_ms": 50}, "config.toml", "transports.uwb")
     with pytest.raises(ConfigError, match="max_frame"):
         validate(UwbOptions, {"max_frame": 20}, "config.toml", "transports.uwb")
+    # the pacer holds two frames: a rate that carries one frame a second but not two is refused here
+    with pytest.raises(ConfigError, match="two 224-byte frames"):
+        validate(UwbOptions, {"link_rate_bps": 2000}, "config.toml", "transports.uwb")
+    ok = validate(UwbOptions, {"link_rate_bps": 3584, "nodes": {"zed": 1}}, "config.toml", "transports.uwb")
+    ctx = TransportContext(robot="zed", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    assert ArqEndpoint(UwbTransport(ok, ctx)._config(asyncio.new_event_loop()), session=1).chunk_size >= 8
 
 
 def test_transport_needs_a_link_id() -> None:
@@ -56,6 +62,18 @@ def test_transport_needs_a_link_id() -> None:
     assert (t.node_id, t.peer_ids) == (4, [1, 2])
     with pytest.raises(ConfigError, match="peers"):
         UwbTransport(UwbOptions(nodes={"zed": 4}, peers=["nobody"]), ctx)
+
+
+@pytest.mark.parametrize(("node", "window", "max_frame"), [(1, 1, MIN_FRAME), (254, 256, 4096)])
+def test_options_in_range_build_a_core_config(node: int, window: int, max_frame: int) -> None:
+    # The core raises ValueError (a bug, not a user's error) for what the options must refuse first.
+    ctx = TransportContext(
+        robot="zed", fleet="f", key=bytes(32), max_message_bytes=1 << 20, emit=lambda e: None
+    )
+    opts = UwbOptions(nodes={"zed": node}, window=window, max_frame=max_frame, link_rate_bps=16 * 4096)
+    cfg = UwbTransport(opts, ctx)._config(asyncio.new_event_loop())
+    assert (cfg.node_id, cfg.window, cfg.max_frame) == (node, window, max_frame)
+    assert ArqEndpoint(cfg, session=1).chunk_size >= 8
 
 
 def test_fault_injector_is_seeded_and_cuts_outages() -> None:

@@ -7,7 +7,8 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,20 @@ class Robot:
         return [e for e in self.events if isinstance(e, cls)]
 
 
+@asynccontextmanager
+async def started(*robots: Robot) -> AsyncIterator[None]:
+    """Start ``robots`` in order; close every one started, in the same order, however the test ends."""
+    up: list[Robot] = []
+    try:
+        for r in robots:
+            await r.t.start()
+            up.append(r)
+        yield
+    finally:
+        for r in up:
+            await r.t.close()
+
+
 async def until(pred: Callable[[], bool], timeout: float) -> None:
     end = asyncio.get_running_loop().time() + timeout
     while not pred():
@@ -93,9 +108,7 @@ def test_envelope_crosses_a_faulty_link_intact() -> None:
         async with FaultRelay(rate_bps=RATE, faults=faults, seed=7) as relay:
             a = Robot("alpha", relay.ports[0], names=["alpha", "beta"])
             b = Robot("beta", relay.ports[1], names=["alpha", "beta"])
-            await a.t.start()
-            await b.t.start()
-            try:
+            async with started(a, b):
                 env = envelope("alpha", 3, 30_000)
                 a.t.offer(env)
                 await until(lambda: bool(a.of(Delivered)), 20)
@@ -120,9 +133,6 @@ def test_envelope_crosses_a_faulty_link_intact() -> None:
                 # The adapter's own record of its writes: never over the rate in any 1 s window.
                 assert 0 < sa["write_peak_bps_1s"] <= RATE
                 assert relay.stats()["dropped"] > 0
-            finally:
-                await a.t.close()
-                await b.t.close()
 
     asyncio.run(main())
 
@@ -159,9 +169,7 @@ def test_latest_wins_over_serial() -> None:
         async with FaultRelay(rate_bps=50_000, seed=2) as relay:
             a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
             b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
-            await a.t.start()
-            await b.t.start()
-            try:
+            async with started(a, b):
                 v1, v2 = envelope("alpha", 1, 40_000), envelope("alpha", 2, 2_000)
                 a.t.offer(v1)
                 await asyncio.sleep(0.3)
@@ -171,9 +179,6 @@ def test_latest_wins_over_serial() -> None:
                 assert a.of(Delivered) == [Delivered("uwb", "beta", "alpha", 2)]
                 assert [r.data for r in b.of(Received)] == [v2.pack()]
                 assert a.t.stats()["superseded"] == 1
-            finally:
-                await a.t.close()
-                await b.t.close()
 
     asyncio.run(main())
 
@@ -182,9 +187,7 @@ def test_broadcast_medium_three_robots() -> None:
     async def main() -> None:
         async with MediumRelay(robots=3, rate_bps=RATE, faults=Faults(drop=0.03), seed=5) as relay:
             robots = [Robot(n, p, mac="backoff") for n, p in zip(NODES, relay.ports, strict=True)]
-            for r in robots:
-                await r.t.start()
-            try:
+            async with started(*robots):
                 env = envelope("alpha", 9, 12_000)
                 robots[0].t.offer(env)
                 await until(lambda: len(robots[0].of(Delivered)) == 2, 20)
@@ -192,9 +195,6 @@ def test_broadcast_medium_three_robots() -> None:
                 assert sorted(d.peer for d in robots[0].of(Delivered)) == ["beta", "gamma"]
                 for r in robots[1:]:
                     assert [x.data for x in r.of(Received)] == [env.pack()]
-            finally:
-                for r in robots:
-                    await r.t.close()
 
     asyncio.run(main())
 
@@ -207,9 +207,7 @@ def test_signed_link_persists_counter_and_detects_restart(tmp_path: Path) -> Non
             state_a = tmp_path / "a"
             a = Robot("alpha", relay.ports[0], key=key, state=state_a, names=["alpha", "beta"])
             b = Robot("beta", relay.ports[1], key=key, state=tmp_path / "b", names=["alpha", "beta"])
-            await a.t.start()
-            await b.t.start()
-            try:
+            async with started(a, b):
                 a.t.offer(envelope("alpha", 1, 5000))
                 await until(lambda: bool(a.of(Delivered)), 10)
                 counter_file = state_a / "uwb-1.counter"
@@ -226,9 +224,6 @@ def test_signed_link_persists_counter_and_detects_restart(tmp_path: Path) -> Non
                 assert [r.data for r in b.of(Received)][-1] == env.pack()
                 assert b.t.stats()["replayed"] == 0
                 await a2.t.close()
-            finally:
-                await a.t.close()
-                await b.t.close()
 
     asyncio.run(main())
 
@@ -238,17 +233,12 @@ def test_unsigned_robot_is_ignored_by_a_signed_one() -> None:
         async with FaultRelay(rate_bps=RATE) as relay:
             a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], deadline_s=1.5)
             b = Robot("beta", relay.ports[1], key=os.urandom(32), names=["alpha", "beta"])
-            await a.t.start()
-            await b.t.start()
-            try:
+            async with started(a, b):
                 a.t.offer(envelope("alpha", 1, 3000))
                 await asyncio.sleep(2.0)
                 assert not b.of(Received) and not b.of(PeerUp)
                 assert b.t.stats()["unsigned"] > 0
                 assert [f.reason for f in a.of(Failed)] == ["deadline"]
-            finally:
-                await a.t.close()
-                await b.t.close()
 
     asyncio.run(main())
 
@@ -306,9 +296,7 @@ def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> 
         async with FaultRelay(rate_bps=50_000, seed=4) as relay:
             a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
             b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
-            await a.t.start()
-            await b.t.start()
-            try:
+            async with started(a, b):
                 await b.t.request_keyframe("alpha")
                 await until(lambda: bool(a.of(KeyframeNeeded)), 10)
                 assert a.of(KeyframeNeeded) == [KeyframeNeeded("uwb", "beta", "alpha")]
@@ -322,8 +310,5 @@ def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> 
                 assert b.t.stats()["keyframe_requests_tx"] == 1
                 assert a.t.stats()["keyframe_requests_rx"] == 1
                 assert len(a.of(KeyframeNeeded)) == 1
-            finally:
-                await a.t.close()
-                await b.t.close()
 
     asyncio.run(main())

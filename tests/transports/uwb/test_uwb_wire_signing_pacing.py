@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from mapd.errors import ProtocolError, StateError
 from transports.uwb import wire
-from transports.uwb.pacing import MediumAccess, Pacer
+from transports.uwb.pacing import ByteWindow, MediumAccess, Pacer
 from transports.uwb.signing import CounterStore, Signer, Verifier, clock_floor
 
 KEY = bytes(range(32))
@@ -170,6 +170,18 @@ def test_pacer_never_exceeds_rate_in_any_window(rate: float, sizes: list[int], j
     budget = rate / 8
     for t, _ in sends:  # every window ending at a send holds the most bytes
         assert sum(n for t2, n in sends if t - 1.0 < t2 <= t) <= budget + 1e-9
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.floats(min_value=0, max_value=0.7), st.integers(0, 300)), max_size=60))
+def test_byte_window_peak_is_the_most_in_any_window_ending_at_a_write(gaps: list[tuple[float, int]]) -> None:
+    w, now, writes = ByteWindow(1.0), 0.0, []
+    for gap, n in gaps:
+        now += gap
+        w.add(n, now)
+        writes.append((now, n))
+        assert w.bytes == sum(n2 for t2, n2 in writes if t2 > now - 1.0)
+    assert w.peak == max((sum(n2 for t2, n2 in writes if t - 1.0 < t2 <= t) for t, _ in writes), default=0)
 
 
 def test_pacer_keeps_up_with_the_rate() -> None:

@@ -9,7 +9,8 @@ from __future__ import annotations
 import asyncio
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from types import SimpleNamespace
 from typing import Any
 
@@ -18,6 +19,7 @@ import pytest
 from mapd.envelope import Envelope
 from mapd.grid import Pose2D
 from transports.base import Received, TransportContext, TransportEvent
+from transports.zenoh import keys
 from transports.zenoh.link import ZenohTransport
 
 FLEET = "testfleet"
@@ -63,8 +65,9 @@ class Bot:
     ) -> None:
         self.events: list[TransportEvent] = []
         self.keyframe: Envelope | None = None
+        self.listen = listen or []
         opts = ZenohTransport.Options(
-            multicast_scouting=False, listen=listen or [], connect=connect or [], **options
+            multicast_scouting=False, listen=self.listen, connect=connect or [], **options
         )
         self.ctx = TransportContext(
             robot=robot,
@@ -122,9 +125,96 @@ def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
+class Fleet:
+    """The bots one test starts; :func:`fleet` closes them all at the end (closing twice is harmless)."""
+
+    def __init__(self) -> None:
+        self.bots: list[Bot] = []
+        #: Where the first robot listens and the others connect, unless a test wires its own.
+        self.ep = endpoint(free_port())
+
+    async def start(self, robot: str, **kw: Any) -> Bot:
+        bot = await Bot(robot, **kw).start()
+        self.bots.append(bot)
+        return bot
+
+    async def close(self) -> None:
+        for bot in reversed(self.bots):
+            await bot.t.close()
+
+
+@asynccontextmanager
+async def fleet() -> AsyncIterator[Fleet]:
+    """A :class:`Fleet` whose bots are closed however the test ends."""
+    f = Fleet()
+    try:
+        yield f
+    finally:
+        await f.close()
+
+
+@asynccontextmanager
+async def pair(
+    listener: str = "a", connector: str = "b", *, meet_first: bool = True, **kw: Any
+) -> AsyncIterator[tuple[Bot, Bot]]:
+    """Two robots: ``listener`` listens, ``connector`` connects to it; yielded in that order, after
+    they have met (each sees the other's token) unless ``meet_first`` is false. ``kw`` goes to both."""
+    async with fleet() as f:
+        one = await f.start(listener, listen=[f.ep], **kw)
+        two = await f.start(connector, connect=[f.ep], **kw)
+        if meet_first:
+            await meet(one, two)
+        yield one, two
+
+
+class RawSession:
+    """A plain zenoh session (no mapd) connected to ``ep``, to put what no robot would.
+
+    ``seen`` fills once it has ``watch``'s liveliness token: zenoh's gossip has then connected it to
+    that robot too, so what it puts reaches it.
+    """
+
+    def __init__(self, ep: str, watch: str) -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", f'["{ep}"]')
+        self.session = zenoh.open(conf)
+        self.seen: list[str] = []
+        self._token_sub = self.session.liveliness().declare_subscriber(
+            keys.presence_key(FLEET, watch), lambda s: self.seen.append(str(s.key_expr)), history=True
+        )
+
+    def put(self, key: str, data: bytes) -> None:
+        self.session.put(key, data)
+
+    def close(self) -> None:
+        self._token_sub.undeclare()
+        self.session.close()
+
+
+@contextmanager
+def raw_session(ep: str, watch: str) -> Iterator[RawSession]:
+    """A :class:`RawSession`, closed at the end."""
+    raw = RawSession(ep, watch)
+    try:
+        yield raw
+    finally:
+        raw.close()
+
+
 @pytest.fixture
 def zk() -> SimpleNamespace:
     """The helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
     return SimpleNamespace(
-        Bot=Bot, meet=meet, envelope=envelope, free_port=free_port, endpoint=endpoint, FLEET=FLEET
+        Bot=Bot,
+        meet=meet,
+        envelope=envelope,
+        free_port=free_port,
+        endpoint=endpoint,
+        fleet=fleet,
+        pair=pair,
+        raw_session=raw_session,
+        FLEET=FLEET,
     )

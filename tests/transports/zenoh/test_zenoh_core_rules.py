@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mapd.envelope import unpack
-from mapd.errors import EnvelopeError
+from mapd.errors import EnvelopeError, SignatureError
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received
 from transports.zenoh import keys
 from transports.zenoh.core import ZenohCore, pack_ack, unpack_ack
@@ -67,9 +69,9 @@ def test_ack_round_trip_and_signature() -> None:
     assert unpack_ack(signed, key=KEY, fleet="f", peer="p", robot="r") == 7
     assert len(signed) == 24
     # The signature binds the peer and the robot: a replay under another name fails.
-    with pytest.raises(EnvelopeError, match="bad signature"):
+    with pytest.raises(SignatureError, match="bad signature"):
         unpack_ack(signed, key=KEY, fleet="f", peer="q", robot="r")
-    with pytest.raises(EnvelopeError, match="unsigned"):
+    with pytest.raises(SignatureError, match="unsigned"):
         unpack_ack(
             pack_ack(7, key=None, fleet="f", peer="p", robot="r"), key=KEY, fleet="f", peer="p", robot="r"
         )
@@ -79,8 +81,9 @@ def test_ack_round_trip_and_signature() -> None:
         )
         == 9
     )
-    with pytest.raises(EnvelopeError):
+    with pytest.raises(EnvelopeError) as info:
         unpack_ack(bytes(8), key=None, fleet="f", peer="p", robot="r")  # version 0
+    assert not isinstance(info.value, SignatureError)  # damage, not forgery: counted apart
 
 
 @settings(max_examples=200, deadline=None)
@@ -106,7 +109,7 @@ def test_keyframe_then_deltas_on_known_bases(zk) -> None:
     # Version 1 has left the window of two (2, 3): an unknown base is a gap and a query.
     step = c.on_update(*upd(zk, "a", 4, 1), now=0)
     assert versions(step) == [] and step.queries == ["a"]
-    assert c.counters["gaps"] == 1 and c.counters["updates_rx"] == 3
+    assert c.counters.gaps == 1 and c.counters.updates_rx == 3
 
 
 def test_gap_queries_once_per_timeout_and_reply_recovers(zk) -> None:
@@ -114,7 +117,7 @@ def test_gap_queries_once_per_timeout_and_reply_recovers(zk) -> None:
     c.on_update(*upd(zk, "a", 1), now=0)
     assert c.on_update(*upd(zk, "a", 5, 4), now=0).queries == ["a"]
     assert c.on_update(*upd(zk, "a", 6, 5), now=1.0).queries == []  # one query in flight
-    assert c.counters["gaps"] == 2 and c.counters["keyframe_queries"] == 1
+    assert c.counters.gaps == 2 and c.counters.keyframe_queries == 1
     # The reply is a keyframe newer than what we hold: accepted, and deltas on it follow.
     assert versions(c.on_reply("a", zk.envelope("a", 6).pack(), now=1.1)) == [6]
     assert versions(c.on_update(*upd(zk, "a", 7, 6), now=1.2)) == [7]
@@ -134,7 +137,7 @@ def test_a_gap_during_a_query_asks_again_when_it_ends(zk) -> None:
     assert versions(c.on_reply("a", zk.envelope("a", 1).pack(), now=0.03)) == []
     assert c.query_done("a", now=0.04).queries == ["a"]
     assert c.query_done("a", now=0.05).queries == []
-    assert c.counters["keyframe_queries"] == 2
+    assert c.counters.keyframe_queries == 2
 
 
 def test_stale_and_duplicate_versions_are_dropped(zk) -> None:
@@ -142,7 +145,7 @@ def test_stale_and_duplicate_versions_are_dropped(zk) -> None:
     c.on_update(*upd(zk, "a", 3), now=0)
     assert versions(c.on_update(*upd(zk, "a", 3), now=0)) == []
     assert versions(c.on_reply("a", zk.envelope("a", 2).pack(), now=0)) == []
-    assert c.counters["stale"] == 2
+    assert c.counters.stale == 2
 
 
 def test_request_keyframe_forgets_so_an_older_keyframe_is_taken(zk) -> None:
@@ -162,13 +165,24 @@ def test_signatures_spoofing_and_garbage(zk) -> None:
     assert versions(c.on_update(*upd(zk, "a", 1, key=KEY), now=0)) == [1]
     c.on_update(*upd(zk, "a", 2, 1, key=b"x" * 32), now=0)  # signed with another key
     c.on_update(*upd(zk, "a", 3, 1), now=0)  # unsigned
-    assert c.counters["bad_signature"] == 2
+    assert c.counters.bad_signature == 2
     # A valid envelope of robot "a" published on robot "m"'s key is not m's update.
     c.on_update(keys.update_key("testfleet", "m"), zk.envelope("a", 4, key=KEY).pack(), now=0)
     c.on_update(keys.update_key("testfleet", "a"), b"\x93garbage", now=0)
     c.on_update("mapd/otherfleet/a/update", zk.envelope("a", 5, key=KEY).pack(), now=0)
-    assert c.counters["dropped"] == 3
-    assert c.counters["updates_rx"] == 1 and c.last_version("a") == 1
+    assert c.counters.dropped == 3
+    assert c.counters.updates_rx == 1 and c.last_version("a") == 1
+
+
+def test_signature_failures_are_told_apart_by_type(zk) -> None:
+    # Any SignatureError from unpack counts as a forgery (here a signature of the wrong length),
+    # damage of any other kind as dropped; nothing is parsed twice to tell them apart.
+    c = core(key=KEY)
+    odd = dataclasses.replace(zk.envelope("a", 1, key=KEY), sig=b"short")
+    c.on_update(keys.update_key("testfleet", "a"), odd.pack(), now=0)
+    assert (c.counters.bad_signature, c.counters.dropped) == (1, 0)
+    c.on_update(keys.update_key("testfleet", "a"), zk.envelope("a", 1, key=KEY).pack()[:-3], now=0)
+    assert (c.counters.bad_signature, c.counters.dropped) == (1, 1)
 
 
 def test_presence_events_and_late_join_query(zk) -> None:
@@ -190,7 +204,7 @@ def test_max_peers_bounds_state(zk) -> None:
     c = core(max_peers=2)
     for name in ("a", "c", "d"):
         c.on_update(*upd(zk, name, 1), now=0)
-    assert c.counters["updates_rx"] == 2 and c.counters["dropped"] == 1
+    assert c.counters.updates_rx == 2 and c.counters.dropped == 1
 
 
 def test_acks_become_delivered_only_for_offered_versions(zk) -> None:
@@ -212,7 +226,7 @@ def test_acks_become_delivered_only_for_offered_versions(zk) -> None:
         ).events
         == []
     )
-    assert c.counters["bad_signature"] == 1 and c.counters["dropped"] == 1 and c.counters["acks_rx"] == 1
+    assert c.counters.bad_signature == 1 and c.counters.dropped == 1 and c.counters.acks_rx == 1
     # Our own ack, as built for publishing, parses back at the robot it is for.
     k, payload = core(robot="b", key=KEY).ack("a", 5)
     assert c.on_ack(k, payload).events == [Delivered("zenoh", "b", "a", 5)]
@@ -222,7 +236,7 @@ def test_queries_name_the_asker() -> None:
     c = core(robot="a")
     assert c.on_query("b").events == [KeyframeNeeded("zenoh", "b", "a")]
     assert c.on_query(None).events == [] and c.on_query("a/*").events == []
-    assert c.counters["queries_served"] == 3
+    assert c.counters.queries_served == 3
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -6,8 +6,6 @@ import asyncio
 import threading
 import time
 
-import zenoh
-
 from mapd.codec.api import decode, encode
 from mapd.envelope import Envelope, unpack
 from transports.base import Delivered, KeyframeNeeded, PeerDown, Received
@@ -22,11 +20,7 @@ def run(coro) -> None:  # type: ignore[no-untyped-def]
 
 def test_an_update_arrives_and_decodes(zk, room_grid) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep]).start()
-        b = await zk.Bot("b", connect=[ep]).start()
-        try:
-            await zk.meet(a, b)
+        async with zk.pair("a", "b") as (a, b):
             payload = encode(room_grid, "raw")
             env = Envelope(
                 fleet=zk.FLEET,
@@ -55,23 +49,19 @@ def test_an_update_arrives_and_decodes(zk, room_grid) -> None:
             b.t.ack("a", 1)
             await a.wait(lambda: a.of(Delivered))
             assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 1)]
-        finally:
-            await b.t.close()
-            await a.t.close()
 
     run(main())
 
 
 def test_late_joiner_gets_the_keyframe_then_deltas(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep]).start()
-        a.offer(zk.envelope("a", 1))
-        a.offer(zk.envelope("a", 2, 1))  # nobody hears these two
-        a.offer(zk.envelope("a", 3))
-        a.offer(zk.envelope("a", 4, 3))
-        b = await zk.Bot("b", connect=[ep]).start()
-        try:
+        async with zk.fleet() as f:
+            a = await f.start("a", listen=[f.ep])
+            a.offer(zk.envelope("a", 1))
+            a.offer(zk.envelope("a", 2, 1))  # nobody hears these two
+            a.offer(zk.envelope("a", 3))
+            a.offer(zk.envelope("a", 4, 3))
+            b = await f.start("b", connect=[f.ep])
             # b asks for a's latest keyframe (v3) as soon as it sees a.
             await b.wait(lambda: b.received("a"))
             assert b.received("a") == [("a", 3, 0)]
@@ -82,20 +72,13 @@ def test_late_joiner_gets_the_keyframe_then_deltas(zk) -> None:
             await b.wait(lambda: len(b.received("a")) == 2)
             assert b.received("a") == [("a", 3, 0), ("a", 5, 3)]
             assert b.t.stats()["keyframe_queries"] == 1 and b.t.stats()["gaps"] == 0
-        finally:
-            await a.t.close()
-            await b.t.close()
 
     run(main())
 
 
 def test_a_gap_leads_to_recovery_within_one_update(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        b = await zk.Bot("b", listen=[ep]).start()
-        a = await zk.Bot("a", connect=[ep]).start()
-        try:
-            await zk.meet(a, b)
+        async with zk.pair("b", "a") as (b, a):
             a.offer(zk.envelope("a", 1))
             await b.wait(lambda: b.received("a"))
             queries = b.t.stats()["keyframe_queries"]
@@ -110,20 +93,13 @@ def test_a_gap_leads_to_recovery_within_one_update(zk) -> None:
             a.offer(zk.envelope("a", 4, 2))
             await b.wait(lambda: len(b.received("a")) == 3)
             assert b.received("a")[-1] == ("a", 4, 2)
-        finally:
-            await a.t.close()
-            await b.t.close()
 
     run(main())
 
 
 def test_request_keyframe_on_demand(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep]).start()
-        b = await zk.Bot("b", connect=[ep]).start()
-        try:
-            await zk.meet(a, b)
+        async with zk.pair("a", "b") as (a, b):
             a.offer(zk.envelope("a", 1))
             await b.wait(lambda: len(b.received("a")) == 1)
             a.offer(zk.envelope("a", 2, 1))
@@ -132,20 +108,17 @@ def test_request_keyframe_on_demand(zk) -> None:
             await b.t.request_keyframe("a")
             await b.wait(lambda: len(b.received("a")) == 3)
             assert b.received("a")[-1] == ("a", 1, 0)
-        finally:
-            await a.t.close()
-            await b.t.close()
 
     run(main())
 
 
 def test_three_sessions_presence_appears_and_disappears(zk) -> None:
     async def main() -> None:
-        pa, pb, pc = (zk.free_port() for _ in range(3))
-        a = await zk.Bot("a", listen=[zk.endpoint(pa)]).start()
-        b = await zk.Bot("b", listen=[zk.endpoint(pb)], connect=[zk.endpoint(pa)]).start()
-        c = await zk.Bot("c", listen=[zk.endpoint(pc)], connect=[zk.endpoint(pa), zk.endpoint(pb)]).start()
-        try:
+        pa, pb, pc = (zk.endpoint(zk.free_port()) for _ in range(3))
+        async with zk.fleet() as f:
+            a = await f.start("a", listen=[pa])
+            b = await f.start("b", listen=[pb], connect=[pa])
+            c = await f.start("c", listen=[pc], connect=[pa, pb])
             for bot, others in ((a, ["b", "c"]), (b, ["a", "c"]), (c, ["a", "b"])):
                 await bot.wait(lambda bot=bot, others=others: bot.t.peers() == others)
             a.offer(zk.envelope("a", 1))
@@ -158,62 +131,42 @@ def test_three_sessions_presence_appears_and_disappears(zk) -> None:
             assert time.monotonic() - start < 2.0  # undeclared on close, not left to a lease timeout
             assert a.t.peers() == ["b"] and b.t.peers() == ["a"]
             assert a.t.stats()["peers"] == 1
-        finally:
-            for bot in (a, b, c):
-                await bot.t.close()
 
     run(main())
 
 
 def test_bad_signatures_are_dropped_and_counted(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep], key=KEY).start()
-        b = await zk.Bot("b", connect=[ep], key=KEY).start()
-        rogue = await zk.Bot("m", connect=[ep], key=b"not the fleet key, not at all!!!").start()
-        conf = zenoh.Config()
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", f'["{ep}"]')
-        raw = zenoh.open(conf)
-        try:
-            await zk.meet(a, b, rogue)
-            # raw learns b's token after b's subscriber (gossip connects it to b directly).
-            seen: list[str] = []
-            token_sub = raw.liveliness().declare_subscriber(
-                keys.presence_key(zk.FLEET, "b"), lambda s: seen.append(str(s.key_expr)), history=True
-            )
-            await b.wait(lambda: bool(seen))
-            rogue.offer(zk.envelope("m", 1, key=b"not the fleet key, not at all!!!"))
-            raw.put(keys.update_key(zk.FLEET, "a"), zk.envelope("a", 7).pack())  # unsigned, as if from a
-            raw.put(keys.update_key(zk.FLEET, "a"), b"\xc1 not msgpack")
-            raw.put(keys.ack_key(zk.FLEET, "b", "a"), (1).to_bytes(8, "big") + bytes(16))  # forged ack
-            # m's update may be heard twice (published, and as the reply to b's join query of m).
-            await b.wait(lambda: b.t.stats()["bad_signature"] >= 2 and b.t.stats()["dropped"] == 1)
-            await a.wait(lambda: a.t.stats()["bad_signature"] >= 1)
-            # A properly signed update still arrives, and nothing forged was ever emitted.
-            a.offer(zk.envelope("a", 2, key=KEY))
-            await b.wait(lambda: b.received())
-            assert b.received() == [("a", 2, 0)]
-            assert not a.of(Delivered)
-            b.t.ack("a", 2)
-            await a.wait(lambda: a.of(Delivered))
-            assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 2)]
-        finally:
-            token_sub.undeclare()
-            raw.close()
-            for bot in (rogue, b, a):
-                await bot.t.close()
+        async with zk.fleet() as f:
+            a = await f.start("a", listen=[f.ep], key=KEY)
+            b = await f.start("b", connect=[f.ep], key=KEY)
+            rogue = await f.start("m", connect=[f.ep], key=b"not the fleet key, not at all!!!")
+            with zk.raw_session(f.ep, watch="b") as raw:
+                await zk.meet(a, b, rogue)
+                # raw learns b's token after b's subscriber (gossip connects it to b directly).
+                await b.wait(lambda: bool(raw.seen))
+                rogue.offer(zk.envelope("m", 1, key=b"not the fleet key, not at all!!!"))
+                raw.put(keys.update_key(zk.FLEET, "a"), zk.envelope("a", 7).pack())  # unsigned, as if from a
+                raw.put(keys.update_key(zk.FLEET, "a"), b"\xc1 not msgpack")
+                raw.put(keys.ack_key(zk.FLEET, "b", "a"), (1).to_bytes(8, "big") + bytes(16))  # forged ack
+                # m's update may be heard twice (published, and as the reply to b's join query of m).
+                await b.wait(lambda: b.t.stats()["bad_signature"] >= 2 and b.t.stats()["dropped"] == 1)
+                await a.wait(lambda: a.t.stats()["bad_signature"] >= 1)
+                # A properly signed update still arrives, and nothing forged was ever emitted.
+                a.offer(zk.envelope("a", 2, key=KEY))
+                await b.wait(lambda: b.received())
+                assert b.received() == [("a", 2, 0)]
+                assert not a.of(Delivered)
+                b.t.ack("a", 2)
+                await a.wait(lambda: a.of(Delivered))
+                assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 2)]
 
     run(main())
 
 
 def test_latest_wins_under_a_burst(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep]).start()
-        b = await zk.Bot("b", connect=[ep]).start()
-        try:
-            await zk.meet(a, b)
+        async with zk.pair("a", "b") as (a, b):
             blob = bytes(512 * 1024)
             n = 60
             for v in range(1, n + 1):  # offered faster than they can be sent
@@ -224,30 +177,24 @@ def test_latest_wins_under_a_burst(zk) -> None:
             st = a.t.stats()
             assert st["replaced"] > 0 and st["updates_tx"] + st["replaced"] == n
             assert len(got) == st["updates_tx"]
-        finally:
-            await a.t.close()
-            await b.t.close()
 
     run(main())
 
 
 def test_close_is_prompt_idempotent_and_final(zk) -> None:
     async def main() -> None:
-        ep = zk.endpoint(zk.free_port())
-        a = await zk.Bot("a", listen=[ep]).start()
-        b = await zk.Bot("b", connect=[ep]).start()
-        await zk.meet(a, b)
-        start = time.monotonic()
-        await a.t.close()
-        await a.t.close()
-        assert time.monotonic() - start < 1.0
-        a.offer(zk.envelope("a", 1))  # after close: ignored, not an error
-        await b.wait(lambda: b.of(PeerDown))
-        await asyncio.sleep(0.1)
-        assert not b.of(Received) and a.t.stats()["updates_tx"] == 0
-        await b.t.close()
-        # zenoh's callback threads have ended too: one still ending at exit would abort the process.
-        assert not [t.name for t in threading.enumerate() if "pyo3-closure" in t.name]
+        async with zk.pair("a", "b") as (a, b):
+            start = time.monotonic()
+            await a.t.close()
+            await a.t.close()
+            assert time.monotonic() - start < 1.0
+            a.offer(zk.envelope("a", 1))  # after close: ignored, not an error
+            await b.wait(lambda: b.of(PeerDown))
+            await asyncio.sleep(0.1)
+            assert not b.of(Received) and a.t.stats()["updates_tx"] == 0
+            await b.t.close()
+            # zenoh's callback threads have ended too: one still ending at exit would abort the process.
+            assert not [t.name for t in threading.enumerate() if "pyo3-closure" in t.name]
 
     run(main())
 
@@ -255,35 +202,19 @@ def test_close_is_prompt_idempotent_and_final(zk) -> None:
 def test_oversized_messages_never_reach_mapd(zk) -> None:
     async def main() -> None:
         limit = 256 * 1024
-        ep = zk.endpoint(zk.free_port())
-        b = await zk.Bot("b", listen=[ep], max_message_bytes=limit).start()
-        a = await zk.Bot("a", connect=[ep], max_message_bytes=limit).start()
-        conf = zenoh.Config()
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", f'["{ep}"]')
-        raw = zenoh.open(conf)
-        seen: list[str] = []
-        token_sub = raw.liveliness().declare_subscriber(
-            keys.presence_key(zk.FLEET, "b"), lambda s: seen.append(str(s.key_expr)), history=True
-        )
-        try:
-            await zk.meet(a, b)
-            await b.wait(lambda: bool(seen))
-            # zenoh itself refuses a message past the cap, so it is never even allocated for mapd.
-            raw.put(keys.update_key(zk.FLEET, "x"), bytes(4 * limit))
-            raw.put(keys.update_key(zk.FLEET, "x"), bytes(limit // 2))  # under the cap: mapd sees it
-            await b.wait(lambda: b.t.stats()["dropped"] >= 1)
-            await asyncio.sleep(0.1)
-            assert b.t.stats()["bytes_rx"] == limit // 2 and b.t.stats()["dropped"] == 1
-            # And we never send one: the offer is refused and counted.
-            a.offer(zk.envelope("a", 1, payload=bytes(limit)))
-            a.offer(zk.envelope("a", 2, payload=b"small"))
-            await b.wait(lambda: b.received("a"))
-            assert b.received("a") == [("a", 2, 0)] and a.t.stats()["oversize"] == 1
-        finally:
-            token_sub.undeclare()
-            raw.close()
-            await a.t.close()
-            await b.t.close()
+        async with zk.pair("b", "a", max_message_bytes=limit) as (b, a):
+            with zk.raw_session(b.listen[0], watch="b") as raw:
+                await b.wait(lambda: bool(raw.seen))
+                # zenoh itself refuses a message past the cap, so it is never even allocated for mapd.
+                raw.put(keys.update_key(zk.FLEET, "x"), bytes(4 * limit))
+                raw.put(keys.update_key(zk.FLEET, "x"), bytes(limit // 2))  # under the cap: mapd sees it
+                await b.wait(lambda: b.t.stats()["dropped"] >= 1)
+                await asyncio.sleep(0.1)
+                assert b.t.stats()["bytes_rx"] == limit // 2 and b.t.stats()["dropped"] == 1
+                # And we never send one: the offer is refused and counted.
+                a.offer(zk.envelope("a", 1, payload=bytes(limit)))
+                a.offer(zk.envelope("a", 2, payload=b"small"))
+                await b.wait(lambda: b.received("a"))
+                assert b.received("a") == [("a", 2, 0)] and a.t.stats()["oversize"] == 1
 
     run(main())

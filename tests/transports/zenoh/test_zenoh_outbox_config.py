@@ -10,7 +10,7 @@ import pytest
 
 from mapd.config import validate
 from mapd.errors import ConfigError, TransportError
-from transports.base import TransportContext
+from transports.base import TransportContext, TransportOptions
 from transports.zenoh.jobs import JobQueue
 from transports.zenoh.link import ZenohTransport
 from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
@@ -87,6 +87,12 @@ def test_options_validate_with_clear_errors() -> None:
         validate(ZenohOptions, {"mode": "server"}, "cfg.toml", "transports.zenoh")
     with pytest.raises(ConfigError, match="unknown key"):
         validate(ZenohOptions, {"listen_on": []}, "cfg.toml", "transports.zenoh")
+
+
+def test_options_of_another_transport_are_a_type_error() -> None:
+    ctx = TransportContext(robot="a", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    with pytest.raises(TypeError, match="ZenohOptions"):
+        ZenohTransport(TransportOptions(), ctx)
 
 
 def test_table_overrides_file_but_unset_keys_keep_it(tmp_path: Path) -> None:

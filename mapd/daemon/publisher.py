@@ -1,0 +1,222 @@
+"""Which own version to code, against which base, and for which links: the publisher's rules, sans-I/O.
+
+:class:`PublisherCore` owns what the daemon knows about its own maps on their way out: the recent
+versions kept as delta bases, what each transport was offered and still has in flight, what each
+peer acknowledged, and the newest keyframe (for late joiners). It reads no clock and does no I/O:
+the adapter in :mod:`mapd.daemon.server` feeds it events with ``now`` and asks :meth:`poll` what to
+do, then runs the encode in a worker and reports the result with :meth:`encoded`.
+
+The rules:
+
+* **P1 Code only what a link can take now.** A version is coded when some transport has not been
+  offered it and is free: its previous offer is acked by every peer it was meant for, failed, or
+  older than ``inflight_timeout_s``. So a slow link never queues stale maps, and versions that would
+  be replaced unsent are never coded.
+* **P2 Latest wins.** Only the newest own version is ever coded; older unsent ones are dropped.
+* **P3 Delta against what every peer holds.** The base is the newest own version that *every*
+  peer the transports see has acknowledged, and only while it is still kept; peers that hold
+  different versions, or none, get a keyframe.
+* **P4 Keyframes on schedule and on demand.** Every ``keyframe_every``-th coded version is whole; a
+  peer that asks for a keyframe or restarts forgets its acks, and the newest version goes out whole
+  on every transport, also those that had it already.
+* **P5 The delta base survives restarts.** When every peer acked the same version, that version is
+  the base to persist (:meth:`base_to_save`); it is kept in memory however old it gets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, field
+
+from mapd.envelope import Envelope
+from mapd.grid import OccupancyGrid
+
+#: Own versions kept in memory as possible delta bases.
+KEEP_VERSIONS = 16
+#: A transport gets the next version only when the previous one is acked by every peer, failed,
+#: or older than this. Superseding a half-sent map with every new version starves a slow link.
+INFLIGHT_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class EncodeJob:
+    """Code ``grid`` against ``base`` (None: a keyframe), then offer it on ``transports``."""
+
+    grid: OccupancyGrid
+    base: OccupancyGrid | None
+    transports: tuple[str, ...]
+
+
+@dataclass
+class InFlight:
+    """One transport's current offer: the version, when it went out, the peers yet to settle it."""
+
+    version: int
+    since: float
+    unsettled: set[str]
+
+
+@dataclass
+class PublisherCounters:
+    """What the publisher did, for ``mapd status``."""
+
+    keyframes_sent: int = 0
+    deltas_sent: int = 0
+
+
+@dataclass
+class PublisherCore:
+    """The publisher's state and rules (P1-P5 above). Not thread-safe: one caller at a time."""
+
+    uses_base: bool
+    keyframe_every: int
+    inflight_timeout_s: float = INFLIGHT_TIMEOUT_S
+    keep_versions: int = KEEP_VERSIONS
+    counters: PublisherCounters = field(default_factory=PublisherCounters)
+    #: The newest own keyframe coded, for late joiners.
+    keyframe: Envelope | None = None
+    _sent: dict[int, OccupancyGrid] = field(default_factory=dict)
+    _latest: OccupancyGrid | None = None
+    _restored: OccupancyGrid | None = None
+    _base_version: int | None = None
+    _acked: dict[str, int] = field(default_factory=dict)
+    _inflight: dict[str, InFlight] = field(default_factory=dict)
+    _offered: dict[str, int] = field(default_factory=dict)
+    _since_keyframe: int = 0
+
+    # ------------------------------------------------------------------ inputs
+    def restore(
+        self, own: OccupancyGrid | None, base: OccupancyGrid | None, acked: Mapping[str, int]
+    ) -> None:
+        """Resume from the state directory: the last own map, the persisted base, the acks."""
+        if base is not None:
+            self._sent[base.version] = base
+            self._base_version = base.version
+        if own is not None:
+            self._sent[own.version] = own
+            self._restored = own
+        self._acked = dict(acked)
+
+    def new_version(self, grid: OccupancyGrid) -> None:
+        """A new own version is saved and is now the one to publish (P2)."""
+        self._sent[grid.version] = grid
+        for v in sorted(self._sent)[: -self.keep_versions]:
+            if v != self._base_version:
+                del self._sent[v]
+        self._latest = grid
+
+    def acked(self, transport: str, peer: str, version: int) -> tuple[bool, bool]:
+        """``peer`` holds own ``version`` (heard on ``transport``).
+
+        Returns ``(free, newer)``: whether the transport became free (poll again) and whether the
+        peer's acked version moved forward (the base may change: see :meth:`base_to_save`).
+        """
+        free = self._settle(transport, peer, version)
+        newer = version > self._acked.get(peer, 0)
+        if newer:
+            self._acked[peer] = version
+        return free, newer
+
+    def failed(self, transport: str, peer: str, version: int) -> bool:
+        """An offer could not reach ``peer``; True when the transport became free (poll again)."""
+        return self._settle(transport, peer, version)
+
+    def keyframe_needed(self, peer: str) -> bool:
+        """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""
+        self._since_keyframe = self.keyframe_every
+        self._acked.pop(peer, None)
+        if self._latest is None:
+            self._latest = self._restored
+        if self._latest is None:
+            return False
+        self._offered.clear()  # even a transport that had the newest version gets it whole
+        return True
+
+    def set_base(self, version: int) -> None:
+        """The adapter persisted ``version`` as the delta base (P5): keep it however old it gets."""
+        self._base_version = version
+
+    # ------------------------------------------------------------------ decisions
+    def poll(self, now: float, peers: Mapping[str, Collection[str]]) -> EncodeJob | None:
+        """What to code now, given each transport's name -> the peers it sees; None for nothing (P1)."""
+        latest = self._latest
+        if latest is None:
+            return None
+        free = tuple(t for t in peers if self._offered.get(t, 0) < latest.version and not self._busy(t, now))
+        if not free:
+            return None
+        return EncodeJob(latest, self._choose_base(peers), free)
+
+    def encoded(
+        self, job: EncodeJob, envelope: Envelope, now: float, peers: Mapping[str, Collection[str]]
+    ) -> tuple[str, ...]:
+        """``job`` was coded into ``envelope``; returns the transports to offer it to."""
+        if envelope.is_keyframe:
+            self._since_keyframe = 0
+            self.counters.keyframes_sent += 1
+            self.keyframe = envelope
+        else:
+            self._since_keyframe += 1
+            self.counters.deltas_sent += 1
+        for t in job.transports:
+            self._offered[t] = envelope.version
+            self._inflight[t] = InFlight(envelope.version, now, set(peers.get(t, ())))
+        return job.transports
+
+    def next_deadline(self) -> float | None:
+        """When an offer still in flight times out while a newer version waits for its link, or None.
+
+        Poll again then: the link is free for the newer version (P1).
+        """
+        latest = self._latest
+        if latest is None:
+            return None
+        times = [
+            f.since + self.inflight_timeout_s
+            for t, f in self._inflight.items()
+            if f.unsettled and self._offered.get(t, 0) < latest.version
+        ]
+        return min(times) if times else None
+
+    def base_to_save(self, peers: Collection[str]) -> OccupancyGrid | None:
+        """The version to persist as the delta base, when every peer acked the same one (P5)."""
+        versions = {self._acked.get(p, 0) for p in (peers or self._acked)}
+        if len(versions) != 1:
+            return None
+        v = versions.pop()
+        if v == self._base_version:
+            return None
+        return self._sent.get(v)
+
+    def remember_keyframe(self, envelope: Envelope) -> None:
+        """A keyframe coded outside :meth:`poll` (a late joiner's query); an older one never replaces a newer."""
+        if self.keyframe is None or envelope.version > self.keyframe.version:
+            self.keyframe = envelope
+
+    def cached_keyframe(self, version: int) -> Envelope | None:
+        """The keyframe of own ``version`` if one was coded, else None."""
+        kf = self.keyframe
+        return kf if kf is not None and kf.version == version else None
+
+    # ------------------------------------------------------------------ internals
+    def _busy(self, transport: str, now: float) -> bool:
+        busy = self._inflight.get(transport)
+        return busy is not None and bool(busy.unsettled) and now - busy.since < self.inflight_timeout_s
+
+    def _settle(self, transport: str, peer: str, version: int) -> bool:
+        busy = self._inflight.get(transport)
+        if busy is None or version < busy.version:
+            return False
+        busy.unsettled.discard(peer)
+        return not busy.unsettled
+
+    def _choose_base(self, peers: Mapping[str, Collection[str]]) -> OccupancyGrid | None:
+        if not self.uses_base or self._since_keyframe + 1 >= self.keyframe_every:
+            return None
+        everyone = set().union(*peers.values()) if peers else set()
+        if not everyone:
+            return None
+        acked = {self._acked.get(p, 0) for p in everyone}
+        if len(acked) != 1:
+            return None  # peers hold different versions: only a keyframe suits them all
+        return self._sent.get(acked.pop())

@@ -1,0 +1,95 @@
+"""Daemon tests in one process: a source the test feeds, configs, and the virtual transport."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mapd import config as configmod
+from mapd.daemon.server import Daemon
+from mapd.grid import OccupancyGrid
+from mapd.sources.base import MapSource, SourceContext
+
+_channels = itertools.count()
+
+
+class QueueSource(MapSource):
+    """A map source whose maps the test puts in, one at a time."""
+
+    name = "queue"
+
+    def __init__(self, robot: str) -> None:
+        super().__init__(None, SourceContext(robot=robot))
+        self.queue: asyncio.Queue[OccupancyGrid] = asyncio.Queue()
+
+    async def maps(self) -> AsyncIterator[OccupancyGrid]:
+        while True:
+            yield await self.queue.get()
+
+
+def write_config(
+    tmp_path: Path, robot: str, *, codec: str = "lossless", extra: str = "", **tables: str
+) -> Path:
+    """A config for ``robot`` with its state under ``tmp_path/robot``; ``tables``: name -> TOML body."""
+    root = tmp_path / robot
+    root.mkdir(parents=True, exist_ok=True)
+    body = (
+        f'[robot]\nname = "{robot}"\n[source]\nuse = "sim"\n[codec]\nuse = "{codec}"\nkeyframe_every = 50\n'
+        f'[state]\ndir = "{root / "state"}"\nruntime_dir = "{root / "run"}"\n{extra}'
+    )
+    for name, table in tables.items():
+        body += f"[{name}]\n{table}\n"
+    path = root / "config.toml"
+    path.write_text(body)
+    return path
+
+
+def virtual_daemon(tmp_path: Path, robot: str, channel: str) -> tuple[Daemon, QueueSource]:
+    """A daemon on the ``virtual`` transport's ``channel``, fed by a :class:`QueueSource`."""
+    cfg = configmod.load(
+        write_config(
+            tmp_path,
+            robot,
+            extra='[transports]\nuse = ["virtual"]\n',
+            **{"transports.virtual": f'channel = "{channel}"'},
+        )
+    )
+    source = QueueSource(robot)
+    return Daemon(cfg, source=source), source
+
+
+def growing_map(version: int) -> OccupancyGrid:
+    """A cluttered room whose explored part grows a little with each version (so deltas pay)."""
+    rng = np.random.default_rng(0)
+    room = np.where(rng.random((200, 200)) < 0.04, 100, 0).astype(np.int8)
+    data = np.full((200, 200), -1, np.int8)
+    data[:, : 100 + 5 * version] = room[:, : 100 + 5 * version]
+    return OccupancyGrid(data, 0.05, robot="robot0", version=version)
+
+
+async def wait_for(cond: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            raise AssertionError(f"{what} not met within {timeout} s")
+        await asyncio.sleep(0.01)
+
+
+@pytest.fixture
+def dk() -> SimpleNamespace:
+    """The helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
+    return SimpleNamespace(
+        QueueSource=QueueSource,
+        write_config=write_config,
+        virtual_daemon=virtual_daemon,
+        growing_map=growing_map,
+        wait_for=wait_for,
+        channel=lambda: f"test-{next(_channels)}",
+    )

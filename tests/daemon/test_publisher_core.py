@@ -1,0 +1,170 @@
+"""The publisher core's rules (P1-P5 in mapd/daemon/publisher.py), with a fake clock and no asyncio."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapd.daemon.publisher import EncodeJob, PublisherCore
+from mapd.envelope import Envelope
+from mapd.grid import OccupancyGrid, Pose2D
+
+PEERS = {"uwb": ["robot1", "robot2"], "zenoh": ["robot1", "robot2"]}
+
+
+def grid(version: int) -> OccupancyGrid:
+    return OccupancyGrid(np.zeros((4, 4), np.int8), 0.05, robot="robot0", version=version)
+
+
+def envelope(job: EncodeJob) -> Envelope:
+    """What the adapter's worker would make of ``job`` (the payload does not matter to the core)."""
+    base = job.base.version if job.base is not None else 0
+    return Envelope(
+        fleet="f", robot="robot0", version=job.grid.version, base_version=base, codec="lossless",
+        width=4, height=4, resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"x",
+    )  # fmt: skip
+
+
+def code(core: PublisherCore, now: float, peers: dict[str, list[str]] = PEERS) -> tuple[EncodeJob, Envelope]:
+    job = core.poll(now, peers)
+    assert job is not None
+    env = envelope(job)
+    assert core.encoded(job, env, now, peers) == job.transports
+    return job, env
+
+
+def core(**kw: object) -> PublisherCore:
+    return PublisherCore(uses_base=True, keyframe_every=50, **kw)  # type: ignore[arg-type]
+
+
+def test_nothing_to_code_before_the_first_version() -> None:
+    c = core()
+    assert c.poll(0.0, PEERS) is None and c.next_deadline() is None
+
+
+def test_first_version_is_a_keyframe_for_every_transport() -> None:
+    c = core()
+    c.new_version(grid(1))
+    job, env = code(c, 0.0)
+    assert job.base is None and job.transports == ("uwb", "zenoh")
+    assert c.counters.keyframes_sent == 1 and c.cached_keyframe(1) is env and c.cached_keyframe(2) is None
+
+
+def test_busy_link_codes_nothing_until_every_peer_acked_then_the_newest_as_a_delta() -> None:
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    for v in (2, 3, 4):
+        c.new_version(grid(v))
+        assert c.poll(1.0, PEERS) is None  # P1: both links still carry v1
+    assert c.acked("uwb", "robot1", 1) == (False, True)  # robot2 has not acked on uwb yet
+    assert c.poll(1.0, PEERS) is None
+    assert c.acked("uwb", "robot2", 1) == (True, True)
+    # uwb is free; robot1 and robot2 both hold v1, so v4 goes as a delta against v1 (P2, P3)
+    job, _ = code(c, 2.0)
+    assert job.grid.version == 4 and job.base is not None and job.base.version == 1
+    assert job.transports == ("uwb",)  # zenoh is still busy with v1
+    assert c.counters.deltas_sent == 1
+
+
+def test_peers_holding_different_versions_get_a_keyframe() -> None:
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    c.acked("uwb", "robot1", 1)
+    c.acked("uwb", "robot2", 1)
+    c.acked("zenoh", "robot1", 1)
+    c.acked("zenoh", "robot2", 1)
+    c.new_version(grid(2))
+    code(c, 1.0)
+    c.acked("uwb", "robot1", 2)  # robot2 still holds v1 only
+    c.failed("uwb", "robot2", 2)
+    c.failed("zenoh", "robot1", 2)
+    c.failed("zenoh", "robot2", 2)
+    c.new_version(grid(3))
+    job, _ = code(c, 2.0)
+    assert job.base is None
+
+
+def test_an_offer_that_never_settles_frees_its_link_at_the_deadline() -> None:
+    c = core(inflight_timeout_s=30.0)
+    c.new_version(grid(1))
+    code(c, 100.0)
+    assert c.next_deadline() is None  # nothing newer waits for the link
+    c.new_version(grid(2))
+    assert c.next_deadline() == 130.0
+    assert c.poll(129.9, PEERS) is None
+    job, _ = code(c, 130.0)
+    assert job.grid.version == 2 and job.base is None  # nobody acked v1: whole again
+    assert c.next_deadline() is None
+
+
+def test_keyframe_schedule() -> None:
+    c = PublisherCore(uses_base=True, keyframe_every=3)
+    peers = {"zenoh": ["robot1"]}
+    kinds = []
+    for v in range(1, 8):
+        c.new_version(grid(v))
+        job, _ = code(c, float(v), peers)
+        kinds.append("K" if job.base is None else "D")
+        c.acked("zenoh", "robot1", v)
+    assert "".join(kinds) == "KDDKDDK"
+
+
+def test_a_codec_without_bases_always_sends_keyframes() -> None:
+    c = PublisherCore(uses_base=False, keyframe_every=50)
+    for v in (1, 2):
+        c.new_version(grid(v))
+        job, _ = code(c, float(v), {"zenoh": ["robot1"]})
+        c.acked("zenoh", "robot1", v)
+        assert job.base is None
+
+
+def test_keyframe_request_resends_whole_on_every_transport() -> None:
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    for t in PEERS:
+        for p in PEERS[t]:
+            c.acked(t, p, 1)
+    assert c.poll(1.0, PEERS) is None  # everyone has v1
+    assert c.keyframe_needed("robot2")  # P4
+    job, _ = code(c, 2.0)
+    assert job.grid.version == 1 and job.base is None and job.transports == ("uwb", "zenoh")
+
+
+def test_restored_own_map_is_sent_on_a_keyframe_request_and_the_base_is_kept() -> None:
+    c = core(keep_versions=2)
+    c.restore(grid(7), grid(5), {"robot1": 5, "robot2": 5})
+    assert c.poll(0.0, PEERS) is None  # restored, not new: nothing to send until asked or changed
+    for v in (8, 9, 10):
+        c.new_version(grid(v))
+    job = c.poll(0.0, PEERS)
+    assert job is not None and job.grid.version == 10
+    assert job.base is not None and job.base.version == 5  # P5: the persisted base outlives pruning
+    c2 = core()
+    c2.restore(grid(7), None, {})
+    assert c2.keyframe_needed("robot1")
+    job = c2.poll(0.0, PEERS)
+    assert job is not None and job.grid.version == 7 and job.base is None
+
+
+def test_base_to_save_when_every_peer_acked_the_same_version() -> None:
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    c.acked("uwb", "robot1", 1)
+    assert c.base_to_save(["robot1", "robot2"]) is None
+    c.acked("uwb", "robot2", 1)
+    base = c.base_to_save(["robot1", "robot2"])
+    assert base is not None and base.version == 1
+    c.set_base(1)
+    assert c.base_to_save(["robot1", "robot2"]) is None  # already saved
+
+
+def test_a_late_joiner_keyframe_never_replaces_a_newer_one() -> None:
+    c = core()
+    c.new_version(grid(2))
+    _, env2 = code(c, 0.0)
+    old = envelope(EncodeJob(grid(1), None, ()))
+    c.remember_keyframe(old)
+    assert c.cached_keyframe(2) is env2

@@ -1,0 +1,163 @@
+"""What the UWB ARQ core takes and gives: its config, its events and its counters.
+
+Plain data, kept apart from the rules in :mod:`transports.uwb.arq` (which re-exports every name
+here, so callers keep writing ``arq.ArqConfig`` and ``arq.MessageReceived``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from transports.uwb import wire
+from transports.uwb.pacing import MacMode
+
+
+@dataclass(frozen=True)
+class ArqConfig:
+    """Settings of one endpoint (the adapter builds it from the transport's options).
+
+    Out-of-range values are the caller's mistake and raise ValueError: adapters check user options
+    first and turn them into one-line config errors.
+    """
+
+    node_id: int
+    max_frame: int = 224
+    rate_bps: float = 12500.0
+    max_message_bytes: int = 8 << 20
+    window: int = 128
+    deadline_s: float = 120.0
+    initial_rto_s: float = 1.0
+    min_rto_s: float = 0.3
+    max_rto_s: float = 4.0
+    ack_delay_s: float = 0.0  # 0: four max-size frame times at rate_bps
+    ack_every: int = 8
+    ack_min_gap_s: float = 0.05
+    reorder_tolerance: int = 3
+    beacon_s: float = 5.0
+    peer_timeout_s: float = 20.0
+    max_peers: int = 64
+    max_partials_per_peer: int = 4
+    rx_budget_bytes: int = 0  # 0: twice max_message_bytes
+    partial_ttl_s: float = 0.0  # 0: twice deadline_s
+    mac: MacMode = "none"
+    slot_s: float = 0.25
+    slots: int = 1
+    slot_index: int = 0
+    guard_s: float = 0.01
+    clock_offset: float = 0.0
+    sense_s: float = 0.02
+    backoff_min_s: float = 0.0
+    backoff_max_s: float = 0.1
+    key: bytes | None = field(default=None, repr=False)
+    counter_start: int = 0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.node_id <= 254:
+            raise ValueError(f"uwb: node id {self.node_id} is not in 1..254")
+        if not 1 <= self.window <= 8 * wire.MAX_BITMAP:
+            raise ValueError(f"uwb: window {self.window} is not in 1..{8 * wire.MAX_BITMAP}")
+
+
+# --- events -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MessageReceived:
+    """A whole message from ``src`` passed its length and hash checks (delivered once)."""
+
+    src: int
+    stream: int
+    msg: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class MessageDelivered:
+    """``peer`` acked our message ``msg`` as complete."""
+
+    msg: int
+    peer: int
+
+
+@dataclass(frozen=True)
+class MessageFailed:
+    """Our message ``msg`` will not reach ``peer`` (deadline, or the peer refused it)."""
+
+    msg: int
+    peer: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class MessageClosed:
+    """A message left the send queue: ``delivered`` (to all), ``failed`` (some) or ``superseded``."""
+
+    msg: int
+    outcome: str
+
+
+@dataclass(frozen=True)
+class PeerUp:
+    """A peer was heard for the first time, or again after it was down."""
+
+    peer: int
+
+
+@dataclass(frozen=True)
+class PeerDown:
+    """A peer was silent for ``peer_timeout_s``."""
+
+    peer: int
+
+
+@dataclass(frozen=True)
+class PeerRestarted:
+    """A peer came back with a new session id (it forgot what it held)."""
+
+    peer: int
+
+
+Event = MessageReceived | MessageDelivered | MessageFailed | MessageClosed | PeerUp | PeerDown | PeerRestarted
+
+
+# --- counters -----------------------------------------------------------------------------------
+
+
+@dataclass
+class ArqCounters:
+    """What an endpoint has counted. ``stats()`` reports each field under its name, in this order
+    (``mapd status`` and ``mapd link`` show them), so a rename here changes what users see."""
+
+    # traffic
+    bytes_tx: int = 0
+    bytes_rx: int = 0
+    frames_tx: int = 0
+    frames_rx: int = 0
+    data_tx: int = 0
+    resends: int = 0
+    acks_tx: int = 0
+    acks_rx: int = 0
+    hellos_tx: int = 0
+    timeouts: int = 0
+    # frames and chunks dropped, by cause
+    bad_frames: int = 0
+    duplicates: int = 0
+    stale: int = 0
+    stale_session: int = 0
+    not_for_me: int = 0
+    own_id: int = 0
+    rejected: int = 0
+    hash_errors: int = 0
+    evicted: int = 0
+    superseded: int = 0
+    superseded_rx: int = 0
+    unknown_acks: int = 0
+    stale_acks: int = 0
+    gen_resets: int = 0
+    peers_full: int = 0
+    # messages
+    messages_tx: int = 0
+    messages_delivered: int = 0
+    messages_failed: int = 0
+    messages_rx: int = 0
+    bytes_delivered: int = 0
