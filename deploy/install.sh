@@ -1,15 +1,19 @@
 #!/usr/bin/env bash
-# Install mapd on a robot: a venv under /opt/mapd, config and key under /etc/mapd, the systemd unit,
+# Install mapd on a robot: a venv under /opt/mapd, config and keys under /etc/mapd, the systemd unit,
 # the udev rule, and a dedicated 'mapd' user in the 'dialout' group. Run as root from the repo root:
-#   sudo deploy/install.sh [--robot NAME] [--fleet NAME]
+#   sudo deploy/install.sh [--robot NAME] [--fleet NAME] [--link-key FILE]
+# The robot gets its own signing key (/etc/mapd/robot.key); the line printed for it goes into
+# [fleet.roster] on every robot. --link-key copies the fleet's uwb link key (made once per fleet);
+# without it, the first robot makes one to copy to the others.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-robot="$(hostname -s)"; fleet="default"
+robot="$(hostname -s)"; fleet="default"; link_key=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot) robot="$2"; shift 2 ;;
     --fleet) fleet="$2"; shift 2 ;;
-    *) echo "usage: $0 [--robot NAME] [--fleet NAME]" >&2; exit 2 ;;
+    --link-key) link_key="$2"; shift 2 ;;
+    *) echo "usage: $0 [--robot NAME] [--fleet NAME] [--link-key FILE]" >&2; exit 2 ;;
   esac
 done
 [ "$(id -u)" = 0 ] || { echo "install.sh must run as root" >&2; exit 1; }
@@ -30,9 +34,27 @@ install -d -m 0750 -o root -g mapd /etc/mapd
 if [ ! -f /etc/mapd/config.toml ]; then
   sed -e "s/^name = \"alpha\"/name = \"$robot\"/" -e "s/^fleet = \"demo\"/fleet = \"$fleet\"/" \
       -e 's#^dir = .*#dir = "/var/lib/mapd"#' -e 's#^runtime_dir = .*#runtime_dir = "/run/mapd"#' \
+      -e 's#^key_file = .*#key_file = "/etc/mapd/robot.key"#' \
+      -e 's#^link_key_file = .*#link_key_file = "/etc/mapd/link.key"#' \
+      -e '/^[A-Za-z0-9_-]* = "ed25519:A*="/d' \
       config.toml > /etc/mapd/config.toml
   chgrp mapd /etc/mapd/config.toml && chmod 0640 /etc/mapd/config.toml
   echo "wrote /etc/mapd/config.toml for robot '$robot' (edit it, then: systemctl restart mapd)"
+fi
+# Signed by default: this robot's own key, its line in the roster, and the fleet's uwb link key.
+if [ ! -f /etc/mapd/robot.key ]; then
+  line="$(/opt/mapd/venv/bin/mapd keygen "$robot" -o /etc/mapd/robot.key)"
+  chgrp mapd /etc/mapd/robot.key && chmod 0640 /etc/mapd/robot.key
+  grep -qF "$line" /etc/mapd/config.toml || sed -i "/^\[fleet.roster\]/a $line" /etc/mapd/config.toml
+  echo "made /etc/mapd/robot.key; add this line to [fleet.roster] on every robot of the fleet:"
+  echo "  $line"
+fi
+if [ -n "$link_key" ]; then
+  install -m 0640 -o root -g mapd "$link_key" /etc/mapd/link.key
+elif [ ! -f /etc/mapd/link.key ]; then
+  /opt/mapd/venv/bin/mapd keygen --link-key /etc/mapd/link.key >/dev/null
+  chgrp mapd /etc/mapd/link.key && chmod 0640 /etc/mapd/link.key
+  echo "made the fleet's uwb link key /etc/mapd/link.key: copy it to every robot (install.sh --link-key FILE)"
 fi
 # Compile the lossless codec's numba kernels now, as the daemon's user, into the cache the unit names
 # (NUMBA_CACHE_DIR): the first compile takes about 30 s, which a robot should not spend at start-up.

@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "mapd.commands.mapping",  # replay
     "mapd.commands.link",  # link send / recv
     "mapd.commands.train",  # train
+    "mapd.commands.keys",  # keygen
     "mapd.commands.bench",  # bench ...
 ]
 
@@ -37,7 +38,8 @@ examples:
   mapd info ../shared/data/maps/radish_derived/intel/intel.yaml
   mapd encode MAP.yaml -o map.mapd --codec zstd
   mapd decode map.mapd -o copy.yaml
-  mapd check-config config.toml
+  mapd keygen alpha -o robot.key     # then add the printed line to [fleet.roster]
+  mapd check-config /etc/mapd/config.toml
   mapd bench codec --codec raw zstd
 
 Run 'mapd COMMAND --help' for a command's options.

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -24,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from mapd import plugins
 from mapd.errors import ConfigError, MapdError
 from mapd.grid import DEFAULT_MAX_CELLS
+from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
 
 M = TypeVar("M", bound=BaseModel)
@@ -43,8 +46,34 @@ class RobotSection(Strict):
         default="default", pattern=_NAME, description="fleet id; updates from other fleets are dropped"
     )
     key_file: Path | None = Field(
-        default=None, description="fleet signing key (16+ bytes, raw or hex); unset: no signing"
+        default=None,
+        description="this robot's Ed25519 private key (PEM, from 'mapd keygen'); required unless fleet.allow_unsigned",
     )
+
+
+class FleetSection(Strict):
+    """Who may speak for whom: the roster of robots' public keys, and the link key of the radio."""
+
+    allow_unsigned: bool = Field(
+        default=False,
+        description="accept and send unsigned messages (no roster needed); must be said in so many words",
+    )
+    roster: dict[str, str] = Field(
+        default_factory=dict,
+        description="robot -> 'ed25519:<base64>' public key, as 'mapd keygen' prints it",
+    )
+    link_key_file: Path | None = Field(
+        default=None,
+        description="shared secret (16+ bytes, raw or hex) authenticating uwb frames; required on uwb when signed",
+    )
+
+    @field_validator("roster")
+    @classmethod
+    def _check_roster(cls, v: dict[str, str]) -> dict[str, str]:
+        for robot in v:
+            if not re.fullmatch(_NAME, robot):
+                raise ValueError(f"roster: '{robot}' is not a valid robot name")
+        return v
 
 
 class LimitsSection(Strict):
@@ -53,6 +82,17 @@ class LimitsSection(Strict):
     )
     max_message_bytes: int = Field(default=8 << 20, ge=1024, description="largest envelope accepted or sent")
     max_peers: int = Field(default=64, ge=1, description="peers tracked at once")
+    max_version_jump: int = Field(
+        default=1000, ge=1, description="a peer's version may jump this far, plus max_version_rate per second"
+    )
+    max_version_rate: float = Field(
+        default=10.0, ge=0.0, description="map versions per second a peer may make"
+    )
+    max_growth: float = Field(
+        default=4.0,
+        ge=1.0,
+        description="a peer's map may grow to this many times its last one's cells (+1 M)",
+    )
 
 
 class StateSection(Strict):
@@ -104,6 +144,13 @@ class FusionSection(Strict):
         default_factory=dict,
         description="robot -> [x m, y m, yaw rad] of its map frame in the fleet frame, or 'estimate'",
     )
+    max_extent_m: float = Field(
+        default=10_000.0,
+        gt=0.0,
+        le=1e7,
+        description="a map placed with any corner farther than this from the fleet frame's origin (m) "
+        "is left out of the global map (the others keep merging)",
+    )
 
     @field_validator("poses")
     @classmethod
@@ -128,6 +175,7 @@ class MapdConfig(Strict):
     """The whole ``config.toml``."""
 
     robot: RobotSection
+    fleet: FleetSection = Field(default_factory=FleetSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
     state: StateSection = Field(default_factory=StateSection)
     source: SourceSection = Field(default_factory=SourceSection)
@@ -169,7 +217,9 @@ def format_validation_error(exc: ValidationError, where: str, prefix: str = "") 
         elif err["type"] == "missing":
             msg = "required key is missing"
         elif "input" in err and err["type"] not in ("value_error",):
-            msg = f"{msg} (got {err['input']!r})"
+            shown = repr(err["input"])
+            # A hostile value can be a megabyte long; the error stays one readable line.
+            msg = f"{msg} (got {shown if len(shown) <= 80 else shown[:77] + '...'})"
         lines.append(f"{where}: {loc}: {msg}" if loc else f"{where}: {msg}")
     return "\n".join(lines)
 
@@ -182,25 +232,59 @@ def validate(model: type[M], data: Any, where: str, prefix: str = "") -> M:
         raise ConfigError(format_validation_error(exc, where, prefix)) from None
 
 
+#: Longest config file read; a real one is a few KiB. Reading stops here (``/dev/zero`` is refused).
+MAX_CONFIG_BYTES = 1 << 20
+#: Deepest nesting of tables and arrays accepted; a real config nests three or four levels.
+MAX_CONFIG_DEPTH = 16
+
+
+def _too_deep(data: Any, limit: int) -> bool:
+    """True when ``data`` nests dicts and lists more than ``limit`` levels (checked without recursion)."""
+    stack: list[tuple[Any, int]] = [(data, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > limit:
+            return True
+        if isinstance(node, dict):
+            stack.extend((v, depth + 1) for v in node.values())
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node)
+    return False
+
+
 def load(path: str | os.PathLike[str]) -> MapdConfig:
-    """Read and validate a config file. Plugin tables are checked by :func:`check_plugins`."""
+    """Read and validate a config file. Plugin tables are checked by :func:`check_plugins`.
+
+    At most :data:`MAX_CONFIG_BYTES` are read and nesting deeper than :data:`MAX_CONFIG_DEPTH` is
+    refused, so a hostile file is one :class:`ConfigError`, never a hang or a RecursionError.
+    """
     p = Path(path)
     try:
-        raw = p.read_bytes()
+        with p.open("rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such config file") from None
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{p}: config is over {MAX_CONFIG_BYTES} bytes; is this the right file?")
     try:
         data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except RecursionError:
+        # tomllib parses nested arrays and inline tables recursively.
+        raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deeply") from None
+    if _too_deep(data, MAX_CONFIG_DEPTH):
+        raise ConfigError(f"{p}: arrays or tables nested more than {MAX_CONFIG_DEPTH} levels deep")
     cfg = validate(MapdConfig, data, str(p))
     cfg._path = p
     # Relative paths in a config are relative to the file, like systemd drop-ins expect.
     base = p.parent
     if cfg.robot.key_file is not None and not cfg.robot.key_file.is_absolute():
         cfg.robot.key_file = base / cfg.robot.key_file
+    if cfg.fleet.link_key_file is not None and not cfg.fleet.link_key_file.is_absolute():
+        cfg.fleet.link_key_file = base / cfg.fleet.link_key_file
     return cfg
 
 
@@ -259,6 +343,67 @@ def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict
     return out
 
 
-def read_key(cfg: MapdConfig) -> bytes | None:
-    """The fleet key from ``robot.key_file`` (see :func:`mapd.keys.read_key_file`); None when unset."""
-    return read_key_file(cfg.robot.key_file, "robot.key_file")
+@dataclass(frozen=True)
+class Keys:
+    """What a robot signs and verifies with, as ``run`` and ``check-config`` read it."""
+
+    identity: Identity | None
+    roster: Roster
+    link_key: bytes | None
+
+    @property
+    def signed(self) -> bool:
+        return not self.roster.allow_unsigned
+
+
+def read_keys(cfg: MapdConfig) -> Keys:
+    """The robot's key, the roster and the uwb link key, checked together (one ConfigError line).
+
+    A signed fleet (the default) needs the robot's own key, a roster that lists this robot with
+    that key's public half, and, when the uwb transport is used, the link key. With
+    ``fleet.allow_unsigned = true`` each of these is optional; whatever is set is still used.
+    """
+    where = str(cfg.path) if cfg.path else "config"
+    roster = Roster.from_texts(cfg.fleet.roster, allow_unsigned=cfg.fleet.allow_unsigned)
+    identity = None
+    if cfg.robot.key_file is not None:
+        identity = read_identity(cfg.robot.key_file, cfg.robot.name)
+    link_key = read_key_file(cfg.fleet.link_key_file, "fleet.link_key_file")
+    if not cfg.fleet.allow_unsigned:
+        hint = "(make keys with 'mapd keygen', or set fleet.allow_unsigned = true)"
+        if identity is None:
+            raise ConfigError(f"{where}: robot.key_file: a signed fleet needs this robot's key {hint}")
+        if "uwb" in cfg.transports.use and link_key is None:
+            raise ConfigError(f"{where}: fleet.link_key_file: uwb frames need the fleet's link key {hint}")
+    if (
+        identity is not None
+        and cfg.robot.name in roster
+        and cfg.fleet.roster[cfg.robot.name] != identity.public_text
+    ):
+        raise ConfigError(
+            f"{where}: fleet.roster.{cfg.robot.name} does not match robot.key_file "
+            f"(its public key is {identity.public_text})"
+        )
+    if identity is not None and not cfg.fleet.allow_unsigned and cfg.robot.name not in roster:
+        raise ConfigError(
+            f"{where}: fleet.roster: this robot '{cfg.robot.name}' is missing; add: "
+            f'{cfg.robot.name} = "{identity.public_text}"'
+        )
+    return Keys(identity, roster, link_key)
+
+
+@dataclass(frozen=True)
+class Checked:
+    """A config as ``mapd run`` uses it: every plugin table validated, and the keys read."""
+
+    options: dict[str, dict[str, BaseModel]]
+    keys: Keys
+
+
+def check(cfg: MapdConfig) -> Checked:
+    """The one validation ``mapd run`` and ``mapd check-config`` both do (so they never disagree).
+
+    Every plugin table is validated, also those of plugins not chosen (a typo in one is an error,
+    not a table silently ignored), and the key files are read and matched against the roster.
+    """
+    return Checked(check_plugins(cfg), read_keys(cfg))

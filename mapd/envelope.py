@@ -2,8 +2,9 @@
 
 An envelope names the fleet, the robot, its map version and the base version a delta was coded
 against, the codec and its variant (model id), the grid metadata, and the codec payload. With a
-fleet key, it carries a truncated HMAC-SHA256 over everything else, so forged or foreign updates are
-dropped before anything decodes them.
+signed fleet (the default), it carries the Ed25519 signature of the robot it names over everything
+else, checked against the fleet's roster (:mod:`mapd.identity`), so forged, impersonating or foreign
+updates are dropped before anything decodes them.
 
 Wire form: a msgpack map with short keys (see ``_KEYS``). Unpacking bounds every length before
 msgpack allocates, rejects unknown or missing keys and wrong types, and checks the signature.
@@ -11,8 +12,6 @@ msgpack allocates, rejects unknown or missing keys and wrong types, and checks t
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -21,9 +20,12 @@ import msgpack
 
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.grid import Pose2D
+from mapd.identity import SIG_LEN, Identity, Roster
 
-FORMAT = 1
-SIG_LEN = 16
+#: 2: Ed25519 signatures by each robot's own key (1 had a fleet-wide HMAC).
+FORMAT = 2
+#: Signatures cover the fields under this domain, so no other signed mapd message can pass for one.
+_DOMAIN = b"mapd-envelope/2\x00"
 _KEYS = {
     "f": "format",
     "fl": "fleet",
@@ -50,8 +52,10 @@ class Envelope:
     """One map update on the wire.
 
     ``base_version`` is 0 for a keyframe (a whole map), else the version the payload is a delta
-    against. ``seq`` increases with every envelope a robot sends (it makes replays detectable when
-    signed). ``sig`` is empty when the fleet has no key.
+    against. Versions carry the robot's incarnation in their high 32 bits (see
+    :mod:`mapd.daemon.versions`), so a replayed or older update is never newer than one held.
+    ``seq`` counts the envelopes a robot made (for logs and ``mapd status``; versions, not ``seq``,
+    refuse replays). ``sig`` is empty in a fleet that allows unsigned messages.
     """
 
     fleet: str
@@ -93,9 +97,11 @@ class Envelope:
             "p": self.payload,
         }
 
-    def signed(self, key: bytes) -> Envelope:
-        """A copy carrying the HMAC over all other fields."""
-        return replace(self, sig=_mac(key, self._fields()))
+    def signed(self, identity: Identity) -> Envelope:
+        """A copy carrying ``identity``'s signature over all other fields (it must be this robot's)."""
+        if identity.robot != self.robot:
+            raise ValueError(f"robot '{identity.robot}' cannot sign an envelope of '{self.robot}'")
+        return replace(self, sig=identity.sign(_signed_blob(self._fields())))
 
     def pack(self) -> bytes:
         body = self._fields()
@@ -104,9 +110,8 @@ class Envelope:
         return msgpack.packb(body, use_bin_type=True)
 
 
-def _mac(key: bytes, fields: dict[str, Any]) -> bytes:
-    blob = msgpack.packb(fields, use_bin_type=True)
-    return hmac.new(key, blob, hashlib.sha256).digest()[:SIG_LEN]
+def _signed_blob(fields: dict[str, Any]) -> bytes:
+    return _DOMAIN + msgpack.packb(fields, use_bin_type=True)
 
 
 def _want(d: dict[str, Any], k: str, kind: type | tuple[type, ...]) -> Any:
@@ -120,13 +125,15 @@ def unpack(
     data: bytes,
     *,
     max_bytes: int = 8 << 20,
-    key: bytes | None = None,
+    roster: Roster | None = None,
     fleet: str | None = None,
 ) -> Envelope:
     """Parse and validate an envelope from untrusted bytes.
 
-    Raises :class:`EnvelopeError` when it is too large, malformed, from another fleet, unsigned
-    while ``key`` is set, or badly signed.
+    Raises :class:`EnvelopeError` when it is too large, malformed or from another fleet, and
+    :class:`SignatureError` when ``roster`` does not accept its signature (unsigned in a signed
+    fleet, a robot not on the roster, or signed by another key). Without a roster nothing is
+    verified (tools that only read envelopes).
     """
     if len(data) > max_bytes:
         raise EnvelopeError(f"envelope of {len(data)} bytes is over the limit of {max_bytes}")
@@ -176,12 +183,9 @@ def unpack(
         raise SignatureError("envelope signature has the wrong form")
     if fleet is not None and strs["fl"] != fleet:
         raise EnvelopeError(f"envelope is for fleet '{strs['fl']}', not '{fleet}'")
-    if key is not None:
-        if not sig:
-            raise SignatureError(f"unsigned envelope from '{strs['r']}' while a fleet key is set")
+    if roster is not None:
         fields = {k: v for k, v in obj.items() if k != "s"}
-        if not hmac.compare_digest(sig, _mac(key, fields)):
-            raise SignatureError(f"bad signature on envelope from '{strs['r']}'")
+        roster.verify(strs["r"], _signed_blob(fields), sig, "envelope")
     return Envelope(
         fleet=strs["fl"],
         robot=strs["r"],

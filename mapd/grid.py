@@ -19,7 +19,9 @@ import dataclasses
 import hashlib
 import math
 import os
+import stat
 import struct
+import zlib
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -27,14 +29,17 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
-from mapd.atomic import atomic_write_bytes
 from mapd.errors import LimitError, MapFileError
+from mapd.files import atomic_write_bytes
 
 UNKNOWN = -1
 FREE = 0
 OCCUPIED = 100
 #: Default cap on cells for anything that allocates a grid from untrusted input (8192 x 8192).
 DEFAULT_MAX_CELLS = 1 << 26
+#: Longest side of a grid that travels between robots (cells): 3.3 km at 5 cm. A 1 x 67 M "map"
+#: is damage, and the lossless kernels keep per-column state that such a shape would blow up.
+MAX_GRID_SIDE = 1 << 16
 
 # map_server grey levels, used for saved trinary images and for PSNR/SSIM.
 GREY_FREE = 254
@@ -118,7 +123,8 @@ class OccupancyGrid:
         """16-byte BLAKE2b of cells, shape, resolution and origin: names a map version exactly."""
         h = hashlib.blake2b(digest_size=16)
         h.update(struct.pack("<IId3d", self.height, self.width, self.resolution, *self.origin))
-        h.update(np.ascontiguousarray(self.data).tobytes())
+        # Hashed through a buffer view: tobytes() would copy the whole grid first.
+        h.update(np.ascontiguousarray(self.data).data.cast("B"))
         return h.digest()
 
     def classes(self) -> np.ndarray:
@@ -127,17 +133,18 @@ class OccupancyGrid:
 
     def counts(self) -> dict[str, int]:
         """Number of free, occupied and unknown cells."""
-        c = np.bincount(self.classes().ravel(), minlength=3)
+        hist = value_histogram(self.data)
+        # By the uint8 bit pattern of a cell: 0..64 free, 65..127 occupied, 128..255 negative (unknown).
         return {
-            "free": int(c[CLASS_FREE]),
-            "occupied": int(c[CLASS_OCCUPIED]),
-            "unknown": int(c[CLASS_UNKNOWN]),
+            "free": int(hist[:OCCUPIED_AT].sum()),
+            "occupied": int(hist[OCCUPIED_AT:128].sum()),
+            "unknown": int(hist[128:].sum()),
         }
 
     def is_trinary(self) -> bool:
         """True when every cell is -1, 0 or 100 (the usual SLAM map)."""
-        d = self.data
-        return bool(np.all((d == UNKNOWN) | (d == FREE) | (d == OCCUPIED)))
+        hist = value_histogram(self.data)
+        return int(hist.sum()) == int(hist[FREE] + hist[OCCUPIED] + hist[UNKNOWN & 0xFF])
 
     def to_image(self) -> np.ndarray:
         """The map as map_server grey levels (free 254, occupied 0, unknown 205), row 0 at the top."""
@@ -156,6 +163,20 @@ class OccupancyGrid:
         dy = np.asarray(y, dtype=np.float64) - self.origin.y
         c, s = math.cos(self.origin.yaw), math.sin(self.origin.yaw)
         return (-s * dx + c * dy) / self.resolution, (c * dx + s * dy) / self.resolution
+
+
+def value_histogram(data: np.ndarray) -> np.ndarray:
+    """How many cells hold each int8 value, indexed by its uint8 bit pattern (256 counts, int64).
+
+    Counted a million cells at a time: ``np.bincount`` widens its input to int64, which for a whole
+    grid would be eight bytes a cell.
+    """
+    flat = np.ascontiguousarray(data, dtype=np.int8).view(np.uint8).ravel()
+    out = np.zeros(256, dtype=np.int64)
+    step = 1 << 20
+    for i in range(0, flat.size, step):
+        out += np.bincount(flat[i : i + step], minlength=256)
+    return out
 
 
 def cell_classes(data: np.ndarray) -> np.ndarray:
@@ -178,6 +199,86 @@ def grey_levels(data: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 _MODES = ("trinary", "scale", "raw")
+
+#: Finest and coarsest resolution accepted from a map file or a payload (meters per cell).
+MIN_RESOLUTION = 1e-4
+MAX_RESOLUTION = 1e3
+#: Largest ``|x|`` or ``|y|`` of a map origin accepted from a file or a payload (meters). 10,000 km
+#: holds every UTM easting and northing, so real maps always pass; a larger value is damage.
+MAX_ORIGIN_M = 1e7
+#: Largest ``|yaw|`` of a map origin accepted from a file or a payload (radians): one full turn.
+MAX_ORIGIN_YAW = 2.0 * math.pi
+
+#: Longest map_server YAML read. A real one is a few hundred bytes; a bigger file is refused unread.
+MAX_YAML_BYTES = 64 * 1024
+#: Longest PNM header (magic, sizes, maxval and comments) searched for the start of the pixels.
+MAX_PNM_HEADER = 64 * 1024
+#: Plain (ASCII) PNM is decoded by Pillow one number at a time (about 0.5 s per million pixels);
+#: above this many pixels it is refused, so that a large ASCII file cannot take minutes to load.
+PLAIN_PNM_MAX_CELLS = 1 << 22
+#: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
+#: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.
+PILLOW_FORMATS = ("BMP", "GIF", "JPEG", "TIFF", "TGA", "PCX", "WEBP", "XPM")
+#: Cells converted at a time from pixels to occupancy: the float64 temporaries of map_server's
+#: rules stay a few MiB whatever the map's size.
+_BAND_CELLS = 1 << 18
+#: What Pillow raises on bytes it cannot decode (its plugins are not uniform about it).
+_PIL_ERRORS: tuple[type[BaseException], ...] = (
+    OSError,
+    ValueError,
+    SyntaxError,
+    EOFError,
+    struct.error,
+    IndexError,
+    KeyError,
+    TypeError,
+    ZeroDivisionError,
+    NotImplementedError,
+    MemoryError,
+    Image.DecompressionBombError,
+)
+
+
+def geometry_problem(resolution: float, origin: tuple[float, float, float]) -> str | None:
+    """Why a map's resolution and origin cannot be right (not finite, out of the documented
+    bounds :data:`MIN_RESOLUTION`, :data:`MAX_RESOLUTION`, :data:`MAX_ORIGIN_M`,
+    :data:`MAX_ORIGIN_YAW`), or None when they are plausible. Shared by the map files and the codecs.
+    """
+    if not (math.isfinite(resolution) and MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
+        return f"resolution {resolution!r} m/cell is not within [{MIN_RESOLUTION}, {MAX_RESOLUTION}]"
+    x, y, yaw = origin
+    for name, v, bound in (("x", x, MAX_ORIGIN_M), ("y", y, MAX_ORIGIN_M), ("yaw", yaw, MAX_ORIGIN_YAW)):
+        if not (math.isfinite(v) and abs(v) <= bound):
+            return f"origin {name} {v!r} is not within +-{bound:g}"
+    return None
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line (a CLI error is one line per problem)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _open_regular(path: Path, where: str, what: str) -> int:
+    """An O_RDONLY descriptor of ``path``, refusing anything but a regular file.
+
+    O_NONBLOCK so that a FIFO named as a map cannot block the open itself; the fstat then refuses
+    it, like a device (``/dev/zero`` would be read forever) or a directory.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise MapFileError(f"{where}: cannot open {what} '{path}': {exc.strerror}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+    except OSError as exc:
+        os.close(fd)
+        raise MapFileError(f"{where}: cannot read {what} '{path}': {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise MapFileError(f"{where}: {what} '{path}' is not a regular file")
+    return fd
 
 
 def _field(meta: dict[str, Any], key: str, path: Path, kind: type, default: Any = None) -> Any:
@@ -206,42 +307,70 @@ def _field(meta: dict[str, Any], key: str, path: Path, kind: type, default: Any 
             if not isinstance(value, str):
                 raise TypeError
             return value
-    except (TypeError, ValueError):
-        raise MapFileError(f"{path}: key '{key}' must be a {kind.__name__}, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        # OverflowError: a 400-digit integer does not fit a float.
+        raise MapFileError(f"{path}: key '{key}' must be a {kind.__name__}, got {_short(value)}") from None
     return value
 
 
 def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Parse and validate a map_server YAML; returns resolved fields (image path made absolute)."""
+    """Parse and validate a map_server YAML; returns resolved fields (image path made absolute).
+
+    The file must be a regular file of at most :data:`MAX_YAML_BYTES`; resolution and origin must
+    pass :func:`geometry_problem`. Every problem is one :class:`MapFileError` naming the file.
+    """
     path = Path(yaml_path)
     try:
-        text = path.read_text(encoding="utf-8")
+        fd = _open_regular(path, str(path), "map yaml")
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MapFileError(f"{path}: cannot read map yaml: {exc}") from None
+    try:
+        with os.fdopen(fd, "rb") as f:
+            raw = f.read(MAX_YAML_BYTES + 1)
+    except OSError as exc:
+        raise MapFileError(f"{path}: cannot read map yaml: {exc.strerror}") from None
+    if len(raw) > MAX_YAML_BYTES:
+        raise MapFileError(
+            f"{path}: map yaml is over {MAX_YAML_BYTES} bytes; a map_server yaml is a few lines"
+        )
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise MapFileError(f"{path}: map yaml is not UTF-8 text") from None
     try:
         meta = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         where = f" (line {line + 1})" if line is not None else ""
         raise MapFileError(f"{path}: malformed YAML{where}") from None
+    except RecursionError:
+        raise MapFileError(f"{path}: malformed YAML (nested too deeply)") from None
+    except (ValueError, OverflowError, TypeError) as exc:
+        # The safe constructor's own checks: a date like 2001-13-45, a bad !!float or !!int.
+        raise MapFileError(f"{path}: malformed YAML ({_one_line(exc)})") from None
     if not isinstance(meta, dict):
         raise MapFileError(f"{path}: expected a YAML mapping with image, resolution and origin")
 
     image = _field(meta, "image", path, str)
+    if not image or "\x00" in image:
+        raise MapFileError(f"{path}: key 'image' must name an image file, got {image!r}")
     resolution = _field(meta, "resolution", path, float)
     if resolution <= 0:
         raise MapFileError(f"{path}: resolution must be positive, got {resolution}")
     origin = meta.get("origin")
     if not isinstance(origin, list | tuple) or len(origin) != 3:
-        raise MapFileError(f"{path}: origin must be a list [x, y, yaw], got {origin!r}")
+        raise MapFileError(f"{path}: origin must be a list [x, y, yaw], got {_short(origin)}")
     try:
+        if any(isinstance(v, bool) for v in origin):
+            raise TypeError
         ox, oy, oyaw = (float(v) for v in origin)
-    except (TypeError, ValueError):
-        raise MapFileError(f"{path}: origin must hold three numbers, got {origin!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise MapFileError(f"{path}: origin must hold three numbers, got {_short(origin)}") from None
     if not all(math.isfinite(v) for v in (ox, oy, oyaw)):
         raise MapFileError(f"{path}: origin must be finite, got {origin!r}")
+    problem = geometry_problem(resolution, (ox, oy, oyaw))
+    if problem is not None:
+        raise MapFileError(f"{path}: {problem}")
     negate = _field(meta, "negate", path, int, default=0)
     if negate not in (0, 1):
         raise MapFileError(f"{path}: negate must be 0 or 1, got {negate}")
@@ -253,7 +382,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
         raise MapFileError(f"{path}: free_thresh {free} is above occupied_thresh {occ}")
     mode = _field(meta, "mode", path, str, default="trinary")
     if mode not in _MODES:
-        raise MapFileError(f"{path}: unknown mode '{mode}' (expected one of {', '.join(_MODES)})")
+        raise MapFileError(f"{path}: unknown mode {_short(mode)} (expected one of {', '.join(_MODES)})")
     image_path = Path(image)
     if not image_path.is_absolute():
         image_path = path.parent / image_path
@@ -268,51 +397,379 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
     }
 
 
-def _read_pixels(image_path: Path, yaml_path: Path, max_cells: int) -> tuple[np.ndarray, bool]:
-    """Pixels as float64 (H, W, C) on a 0..255 scale, and whether the last channel is alpha."""
-    img: Image.Image
-    try:
-        img = Image.open(image_path)
-    except FileNotFoundError:
-        raise MapFileError(f"{yaml_path}: image '{image_path}' does not exist") from None
-    except Image.DecompressionBombError as exc:
-        raise LimitError(f"{yaml_path}: image '{image_path}' is too large: {exc}") from None
-    except (UnidentifiedImageError, OSError) as exc:
-        raise MapFileError(f"{yaml_path}: cannot read image '{image_path}': {exc}") from None
-    with img:
-        width, height = img.size
-        if width <= 0 or height <= 0:
-            raise MapFileError(f"{yaml_path}: image '{image_path}' has no pixels ({width}x{height})")
-        if width * height > max_cells:
-            raise LimitError(
-                f"{yaml_path}: image '{image_path}' is {width}x{height} = {width * height} cells, "
-                f"over the limit of {max_cells} cells"
-            )
-        try:
-            mode = img.mode
-            if mode == "P":
-                img = img.convert("RGBA" if "transparency" in img.info else "RGB")
-            elif mode == "1":
-                img = img.convert("L")
-            elif mode in ("PA",):
-                img = img.convert("RGBA")
-            elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
-                img = img.convert("RGB")
-            mode = img.mode
-            if mode.startswith("I;16") or mode == "I":
-                arr = np.asarray(img, dtype=np.float64)
-                top = 65535.0 if mode.startswith("I;16") or arr.max(initial=0) > 255 else 255.0
-                arr = arr * (255.0 / top)
-            elif mode == "F":
-                arr = np.asarray(img, dtype=np.float64)
+def _short(value: object) -> str:
+    """``repr`` cut to a readable length (a hostile YAML can hold a megabyte in one value)."""
+    shown = repr(value)
+    return shown if len(shown) <= 60 else shown[:57] + "..."
+
+
+@dataclasses.dataclass
+class _Pixels:
+    """Decoded pixels ``(H, W, C)`` in the file's own sample type, and how samples become grey.
+
+    ``lut`` maps an integer sample to its grey level on map_server's 0..255 scale (float64); without
+    it a sample times ``scale`` is the grey level. Conversion happens a band of rows at a time, so
+    the float64 arrays of the loading rules never exist for the whole image.
+    """
+
+    arr: np.ndarray
+    has_alpha: bool
+    lut: np.ndarray | None = None
+    scale: float = 1.0
+
+    def grey(self, r0: int, r1: int) -> np.ndarray:
+        band = self.arr[r0:r1]
+        if self.lut is not None:
+            return self.lut[band]
+        out = band.astype(np.float64)
+        if self.scale != 1.0:
+            out *= self.scale
+        return out
+
+
+def _check_cells(width: int, height: int, where: str, image: Path, max_cells: int) -> None:
+    """Refuse an empty image or one over ``max_cells``, from its header, before any pixel is decoded."""
+    if width <= 0 or height <= 0:
+        raise MapFileError(f"{where}: image '{image}' has no pixels ({width}x{height})")
+    if width * height > max_cells:
+        raise LimitError(
+            f"{where}: image '{image}' is {width}x{height} = {width * height} cells, "
+            f"over the limit of {max_cells} cells"
+        )
+
+
+# PNM (netpbm): map_saver writes P5. The header is parsed here so that a truncated or malformed
+# file is one clear error and the size is checked before anything is allocated; P5 and P6 pixels are
+# read with numpy (Pillow converts maxval other than 255 one sample at a time in Python).
+
+_PNM_WS = b" \t\n\r\x0b\x0c"
+_PNM_DIGITS = b"0123456789"
+
+
+def _pnm_header(head: bytes, where: str, image: Path) -> tuple[int, list[int], int]:
+    """``(kind 1..6, [width, height(, maxval)], offset of the first pixel byte)`` of a PNM header."""
+    kind = head[1] - ord("0")
+    need = 2 if kind in (1, 4) else 3
+    values: list[int] = []
+    pos = 2
+    bad = f"{where}: image '{image}' has a malformed PNM header"
+    cut = f"{where}: image '{image}' is truncated in its PNM header"
+    while len(values) < need:
+        while True:  # white space and comments before the number
+            if pos >= len(head):
+                raise MapFileError(cut)
+            c = head[pos]
+            if c in _PNM_WS:
+                pos += 1
+            elif c == ord("#"):
+                ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
+                if not ends:
+                    raise MapFileError(cut)
+                pos = min(ends) + 1
             else:
-                arr = np.asarray(img, dtype=np.float64)
-        except (OSError, ValueError, SyntaxError) as exc:
-            raise MapFileError(f"{yaml_path}: image '{image_path}' is truncated or corrupt: {exc}") from None
+                break
+        start = pos
+        while pos < len(head) and head[pos] in _PNM_DIGITS:
+            pos += 1
+        if pos == start:
+            raise MapFileError(f"{bad} (expected a number at byte {start})")
+        if pos >= len(head):
+            raise MapFileError(cut)  # the number may go on in the bytes that are missing
+        if pos - start > 9:
+            raise MapFileError(f"{bad} (a number of {pos - start} digits)")
+        values.append(int(head[start:pos]))
+    # Exactly one white-space byte ends the header (a comment there ends with its newline).
+    if pos >= len(head):
+        raise MapFileError(cut)
+    if head[pos] == ord("#"):
+        ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
+        if not ends:
+            raise MapFileError(cut)
+        pos = min(ends)
+    if head[pos] not in _PNM_WS:
+        raise MapFileError(f"{bad} (no white space after the last number)")
+    if need == 3 and not 1 <= values[2] <= 65535:
+        raise MapFileError(f"{where}: image '{image}' has PNM maxval {values[2]}; it must be 1..65535")
+    return kind, values, pos + 1
+
+
+def _pnm_lut(kind: int, maxval: int) -> np.ndarray:
+    """Grey level (0..255, float64) of every possible sample, with Pillow's rounding for maxval != 255
+    (the rule mapd has always loaded PNM with): 8-bit output ``min(255, round(v / maxval * 255))``;
+    a 16-bit grey image keeps 16 bits, ``min(65535, round(v / maxval * 65535))``, then scales to 255."""
+    v = np.arange(256 if maxval < 256 else 65536, dtype=np.float64)
+    if kind == 5 and maxval > 255:
+        return np.minimum(65535.0, np.rint(v / maxval * 65535.0)) * (255.0 / 65535.0)
+    if maxval == 255:
+        return v
+    return np.minimum(255.0, np.rint(v / maxval * 255.0))
+
+
+def _read_pnm(f: Any, size: int, where: str, image: Path, max_cells: int) -> _Pixels | None:
+    """PNM pixels (P5, P6); None when Pillow should decode the validated file (P1-P4)."""
+    head = f.read(MAX_PNM_HEADER)
+    try:
+        kind, values, offset = _pnm_header(head, where, image)
+    except MapFileError:
+        if len(head) >= MAX_PNM_HEADER:
+            raise MapFileError(
+                f"{where}: image '{image}' has no PNM header in its first {MAX_PNM_HEADER} bytes"
+            ) from None
+        raise
+    width, height = values[0], values[1]
+    _check_cells(width, height, where, image, max_cells)
+    maxval = values[2] if len(values) == 3 else 1
+    sample = 1 if maxval < 256 else 2
+    channels = 3 if kind in (3, 6) else 1
+    if kind in (1, 2, 3):
+        if width * height > PLAIN_PNM_MAX_CELLS:
+            raise LimitError(
+                f"{where}: image '{image}' is a plain (ASCII) PNM of {width * height} pixels, over the "
+                f"{PLAIN_PNM_MAX_CELLS} mapd decodes in that form; save it as binary P5"
+            )
+        # Each sample takes at least one digit and (but P1) one separator.
+        least = width * height if kind == 1 else 2 * width * height * channels - 1
+    elif kind == 4:
+        least = (width + 7) // 8 * height
+    else:
+        least = width * height * channels * sample
+    have = size - offset
+    if have < least:
+        raise MapFileError(
+            f"{where}: image '{image}' ends early: {max(have, 0)} of {least} pixel bytes "
+            "(truncated or still being written)"
+        )
+    if kind in (1, 2, 3, 4):
+        return None
+    f.seek(offset)
+    raw = f.read(least)
+    if len(raw) != least:
+        raise MapFileError(f"{where}: image '{image}' ends early (it changed while being read)")
+    dtype = np.dtype(np.uint8) if sample == 1 else np.dtype(">u2")
+    shape = (height, width, channels)
+    arr = np.frombuffer(raw, dtype=dtype).reshape(shape)
+    return _Pixels(arr, has_alpha=False, lut=_pnm_lut(kind, maxval))
+
+
+# PNG: Pillow pads an image whose compressed data ends early (a complete zlib stream that holds
+# too few rows) with black, which map_server's rules read as walls. So the chunks are walked first:
+# every CRC checked, IEND present, and the IDAT stream inflated (in bounded pieces, counted, not
+# kept) to at least the size IHDR implies.
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: colour type -> (samples per pixel, allowed bit depths)
+_PNG_TYPES = {
+    0: (1, (1, 2, 4, 8, 16)),
+    2: (3, (8, 16)),
+    3: (1, (1, 2, 4, 8)),
+    4: (2, (8, 16)),
+    6: (4, (8, 16)),
+}
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+_PIECE = 1 << 20
+
+
+def _png_raw_size(width: int, height: int, bits: int, interlaced: bool) -> int:
+    """Bytes of filtered scanlines (a filter byte per row) IHDR's size and format imply."""
+    if not interlaced:
+        return height * (1 + (width * bits + 7) // 8)
+    total = 0
+    for xs, ys, dx, dy in _ADAM7:
+        cols = (width - xs + dx - 1) // dx if width > xs else 0
+        rows = (height - ys + dy - 1) // dy if height > ys else 0
+        if cols and rows:
+            total += rows * (1 + (cols * bits + 7) // 8)
+    return total
+
+
+def _check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
+    """Walk a PNG's chunks: raise MapFileError unless it is complete and consistent, LimitError when
+    IHDR's size is over ``max_cells`` (before any pixel data is inflated)."""
+    name = f"{where}: image '{image}'"
+    cut = f"{name} is truncated (ends before its IEND chunk)"
+    f.seek(len(_PNG_SIGNATURE))
+    inflater = zlib.decompressobj()
+    expect = -1
+    got = 0
+    first = True
+    while True:
+        head = f.read(8)
+        if len(head) < 8:
+            raise MapFileError(cut)
+        length, ctype = struct.unpack(">I4s", head)
+        if length > 0x7FFFFFFF or not ctype.isalpha():
+            raise MapFileError(f"{name} is corrupt (bad chunk header)")
+        if first and (ctype != b"IHDR" or length != 13):
+            raise MapFileError(f"{name} is corrupt (it does not start with IHDR)")
+        crc = zlib.crc32(ctype)
+        left = length
+        ihdr = b""
+        while left:
+            piece = f.read(min(left, _PIECE))
+            if not piece:
+                raise MapFileError(cut)
+            left -= len(piece)
+            crc = zlib.crc32(piece, crc)
+            if first:
+                ihdr += piece
+            elif ctype == b"IDAT" and got < expect:
+                got += _inflate_count(inflater, piece, expect - got, name)
+        tail = f.read(4)
+        if len(tail) < 4:
+            raise MapFileError(cut)
+        if struct.unpack(">I", tail)[0] != crc:
+            raise MapFileError(f"{name} is corrupt (CRC mismatch in its {ctype.decode()} chunk)")
+        if first:
+            width, height, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", ihdr)
+            if (
+                colour not in _PNG_TYPES
+                or depth not in _PNG_TYPES[colour][1]
+                or comp
+                or filt
+                or interlace > 1
+            ):
+                raise MapFileError(f"{name} is corrupt (impossible IHDR)")
+            _check_cells(width, height, where, image, max_cells)
+            expect = _png_raw_size(width, height, depth * _PNG_TYPES[colour][0], bool(interlace))
+            first = False
+        if ctype == b"IEND":
+            break
+    if got < expect:
+        raise MapFileError(
+            f"{name} ends early: its pixel data holds {got} of {expect} bytes (truncated or cut short)"
+        )
+
+
+def _inflate_count(inflater: Any, data: bytes, want: int, name: str) -> int:
+    """Inflate ``data`` into the running stream, counting output up to ``want`` bytes (not kept)."""
+    got = 0
+    buf = data
+    try:
+        while True:
+            out = inflater.decompress(buf, _PIECE)
+            got += len(out)
+            buf = inflater.unconsumed_tail
+            if inflater.eof or got >= want or (not buf and len(out) < _PIECE):
+                return got
+    except zlib.error as exc:
+        raise MapFileError(f"{name} is corrupt (its pixel data: {_one_line(exc)})") from None
+
+
+def _pillow_pixels(f: Any, formats: tuple[str, ...], where: str, image: Path, max_cells: int) -> _Pixels:
+    """Decode with Pillow (after any header checks of our own); every failure is one MapFileError.
+
+    ``max_cells`` is checked right after ``Image.open``, which reads only the header, so nothing over
+    the limit is decoded. Pillow's own decompression-bomb guard (``Image.MAX_IMAGE_PIXELS``, about
+    89 M pixels, refused at twice that) is deliberately left at its process-wide default: it is above
+    the default ``max_cells`` (67 M), so it only ever acts as a second fence, and mapd does not
+    change a global that other code in the process may rely on. Its refusal is a LimitError.
+    """
+    name = f"{where}: image '{image}'"
+    try:
+        img = Image.open(f, formats=list(formats))
+    except Image.DecompressionBombError as exc:
+        raise LimitError(f"{name} is too large: {_one_line(exc)}") from None
+    except UnidentifiedImageError:
+        raise MapFileError(
+            f"{name} is not an image mapd reads (PGM/PNM, PNG, {', '.join(PILLOW_FORMATS[:-1])} "
+            f"or {PILLOW_FORMATS[-1]}), or its header is damaged"
+        ) from None
+    except _PIL_ERRORS as exc:
+        raise MapFileError(f"{name} cannot be read: {_one_line(exc)}") from None
+    try:
+        with img:
+            _check_cells(img.size[0], img.size[1], where, image, max_cells)
+            return _pillow_array(img)
+    except (MapFileError, LimitError):
+        raise
+    except _PIL_ERRORS as exc:
+        raise MapFileError(f"{name} is truncated or corrupt: {_one_line(exc)}") from None
+
+
+def _pillow_array(img: Image.Image) -> _Pixels:
+    """Pixels of a Pillow image, converted as map_server's SDL_image would hand them over."""
+    mode = img.mode
+    if mode == "P":
+        img = img.convert("RGBA" if "transparency" in img.info else "RGB")
+    elif mode == "1":
+        img = img.convert("L")
+    elif mode == "PA":
+        img = img.convert("RGBA")
+    elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+        img = img.convert("RGB")
+    mode = img.mode
+    arr = np.asarray(img)
     if arr.ndim == 2:
         arr = arr[:, :, None]
-    has_alpha = img.mode in ("LA", "RGBA", "La", "RGBa")
-    return arr, has_alpha
+    if arr.ndim != 3 or arr.dtype.kind not in "uif":
+        raise ValueError(f"pixel mode {mode} is not supported")
+    has_alpha = mode in ("LA", "RGBA", "La", "RGBa")
+    if mode.startswith("I;16"):
+        return _Pixels(arr, has_alpha, scale=255.0 / 65535.0)
+    if mode == "I":
+        # A 32-bit integer image (Pillow's 16-bit PNG): 16-bit samples unless none is above 255.
+        return _Pixels(arr, has_alpha, scale=255.0 / 65535.0 if int(arr.max(initial=0)) > 255 else 1.0)
+    return _Pixels(arr, has_alpha)
+
+
+def _read_pixels(image_path: Path, yaml_path: Path, max_cells: int) -> _Pixels:
+    """The image's pixels, its size checked against ``max_cells`` from the header before decoding."""
+    where = str(yaml_path)
+    try:
+        fd = _open_regular(image_path, where, "image")
+    except FileNotFoundError:
+        raise MapFileError(f"{where}: image '{image_path}' does not exist") from None
+    try:
+        with os.fdopen(fd, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            magic = f.read(8)
+            f.seek(0)
+            if len(magic) >= 3 and magic[0] == ord("P") and magic[1] in b"123456" and magic[2] in _PNM_WS:
+                pixels = _read_pnm(f, size, where, image_path, max_cells)
+                if pixels is not None:
+                    return pixels
+                f.seek(0)
+                return _pillow_pixels(f, ("PPM",), where, image_path, max_cells)
+            if magic == _PNG_SIGNATURE:
+                _check_png(f, where, image_path, max_cells)
+                f.seek(0)
+                return _pillow_pixels(f, ("PNG",), where, image_path, max_cells)
+            if _PNG_SIGNATURE.startswith(magic) or (magic[:1] == b"P" and len(magic) < 3):
+                raise MapFileError(f"{where}: image '{image_path}' is truncated ({len(magic)} bytes)")
+            return _pillow_pixels(f, PILLOW_FORMATS, where, image_path, max_cells)
+    except OSError as exc:
+        raise MapFileError(f"{where}: cannot read image '{image_path}': {exc.strerror or exc}") from None
+
+
+def _occupancy(px: np.ndarray, has_alpha: bool, meta: dict[str, Any]) -> np.ndarray:
+    """map_server's rules on a band of pixels (float64, (rows, W, C), 0..255): int8 cells, image order."""
+    n = px.shape[2]
+    mode = meta["mode"]
+    # map_server: trinary averages all channels (alpha included); other modes skip alpha.
+    avg_channels = n if (mode == "trinary" or not has_alpha) else n - 1
+    color_avg = px[:, :, :avg_channels].sum(axis=2) / avg_channels
+    # map_server reads "alpha" from the last channel of any multi-channel image (blue for RGB).
+    alpha = px[:, :, n - 1] if n > 1 else None
+    if meta["negate"]:
+        color_avg = 255.0 - color_avg
+    if mode == "raw":
+        # unsigned char value = color_avg; then stored into the int8 data array.
+        return color_avg.astype(np.uint8).view(np.int8)
+    occ = (255.0 - color_avg) / 255.0
+    occ_th, free_th = meta["occupied_thresh"], meta["free_thresh"]
+    values = np.full(color_avg.shape, UNKNOWN, dtype=np.int8)
+    is_occ = occ > occ_th
+    is_free = ~is_occ & (occ < free_th)
+    values[is_occ] = OCCUPIED
+    values[is_free] = FREE
+    if mode == "scale":
+        mid = ~is_occ & ~is_free
+        if alpha is not None:
+            mid &= ~(alpha < 1.0)
+        span = occ_th - free_th
+        ratio = (occ[mid] - free_th) / span if span > 0 else np.zeros(int(mid.sum()))
+        values[mid] = (1 + 98 * ratio).astype(np.int8)
+    return values
 
 
 def load_map(
@@ -320,39 +777,22 @@ def load_map(
 ) -> OccupancyGrid:
     """Read a map_server YAML and its image into an :class:`OccupancyGrid`, as map_server would.
 
-    Raises :class:`MapFileError` naming the file and the problem, or :class:`LimitError` when the
-    image has more than ``max_cells`` pixels (checked from the header, before decoding).
+    Raises :class:`MapFileError` naming the file and the problem (a truncated, half-written or
+    malformed YAML or image, never a padded map), or :class:`LimitError` when the image has more
+    than ``max_cells`` pixels (read from its header, before any pixel is decoded). Memory stays a
+    small multiple of the image: pixels are turned into cells a band of rows at a time.
     """
     path = Path(yaml_path)
     meta = read_map_yaml(path)
-    pixels, has_alpha = _read_pixels(meta["image"], path, max_cells)
-    n = pixels.shape[2]
-    mode = meta["mode"]
-    # map_server: trinary averages all channels (alpha included); other modes skip alpha.
-    avg_channels = n if (mode == "trinary" or not has_alpha) else n - 1
-    color_avg = pixels[:, :, :avg_channels].sum(axis=2) / avg_channels
-    # map_server reads "alpha" from the last channel of any multi-channel image (blue for RGB).
-    alpha = pixels[:, :, n - 1] if n > 1 else np.full(color_avg.shape, 255.0)
-    if meta["negate"]:
-        color_avg = 255.0 - color_avg
-
-    if mode == "raw":
-        # unsigned char value = color_avg; then stored into the int8 data array.
-        values = color_avg.astype(np.uint8).view(np.int8)
-    else:
-        occ = (255.0 - color_avg) / 255.0
-        occ_th, free_th = meta["occupied_thresh"], meta["free_thresh"]
-        values = np.full(color_avg.shape, UNKNOWN, dtype=np.int8)
-        is_occ = occ > occ_th
-        is_free = ~is_occ & (occ < free_th)
-        values[is_occ] = OCCUPIED
-        values[is_free] = FREE
-        if mode == "scale":
-            mid = ~is_occ & ~is_free & ~(alpha < 1.0)
-            span = occ_th - free_th
-            ratio = (occ[mid] - free_th) / span if span > 0 else np.zeros(int(mid.sum()))
-            values[mid] = (1 + 98 * ratio).astype(np.int8)
-    data = np.ascontiguousarray(np.flipud(values))
+    pixels = _read_pixels(meta["image"], path, max_cells)
+    height, width = pixels.arr.shape[:2]
+    data = np.empty((height, width), dtype=np.int8)
+    step = max(1, _BAND_CELLS // width)
+    for r0 in range(0, height, step):
+        r1 = min(height, r0 + step)
+        band = _occupancy(pixels.grey(r0, r1), pixels.has_alpha, meta)
+        # Image row 0 is the top; nav_msgs row 0 is at the origin (the bottom row of the image).
+        data[height - r1 : height - r0] = band[::-1]
     return OccupancyGrid(data=data, resolution=meta["resolution"], origin=meta["origin"], robot=robot)
 
 

@@ -9,9 +9,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from mapd.errors import ConfigError
+from mapd.files import read_capped
 
 #: Shortest key accepted (128 bits): a shorter signing key could be found by brute force.
 MIN_KEY_BYTES = 16
+#: Longest key file read. A key is 16 to a few hundred bytes (hex doubles it); reading stops here, so
+#: a key_file naming ``/dev/zero`` or a log file is refused at once instead of read forever.
+MAX_KEY_FILE_BYTES = 4096
 
 
 def read_key_file(path: Path | None, option: str) -> bytes | None:
@@ -19,14 +23,20 @@ def read_key_file(path: Path | None, option: str) -> bytes | None:
 
     ``option`` names where the path came from (``robot.key_file``, ``--key``); every error starts
     with it, so the user knows which setting to fix. Raises :class:`~mapd.errors.ConfigError` when
-    the file cannot be read or the key is too short.
+    the file cannot be read, holds more than :data:`MAX_KEY_FILE_BYTES` or the key is too short.
+    At most ``MAX_KEY_FILE_BYTES + 1`` bytes are ever read (a pipe, as in ``--key <(...)``, works).
     """
     if path is None:
         return None
     try:
-        raw = path.read_bytes()
+        raw = read_capped(path, MAX_KEY_FILE_BYTES)
     except OSError as exc:
         raise ConfigError(f"{option}: cannot read {path}: {exc.strerror}") from None
+    if len(raw) > MAX_KEY_FILE_BYTES:
+        raise ConfigError(
+            f"{option}: {path} holds more than {MAX_KEY_FILE_BYTES} bytes; a fleet key file holds one "
+            f"key of {MIN_KEY_BYTES}+ bytes (raw or hex)"
+        )
     try:
         key = bytes.fromhex(raw.strip().decode("ascii"))
     except (UnicodeDecodeError, ValueError):

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import importlib.metadata
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -10,6 +13,7 @@ import pytest
 from mapd import config, plugins
 from mapd.data import REPO_ROOT
 from mapd.errors import ConfigError, PluginError
+from mapd.identity import Identity
 
 MINIMAL = """
 [robot]
@@ -43,6 +47,33 @@ def test_example_config_is_complete_and_valid() -> None:
     # The complete example carries a table for every installed plugin.
     for section, kind in (("source", "source"), ("codec", "codec"), ("transports", "transport")):
         assert set(checked[section]) >= set(plugins.names(kind)) - {"raw"}, section
+    # Signed by default: it names the robot's key and the link key, which a robot makes with keygen.
+    assert not cfg.fleet.allow_unsigned and cfg.robot.key_file is not None
+    with pytest.raises(ConfigError, match=r"robot\.key_file: cannot read .*robot\.key"):
+        config.check(cfg)
+
+
+def test_example_config_passes_check_config_once_its_keys_are_made(tmp_path: Path) -> None:
+    """The README's steps: keygen for the robot and the link, the printed line in the roster."""
+    (tmp_path / "config.toml").write_text((REPO_ROOT / "config.toml").read_text())
+    mapd = [sys.executable, "-m", "mapd"]
+    run = lambda *a: subprocess.run([*mapd, *a], capture_output=True, text=True, cwd=tmp_path, timeout=60)  # noqa: E731
+    refused = run("check-config", "config.toml")
+    assert refused.returncode == 2 and refused.stderr.startswith("mapd: error: robot.key_file")
+    made = run("keygen", "alpha", "-o", "robot.key")
+    assert made.returncode == 0 and made.stdout.startswith('alpha = "ed25519:')
+    assert (tmp_path / "robot.key").stat().st_mode & 0o777 == 0o600
+    assert run("keygen", "--link-key", "link.key").returncode == 0
+    mismatch = run("check-config", "config.toml")
+    assert "fleet.roster.alpha does not match robot.key_file" in mismatch.stderr
+    text = (tmp_path / "config.toml").read_text()
+    start = text.index('alpha = "ed25519:')
+    end = text.index("\n", start)
+    (tmp_path / "config.toml").write_text(text[:start] + made.stdout.strip() + text[end:])
+    ok = run("check-config", "config.toml")
+    assert ok.returncode == 0, ok.stderr
+    doc = json.loads(ok.stdout.split("\n", 1)[1])
+    assert doc["keys"] == {"signed": True, "public_key": made.stdout.split('"')[1], "link_key": True}
 
 
 @pytest.mark.parametrize(
@@ -72,18 +103,44 @@ def test_missing_config_file(tmp_path: Path) -> None:
         config.load(tmp_path / "absent.toml")
 
 
-def test_key_file(tmp_path: Path) -> None:
-    (tmp_path / "fleet.key").write_text("ab" * 32 + "\n")
-    cfg = config.load(
-        write(tmp_path, MINIMAL.replace('fleet = "lab"', 'fleet = "lab"\nkey_file = "fleet.key"'))
-    )
-    assert config.read_key(cfg) == bytes.fromhex("ab" * 32)
-    (tmp_path / "fleet.key").write_text("abcd")
+def test_link_key_file(tmp_path: Path) -> None:
+    (tmp_path / "link.key").write_text("ab" * 32 + "\n")
+    text = MINIMAL + '\n[fleet]\nallow_unsigned = true\nlink_key_file = "link.key"\n'
+    cfg = config.load(write(tmp_path, text))
+    assert config.read_keys(cfg).link_key == bytes.fromhex("ab" * 32)
+    (tmp_path / "link.key").write_text("abcd")
     with pytest.raises(ConfigError, match="at least 16"):
-        config.read_key(cfg)
-    (tmp_path / "fleet.key").unlink()
-    with pytest.raises(ConfigError, match="cannot read"):
-        config.read_key(cfg)
+        config.read_keys(cfg)
+
+
+def test_signed_by_default_and_the_roster_must_match_the_key(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"robot\.key_file: a signed fleet needs this robot's key"):
+        config.read_keys(config.load(write(tmp_path, MINIMAL)))
+    ident = Identity.generate("alpha")
+    ident.write(tmp_path / "alpha.key")
+    other = Identity.generate("alpha").public_text
+    keyed = MINIMAL.replace('fleet = "lab"', 'fleet = "lab"\nkey_file = "alpha.key"')
+    with pytest.raises(ConfigError, match=r"fleet\.roster: this robot 'alpha' is missing; add: alpha = "):
+        config.read_keys(config.load(write(tmp_path, keyed)))
+    with pytest.raises(ConfigError, match=r"does not match robot\.key_file"):
+        config.read_keys(config.load(write(tmp_path, keyed + f'[fleet.roster]\nalpha = "{other}"\n')))
+    with pytest.raises(ConfigError, match="uwb frames need the fleet's link key"):
+        config.read_keys(
+            config.load(
+                write(
+                    tmp_path,
+                    keyed + f'[transports]\nuse = ["uwb"]\n[fleet.roster]\nalpha = "{ident.public_text}"\n',
+                )
+            )
+        )
+    keys = config.read_keys(
+        config.load(write(tmp_path, keyed + f'[fleet.roster]\nalpha = "{ident.public_text}"\n'))
+    )
+    assert keys.signed and keys.identity is not None and keys.roster.robots == ["alpha"]
+    with pytest.raises(ConfigError, match=r"fleet\.roster\.beta: expected 'ed25519:<base64>'"):
+        config.read_keys(config.load(write(tmp_path, keyed + '[fleet.roster]\nbeta = "abc"\n')))
+    unsigned = config.read_keys(config.load(write(tmp_path, MINIMAL + "[fleet]\nallow_unsigned = true\n")))
+    assert not unsigned.signed and unsigned.identity is None
 
 
 def test_registry_lists_without_importing() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 
 import msgpack
 import pytest
@@ -10,10 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd.envelope import Envelope, unpack
-from mapd.errors import EnvelopeError
+from mapd.errors import EnvelopeError, SignatureError
 from mapd.grid import Pose2D
+from mapd.identity import Identity, Roster
 
-KEY = b"k" * 32
+ALPHA, BETA = Identity.generate("alpha"), Identity.generate("beta")
+ROSTER_KEYS = {"alpha": ALPHA.public_key, "beta": BETA.public_key}
+ROSTER = Roster(ROSTER_KEYS)
 
 
 def make(**kw: object) -> Envelope:
@@ -43,16 +47,33 @@ def test_round_trip() -> None:
 
 
 def test_signature_checked() -> None:
-    signed = make().signed(KEY)
-    assert unpack(signed.pack(), key=KEY).sig == signed.sig
-    with pytest.raises(EnvelopeError, match="unsigned"):
-        unpack(make().pack(), key=KEY)
-    with pytest.raises(EnvelopeError, match="bad signature"):
-        unpack(signed.pack(), key=b"x" * 32)
+    signed = make().signed(ALPHA)
+    assert unpack(signed.pack(), roster=ROSTER).sig == signed.sig
+    with pytest.raises(SignatureError, match="unsigned"):
+        unpack(make().pack(), roster=ROSTER)
+    with pytest.raises(SignatureError, match="bad signature"):  # alpha's name, another key
+        unpack(make().signed(Identity.generate("alpha")).pack(), roster=ROSTER)
     tampered = msgpack.unpackb(signed.pack())
     tampered["v"] = 4
-    with pytest.raises(EnvelopeError, match="bad signature"):
-        unpack(msgpack.packb(tampered), key=KEY)
+    with pytest.raises(SignatureError, match="bad signature"):
+        unpack(msgpack.packb(tampered), roster=ROSTER)
+
+
+def test_a_robot_cannot_sign_as_another_and_strangers_are_refused() -> None:
+    with pytest.raises(ValueError, match="cannot sign an envelope of 'alpha'"):
+        make().signed(BETA)
+    # beta holds a valid key of the fleet, yet its signature cannot pass for alpha's
+    forged = dataclasses.replace(make(robot="beta").signed(BETA), robot="alpha")
+    with pytest.raises(SignatureError, match="bad signature on envelope from 'alpha'"):
+        unpack(forged.pack(), roster=ROSTER)
+    stranger = Identity.generate("gamma")
+    with pytest.raises(SignatureError, match="not on the fleet's roster"):
+        unpack(make(robot="gamma").signed(stranger).pack(), roster=ROSTER)
+    # a fleet that allows unsigned messages takes them, and still checks the roster's robots
+    lax = Roster(ROSTER_KEYS, allow_unsigned=True)
+    assert unpack(make().pack(), roster=lax).robot == "alpha"
+    with pytest.raises(SignatureError, match="bad signature"):
+        unpack(forged.pack(), roster=lax)
 
 
 def test_fleet_and_size_limits() -> None:

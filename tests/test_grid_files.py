@@ -230,3 +230,25 @@ def test_fuzz_image_bytes_give_only_mapd_errors(tmp_path: Path, blob: bytes) -> 
     except MapdError:
         return
     assert g.data.dtype == np.int8
+
+
+@pytest.mark.parametrize("maxval", [1, 7, 100, 254, 255, 256, 1000, 65535])
+@pytest.mark.parametrize("kind", ["P5", "P6"])
+def test_binary_pnm_reads_like_pillow_for_any_maxval(tmp_path: Path, kind: str, maxval: int) -> None:
+    # mapd reads P5/P6 pixels itself (Pillow converts maxval != 255 one sample at a time in Python);
+    # the grey levels must be Pillow's, which is what mapd has always loaded.
+    rng = np.random.default_rng(maxval)
+    channels = 3 if kind == "P6" else 1
+    samples = rng.integers(0, maxval + 1, size=(5, 7, channels))
+    raw = samples.astype(">u2" if maxval > 255 else np.uint8).tobytes()
+    (tmp_path / "m.pnm").write_bytes(f"{kind}\n# comment\n7 5\n{maxval}\n".encode() + raw)
+    y = tmp_path / "m.yaml"
+    y.write_text("image: m.pnm\nresolution: 0.05\norigin: [0, 0, 0]\nmode: raw\n")
+    with Image.open(tmp_path / "m.pnm") as img:
+        grey = np.asarray(img).astype(np.float64)
+        if img.mode == "I":
+            grey = grey * (255.0 / 65535.0)
+    if grey.ndim == 3:
+        grey = grey.sum(axis=2) / 3
+    expect = np.flipud(grey.astype(np.uint8).view(np.int8))
+    assert load_map(y).data.tolist() == expect.tolist()

@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 from pydantic import BaseModel, ConfigDict
 
 from mapd.envelope import Envelope
+from mapd.identity import Identity, Roster
 
 
 class TransportOptions(BaseModel):
@@ -97,9 +98,14 @@ class TransportContext:
 
     robot: str
     fleet: str
-    key: bytes | None
     max_message_bytes: int
     emit: Callable[[TransportEvent], None]
+    #: This robot's signing key (None in a fleet that allows unsigned messages and has none).
+    identity: Identity | None = None
+    #: Whose signatures to accept; the default accepts anything (tools and tests, never the daemon).
+    roster: Roster = field(default_factory=Roster.open)
+    #: The fleet's shared secret authenticating link frames (uwb), or None.
+    link_key: bytes | None = None
     state_dir: Path | None = None
     #: Returns the robot's latest keyframe envelope (for late joiners), or None before the first map.
     #: It may encode the map first (seconds for a large one): call it from a worker thread, never on

@@ -20,6 +20,21 @@ Payload layout (little-endian), format version 1::
 The decoder reads the header, refuses anything over the cell limit before allocating, checks the
 base it was given against ``base_dig``, and checks the result against ``check``. Every failure is a
 :class:`~mapd.errors.CodecError` with one readable line.
+
+Header bounds, checked by :func:`read_header` before any codec runs and by :func:`encode` (so every
+payload mapd makes is one it accepts):
+
+* ``height * width`` at most ``max_cells`` (``limits.max_cells``), and each side at most
+  :data:`MAX_SIDE` cells: a 1 x 67 M grid is not a map, and the lossless kernels keep a few rows of
+  per-column state, so a degenerate shape would cost memory far beyond its cells;
+* ``resolution`` finite and within [:data:`~mapd.grid.MIN_RESOLUTION`,
+  :data:`~mapd.grid.MAX_RESOLUTION`] meters per cell;
+* origin ``x`` and ``y`` finite and within +-:data:`~mapd.grid.MAX_ORIGIN_M` meters (10,000 km,
+  every UTM coordinate), ``yaw`` within +-:data:`~mapd.grid.MAX_ORIGIN_YAW` (one turn).
+
+These bounds catch a damaged exponent, not every damaged bit: a flipped low mantissa bit of the
+resolution or origin of a *lossy* payload still decodes (``check`` covers only the body there),
+which is why envelopes are signed.
 """
 
 from __future__ import annotations
@@ -34,7 +49,7 @@ import numpy as np
 from mapd import plugins
 from mapd.codec.base import Codec, CodecOptions, Target
 from mapd.errors import CodecError, LimitError, MapdError
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem
 
 MAGIC = b"MAPD"
 FORMAT_VERSION = 1
@@ -44,6 +59,8 @@ _FIXED = struct.Struct("<IId3dQ16s16sI")
 MAX_NAME = 32
 MAX_VARIANT = 64
 ZERO_DIGEST = bytes(16)
+#: Longest side of a grid in a payload (cells): 3.3 km at 5 cm, twice what fusion matches.
+MAX_SIDE = MAX_GRID_SIDE
 
 _instances: dict[tuple[str, str], Codec] = {}
 
@@ -122,29 +139,76 @@ def encode(
     ``base`` must be a grid the receiver holds (same robot, an earlier version). Codecs that cannot
     use a base ignore it and send the whole map.
     """
+    problem = encode_problem(grid)
+    if problem is not None:
+        raise CodecError(f"cannot encode this map: {problem}")
     impl = get_codec(codec, options)
-    name = impl.name.encode("ascii")
-    variant = impl.variant().encode("ascii")
-    if len(name) > MAX_NAME or len(variant) > MAX_VARIANT:
+    if len(impl.name.encode("ascii")) > MAX_NAME or len(impl.variant().encode("ascii")) > MAX_VARIANT:
         raise CodecError(f"codec '{codec}': name or variant too long for the header")
     use_base = base if impl.uses_base else None
     out = impl.encode_cells(grid, use_base)
     delta = bool(out.delta and use_base is not None)
-    flags = (FLAG_DELTA if delta else 0) | (0 if impl.lossless else FLAG_LOSSY)
-    check = grid.digest() if impl.lossless else _blake(out.body)
     assert use_base is not None or not delta
-    fixed = _FIXED.pack(
-        grid.height,
-        grid.width,
-        grid.resolution,
-        *grid.origin,
-        use_base.version if delta and use_base is not None else 0,
-        use_base.digest() if delta and use_base is not None else ZERO_DIGEST,
-        check,
-        len(out.body),
+    return pack_payload(
+        impl.name,
+        impl.variant(),
+        height=grid.height,
+        width=grid.width,
+        resolution=grid.resolution,
+        origin=grid.origin,
+        body=out.body,
+        delta=delta,
+        lossy=not impl.lossless,
+        base_version=use_base.version if delta and use_base is not None else 0,
+        base_digest=use_base.digest() if delta and use_base is not None else ZERO_DIGEST,
+        check=grid.digest() if impl.lossless else None,
     )
-    head = MAGIC + bytes([FORMAT_VERSION, flags, len(name)]) + name + bytes([len(variant)]) + variant
-    return head + fixed + out.body
+
+
+def pack_payload(
+    codec: str,
+    variant: str,
+    *,
+    height: int,
+    width: int,
+    resolution: float,
+    origin: tuple[float, float, float],
+    body: bytes,
+    delta: bool = False,
+    lossy: bool = False,
+    base_version: int = 0,
+    base_digest: bytes = ZERO_DIGEST,
+    check: bytes | None = None,
+) -> bytes:
+    """The header (layout in the module doc) followed by ``body``, as :func:`encode` writes it.
+
+    No field is checked here: :func:`encode` checks the grid before, and tests use this to forge
+    hostile payloads (a header claiming any size, resolution or origin) that :func:`decode` must
+    refuse. ``check`` defaults to the BLAKE2b of the body for a lossy payload, zeros otherwise.
+    """
+    name = codec.encode("ascii")
+    var = variant.encode("ascii")
+    flags = (FLAG_DELTA if delta else 0) | (FLAG_LOSSY if lossy else 0)
+    if check is None:
+        check = _blake(body) if lossy else ZERO_DIGEST
+    fixed = _FIXED.pack(height, width, resolution, *origin, base_version, base_digest, check, len(body))
+    head = MAGIC + bytes([FORMAT_VERSION, flags, len(name)]) + name + bytes([len(var)]) + var
+    return head + fixed + body
+
+
+def encode_problem(grid: OccupancyGrid) -> str | None:
+    """Why :func:`encode` would refuse ``grid`` (empty, a side over :data:`MAX_SIDE`, resolution or
+    origin out of the header bounds), or None. Lets a caller skip such a map instead of failing."""
+    return _shape_problem(grid.height, grid.width) or geometry_problem(grid.resolution, grid.origin)
+
+
+def _shape_problem(height: int, width: int) -> str | None:
+    """Why a grid of this shape cannot travel in a payload (besides the cell limit), or None."""
+    if height == 0 or width == 0:
+        return f"the grid is empty ({width}x{height})"
+    if max(height, width) > MAX_SIDE:
+        return f"the grid is {width}x{height} cells, over {MAX_SIDE} cells a side"
+    return None
 
 
 def read_header(payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS) -> Header:
@@ -179,8 +243,14 @@ def read_header(payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS) -> Header
         raise CodecError(f"payload declares an empty grid ({w}x{h})")
     if h * w > max_cells:
         raise LimitError(f"payload declares {w}x{h} = {w * h} cells, over the limit of {max_cells}")
+    shape = _shape_problem(h, w)
+    if shape is not None:
+        raise CodecError(f"payload header is corrupt: {shape}")
     if not (math.isfinite(res) and res > 0) or not all(math.isfinite(v) for v in (ox, oy, oyaw)):
         raise CodecError("payload header has a non-finite or non-positive resolution or origin")
+    geometry = geometry_problem(res, (ox, oy, oyaw))
+    if geometry is not None:
+        raise CodecError(f"payload header is corrupt: {geometry}")
     if not flags & FLAG_DELTA and (base_ver != 0 or base_dig != ZERO_DIGEST):
         raise CodecError("payload header is corrupt (base fields set on a whole-map payload)")
     if pos + body_len != len(mv):

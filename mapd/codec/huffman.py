@@ -37,6 +37,7 @@ import heapq
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from mapd.codec.varint import VarintErrors, get_uvarint, put_uvarint
 from mapd.errors import CodecError
@@ -351,11 +352,73 @@ def _decode_table(lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     return sym_t, len_t, width
 
 
+# Outcomes of :func:`_decode_runs` besides 0 (all symbols decoded, the rest is valid padding).
+_FEWER, _LAST, _TRAILING, _PADDING = 1, 2, 3, 4
+
+
+@njit(cache=True, nogil=True)
+def _decode_runs(
+    counts: np.ndarray,
+    chars: np.ndarray,
+    sym_t: np.ndarray,
+    len_t: np.ndarray,
+    width: int,
+    out: np.ndarray,
+) -> int:
+    """Decode ``out.size`` symbols straight from the runs (hex character, count), one code at a time.
+
+    The bit string is never expanded: a run of 63 million hex digits costs no memory, and the only
+    array the size of the map is ``out``. The code at each position is read from the next ``width``
+    bits (zeros past the end), as the tables expect. Returns 0, or why the bit string is bad:
+    ``_FEWER`` (it ends, or a code is invalid, before the last symbol), ``_LAST`` (the last code is
+    invalid or runs past the end), ``_TRAILING`` (four or more bits after the last code) or
+    ``_PADDING`` (the bits after it are not zero).
+    """
+    count = out.size
+    nruns = counts.size
+    mask = (1 << width) - 1
+    acc = 0  # bits read but not yet consumed, in the low `have` bits
+    have = 0
+    run = 0
+    left = counts[0] if nruns > 0 else 0  # hex digits left in the current run
+    for m in range(count):
+        while have < width and run < nruns:
+            acc = (acc << 4) | chars[run]
+            have += 4
+            left -= 1
+            if left == 0:
+                run += 1
+                if run < nruns:
+                    left = counts[run]
+        if have == 0:
+            return _FEWER
+        window = (acc >> (have - width)) if have >= width else (acc << (width - have))
+        window &= mask
+        n = len_t[window]
+        if n == 0 or n > have:
+            return _LAST if m == count - 1 else _FEWER
+        out[m] = sym_t[window]
+        have -= n
+        acc &= (1 << have) - 1
+    rest = 0
+    if run < nruns:
+        rest = left
+        for j in range(run + 1, nruns):
+            rest += counts[j]
+    if have + 4 * rest >= 4:
+        return _TRAILING
+    if acc != 0:
+        return _PADDING
+    return 0
+
+
 def decode(buf: bytes, count: int, alphabet: int, pos: int = 0) -> np.ndarray:
     """Algorithm 2: the wire form of (T, e) from ``pos`` to the end back to ``count`` symbols (uint8).
 
     Raises :class:`CodecError` on a corrupt table, a run-length code that would expand past what
-    ``count`` symbols can occupy, a truncated bit string, or trailing data.
+    ``count`` symbols can occupy, a truncated bit string, or trailing data. Memory is the ``count``
+    output symbols plus the runs as sent: the hex string and the bits are never built, so a few
+    bytes claiming millions of hex digits cost time in proportion to ``count`` and nothing more.
     """
     if count <= 0:
         raise CodecError("huffman: nothing to decode")
@@ -365,37 +428,25 @@ def decode(buf: bytes, count: int, alphabet: int, pos: int = 0) -> np.ndarray:
     max_hex = -(-count * width // 4)
     min_hex = -(-count * min_len // 4)
     run_counts, chars = unpack_runs(buf, pos, max_hex)
-    hexs = np.repeat(chars, run_counts)
-    if hexs.size < min_hex:
-        raise CodecError(f"bit string is truncated ({hexs.size} hex digits for {count} symbols)")
-    bits = hex_to_bits(hexs)
-    nbits = bits.size
+    total = int(run_counts.sum())
+    if total < min_hex:
+        raise CodecError(f"bit string is truncated ({total} hex digits for {count} symbols)")
     sym_t, len_t, width = _decode_table(lengths)
-    # The code starting at every bit position, read from the next `width` bits (zero past the end).
-    padded = np.concatenate([bits, np.zeros(width, dtype=np.uint8)])
-    window = np.zeros(nbits, dtype=np.int64)
-    for j in range(width):
-        window = (window << 1) | padded[j : j + nbits]
-    step = len_t[window]
-    # Jump table over bit positions: nbits means "ended exactly here", nbits + 1 means "broken".
-    jump = np.arange(nbits, dtype=np.int64) + step
-    jump[(step == 0) | (jump > nbits)] = nbits + 1
-    jump = np.concatenate([jump, [nbits, nbits + 1]])
-    # Positions of symbols 0..count-1 by pointer doubling: p[m + 2^k] = jump^(2^k)[p[m]].
-    pos_arr = np.zeros(1, dtype=np.int64)
-    while pos_arr.size < count:
-        need = min(pos_arr.size, count - pos_arr.size)
-        pos_arr = np.concatenate([pos_arr, jump[pos_arr[:need]]])
-        if pos_arr.size < count:
-            jump = jump[jump]
-    if int(pos_arr[-1]) >= nbits:
+    out = np.empty(count, dtype=np.uint8)
+    status = _decode_runs(
+        np.ascontiguousarray(run_counts, dtype=np.int64),
+        np.ascontiguousarray(chars, dtype=np.uint8),
+        sym_t,
+        len_t,
+        width,
+        out,
+    )
+    if status == _FEWER:
         raise CodecError(f"bit string is truncated or corrupt (fewer than {count} codes)")
-    last_len = int(step[pos_arr[-1]])
-    end = int(pos_arr[-1]) + last_len
-    if last_len == 0 or end > nbits:
+    if status == _LAST:
         raise CodecError("bit string is truncated or corrupt (in its last code)")
-    if nbits - end >= 4:
+    if status == _TRAILING:
         raise CodecError("bit string has trailing data after the last code")
-    if np.any(bits[end:]):
+    if status == _PADDING:
         raise CodecError("bit string is corrupt (non-zero padding)")
-    return sym_t[window[pos_arr]]
+    return out

@@ -223,8 +223,8 @@ class PaperCodec(Codec):
         sym = huffman.decode(body, h2 * w2, model.levels, pos=1).reshape(h2, w2)
         t1 = time.perf_counter()
         with torch_threads(self.threads):
-            values = model.decode_values(sym, target.height, target.width)
-        cells = snap(values, flags)
+            # Snapped band by band: the float32 values of the whole map are never held at once.
+            cells = model.decode_values(sym, target.height, target.width, lambda band: snap(band, flags))
         t2 = time.perf_counter()
         self.last_timings = {"huffman_decode_ms": 1000 * (t1 - t0), "cnn_decode_ms": 1000 * (t2 - t1)}
         return cells

@@ -28,6 +28,7 @@ import hashlib
 import io
 import json
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,9 @@ HI = (GREY_FREE - GREY_UNKNOWN) / 255.0
 WEIGHTS_FILE = "weights.npz"
 META_FILE = "model.json"
 MODEL_FORMAT = 1
+#: Full-resolution cells recovered at a time by :meth:`PaperModel.decode_values` (at least one row
+#: of tiles): bounds the float32 temporaries of a decode whatever the map's size.
+BAND_CELLS = 1 << 20
 
 
 # --------------------------------------------------------------------------------------------
@@ -422,15 +426,39 @@ class PaperModel:
         sym = self._run_tiles(padded, 2 * t, 2 * FEATURE_PAD, 2 * t, fn, t, fill)
         return sym[:h_out, :w_out].astype(np.uint8)
 
-    def decode_values(self, sym: np.ndarray, height: int, width: int) -> np.ndarray:
-        """m_feature symbols (h, w) to the recovered map (height, width) on the input scale."""
+    def decode_values(
+        self,
+        sym: np.ndarray,
+        height: int,
+        width: int,
+        finish: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """m_feature symbols (h, w) to the recovered map (height, width) on the input scale.
+
+        The map is recovered a band of tile rows at a time (about :data:`BAND_CELLS` cells), and
+        ``finish``, when given, turns each band of float32 values into what is kept (the codec snaps
+        it to int8 cells): then the float32 map, its skip path and the tiles' outputs never exist for
+        the whole map, and a decode's memory is the output and the symbols plus a few tens of MiB.
+        Tiles are independent and the bilinear skip of a band reads one half-resolution row beyond
+        it on each side, so the result is the same, bit for bit, as recovering the whole map at once.
+        """
         h, w = sym.shape
         t = self.tile
         rows, cols = -(-h // t), -(-w // t)
         p = RECOVERY_PAD
         values = self.net.quant.value(torch.arange(self.levels, dtype=torch.float32)).numpy()
-        padded = np.full((rows * t + 2 * p, cols * t + 2 * p), values[self.unknown_symbol], dtype=np.float32)
-        padded[p : p + h, p : p + w] = values[sym]
+        padded_h, padded_w = rows * t + 2 * p, cols * t + 2 * p
+        outside = values[self.unknown_symbol]
+
+        def padded(r0: int, r1: int) -> np.ndarray:
+            # Rows r0..r1 of the dequantized m_feature padded with unknown, made when a band needs
+            # them: the whole padded array would be one more float32 per four cells of the map.
+            rows_ = np.full((r1 - r0, padded_w), outside, dtype=np.float32)
+            s0, s1 = max(r0, p), min(r1, p + h)
+            if s1 > s0:
+                rows_[s0 - r0 : s1 - r0, p : p + w] = values[sym[s0 - p : s1 - p]]
+            return rows_
+
         by_value = {float(v): float(r) for v, r in zip(values, self._const_res, strict=True)}
 
         def fn(crops: torch.Tensor) -> torch.Tensor:
@@ -439,10 +467,36 @@ class PaperModel:
         def fill(vals: np.ndarray) -> np.ndarray:
             return np.array([by_value[float(v)] for v in vals], dtype=np.float32)
 
-        res = self._run_tiles(padded, t, 2 * p, t, fn, 2 * t, fill)
-        with torch.inference_mode():
-            skip = CNNRecovery.skip(torch.from_numpy(padded)[None, None])[0, 0].numpy()
-        return (res[:height, :width] + skip[:height, :width]).astype(np.float32)
+        out: np.ndarray | None = None
+        step = max(1, BAND_CELLS // (4 * t * t * cols))  # tile rows per band
+        for i0 in range(0, rows, step):
+            y0 = 2 * t * i0
+            if y0 >= height:
+                break
+            i1 = min(rows, i0 + step)
+            y1 = min(height, 2 * t * i1)
+            res = self._run_tiles(padded(i0 * t, i1 * t + 2 * p), t, 2 * p, t, fn, 2 * t, fill)
+            # CNNRecovery.skip on the whole map is the 2x bilinear upsampling of the padded features
+            # cropped by 2p cells. Full-resolution row y reads half-resolution rows (y + 2p) / 2 +- 1,
+            # so the band's rows come from padded rows a..b with one row to spare on each side.
+            a = max(0, i0 * t + p - 1)
+            b = min(padded_h, i1 * t + p + 1)
+            with torch.inference_mode():
+                up = F.interpolate(
+                    torch.from_numpy(padded(a, b))[None, None],
+                    scale_factor=2.0,
+                    mode="bilinear",
+                    align_corners=False,
+                )[0, 0].numpy()
+            m = 2 * p
+            skip = up[y0 + m - 2 * a : y1 + m - 2 * a, m : m + width]
+            band = (res[: y1 - y0, :width] + skip).astype(np.float32)
+            kept = finish(band) if finish is not None else band
+            if out is None:
+                out = np.empty((height, width), dtype=kept.dtype)
+            out[y0:y1] = kept
+        assert out is not None
+        return out
 
 
 def load_model(model_dir: Path) -> PaperModel:

@@ -121,17 +121,26 @@ def _num(v: Any, spec: str = ".1f") -> str:
 
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
+    from mapd.daemon.versions import label
+
     out = []
     src = s.get("source", {})
     out.append(
         f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}"
     )
+    sec = s.get("security", {})
+    if sec.get("signed"):
+        out.append(f"trust   signed; roster: {', '.join(sec.get('roster') or []) or '-'}")
+    else:
+        out.append("trust   UNSIGNED (fleet.allow_unsigned = true): anyone can write as any robot")
     size = src.get("size") or ["-", "-"]
     done = ", finished" if src.get("finished") else ""
-    out.append(f"source  {src.get('name')}: map v{src.get('version')} ({size[0]} x {size[1]} cells{done})")
+    out.append(
+        f"source  {src.get('name')}: map {label(src.get('version'))} ({size[0]} x {size[1]} cells{done})"
+    )
     c = s.get("codec", {})
     out.append(
-        f"codec   {c.get('name')}: last v{c.get('last_version', '-')} {c.get('last_kind', '')} "
+        f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "
         f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
         f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
     )
@@ -144,8 +153,8 @@ def render_status(s: dict[str, Any]) -> str:
         if p.get("restored"):
             state += " (map from state dir)"
         out.append(
-            f"  {name:<12} v{p.get('version', '-'):<5} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
-            f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our v{p.get('acked_our_version', 0)}"
+            f"  {name:<12} {label(p.get('version')):<6} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
+            f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our {label(p.get('acked_our_version', 0))}"
         )
     out.append("links")
     for name, st in s.get("links", {}).items():
@@ -163,7 +172,7 @@ def render_status(s: dict[str, Any]) -> str:
         if isinstance(t, dict):
             acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason') or '?'})"
             out.append(
-                f"  {robot:<12} v{t.get('version', '-')}  x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
+                f"  {robot:<12} {label(t.get('version'))}  x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
                 f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {t.get('source', '')}  {acc}"
             )
     bad = {k: v for k, v in s.get("counters", {}).items() if v}

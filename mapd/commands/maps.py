@@ -92,9 +92,14 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from mapd import config
 
     cfg = config.load(args.path)
-    options = config.check_plugins(cfg)
+    checked = config.check(cfg)
     resolved = cfg.model_dump(mode="json")
-    for section, tables in options.items():
+    resolved["keys"] = {
+        "signed": checked.keys.signed,
+        "public_key": checked.keys.identity.public_text if checked.keys.identity else None,
+        "link_key": checked.keys.link_key is not None,
+    }
+    for section, tables in checked.options.items():
         for name, opts in tables.items():
             resolved[section][name] = opts.model_dump(mode="json")
     print(f"{args.path}: ok")
@@ -167,12 +172,18 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
 def cmd_decode(args: argparse.Namespace) -> int:
     from mapd.codec import decode
-    from mapd.grid import load_map, save_map
+    from mapd.grid import DEFAULT_MAX_CELLS, load_map, save_map
 
+    # Read at most what the largest payload decode accepts (a raw map at the cell limit plus its
+    # header), so that /dev/zero or a wrong file is refused instead of read into memory.
+    limit = DEFAULT_MAX_CELLS + (1 << 16)
     try:
-        payload = args.payload.read_bytes()
+        with args.payload.open("rb") as f:
+            payload = f.read(limit + 1)
     except OSError as exc:
         raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
+    if len(payload) > limit:
+        raise CodecError(f"{args.payload}: over {limit} bytes, larger than any payload mapd decodes")
     base = load_map(args.base) if args.base else None
     grid = decode(payload, base)
     save_map(grid, args.output)

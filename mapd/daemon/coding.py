@@ -22,6 +22,7 @@ from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid
+from mapd.identity import Identity
 
 
 class CsvLog:
@@ -53,7 +54,7 @@ class Coder:
         options: CodecOptions | None,
         lossless: bool,
         measure_quality: bool,
-        key: bytes | None,
+        identity: Identity | None,
         max_cells: int,
         store: StateStore,
         log: CsvLog,
@@ -64,7 +65,7 @@ class Coder:
         self.options = options
         self.lossless = lossless
         self.measure_quality = measure_quality
-        self.key = key
+        self.identity = identity
         self.max_cells = max_cells
         self.store = store
         self.log = log
@@ -93,8 +94,8 @@ class Coder:
             seq=self.store.next_seq(),
             payload=payload,
         )
-        if self.key is not None:
-            env = env.signed(self.key)
+        if self.identity is not None:
+            env = env.signed(self.identity)
         row: dict[str, Any] = {
             "time": round(time.time(), 3),
             "version": grid.version,

@@ -4,8 +4,11 @@ For every :class:`~transports.base.Received` the daemon calls, in order:
 
 1. :func:`open_envelope` in a worker thread: size cap, strict parse, signature (a forgery raises
    :class:`~mapd.errors.SignatureError`, other damage :class:`~mapd.errors.EnvelopeError`);
-2. :meth:`Receiver.plan` on the loop: another fleet's, our own, or an old version is dropped; a delta
-   whose base is not held asks for a keyframe; otherwise the base to decode against;
+2. :meth:`Receiver.plan` on the loop: another fleet's, our own, an old version, a version that
+   jumps too far (:func:`~mapd.daemon.versions.check_step`), a map larger than the limits allow, an
+   unsigned map that names another robot than the link it came on, or a robot beyond
+   ``max_peers`` is dropped; a delta whose base is not held asks for a keyframe; otherwise the base
+   to decode against;
 3. :func:`decode_envelope` in a worker thread;
 4. :meth:`Receiver.accept` on the loop: keep the map (and a few recent versions as delta bases) and
    count it; the daemon then saves it, hands it to fusion and acks it.
@@ -21,9 +24,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.codec import decode
+from mapd.daemon.versions import VersionBounds, check_step, split
 from mapd.envelope import Envelope, unpack
 from mapd.errors import CodecError, SignatureError
-from mapd.grid import OccupancyGrid
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
+from mapd.identity import Roster
 
 KEEP_PEER_VERSIONS = 8
 
@@ -36,6 +41,11 @@ class ReceiverCounters:
     foreign_fleet: int = 0
     bad_signature: int = 0
     duplicates: int = 0
+    refused_versions: int = 0
+    refused_sizes: int = 0
+    wrong_link: int = 0
+    too_many_robots: int = 0
+    new_incarnations: int = 0
     decode_errors: int = 0
     keyframe_requests: int = 0
     updates_received: int = 0
@@ -75,19 +85,27 @@ class AskKeyframe:
 
 @dataclass(frozen=True)
 class Drop:
-    """Nothing to do with this envelope (another fleet's, our own, or not newer than what is held)."""
+    """Nothing to do with this envelope; ``routine`` for echoes and duplicates, else a refusal worth a log line."""
 
     reason: str
+    routine: bool = False
+    #: The link may now hold this version as the robot's newest (zenoh's core does): ask it to
+    #: forget, so the robot's real next versions are not taken for stale ones.
+    forget: bool = False
 
 
-def open_envelope(data: bytes, *, max_bytes: int, key: bytes | None) -> Envelope:
+def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
     """Parse and verify untrusted bytes (CPU work: call it from a worker thread)."""
-    return unpack(data, max_bytes=max_bytes, key=key)
+    return unpack(data, max_bytes=max_bytes, roster=roster)
 
 
 def decode_envelope(env: Envelope, base: OccupancyGrid | None, *, max_cells: int) -> OccupancyGrid:
-    """Decode ``env``'s payload and check it against the envelope (CPU work: a worker thread)."""
-    grid = decode(env.payload, base, max_cells=max_cells)
+    """Decode ``env``'s payload and check it against the envelope (CPU work: a worker thread).
+
+    The decoder may allocate no more cells than the envelope claims (which :meth:`Receiver.plan`
+    has bounded), so a payload cannot claim more than its signed envelope does.
+    """
+    grid = decode(env.payload, base, max_cells=min(max_cells, max(1, env.width * env.height)))
     if (grid.width, grid.height) != (env.width, env.height):
         raise CodecError(
             f"payload decodes to {grid.width} x {grid.height}, the envelope says {env.width} x {env.height}"
@@ -101,15 +119,23 @@ class Receiver:
 
     me: str
     fleet: str
+    roster: Roster = field(default_factory=Roster.open)
+    bounds: VersionBounds = field(default_factory=VersionBounds)
+    max_peers: int = 64
+    max_cells: int = DEFAULT_MAX_CELLS
+    #: A peer's map may grow to this many times its last one's cells (plus a floor) per update.
+    max_growth: float = 4.0
     counters: ReceiverCounters = field(default_factory=ReceiverCounters)
     maps: dict[str, OccupancyGrid] = field(default_factory=dict)
     info: dict[str, PeerInfo] = field(default_factory=dict)
     _history: dict[str, dict[int, OccupancyGrid]] = field(default_factory=dict)
+    _held_at: dict[str, float] = field(default_factory=dict)
 
     def restore(self, grid: OccupancyGrid) -> None:
         """A peer's map from the state directory."""
         self.maps[grid.robot] = grid
         self._history[grid.robot] = {grid.version: grid}
+        self._held_at[grid.robot] = grid.stamp
 
     def refused(self, exc: Exception) -> None:
         """:func:`open_envelope` refused the bytes: count why."""
@@ -118,17 +144,43 @@ class Receiver:
         else:
             self.counters.bad_envelopes += 1
 
-    def plan(self, env: Envelope) -> Decode | AskKeyframe | Drop:
-        """What to do with a verified envelope."""
+    def plan(self, env: Envelope, link_peer: str, now: float) -> Decode | AskKeyframe | Drop:
+        """What to do with a verified envelope that came from ``link_peer`` (``now``: wall seconds)."""
         if env.fleet != self.fleet:
             self.counters.foreign_fleet += 1
-            return Drop("another fleet")
+            return Drop("another fleet", routine=True)
         if env.robot == self.me:
-            return Drop("our own map")
+            return Drop("our own map", routine=True)
+        if env.robot != link_peer and not (env.sig and env.robot in self.roster):
+            # Only a signature shows who made a map that another robot carries; unsigned, the link is all.
+            self.counters.wrong_link += 1
+            return Drop(f"an unsigned map of '{env.robot}' came from '{link_peer}'")
         held = self.maps.get(env.robot)
+        if held is None and len(self.maps) >= self.max_peers:
+            self.counters.too_many_robots += 1
+            return Drop(f"already {self.max_peers} robots (limits.max_peers)")
         if held is not None and env.version <= held.version:
             self.counters.duplicates += 1
-            return Drop(f"v{env.version} is not newer than v{held.version}")
+            return Drop(f"v{env.version} is not newer than v{held.version}", routine=True)
+        why = check_step(
+            held.version if held else 0, self._held_at.get(env.robot, now), env.version, now, self.bounds
+        )
+        if why is not None:
+            self.counters.refused_versions += 1
+            return Drop(why, forget=True)
+        cells = env.width * env.height
+        allowed = (
+            self.max_cells
+            if held is None
+            else min(self.max_cells, int(held.cells * self.max_growth) + (1 << 20))
+        )
+        if cells > allowed:
+            self.counters.refused_sizes += 1
+            return Drop(f"a map of {env.width} x {env.height} cells is over the {allowed} allowed")
+        if held is not None and split(env.version)[0] != split(held.version)[0]:
+            # The robot lost its state and started again: what we hold of it is no base any more.
+            self.counters.new_incarnations += 1
+            self._history.pop(env.robot, None)
         if env.is_keyframe:
             return Decode(None)
         base = self._history.get(env.robot, {}).get(env.base_version)
@@ -153,6 +205,7 @@ class Receiver:
         for v in sorted(history)[:-KEEP_PEER_VERSIONS]:
             del history[v]
         self.counters.updates_received += 1
+        self._held_at[env.robot] = now
         info = self.info.setdefault(env.robot, PeerInfo())
         info.version = env.version
         info.received_at = now
@@ -163,6 +216,9 @@ class Receiver:
         info.last_kind = "keyframe" if env.is_keyframe else "delta"
 
     def presence(self, peer: str, transport: str, present: bool) -> None:
+        """A transport saw ``peer`` come or go (robots the roster does not admit, or too many, are not kept)."""
+        if peer not in self.info and (not self.roster.admits(peer) or len(self.info) >= self.max_peers):
+            return
         info = self.info.setdefault(peer, PeerInfo())
         info.present = present
         info.link = transport

@@ -31,6 +31,7 @@ from pydantic import BaseModel
 from mapd import config as configmod
 from mapd import plugins
 from mapd.codec import get_codec
+from mapd.codec.api import encode_problem
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
@@ -39,6 +40,7 @@ from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope,
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
+from mapd.daemon.versions import VersionBounds
 from mapd.envelope import Envelope
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
@@ -74,8 +76,9 @@ class Daemon:
         self.cfg = cfg
         self.me = cfg.robot.name
         self.shutdown_timeout = shutdown_timeout
-        self.options = configmod.check_plugins(cfg, all_tables=False)
-        self.key = configmod.read_key(cfg)
+        checked = configmod.check(cfg)  # what check-config checks, no more and no less
+        self.options = checked.options
+        self.keys = checked.keys
         self.store = StateStore(cfg.state.dir, max_cells=cfg.limits.max_cells)
         self.started = time.time()
         self.source = source
@@ -94,7 +97,16 @@ class Daemon:
         options = codec_opts if isinstance(codec_opts, CodecOptions) else None
         codec = get_codec(cfg.codec.use, options)
         self.publisher = PublisherCore(uses_base=codec.uses_base, keyframe_every=cfg.codec.keyframe_every)
-        self.receiver = Receiver(self.me, cfg.robot.fleet)
+        lim = cfg.limits
+        self.receiver = Receiver(
+            self.me,
+            cfg.robot.fleet,
+            roster=self.keys.roster,
+            bounds=VersionBounds(max_jump=lim.max_version_jump, max_rate=lim.max_version_rate),
+            max_peers=lim.max_peers,
+            max_cells=lim.max_cells,
+            max_growth=lim.max_growth,
+        )
         self.coder = Coder(
             robot=self.me,
             fleet=cfg.robot.fleet,
@@ -102,7 +114,7 @@ class Daemon:
             options=options,
             lossless=codec.lossless,
             measure_quality=cfg.codec.measure_quality,
-            key=self.key,
+            identity=self.keys.identity,
             max_cells=cfg.limits.max_cells,
             store=self.store,
             log=CsvLog(cfg.state.dir / "updates.csv"),
@@ -114,6 +126,7 @@ class Daemon:
             cfg.state.dir / "global",
             on_global=[self._on_global],
             max_cells=cfg.limits.max_cells,
+            max_robots=cfg.limits.max_peers + 1,  # the peers and this robot
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
 
@@ -137,7 +150,9 @@ class Daemon:
             ctx = TransportContext(
                 robot=self.me,
                 fleet=self.cfg.robot.fleet,
-                key=self.key,
+                identity=self.keys.identity,
+                roster=self.keys.roster,
+                link_key=self.keys.link_key,
                 max_message_bytes=self.cfg.limits.max_message_bytes,
                 emit=self._events.put,
                 state_dir=state_dir,
@@ -148,6 +163,11 @@ class Daemon:
             for t in self.transports:
                 await t.start()
             await self.status_server.start()
+            if not self.keys.signed:
+                log.warning(
+                    "fleet.allow_unsigned = true: unsigned messages are accepted, so anyone on the "
+                    "radio or the network can write as any robot"
+                )
             notify("READY=1\nSTATUS=running")
             log.info(
                 "mapd started",
@@ -264,9 +284,15 @@ class Daemon:
             if grid.cells > self.cfg.limits.max_cells:
                 log.warning("source map of %d cells is over the limit; skipped", grid.cells)
                 continue
+            problem = encode_problem(grid)
+            if problem is not None:  # no codec could send it: skip it rather than fail on it later
+                log.warning("source map skipped: %s", problem)
+                continue
             # Versions are the daemon's, so they keep increasing across restarts.
             own = grid.replace(
-                robot=self.me, version=self.store.next_own_version(), stamp=grid.stamp or time.time()
+                robot=self.me,
+                version=self.store.next_own_version(time.time()),
+                stamp=grid.stamp or time.time(),
             )
             self.own = own
             self._pending = own  # latest wins: an unsaved older version is simply replaced
@@ -299,7 +325,11 @@ class Daemon:
             job = core.poll(time.monotonic(), self._peers_by_transport())
             if job is None:
                 continue  # every transport is busy or has it: they take the newest when they settle
-            env = await asyncio.to_thread(self.coder.envelope, job.grid, job.base)
+            try:
+                env = await asyncio.to_thread(self.coder.envelope, job.grid, job.base)
+            except MapdError as exc:  # one unsendable version must not stop the robot publishing
+                log.error("cannot code v%d: %s", job.grid.version, exc)
+                continue
             for name in core.encoded(job, env, time.monotonic(), self._peers_by_transport()):
                 transport = self._transport(name)
                 if transport is not None:
@@ -386,19 +416,23 @@ class Daemon:
         rx = self.receiver
         try:
             env = await asyncio.to_thread(
-                open_envelope, ev.data, max_bytes=self.cfg.limits.max_message_bytes, key=self.key
+                open_envelope, ev.data, max_bytes=self.cfg.limits.max_message_bytes, roster=self.keys.roster
             )
         except EnvelopeError as exc:
             rx.refused(exc)
             log.info("dropped envelope from %s: %s", ev.peer, exc)
             return
-        plan = rx.plan(env)
+        plan = rx.plan(env, ev.peer, time.time())
         transport = self._transport(ev.transport)
         if isinstance(plan, AskKeyframe):
             if transport is not None:
                 await transport.request_keyframe(plan.robot)
             return
         if not isinstance(plan, Decode):
+            if not plan.routine:  # duplicates and echoes are; refusals are worth a line
+                log.info("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
+            if plan.forget and transport is not None:
+                await transport.request_keyframe(env.robot)
             return
         try:
             grid = await asyncio.to_thread(
@@ -448,6 +482,12 @@ class Daemon:
                 # a flood: older updates replaced by newer ones before decoding, or events dropped
                 "superseded_updates": self._events.counters.superseded,
                 "dropped_events": self._events.counters.dropped,
+            },
+            "security": {
+                "signed": self.keys.signed,
+                "public_key": self.keys.identity.public_text if self.keys.identity else None,
+                "roster": self.keys.roster.robots,
+                "link_key": self.keys.link_key is not None,
             },
             "state_dir": str(self.cfg.state.dir),
         }

@@ -2,7 +2,8 @@
 
 Layout::
 
-    <state>/state.json          versions: own, each peer's applied version, acks, envelope seq
+    <state>/state.json          versions: own (incarnation and number), each peer's applied version,
+                                acks, envelope seq
     <state>/own/map.yaml+pgm    the robot's latest map
     <state>/own/base.yaml+pgm   the newest own version every peer acknowledged (the delta base)
     <state>/peers/<robot>/map.yaml+pgm   the last applied version of each peer's map
@@ -22,8 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mapd.atomic import atomic_write_json
+from mapd.daemon.versions import next_version
 from mapd.errors import MapdError, StateError
+from mapd.files import atomic_write_json
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
 
 log = logging.getLogger(__name__)
@@ -118,10 +120,14 @@ class StateStore:
         return self.data
 
     # ------------------------------------------------------------------ counters (no file I/O)
-    def next_own_version(self) -> int:
-        """Reserve the next own map version (versions keep increasing across restarts)."""
+    def next_own_version(self, wall_time: float) -> int:
+        """Reserve the next own map version (see :mod:`mapd.daemon.versions`).
+
+        Versions keep increasing across restarts; a state directory that is new (or lost) starts a
+        new incarnation from ``wall_time``, so peers take the robot's next map at once.
+        """
         with self._lock:
-            self.data.own_version += 1
+            self.data.own_version = next_version(self.data.own_version, wall_time)
             return self.data.own_version
 
     def next_seq(self) -> int:

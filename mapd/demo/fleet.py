@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.daemon.status_socket import query
+from mapd.daemon.versions import label
 from mapd.errors import DaemonError, MapdError
 
 UWB_RATE = 12500
@@ -82,11 +83,13 @@ class Fleet:
             self._start_relay()
         zenoh_ports = [_free_port() for _ in self.names]
         poses = self._start_poses()
+        key_files, roster, link_key = self._make_keys()
         for i, name in enumerate(self.names):
             d = self.run_dir / name
             (d / "state").mkdir(parents=True)
             tables: dict[str, dict[str, Any]] = {
-                "robot": {"name": name, "fleet": "demo"},
+                "robot": {"name": name, "fleet": "demo", "key_file": str(key_files[name])},
+                "fleet": {"link_key_file": str(link_key), "roster": roster},
                 "state": {"dir": str((d / "state").resolve()), "runtime_dir": str((d / "run").resolve())},
                 "log": {"level": "info"},
             }
@@ -111,6 +114,29 @@ class Fleet:
             tables["fusion"] = {"mode": "logodds", "debounce_s": 1.0}
             tables["fusion.poses"] = {r: list(p) for r, p in poses.items()} if poses else {}
             write_config(d / "config.toml", tables)
+
+    def _make_keys(self) -> tuple[dict[str, Path], dict[str, str], Path]:
+        """Every robot's own signing key, the roster that lists them, and the uwb link key.
+
+        The demo fleet is signed as a real one is (``mapd keygen`` does the same on a robot).
+        """
+        import secrets
+
+        from mapd.identity import Identity
+
+        keys = self.run_dir / "keys"
+        keys.mkdir(mode=0o700)
+        files: dict[str, Path] = {}
+        roster: dict[str, str] = {}
+        for name in self.names:
+            identity = Identity.generate(name)
+            files[name] = (keys / f"{name}.key").resolve()
+            identity.write(files[name])
+            roster[name] = identity.public_text
+        link = (keys / "link.key").resolve()
+        link.write_text(secrets.token_hex(32) + "\n")
+        link.chmod(0o600)
+        return files, roster, link
 
     def _start_relay(self) -> None:
         """The emulated radio: a separate process joining every robot's socat pty at 12.5 kb/s."""
@@ -256,10 +282,10 @@ def _progress_line(t: float, snaps: dict[str, dict[str, Any]]) -> str:
             for t in (s.get("fusion", {}).get("robots") or {}).values()
             if isinstance(t, dict) and t.get("confidence") is not None
         ]
-        peers = ",".join(f"{p}:v{v.get('version', '-')}" for p, v in s.get("peers", {}).items()) or "-"
+        peers = ",".join(f"{p}:{label(v.get('version'))}" for p, v in s.get("peers", {}).items()) or "-"
         c = s.get("codec", {})
         parts.append(
-            f"{name} v{s.get('source', {}).get('version', 0)} sent {c.get('keyframes', 0)}k+{c.get('deltas', 0)}d "
+            f"{name} {label(s.get('source', {}).get('version', 0))} sent {c.get('keyframes', 0)}k+{c.get('deltas', 0)}d "
             f"link {use} has[{peers}] conf {min(conf) if conf else float('nan'):.2f}"
         )
     return " | ".join(parts)

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from mapd.daemon.versions import label, split
 from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid, load_map
 from mapd.tables import table
@@ -206,7 +207,7 @@ def write_report(
         rows.append(
             {
                 "robot": n,
-                "versions": ups[-1]["version"] if ups else 0,
+                "versions": split(int(ups[-1]["version"]))[1] if ups else 0,
                 "keyframes": sum(r["kind"] == "keyframe" for r in ups),
                 "deltas": sum(r["kind"] == "delta" for r in ups),
                 "raw_kb": raw / 1000,
@@ -215,7 +216,7 @@ def write_report(
                 "bps": 8 * coded / duration if duration and duration > 0 else float("nan"),
                 "budget": (8 * coded / duration) / UWB_RATE if duration and duration > 0 else float("nan"),
                 "link_bps": 8 * tx_bytes / up if isinstance(up, int | float) and up > 0 else float("nan"),
-                "peers": " ".join(f"{p}:v{v.get('version', '-')}" for p, v in peers.items()) or "-",
+                "peers": " ".join(f"{p}:{label(v.get('version'))}" for p, v in peers.items()) or "-",
                 "conf": min(confs) if confs else float("nan"),
             }
         )

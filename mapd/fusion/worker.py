@@ -38,18 +38,20 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mapd.atomic import atomic_write_bytes
 from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError, StateError
+from mapd.files import atomic_write_bytes
 from mapd.fusion.estimate import EstimateOptions
-from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, merge_with_owner
+from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
 from mapd.fusion.placement import Placement, Placer
+from mapd.fusion.transforms import transformed_corners
+from mapd.fusion.views import MAX_SIDE
 from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, load_map, save_map
 
 log = logging.getLogger(__name__)
@@ -224,11 +226,13 @@ class FusionWorker:
         names = sorted(
             r for r, p in placements.items() if p.accepted and p.transform is not None and r in maps
         )
+        names = self._within_extent(maps, placements, names)
         if self._resolution is None:
             first = next((r for r in names if placements[r].source in ("anchor", "pose")), None)
             if first is None and names:
                 first = names[0]
             self._resolution = maps[first].resolution if first else None
+        names = self._within_cell_limit(maps, placements, names)
         result = merge_with_owner(
             [maps[r] for r in names],
             [placements[r].transform for r in names],
@@ -245,6 +249,63 @@ class FusionWorker:
         self._save(result, placements, stamp)
         self._save_owner(result.owner, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
+
+    def _within_extent(
+        self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]
+    ) -> list[str]:
+        """``names`` whose placed maps lie within ``cfg.max_extent_m`` of the fleet frame's origin.
+
+        A map with a corrupt origin (1e6 m) would otherwise make the global map too large to build,
+        and every merge would fail until that robot sent a sane version: the whole fleet's map would
+        freeze. The others are left out with the reason in their placement; the placer keeps its
+        held transform, so the robot's next sane map goes straight back in.
+        """
+        keep = []
+        limit = self.cfg.max_extent_m
+        for r in names:
+            reach = _reach(maps[r], placements[r])
+            if math.isfinite(reach) and reach <= limit:
+                keep.append(r)
+                continue
+            placements[r] = replace(
+                placements[r],
+                accepted=False,
+                reason=f"left out of the global map: it reaches {reach:.4g} m from the fleet frame's origin, "
+                f"beyond fusion.max_extent_m = {limit:g} m (a damaged map origin or a wrong pose?)",
+            )
+            log.warning("fusion: %s: %s", r, placements[r].reason)
+        return keep
+
+    def _within_cell_limit(
+        self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]
+    ) -> list[str]:
+        """``names`` less the farthest maps, while the global map would exceed the cell limit.
+
+        Within ``max_extent_m`` a map can still make the global grid bigger than ``max_cells`` (10 km
+        at 5 cm is 200,000 cells a side); merging would then fail as a whole, so the maps reaching
+        farthest from the fleet frame's origin are left out, with the reason, until the rest fits.
+        """
+        resolution = self._resolution or 0.05
+        keep = list(names)
+
+        while keep:
+            box = extent([maps[r] for r in keep], [placements[r].transform for r in keep], resolution)
+            if box is not None and self._bounds is not None:
+                box = box.union(self._bounds)
+            if box is None or (
+                box.width * box.height <= self.max_cells and max(box.width, box.height) <= MAX_SIDE
+            ):
+                break
+            far = max(keep, key=lambda r: _reach(maps[r], placements[r]))
+            keep.remove(far)
+            placements[far] = replace(
+                placements[far],
+                accepted=False,
+                reason=f"left out of the global map: with it the global map would be {box.width} x "
+                f"{box.height} cells, over the limit of {self.max_cells} cells ({MAX_SIDE} a side)",
+            )
+            log.warning("fusion: %s: %s", far, placements[far].reason)
+        return keep
 
     def _apply(self, fused: _Fused, publish: bool = True) -> None:
         self._merges = fused.result.grid.version
@@ -358,6 +419,13 @@ class FusionWorker:
             "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
         }
         write_json_atomic(self.state_dir / TRANSFORMS_JSON, doc)
+
+
+def _reach(grid: OccupancyGrid, placement: Placement) -> float:
+    """How far from the fleet frame's origin the placed map's farthest corner lies, in meters."""
+    assert placement.transform is not None
+    c = transformed_corners(grid, placement.transform)
+    return float(np.hypot(c[:, 0], c[:, 1]).max())
 
 
 def _owner_names(owner: np.ndarray, names: list[str]) -> np.ndarray:

@@ -4,8 +4,12 @@ The YAML and its image are polled every ``poll_s``. A change is loaded only once
 stayed the same for ``settle_s`` (a writer mid-way through is left alone), and it is emitted only if
 they were still the same after loading and the map differs from the last one sent, so a half-written
 file is retried, never emitted. A file that will not load (truncated image, broken YAML) or that
-vanishes is logged with the reason, counted, and retried when the files change again; the source
-keeps running. The stream never ends on its own.
+vanishes is logged with the reason (one line, once per distinct fault), counted, and retried when the
+files change again; the last good map stays the robot's map and the source keeps running. The
+stream never ends on its own: not for a malformed file (every one is a :class:`~mapd.errors.MapdError`
+from :func:`~mapd.grid.load_map`), and not even for a bug in loading one, which is logged with its
+traceback and retried like a bad file, so that systemd does not restart the daemon into the same
+crash for as long as the file stays as it is.
 
 Each version is stamped with the newest modification time of the two files. The map is whatever
 frame the writer used; give ``start_pose`` when its pose in the fleet frame is known.
@@ -29,8 +33,8 @@ from pathlib import Path
 
 from pydantic import Field, field_validator
 
-from mapd.errors import LimitError, MapFileError
-from mapd.grid import OccupancyGrid, Pose2D, load_map, read_map_yaml
+from mapd.errors import MapdError, MapFileError
+from mapd.grid import MAX_GRID_SIDE, OccupancyGrid, Pose2D, load_map, read_map_yaml
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 
 log = logging.getLogger(__name__)
@@ -98,11 +102,14 @@ class MapFileSource(MapSource):
     def start_pose(self) -> Pose2D | None:
         return Pose2D(*self.opts.start_pose) if self.opts.start_pose is not None else None
 
-    def _fail(self, reason: str) -> None:
+    def _fail(self, reason: str, *, trace: bool = False) -> None:
         # Count and log each new fault once, not once per poll while it lasts.
         if reason != self._last_error:
             self._errors += 1
-            log.warning("%s (will retry when the files change)", reason)
+            if trace:
+                log.exception("%s (will retry when the files change)", reason)
+            else:
+                log.warning("%s (will retry when the files change)", reason)
         self._last_error = reason
 
     def _signature(self) -> Signature:
@@ -119,7 +126,7 @@ class MapFileSource(MapSource):
         """
         try:
             sig = self._signature()
-        except MapFileError as exc:
+        except MapdError as exc:
             state["pending"] = None
             self._fail(str(exc))
             return None
@@ -135,7 +142,7 @@ class MapFileSource(MapSource):
         try:
             grid = load_map(self.path, max_cells=self.ctx.max_cells, robot=self.ctx.robot)
             after = self._signature()
-        except (MapFileError, LimitError) as exc:
+        except MapdError as exc:
             # Mark this signature done: a file that stays broken is retried once it changes.
             state["done"] = sig
             self._fail(str(exc))
@@ -144,6 +151,10 @@ class MapFileSource(MapSource):
             state["pending"], state["since"] = after, now
             return None
         state["done"] = sig
+        if max(grid.height, grid.width) > MAX_GRID_SIDE:
+            # load_map reads it, but no codec would send it: refuse it here, as a bad file.
+            self._fail(f"{self.path}: map is {grid.width} x {grid.height} cells, over {MAX_GRID_SIDE} a side")
+            return None
         self._last_error = ""
         digest = grid.digest()
         if digest == self._last_digest:
@@ -154,10 +165,17 @@ class MapFileSource(MapSource):
         return grid.replace(version=self._versions, stamp=stamp, robot=self.ctx.robot)
 
     async def maps(self) -> AsyncIterator[OccupancyGrid]:
-        """Poll forever; yield each new map that loads cleanly."""
+        """Poll forever; yield each new map that loads cleanly. Never raises for a bad file."""
         state: dict[str, object] = {}
         while True:
-            grid = await asyncio.to_thread(self.check, state, time.monotonic())
+            try:
+                grid = await asyncio.to_thread(self.check, state, time.monotonic())
+            except Exception as exc:  # a bug in loading must not end the stream (see the module doc)
+                grid = None
+                self._fail(
+                    f"{self.path}: internal error while loading: {type(exc).__name__}: {exc}", trace=True
+                )
+                state["done"] = state.get("pending")
             if grid is not None:
                 yield grid
             await asyncio.sleep(self.opts.poll_s)

@@ -15,9 +15,12 @@ import pytest
 from mapd import config as configmod
 from mapd.daemon.server import Daemon
 from mapd.grid import OccupancyGrid
+from mapd.identity import Identity, read_identity
 from mapd.sources.base import MapSource, SourceContext
 
 _channels = itertools.count()
+#: The robots of a test fleet: each gets its own key; every config lists them all.
+FLEET = ("robot0", "robot1", "robot2")
 
 
 class QueueSource(MapSource):
@@ -34,16 +37,31 @@ class QueueSource(MapSource):
             yield await self.queue.get()
 
 
+def fleet_keys(tmp_path: Path, robots: tuple[str, ...] = FLEET) -> str:
+    """Make each robot's key under ``tmp_path/keys`` (once) and return the ``[fleet]`` tables."""
+    keys = tmp_path / "keys"
+    keys.mkdir(exist_ok=True)
+    lines = ["[fleet]", "[fleet.roster]"]
+    for robot in robots:
+        path = keys / f"{robot}.key"
+        if not path.exists():
+            Identity.generate(robot).write(path)
+        lines.append(f'{robot} = "{read_identity(path, robot).public_text}"')
+    return "\n".join(lines) + "\n"
+
+
 def write_config(
     tmp_path: Path, robot: str, *, codec: str = "lossless", extra: str = "", **tables: str
 ) -> Path:
-    """A config for ``robot`` with its state under ``tmp_path/robot``; ``tables``: name -> TOML body."""
+    """A signed config for ``robot`` with its state under ``tmp_path/robot``; ``tables``: name -> TOML body."""
     root = tmp_path / robot
     root.mkdir(parents=True, exist_ok=True)
     body = (
-        f'[robot]\nname = "{robot}"\n[source]\nuse = "sim"\n[codec]\nuse = "{codec}"\nkeyframe_every = 50\n'
+        f'[robot]\nname = "{robot}"\nkey_file = "{tmp_path / "keys" / f"{robot}.key"}"\n'
+        f'[source]\nuse = "sim"\n[codec]\nuse = "{codec}"\nkeyframe_every = 50\n'
         f'[state]\ndir = "{root / "state"}"\nruntime_dir = "{root / "run"}"\n{extra}'
     )
+    body += fleet_keys(tmp_path)
     for name, table in tables.items():
         body += f"[{name}]\n{table}\n"
     path = root / "config.toml"
@@ -88,6 +106,7 @@ def dk() -> SimpleNamespace:
     return SimpleNamespace(
         QueueSource=QueueSource,
         write_config=write_config,
+        fleet_keys=fleet_keys,
         virtual_daemon=virtual_daemon,
         growing_map=growing_map,
         wait_for=wait_for,

@@ -14,9 +14,16 @@ from typing import Any
 
 import pytest
 
+from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
+from mapd.identity import Identity
 
 pytestmark = pytest.mark.slow
+
+
+def num(version: int) -> int:
+    """How many versions a robot made in its incarnation (versions carry it in their high bits)."""
+    return split(version)[1]
 
 
 def fleet(tmp: Path, transport: str, duration: float = 30.0, robots: int = 2) -> Fleet:
@@ -42,7 +49,8 @@ def wait_for(pred: Any, timeout: float, f: Fleet) -> dict[str, dict[str, Any]]:
 
 def holds_each_other(snaps: dict[str, dict[str, Any]], min_version: int = 3) -> bool:
     return len(snaps) == 2 and all(
-        any(p.get("version", 0) >= min_version for p in s.get("peers", {}).values()) for s in snaps.values()
+        any(num(p.get("version", 0)) >= min_version for p in s.get("peers", {}).values())
+        for s in snaps.values()
     )
 
 
@@ -139,17 +147,22 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
     assert codes["robot1"] == 0
 
 
-@pytest.mark.parametrize("case", ["serial port", "key file", "state dir"])
+@pytest.mark.parametrize("case", ["serial port", "key file", "state dir", "no key"])
 def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     (tmp_path / "file").write_text("x")
     port = "/dev/does-not-exist" if case == "serial port" else str(tmp_path / "file")
     state = tmp_path / "file" / "state" if case == "state dir" else tmp_path / "s"
-    key = f'key_file = "{tmp_path / "no-such.key"}"\n' if case == "key file" else ""
+    me = Identity.generate("a")
+    me.write(tmp_path / "a.key")
+    (tmp_path / "link.key").write_text("ab" * 32)
+    key = {"key file": tmp_path / "no-such.key", "no key": None}.get(case, tmp_path / "a.key")
+    key_line = f'key_file = "{key}"\n' if key else ""
+    fleet = f'[fleet]\nlink_key_file = "{tmp_path / "link.key"}"\n[fleet.roster]\na = "{me.public_text}"\n'
     cfg = tmp_path / "c.toml"
     cfg.write_text(
-        f'[robot]\nname = "a"\n{key}[source]\nuse = "sim"\n[transports]\nuse = ["uwb"]\n'
+        f'[robot]\nname = "a"\n{key_line}[source]\nuse = "sim"\n[transports]\nuse = ["uwb"]\n'
         f'[transports.uwb]\nport = "{port}"\n[transports.uwb.nodes]\na = 1\nb = 2\n'
-        f'[state]\ndir = "{state}"\nruntime_dir = "{tmp_path / "r"}"\n'
+        f'[state]\ndir = "{state}"\nruntime_dir = "{tmp_path / "r"}"\n{fleet}'
     )
     out = subprocess.run(
         [sys.executable, "-m", "mapd", "run", "--config", str(cfg)],
@@ -159,7 +172,12 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     )
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
-    expect = {"serial port": "does-not-exist", "key file": "no-such.key", "state dir": "not writable"}[case]
+    expect = {
+        "serial port": "does-not-exist",
+        "key file": "no-such.key",
+        "state dir": "not writable",
+        "no key": "a signed fleet needs this robot's key",
+    }[case]
     assert len(lines) == 1 and expect in lines[0], out.stderr
     assert "Traceback" not in out.stderr
 
@@ -239,7 +257,7 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_p
         def mid_transfer(s: dict[str, dict[str, Any]]) -> bool:
             r0 = s.get("robot0", {})
             link = r0.get("links", {}).get("uwb", {})
-            return r0.get("source", {}).get("version", 0) >= 3 and link.get("in_flight", 0) > 0
+            return num(r0.get("source", {}).get("version", 0)) >= 3 and link.get("in_flight", 0) > 0
 
         wait_for(mid_transfer, 90, f)
         os.kill(f.procs["robot0"].pid, signal.SIGKILL)
@@ -313,7 +331,7 @@ def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path) -
     try:
 
         def holds(s: dict[str, dict[str, Any]], who: str, of: str) -> bool:
-            return s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0) >= 2
+            return num(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)) >= 2
 
         snaps = wait_for(
             lambda s: (

@@ -24,11 +24,13 @@ from mapd.demo.fleet import _free_port, write_config
 from mapd.envelope import Envelope
 from mapd.errors import DaemonError
 from mapd.grid import OccupancyGrid, Pose2D, save_map
+from mapd.identity import Identity
 
 pytestmark = pytest.mark.slow
 
 FLEET = "lab"
-KEY = bytes(range(40, 72))
+#: mallory is on the roster (it holds its own key) and sends as fast as it can: a noisy fleet member.
+MALLORY = Identity.generate("mallory")
 
 
 def envelope(version: int, *, fleet: str = FLEET, robot: str = "mallory") -> Envelope:
@@ -75,12 +77,14 @@ def test_garbage_unsigned_forged_foreign_and_flood_are_counted_and_never_stall(
 
     port = _free_port()
     save_map(room_grid, tmp_path / "map.yaml")
-    (tmp_path / "fleet.key").write_text(KEY.hex())
+    me = Identity.generate("robot0")
+    me.write(tmp_path / "robot0.key")
     run = tmp_path / "run"
     write_config(
         tmp_path / "config.toml",
         {
-            "robot": {"name": "robot0", "fleet": FLEET, "key_file": str(tmp_path / "fleet.key")},
+            "robot": {"name": "robot0", "fleet": FLEET, "key_file": str(tmp_path / "robot0.key")},
+            "fleet.roster": {"robot0": me.public_text, "mallory": MALLORY.public_text},
             "state": {"dir": str(tmp_path / "state"), "runtime_dir": str(run)},
             "source": {"use": "mapfile"},
             "source.mapfile": {"path": str(tmp_path / "map.yaml"), "poll_s": 0.5},
@@ -114,14 +118,14 @@ def test_garbage_unsigned_forged_foreign_and_flood_are_counted_and_never_stall(
                 z.put(key, rng.bytes(int(rng.integers(1, 400))))
             for v in range(1, 11):
                 z.put(key, envelope(v).pack())  # unsigned while the fleet has a key
-                z.put(key, envelope(v).signed(bytes(32)).pack())  # signed with the wrong key
-                z.put(key, envelope(v, fleet="other").signed(KEY).pack())  # another fleet's update
+                z.put(key, envelope(v).signed(Identity.generate("mallory")).pack())  # not mallory's key
+                z.put(key, envelope(v, fleet="other").signed(MALLORY).pack())  # another fleet's update
             # A flood of valid updates, as fast as this process can publish them, while an operator
             # keeps asking for status: the socket must answer every time.
             latencies = []
             last = 0
             for v in range(100, 1100):
-                z.put(key, envelope(v).signed(KEY).pack())
+                z.put(key, envelope(v).signed(MALLORY).pack())
                 last = v
                 if v % 100 == 0:
                     t0 = time.monotonic()

@@ -131,3 +131,86 @@ def test_start_pose_option() -> None:
     assert src.start_pose() == Pose2D(1.0, 2.0, 0.5)
     with pytest.raises(ValueError):
         MapFileOptions(path=Path("x.yaml"), start_pose=[1.0])
+
+
+def test_pgm_cut_inside_its_header_is_one_logged_error(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The cut that crashed the daemon (exit 1 and a traceback; systemd restarted it into the same crash).
+    path = tmp_path / "map.yaml"
+    save_map(_grid(0), path)
+    _age(path, 10)
+    src = _source(path, settle_s=0.0)
+    state: dict[str, object] = {}
+    first = src.check(state, 0.0)
+    assert first is not None
+    for cut in (b"P5\n100 ", b"P5\n50 40\n0\n", b"P5\n50 40\n65536\n", b""):
+        path.with_suffix(".pgm").write_bytes(cut)
+        _age(path, 10 + len(cut))  # a new signature each time
+        with caplog.at_level("WARNING", logger="mapd.sources.mapfile"):
+            assert src.check(state, 1.0) is None
+            assert src.check(state, 2.0) is None  # the same fault is not logged again
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 4 and all("\n" not in r.getMessage() and r.exc_info is None for r in warnings)
+    assert "truncated in its PNM header" in warnings[0].getMessage()
+    st = src.stats()
+    assert st["versions"] == 1 and st["load_errors"] == 4
+    save_map(_grid(2), path)
+    _age(path, 5)
+    g = src.check(state, 3.0)
+    assert g is not None and g.version == 2 and g.same_map(_grid(2))
+
+
+def test_a_bug_while_loading_does_not_end_the_stream(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import mapd.sources.mapfile as mapfile
+
+    path = tmp_path / "map.yaml"
+    save_map(_grid(0), path)
+    _age(path, 10)
+    src = _source(path, poll_s=0.02, settle_s=0.0)
+    calls = {"n": 0}
+    real = mapfile.load_map
+
+    def buggy(*a: object, **kw: object) -> OccupancyGrid:
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise RuntimeError("a bug, not a bad file")
+        return real(*a, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(mapfile, "load_map", buggy)
+
+    async def go() -> OccupancyGrid:
+        it = src.maps().__aiter__()
+        pending = asyncio.ensure_future(it.__anext__())
+        await asyncio.sleep(0.3)  # the first polls hit the bug ...
+        assert calls["n"] == 1 and not pending.done()  # ... and the stream neither ended nor raised
+        save_map(_grid(3), path)  # the files change: they are tried again
+        grid = await asyncio.wait_for(pending, 5)
+        await it.aclose()  # type: ignore[attr-defined]
+        return grid
+
+    with caplog.at_level("WARNING", logger="mapd.sources.mapfile"):
+        grid = asyncio.run(go())
+    assert grid.version == 1 and grid.same_map(_grid(3))
+    errors = [r for r in caplog.records if "internal error while loading" in r.getMessage()]
+    assert len(errors) == 1 and errors[0].exc_info is not None  # logged once, with its traceback
+    assert src.stats()["load_errors"] == 1
+
+
+def test_a_map_no_codec_would_send_is_refused_like_a_bad_file(tmp_path: Path) -> None:
+    from mapd.codec.api import encode
+    from mapd.errors import CodecError
+    from mapd.grid import MAX_GRID_SIDE
+
+    path = tmp_path / "map.yaml"
+    strip = OccupancyGrid(np.zeros((1, MAX_GRID_SIDE + 1), np.int8), 0.05)
+    with pytest.raises(CodecError, match="a side"):
+        encode(strip, "raw")  # so the daemon could not publish it
+    save_map(strip, path)
+    _age(path, 10)
+    src = _source(path, settle_s=0.0)
+    assert src.check({}, 0.0) is None
+    st = src.stats()
+    assert st["versions"] == 0 and f"over {MAX_GRID_SIDE} a side" in str(st["last_error"])

@@ -40,7 +40,7 @@ class Member:
             return env(robot, 9)
 
         ctx = TransportContext(
-            robot=robot, fleet="f", key=None, max_message_bytes=1 << 16, emit=self.events.append,
+            robot=robot, fleet="f", max_message_bytes=1 << 16, emit=self.events.append,
             latest_keyframe=latest,
         )  # fmt: skip
         self.t = VirtualTransport(VirtualOptions(channel=channel), ctx)

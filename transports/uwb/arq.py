@@ -11,7 +11,9 @@ Framing and trust
   R1. Every frame is COBS-encoded with a CRC-32 and a 0x00 delimiter (``framing.py``), at most
       ``max_frame`` bytes on the wire. Frames failing COBS, CRC or parsing are counted and dropped.
   R2. With a key, frames without a valid signature or with a replayed counter are counted and dropped
-      before anything else looks at them (``signing.py``). Without a key, signatures are not checked.
+      before anything else looks at them (``signing.py``); so is a counter far ahead of this node's
+      clock (``check_counter_clock``), which a key holder could send to make the real sender's later
+      frames look replayed. Without a key, signatures are not checked.
   R3. A frame carries its sender's link id and session id. The first frame of an unknown sender makes
       it a peer (PeerUp). A new session id from a known peer means it restarted (PeerRestarted): all it
       was reassembling from us is forgotten, and all it had acked of our messages counts for nothing,
@@ -329,7 +331,8 @@ class ArqEndpoint:
         signed = wire.is_signed(body)
         plain: bytes | None
         if self._verifier is not None:
-            plain = self._verifier.check(body, signed)
+            wall = now + self.cfg.clock_offset if self.cfg.check_counter_clock else None
+            plain = self._verifier.check(body, signed, wall)
             if plain is None:
                 return
         else:

@@ -50,6 +50,9 @@ class ArqConfig:
     backoff_max_s: float = 0.1
     key: bytes | None = field(default=None, repr=False)
     counter_start: int = 0
+    #: Refuse signed frames whose counter runs ahead of this node's wall clock (``now`` plus
+    #: ``clock_offset``); off for simulations whose clock is not the wall clock.
+    check_counter_clock: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.node_id <= 254:

@@ -408,10 +408,11 @@ class UwbTransport(Transport):
             slot_index=o.slot_index if o.slot_index is not None else ids.index(self.node_id),
             guard_s=o.guard_ms / 1000,
             clock_offset=time.time() - loop.time(),
+            check_counter_clock=True,
             sense_s=o.sense_ms / 1000,
             backoff_min_s=o.backoff_min_ms / 1000,
             backoff_max_s=o.backoff_max_ms / 1000,
-            key=self.ctx.key,
+            key=self.ctx.link_key,
         )
 
     async def start(self) -> None:

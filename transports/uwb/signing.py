@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from mapd.errors import StateError
+from mapd.files import atomic_write_bytes
 
 COUNTER_LEN = 6
 TAG_LEN = 8
@@ -30,6 +30,8 @@ COUNTER_MAX = (1 << 48) - 1
 DOMAIN = b"mapd-uwb-frame/1\x00"
 _EPOCH_2015 = 1420070400.0
 REPLAY_WINDOW = 64
+#: How far ahead of its own clock a receiver lets a sender's counter be (clocks disagree a little).
+MAX_AHEAD_S = 86400.0
 
 
 def clock_floor(wall_time: float) -> int:
@@ -88,6 +90,7 @@ class VerifyStats:
     unsigned: int = 0
     bad_signature: int = 0
     replayed: int = 0
+    future: int = 0
 
 
 class Verifier:
@@ -98,8 +101,14 @@ class Verifier:
         self._windows: dict[int, tuple[int, int]] = {}  # src -> (highest counter, bitmask below it)
         self.stats = VerifyStats()
 
-    def check(self, body: bytes, signed: bool) -> bytes | None:
-        """The body without its trailer when it is signed, authentic and fresh; else None (counted)."""
+    def check(self, body: bytes, signed: bool, wall_now: float | None = None) -> bytes | None:
+        """The body without its trailer when it is signed, authentic and fresh; else None (counted).
+
+        With ``wall_now`` (the receiver's clock), a counter more than :data:`MAX_AHEAD_S` ahead of
+        the clock-derived floor is refused as well: honest senders count from that floor and send a
+        few frames a second, so only a forger with the key sends one, and accepting it would make
+        every later frame of the real sender look like a replay.
+        """
         if not signed or len(body) < TRAILER_LEN + 2:
             self.stats.unsigned += 1
             return None
@@ -109,6 +118,9 @@ class Verifier:
             return None
         src = body[1]
         counter = int.from_bytes(data[-COUNTER_LEN:], "little")
+        if wall_now is not None and counter > clock_floor(wall_now + MAX_AHEAD_S):
+            self.stats.future += 1
+            return None
         if not self._accept(src, counter):
             self.stats.replayed += 1
             return None
@@ -165,15 +177,9 @@ class CounterStore:
         if self.path is None:
             self._memory = value
             return
-        tmp = self.path.with_name(self.path.name + ".tmp")
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            try:
-                os.write(fd, f"{value}\n".encode("ascii"))
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            os.replace(tmp, self.path)
+            # file and directory fsynced: a power cut never brings back a lower counter
+            atomic_write_bytes(self.path, f"{value}\n".encode("ascii"))
         except OSError as exc:
             raise StateError(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None

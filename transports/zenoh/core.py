@@ -4,9 +4,11 @@ No zenoh, asyncio or clock in here: the adapter (:mod:`transports.zenoh.link`) f
 expressions, payload bytes and ``now``, and carries out the :class:`Step` it gets back (events to
 emit, keyframe queries to send). The rules:
 
-* **Verify before anything.** An update or query reply is unpacked with the fleet key, fleet id and
-  size limit; a bad or missing signature counts in ``bad_signature``, anything else malformed (or an
-  envelope whose robot differs from the key it came on) in ``dropped``. Neither is ever emitted.
+* **Verify before anything.** An update or query reply is unpacked with the fleet's roster, fleet
+  id and size limit; a signature the roster does not accept (missing, another robot's key, a robot
+  not on the roster) counts in ``bad_signature``, anything else malformed (or an envelope whose robot
+  differs from the key it came on) in ``dropped``. Neither is ever emitted. A robot the roster does
+  not admit gets no state at all: its liveliness token, updates and acks cost nothing.
 * **Bases.** Per robot, the core remembers the last version it passed on and the last
   ``base_window`` versions passed on. A keyframe newer than the last version is passed on. A delta
   newer than the last version is passed on when its base is one of the remembered versions (the
@@ -20,15 +22,15 @@ emit, keyframe queries to send). The rules:
   queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
   robot's versions, so the keyframe that answers is accepted whatever its version.
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
-  forgets the robot's versions (a restarted robot counts from 1 again).
-* **Acks** (see :func:`pack_ack`): 8 bytes of big-endian version, plus a 16-byte HMAC when the
-  fleet has a key. A valid ack of one of our own offered versions becomes ``Delivered``.
+  forgets the robot's versions. Tokens are not signed, so in a signed fleet :meth:`ZenohCore.peers`
+  (the robots the daemon waits for) lists only robots that have also shown a verified message.
+* **Acks** (see :func:`pack_ack`): 8 bytes of big-endian version, plus the acking robot's 64-byte
+  Ed25519 signature in a signed fleet. A valid ack of one of our own offered versions becomes
+  ``Delivered``.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import struct
 from collections import deque
 from dataclasses import asdict, dataclass, field
@@ -36,46 +38,46 @@ from typing import Any
 
 from mapd.envelope import Envelope, unpack
 from mapd.errors import EnvelopeError, SignatureError
+from mapd.identity import SIG_LEN, Identity, Roster
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
 from transports.rtt import RttEstimator
 from transports.zenoh import keys
 
 NAME = "zenoh"
 _ACK = struct.Struct(">Q")
-ACK_SIG_LEN = 16
 _MAX_VERSION = 1 << 63
 #: Own versions whose offer time is kept for RTT samples.
 RTT_VERSIONS = 16
 
 
-def _ack_mac(key: bytes, fleet: str, peer: str, robot: str, body: bytes) -> bytes:
-    msg = b"mapd-ack/1\0" + "\0".join((fleet, peer, robot)).encode() + b"\0" + body
-    return hmac.new(key, msg, hashlib.sha256).digest()[:ACK_SIG_LEN]
+def _ack_blob(fleet: str, peer: str, robot: str, body: bytes) -> bytes:
+    return b"mapd-ack/2\0" + "\0".join((fleet, peer, robot)).encode() + b"\0" + body
 
 
-def pack_ack(version: int, *, key: bytes | None, fleet: str, peer: str, robot: str) -> bytes:
-    """The payload ``peer`` publishes to say it applied ``robot``'s ``version``."""
+def pack_ack(version: int, *, identity: Identity | None, fleet: str, peer: str, robot: str) -> bytes:
+    """The payload ``peer`` publishes to say it applied ``robot``'s ``version``, signed by ``peer``."""
     if not 0 < version < _MAX_VERSION:
         raise ValueError(f"ack version {version} is out of range")
     body = _ACK.pack(version)
-    return body + _ack_mac(key, fleet, peer, robot, body) if key is not None else body
+    if identity is None:
+        return body
+    if identity.robot != peer:
+        raise ValueError(f"robot '{identity.robot}' cannot sign an ack of '{peer}'")
+    return body + identity.sign(_ack_blob(fleet, peer, robot, body))
 
 
-def unpack_ack(data: bytes, *, key: bytes | None, fleet: str, peer: str, robot: str) -> int:
+def unpack_ack(data: bytes, *, roster: Roster, fleet: str, peer: str, robot: str) -> int:
     """The version in an ack from ``peer``.
 
-    :class:`~mapd.errors.SignatureError` when unsigned while a key is set or badly signed,
-    :class:`EnvelopeError` when malformed otherwise.
+    :class:`~mapd.errors.SignatureError` when ``roster`` does not accept ``peer``'s signature (unsigned
+    in a signed fleet, not on the roster, another key), :class:`EnvelopeError` when malformed otherwise.
     """
-    if len(data) not in (_ACK.size, _ACK.size + ACK_SIG_LEN):
-        raise EnvelopeError(f"ack from '{peer}' is {len(data)} bytes, expected 8 or 24")
+    if len(data) not in (_ACK.size, _ACK.size + SIG_LEN):
+        raise EnvelopeError(
+            f"ack from '{peer}' is {len(data)} bytes, expected {_ACK.size} or {_ACK.size + SIG_LEN}"
+        )
     (version,) = _ACK.unpack_from(data)
-    if key is not None:
-        sig = data[_ACK.size :]
-        if not sig:
-            raise SignatureError(f"unsigned ack from '{peer}' while a fleet key is set")
-        if not hmac.compare_digest(sig, _ack_mac(key, fleet, peer, robot, data[: _ACK.size])):
-            raise SignatureError(f"bad signature on ack from '{peer}'")
+    roster.verify(peer, _ack_blob(fleet, peer, robot, data[: _ACK.size]), data[_ACK.size :], "ack")
     if not 0 < version < _MAX_VERSION:
         raise EnvelopeError(f"ack from '{peer}' names version {version}")
     return int(version)
@@ -113,6 +115,8 @@ class _Robot:
     last: int = 0
     bases: deque[int] = field(default_factory=deque)
     alive: bool = False
+    #: It has shown a message its roster key verified (an update, a query reply or an ack).
+    verified: bool = False
     query_until: float | None = None
     #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
     regap: bool = False
@@ -130,7 +134,8 @@ class ZenohCore:
         *,
         robot: str,
         fleet: str,
-        key: bytes | None,
+        identity: Identity | None,
+        roster: Roster,
         max_message_bytes: int,
         query_timeout_s: float = 2.0,
         base_window: int = 8,
@@ -140,7 +145,8 @@ class ZenohCore:
             raise ValueError(f"robot '{robot}' or fleet '{fleet}' is not a valid id")
         self.robot = robot
         self.fleet = fleet
-        self.key = key
+        self.identity = identity
+        self.roster = roster
         self.max_message_bytes = max_message_bytes
         self.query_timeout_s = query_timeout_s
         self.base_window = base_window
@@ -158,14 +164,21 @@ class ZenohCore:
     def _state(self, robot: str) -> _Robot | None:
         st = self._robots.get(robot)
         if st is None:
-            if len(self._robots) >= self.max_peers:
+            # A robot the roster does not admit costs nothing: no slot, no query, no waiting.
+            if len(self._robots) >= self.max_peers or not self.roster.admits(robot):
                 return None
             st = self._robots[robot] = _Robot()
         return st
 
     def peers(self) -> list[str]:
-        """Robots whose liveliness token is up."""
-        return sorted(r for r, st in self._robots.items() if st.alive)
+        """Robots whose liveliness token is up and that have shown a signed message.
+
+        A token alone is not enough: anyone on the network can declare one, and the daemon waits
+        for acks from every peer listed here. A fleet that allows unsigned messages lists every token.
+        """
+        return sorted(
+            r for r, st in self._robots.items() if st.alive and (st.verified or self.roster.allow_unsigned)
+        )
 
     def last_version(self, robot: str) -> int:
         """The last version of ``robot`` passed on (0: none, or forgotten)."""
@@ -244,7 +257,7 @@ class ZenohCore:
             self.counters.dropped += 1
             return Step()
         try:
-            version = unpack_ack(data, key=self.key, fleet=self.fleet, peer=peer, robot=self.robot)
+            version = unpack_ack(data, roster=self.roster, fleet=self.fleet, peer=peer, robot=self.robot)
         except EnvelopeError as exc:
             self._refused(exc)
             return Step()
@@ -252,6 +265,9 @@ class ZenohCore:
             self.counters.dropped += 1  # an ack of a version we never sent: not a usable base
             return Step()
         self.counters.acks_rx += 1
+        st = self._state(peer)
+        if st is not None:
+            st.verified = True
         sent = self._offered_at.get(version)
         if now is not None and sent is not None and now >= sent:
             self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
@@ -277,7 +293,7 @@ class ZenohCore:
 
     def ack(self, robot: str, version: int) -> tuple[str, bytes]:
         """Key and payload of our ack of ``robot``'s ``version``."""
-        payload = pack_ack(version, key=self.key, fleet=self.fleet, peer=self.robot, robot=robot)
+        payload = pack_ack(version, identity=self.identity, fleet=self.fleet, peer=self.robot, robot=robot)
         return keys.ack_key(self.fleet, self.robot, robot), payload
 
     # -- rules -------------------------------------------------------------------------------------
@@ -300,7 +316,7 @@ class ZenohCore:
 
     def _verify(self, data: bytes) -> Envelope | None:
         try:
-            return unpack(data, max_bytes=self.max_message_bytes, key=self.key, fleet=self.fleet)
+            return unpack(data, max_bytes=self.max_message_bytes, roster=self.roster, fleet=self.fleet)
         except EnvelopeError as exc:
             self._refused(exc)
             return None
@@ -314,6 +330,7 @@ class ZenohCore:
         if env.robot != robot or st is None:
             self.counters.dropped += 1
             return Step()
+        st.verified = True
         if env.version <= st.last:
             self.counters.stale += 1
             return Step()

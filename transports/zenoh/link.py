@@ -81,7 +81,8 @@ class ZenohTransport(Transport):
         self.core = ZenohCore(
             robot=ctx.robot,
             fleet=ctx.fleet,
-            key=ctx.key,
+            identity=ctx.identity,
+            roster=ctx.roster,
             max_message_bytes=ctx.max_message_bytes,
             query_timeout_s=opts.query_timeout_s,
             base_window=opts.base_window,

@@ -31,7 +31,7 @@ def test_request_too_large_to_build_is_a_value_error() -> None:
 
 
 def _transport_with_stub_link(sent: list[bytes]) -> UwbTransport:
-    ctx = TransportContext(robot="a", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
     t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}), ctx)
     t._link = SimpleNamespace(  # type: ignore[assignment]
         core=SimpleNamespace(peers_up=lambda: [2]),

@@ -50,12 +50,12 @@ def test_options_defaults_and_errors() -> None:
     with pytest.raises(ConfigError, match="two 224-byte frames"):
         validate(UwbOptions, {"link_rate_bps": 2000}, "config.toml", "transports.uwb")
     ok = validate(UwbOptions, {"link_rate_bps": 3584, "nodes": {"zed": 1}}, "config.toml", "transports.uwb")
-    ctx = TransportContext(robot="zed", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    ctx = TransportContext(robot="zed", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
     assert ArqEndpoint(UwbTransport(ok, ctx)._config(asyncio.new_event_loop()), session=1).chunk_size >= 8
 
 
 def test_transport_needs_a_link_id() -> None:
-    ctx = TransportContext(robot="zed", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    ctx = TransportContext(robot="zed", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
     with pytest.raises(ConfigError, match="no link id for robot 'zed'"):
         UwbTransport(UwbOptions(nodes={"a": 1}), ctx)
     t = UwbTransport(UwbOptions(nodes={"a": 1, "zed": 4, "b": 2}), ctx)
@@ -68,7 +68,7 @@ def test_transport_needs_a_link_id() -> None:
 def test_options_in_range_build_a_core_config(node: int, window: int, max_frame: int) -> None:
     # The core raises ValueError (a bug, not a user's error) for what the options must refuse first.
     ctx = TransportContext(
-        robot="zed", fleet="f", key=bytes(32), max_message_bytes=1 << 20, emit=lambda e: None
+        robot="zed", fleet="f", link_key=bytes(32), max_message_bytes=1 << 20, emit=lambda e: None
     )
     opts = UwbOptions(nodes={"zed": node}, window=window, max_frame=max_frame, link_rate_bps=16 * 4096)
     cfg = UwbTransport(opts, ctx)._config(asyncio.new_event_loop())

@@ -66,7 +66,7 @@ class Robot:
         ctx = TransportContext(
             robot=name,
             fleet="f",
-            key=key,
+            link_key=key,
             max_message_bytes=1 << 20,
             emit=self.events.append,
             state_dir=state,

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from mapd.errors import ProtocolError, StateError
 from transports.uwb import wire
 from transports.uwb.pacing import ByteWindow, MediumAccess, Pacer
-from transports.uwb.signing import CounterStore, Signer, Verifier, clock_floor
+from transports.uwb.signing import COUNTER_MAX, CounterStore, Signer, Verifier, clock_floor
 
 KEY = bytes(range(32))
 
@@ -114,6 +114,24 @@ def test_replays_dropped_reordering_accepted_once() -> None:
     for _ in range(100):  # push the window past the first frames
         assert v.check(s.sign(body), True) is not None
     assert v.check(frames[9], True) is None
+
+
+def test_a_key_holder_counter_from_the_future_cannot_silence_the_real_sender() -> None:
+    """Measured on main: one frame with counter 2^48-2 as another node dropped its frames until restart."""
+    wall = 1.8e9
+    real = _signer(clock_floor(wall))
+    v = Verifier(KEY)
+    body = wire.pack(wire.Hello(1, 2, 3), signed=True)
+    assert v.check(real.sign(body), True, wall) is not None
+    forger = Signer(KEY, COUNTER_MAX - 1, block=1)
+    forger.confirm(COUNTER_MAX)
+    forged = forger.sign(body)
+    assert v.check(forged, True, wall) is None and v.stats.future == 1
+    assert all(v.check(real.sign(body), True, wall + i) is not None for i in range(5))
+    # without the receiver's clock (simulations), the same frame would have won
+    blind = Verifier(KEY)
+    assert blind.check(forged, True) is not None
+    assert blind.check(real.sign(body), True) is None
 
 
 def test_signer_needs_confirmed_reservation() -> None:

@@ -18,7 +18,8 @@ import pytest
 
 from mapd.envelope import Envelope
 from mapd.grid import Pose2D
-from transports.base import Received, TransportContext, TransportEvent
+from mapd.identity import Identity, Roster
+from transports.base import PeerUp, Received, TransportContext, TransportEvent
 from transports.zenoh import keys
 from transports.zenoh.link import ZenohTransport
 
@@ -31,8 +32,25 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+_IDS: dict[str, Identity] = {}
+#: The test fleet's robots: each has its own key, and every signed Bot trusts all of them.
+FLEET_ROBOTS = ("a", "b", "c", "m", "r1", "r2", "robot0", "robot1")
+
+
+def ident(robot: str) -> Identity:
+    """``robot``'s own key in the test fleet (made once per test process)."""
+    if robot not in _IDS:
+        _IDS[robot] = Identity.generate(robot)
+    return _IDS[robot]
+
+
+def roster() -> Roster:
+    """The test fleet's roster (signatures required)."""
+    return Roster({r: ident(r).public_key for r in FLEET_ROBOTS})
+
+
 def envelope(
-    robot: str, version: int, base: int = 0, payload: bytes = b"cells", key: bytes | None = None
+    robot: str, version: int, base: int = 0, payload: bytes = b"cells", signer: Identity | None = None
 ) -> Envelope:
     env = Envelope(
         fleet=FLEET,
@@ -47,7 +65,7 @@ def envelope(
         payload=payload,
         seq=version,
     )
-    return env.signed(key) if key is not None else env
+    return env.signed(signer) if signer is not None else env
 
 
 class Bot:
@@ -59,7 +77,8 @@ class Bot:
         *,
         listen: list[str] | None = None,
         connect: list[str] | None = None,
-        key: bytes | None = None,
+        signed: bool = False,
+        identity: Identity | None = None,
         max_message_bytes: int = 4 << 20,
         **options: Any,
     ) -> None:
@@ -72,7 +91,8 @@ class Bot:
         self.ctx = TransportContext(
             robot=robot,
             fleet=FLEET,
-            key=key,
+            identity=identity or (ident(robot) if signed else None),
+            roster=roster() if signed or identity is not None else Roster.open(),
             max_message_bytes=max_message_bytes,
             emit=self.events.append,
             latest_keyframe=lambda: self.keyframe,
@@ -118,7 +138,10 @@ async def meet(*bots: Bot, timeout: float = 5.0) -> None:
     subscribers, so a robot that sees a peer's token also knows where to send it updates."""
     for bot in bots:
         others = sorted(o.ctx.robot for o in bots if o is not bot)
-        await bot.wait(lambda bot=bot, others=others: all(r in bot.t.peers() for r in others), timeout)
+        # PeerUp, not peers(): in a signed fleet peers() also waits for a verified message
+        await bot.wait(
+            lambda bot=bot, others=others: all(PeerUp("zenoh", r) in bot.events for r in others), timeout
+        )
 
 
 def endpoint(port: int) -> str:
@@ -211,6 +234,8 @@ def zk() -> SimpleNamespace:
         Bot=Bot,
         meet=meet,
         envelope=envelope,
+        ident=ident,
+        roster=roster,
         free_port=free_port,
         endpoint=endpoint,
         fleet=fleet,

@@ -10,19 +10,29 @@ from hypothesis import strategies as st
 
 from mapd.envelope import unpack
 from mapd.errors import EnvelopeError, SignatureError
+from mapd.identity import Identity, Roster
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received
 from transports.zenoh import keys
 from transports.zenoh.core import ZenohCore, pack_ack, unpack_ack
 
-KEY = bytes(range(32))
+# The fleet: each robot's own key, and the roster of their public keys.
+IDS = {n: Identity.generate(n) for n in ("a", "b", "c", "d", "m", "p", "q", "r")}
+ROSTER = Roster({n: i.public_key for n, i in IDS.items()})
 
 
-def core(robot: str = "b", key: bytes | None = None, **kw: object) -> ZenohCore:
-    return ZenohCore(robot=robot, fleet="testfleet", key=key, max_message_bytes=1 << 20, **kw)  # type: ignore[arg-type]
+def core(robot: str = "b", signed: bool = False, **kw: object) -> ZenohCore:
+    return ZenohCore(
+        robot=robot,
+        fleet="testfleet",
+        identity=IDS[robot] if signed else None,
+        roster=ROSTER if signed else Roster.open(),
+        max_message_bytes=1 << 20,
+        **kw,  # type: ignore[arg-type]
+    )
 
 
-def upd(zk, robot: str, v: int, base: int = 0, key: bytes | None = None) -> tuple[str, bytes]:
-    return keys.update_key("testfleet", robot), zk.envelope(robot, v, base, key=key).pack()
+def upd(zk, robot: str, v: int, base: int = 0, signer: Identity | None = None) -> tuple[str, bytes]:
+    return keys.update_key("testfleet", robot), zk.envelope(robot, v, base, signer=signer).pack()
 
 
 def versions(step) -> list[int]:
@@ -65,24 +75,32 @@ def test_key_parsers_take_any_string(text: str) -> None:
 
 
 def test_ack_round_trip_and_signature() -> None:
-    signed = pack_ack(7, key=KEY, fleet="f", peer="p", robot="r")
-    assert unpack_ack(signed, key=KEY, fleet="f", peer="p", robot="r") == 7
-    assert len(signed) == 24
+    signed = pack_ack(7, identity=IDS["p"], fleet="f", peer="p", robot="r")
+    assert unpack_ack(signed, roster=ROSTER, fleet="f", peer="p", robot="r") == 7
+    assert len(signed) == 8 + 64
     # The signature binds the peer and the robot: a replay under another name fails.
     with pytest.raises(SignatureError, match="bad signature"):
-        unpack_ack(signed, key=KEY, fleet="f", peer="q", robot="r")
+        unpack_ack(signed, roster=ROSTER, fleet="f", peer="q", robot="r")
     with pytest.raises(SignatureError, match="unsigned"):
         unpack_ack(
-            pack_ack(7, key=None, fleet="f", peer="p", robot="r"), key=KEY, fleet="f", peer="p", robot="r"
+            pack_ack(7, identity=None, fleet="f", peer="p", robot="r"),
+            roster=ROSTER,
+            fleet="f",
+            peer="p",
+            robot="r",
         )
     assert (
         unpack_ack(
-            pack_ack(9, key=None, fleet="f", peer="p", robot="r"), key=None, fleet="f", peer="p", robot="r"
+            pack_ack(9, identity=None, fleet="f", peer="p", robot="r"),
+            roster=Roster.open(),
+            fleet="f",
+            peer="p",
+            robot="r",
         )
         == 9
     )
     with pytest.raises(EnvelopeError) as info:
-        unpack_ack(bytes(8), key=None, fleet="f", peer="p", robot="r")  # version 0
+        unpack_ack(bytes(8), roster=Roster.open(), fleet="f", peer="p", robot="r")  # version 0
     assert not isinstance(info.value, SignatureError)  # damage, not forgery: counted apart
 
 
@@ -90,7 +108,7 @@ def test_ack_round_trip_and_signature() -> None:
 @given(st.binary(max_size=40), st.booleans())
 def test_ack_parser_takes_any_bytes(data: bytes, signed: bool) -> None:
     try:
-        v = unpack_ack(data, key=KEY if signed else None, fleet="f", peer="p", robot="r")
+        v = unpack_ack(data, roster=ROSTER if signed else Roster.open(), fleet="f", peer="p", robot="r")
     except EnvelopeError as exc:
         assert "\n" not in str(exc)
     else:
@@ -161,15 +179,15 @@ def test_request_keyframe_forgets_so_an_older_keyframe_is_taken(zk) -> None:
 
 
 def test_signatures_spoofing_and_garbage(zk) -> None:
-    c = core(key=KEY)
-    assert versions(c.on_update(*upd(zk, "a", 1, key=KEY), now=0)) == [1]
-    c.on_update(*upd(zk, "a", 2, 1, key=b"x" * 32), now=0)  # signed with another key
+    c = core(signed=True)
+    assert versions(c.on_update(*upd(zk, "a", 1, signer=IDS["a"]), now=0)) == [1]
+    c.on_update(*upd(zk, "a", 2, 1, signer=Identity.generate("a")), now=0)  # signed with another key
     c.on_update(*upd(zk, "a", 3, 1), now=0)  # unsigned
     assert c.counters.bad_signature == 2
     # A valid envelope of robot "a" published on robot "m"'s key is not m's update.
-    c.on_update(keys.update_key("testfleet", "m"), zk.envelope("a", 4, key=KEY).pack(), now=0)
+    c.on_update(keys.update_key("testfleet", "m"), zk.envelope("a", 4, signer=IDS["a"]).pack(), now=0)
     c.on_update(keys.update_key("testfleet", "a"), b"\x93garbage", now=0)
-    c.on_update("mapd/otherfleet/a/update", zk.envelope("a", 5, key=KEY).pack(), now=0)
+    c.on_update("mapd/otherfleet/a/update", zk.envelope("a", 5, signer=IDS["a"]).pack(), now=0)
     assert c.counters.dropped == 3
     assert c.counters.updates_rx == 1 and c.last_version("a") == 1
 
@@ -177,11 +195,11 @@ def test_signatures_spoofing_and_garbage(zk) -> None:
 def test_signature_failures_are_told_apart_by_type(zk) -> None:
     # Any SignatureError from unpack counts as a forgery (here a signature of the wrong length),
     # damage of any other kind as dropped; nothing is parsed twice to tell them apart.
-    c = core(key=KEY)
-    odd = dataclasses.replace(zk.envelope("a", 1, key=KEY), sig=b"short")
+    c = core(signed=True)
+    odd = dataclasses.replace(zk.envelope("a", 1, signer=IDS["a"]), sig=b"short")
     c.on_update(keys.update_key("testfleet", "a"), odd.pack(), now=0)
     assert (c.counters.bad_signature, c.counters.dropped) == (1, 0)
-    c.on_update(keys.update_key("testfleet", "a"), zk.envelope("a", 1, key=KEY).pack()[:-3], now=0)
+    c.on_update(keys.update_key("testfleet", "a"), zk.envelope("a", 1, signer=IDS["a"]).pack()[:-3], now=0)
     assert (c.counters.bad_signature, c.counters.dropped) == (1, 1)
 
 
@@ -208,27 +226,28 @@ def test_max_peers_bounds_state(zk) -> None:
 
 
 def test_acks_become_delivered_only_for_offered_versions(zk) -> None:
-    c = core(robot="a", key=KEY)
+    c = core(robot="a", signed=True)
     c.offered(zk.envelope("a", 5))
-    good = pack_ack(5, key=KEY, fleet="testfleet", peer="b", robot="a")
+    good = pack_ack(5, identity=IDS["b"], fleet="testfleet", peer="b", robot="a")
     step = c.on_ack(keys.ack_key("testfleet", "b", "a"), good)
     assert step.events == [Delivered("zenoh", "b", "a", 5)]
     assert (
         c.on_ack(
-            keys.ack_key("testfleet", "b", "a"), pack_ack(6, key=KEY, fleet="testfleet", peer="b", robot="a")
+            keys.ack_key("testfleet", "b", "a"),
+            pack_ack(6, identity=IDS["b"], fleet="testfleet", peer="b", robot="a"),
         ).events
         == []
     )
     assert (
         c.on_ack(
             keys.ack_key("testfleet", "b", "a"),
-            pack_ack(5, key=b"y" * 32, fleet="testfleet", peer="b", robot="a"),
+            pack_ack(5, identity=Identity.generate("b"), fleet="testfleet", peer="b", robot="a"),
         ).events
         == []
     )
     assert c.counters.bad_signature == 1 and c.counters.dropped == 1 and c.counters.acks_rx == 1
     # Our own ack, as built for publishing, parses back at the robot it is for.
-    k, payload = core(robot="b", key=KEY).ack("a", 5)
+    k, payload = core(robot="b", signed=True).ack("a", 5)
     assert c.on_ack(k, payload).events == [Delivered("zenoh", "b", "a", 5)]
 
 
@@ -287,14 +306,40 @@ def test_ack_rtt_is_offer_to_ack_time_smoothed(zk) -> None:
     assert c.stats()["rtt_ms"] is None
     k = keys.ack_key("testfleet", "b", "a")
     c.offered(zk.envelope("a", 1), now=10.0)
-    c.on_ack(k, pack_ack(1, key=None, fleet="testfleet", peer="b", robot="a"), now=10.4)
+    c.on_ack(k, pack_ack(1, identity=None, fleet="testfleet", peer="b", robot="a"), now=10.4)
     assert c.stats()["rtt_ms"] == 400.0
     c.offered(zk.envelope("a", 2), now=20.0)
-    c.on_ack(k, pack_ack(2, key=None, fleet="testfleet", peer="b", robot="a"), now=20.8)
+    c.on_ack(k, pack_ack(2, identity=None, fleet="testfleet", peer="b", robot="a"), now=20.8)
     assert c.stats()["rtt_ms"] == 450.0  # 7/8 of 400 + 1/8 of 800
     # an ack with no clock, or of a version whose offer time was forgotten, gives no sample
     for v in range(3, 3 + 20):
         c.offered(zk.envelope("a", v), now=30.0)
-    c.on_ack(k, pack_ack(3, key=None, fleet="testfleet", peer="b", robot="a"), now=99.0)
-    c.on_ack(k, pack_ack(22, key=None, fleet="testfleet", peer="b", robot="a"))
+    c.on_ack(k, pack_ack(3, identity=None, fleet="testfleet", peer="b", robot="a"), now=99.0)
+    c.on_ack(k, pack_ack(22, identity=None, fleet="testfleet", peer="b", robot="a"))
     assert c.stats()["rtt_ms"] == 450.0
+
+
+def test_signed_fleet_waits_only_for_robots_that_showed_a_signed_message(zk) -> None:
+    """64 fake liveliness tokens cut a fleet to one update per 30 s: the publisher waited for all."""
+    c = core(robot="b", signed=True)
+    for i in range(64):  # made-up robots: not on the roster, so no state at all
+        assert c.on_presence(keys.presence_key("testfleet", f"ghost{i}"), True, now=0).events == []
+    assert c.stats()["peers"] == 0 and c.counters.dropped == 64
+    # a roster robot's token is presence, not proof: it is not waited for until it signs something
+    assert c.on_presence(keys.presence_key("testfleet", "a"), True, now=0).events == [PeerUp("zenoh", "a")]
+    c.on_presence(keys.presence_key("testfleet", "c"), True, now=0)
+    assert c.peers() == []
+    c.on_update(*upd(zk, "a", 1, signer=Identity.generate("a")), now=1)  # forged: still not proof
+    assert c.peers() == []
+    c.on_update(*upd(zk, "a", 1, signer=IDS["a"]), now=1)
+    assert c.peers() == ["a"]
+    c.offered(zk.envelope("b", 3))
+    c.on_ack(
+        keys.ack_key("testfleet", "c", "b"),
+        pack_ack(3, identity=IDS["c"], fleet="testfleet", peer="c", robot="b"),
+    )
+    assert c.peers() == ["a", "c"]
+    # an unsigned fleet lists every token, as before
+    lax = core(robot="b")
+    lax.on_presence(keys.presence_key("testfleet", "ghost"), True, now=0)
+    assert lax.peers() == ["ghost"]

@@ -8,10 +8,9 @@ import time
 
 from mapd.codec.api import decode, encode
 from mapd.envelope import Envelope, unpack
+from mapd.identity import Identity
 from transports.base import Delivered, KeyframeNeeded, PeerDown, Received
 from transports.zenoh import keys
-
-KEY = bytes(range(32))
 
 
 def run(coro) -> None:  # type: ignore[no-untyped-def]
@@ -138,22 +137,24 @@ def test_three_sessions_presence_appears_and_disappears(zk) -> None:
 def test_bad_signatures_are_dropped_and_counted(zk) -> None:
     async def main() -> None:
         async with zk.fleet() as f:
-            a = await f.start("a", listen=[f.ep], key=KEY)
-            b = await f.start("b", connect=[f.ep], key=KEY)
-            rogue = await f.start("m", connect=[f.ep], key=b"not the fleet key, not at all!!!")
+            a = await f.start("a", listen=[f.ep], signed=True)
+            b = await f.start("b", connect=[f.ep], signed=True)
+            # m is on the roster, but this process signs with a key that is not m's
+            impostor = Identity.generate("m")
+            rogue = await f.start("m", connect=[f.ep], identity=impostor)
             with zk.raw_session(f.ep, watch="b") as raw:
                 await zk.meet(a, b, rogue)
                 # raw learns b's token after b's subscriber (gossip connects it to b directly).
                 await b.wait(lambda: bool(raw.seen))
-                rogue.offer(zk.envelope("m", 1, key=b"not the fleet key, not at all!!!"))
+                rogue.offer(zk.envelope("m", 1, signer=impostor))
                 raw.put(keys.update_key(zk.FLEET, "a"), zk.envelope("a", 7).pack())  # unsigned, as if from a
                 raw.put(keys.update_key(zk.FLEET, "a"), b"\xc1 not msgpack")
-                raw.put(keys.ack_key(zk.FLEET, "b", "a"), (1).to_bytes(8, "big") + bytes(16))  # forged ack
+                raw.put(keys.ack_key(zk.FLEET, "b", "a"), (1).to_bytes(8, "big") + bytes(64))  # forged ack
                 # m's update may be heard twice (published, and as the reply to b's join query of m).
                 await b.wait(lambda: b.t.stats()["bad_signature"] >= 2 and b.t.stats()["dropped"] == 1)
                 await a.wait(lambda: a.t.stats()["bad_signature"] >= 1)
                 # A properly signed update still arrives, and nothing forged was ever emitted.
-                a.offer(zk.envelope("a", 2, key=KEY))
+                a.offer(zk.envelope("a", 2, signer=zk.ident("a")))
                 await b.wait(lambda: b.received())
                 assert b.received() == [("a", 2, 0)]
                 assert not a.of(Delivered)

@@ -90,7 +90,7 @@ def test_options_validate_with_clear_errors() -> None:
 
 
 def test_options_of_another_transport_are_a_type_error() -> None:
-    ctx = TransportContext(robot="a", fleet="f", key=None, max_message_bytes=1 << 20, emit=lambda e: None)
+    ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
     with pytest.raises(TypeError, match="ZenohOptions"):
         ZenohTransport(TransportOptions(), ctx)
 
@@ -132,9 +132,7 @@ def test_bad_config_file_is_one_line(tmp_path: Path, content: str | None, match:
 
 
 def _ctx() -> TransportContext:
-    return TransportContext(
-        robot="r1", fleet="testfleet", key=None, max_message_bytes=1 << 20, emit=lambda e: None
-    )
+    return TransportContext(robot="r1", fleet="testfleet", max_message_bytes=1 << 20, emit=lambda e: None)
 
 
 @pytest.mark.parametrize("endpoint", ["tcp/no-such-host.invalid:7447", "nosuchproto/127.0.0.1:1"])

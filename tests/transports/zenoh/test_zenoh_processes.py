@@ -17,7 +17,7 @@ from transports.base import PeerDown, PeerUp, Received
 
 SCRIPT = Path(__file__).with_name("zenoh_robot_proc.py")
 ROOT = Path(__file__).resolve().parents[2]
-KEY = bytes(range(100, 132))
+SEED = bytes(range(100, 132))
 
 pytestmark = pytest.mark.slow
 
@@ -97,7 +97,7 @@ def got(version: int, base: int, peer: str = "a") -> Callable[[dict[str, Any]], 
 def test_three_robot_processes(zk) -> None:
     async def main() -> None:
         pa, pb, pc = (zk.endpoint(zk.free_port()) for _ in range(3))
-        key = ["--key", KEY.hex()]
+        key = ["--fleet-seed", SEED.hex()]
         a = await Proc.spawn("a", "--listen", pa, *key)
         procs = [a]
         try:
@@ -129,8 +129,12 @@ def test_three_robot_processes(zk) -> None:
             for p in (b, c):
                 st = await p.stats()
                 assert st["gaps"] == 1 and st["bad_signature"] == 0
-                assert st["peer_list"] == [r for r in ("a", "b", "c") if r != p.robot] and st["peers"] == 2
+                # b and c hear each other's tokens, but only a signs anything to them (maps); in a
+                # signed fleet a token alone does not make a robot one to wait for
+                assert st["peer_list"] == ["a"] and st["peers"] == 1
                 assert not [e for e in p.lines if e["event"] == "Received" and e["version"] == 4]
+            st = await a.stats()
+            assert st["peer_list"] == ["b", "c"]  # both acked a's maps, signed
             # c leaves: the others see it go.
             assert await c.stop() == 0
             await a.expect(lambda e: e == {"event": PeerDown.__name__, "peer": "c"})

@@ -1,6 +1,6 @@
 """A robot in its own process, driving one ZenohTransport, for the multi-process tests.
 
-    python zenoh_robot_proc.py --robot a --listen tcp/127.0.0.1:7447 [--connect ...] [--key HEX]
+    python zenoh_robot_proc.py --robot a --listen tcp/127.0.0.1:7447 [--connect ...] [--fleet-seed HEX]
 
 It runs the transport inside an asyncio loop with SIGTERM/SIGINT handling that calls ``close()``
 (the shape of the daemon), prints one JSON line per event on stdout, and takes JSON commands on
@@ -13,14 +13,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import hashlib
 import json
 import signal
 import sys
 import threading
 from typing import Any
 
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
 from mapd.envelope import Envelope, unpack
 from mapd.grid import Pose2D
+from mapd.identity import Identity, Roster
 from transports.base import Received, TransportContext, TransportEvent
 from transports.zenoh.link import ZenohTransport
 
@@ -32,14 +36,27 @@ def say(**obj: Any) -> None:
     sys.stdout.flush()
 
 
+def fleet_keys(robot: str, seed: str | None) -> tuple[Identity | None, Roster]:
+    """Robots a, b and c with keys derived from ``seed`` (a test's fleet), or an unsigned fleet."""
+    if seed is None:
+        return None, Roster.open()
+    ids = {
+        r: Identity(
+            r, Ed25519PrivateKey.from_private_bytes(hashlib.sha256(bytes.fromhex(seed) + r.encode()).digest())
+        )
+        for r in ("a", "b", "c")
+    }
+    return ids[robot], Roster({r: i.public_key for r, i in ids.items()})
+
+
 async def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--robot", required=True)
     ap.add_argument("--listen", action="append", default=[])
     ap.add_argument("--connect", action="append", default=[])
-    ap.add_argument("--key", default=None)
+    ap.add_argument("--fleet-seed", default=None, help="sign: every robot's key derives from this seed")
     args = ap.parse_args()
-    key = bytes.fromhex(args.key) if args.key else None
+    identity, roster = fleet_keys(args.robot, args.fleet_seed)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     latest: dict[str, Envelope] = {}
@@ -47,7 +64,7 @@ async def main() -> int:
 
     def emit(ev: TransportEvent) -> None:
         if isinstance(ev, Received):
-            env = unpack(ev.data, key=key, fleet=FLEET)
+            env = unpack(ev.data, roster=roster, fleet=FLEET)
             say(event="Received", peer=ev.peer, version=env.version, base=env.base_version)
             transport.ack(env.robot, env.version)
         else:
@@ -56,7 +73,8 @@ async def main() -> int:
     ctx = TransportContext(
         robot=args.robot,
         fleet=FLEET,
-        key=key,
+        identity=identity,
+        roster=roster,
         max_message_bytes=1 << 20,
         emit=emit,
         latest_keyframe=lambda: latest.get("kf"),
@@ -83,7 +101,7 @@ async def main() -> int:
                 payload=bytes(4),
                 seq=v,
             )
-            env = env.signed(key) if key else env
+            env = env.signed(identity) if identity else env
             if env.is_keyframe:
                 latest["kf"] = env
             transport.offer(env)

@@ -1,0 +1,61 @@
+"""Files written so a crash never leaves half of one, and read so a huge one costs nothing.
+
+* :func:`atomic_write_bytes` / :func:`atomic_write_json`: readers see the old file or the new one,
+  never half of either (temp file, fsync, rename, fsync of the directory).
+* :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
+* :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
+  map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+from typing import Any
+
+
+def atomic_write_bytes(path: Path, payload: bytes) -> None:
+    """Write ``payload`` to a temp file beside ``path``, fsync it, rename it over ``path``, fsync the dir."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.{threading.get_ident()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    try:
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)  # make the rename itself durable across a power cut
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    """:func:`atomic_write_bytes` of ``obj`` as indented JSON."""
+    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True, default=str) + "\n").encode())
+
+
+def read_capped(path: Path, cap: int) -> bytes:
+    """Up to ``cap + 1`` bytes of ``path`` (OSError as the OS raises it); the caller refuses more than ``cap``."""
+    with open(path, "rb") as fh:
+        return fh.read(cap + 1)
+
+
+def write_new_secret(path: Path, data: bytes) -> None:
+    """Write ``data`` to a new file readable by its owner only, durably.
+
+    Raises FileExistsError when ``path`` exists (a key is never overwritten) and OSError otherwise.
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())

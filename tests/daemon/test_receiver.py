@@ -1,0 +1,98 @@
+"""The receiver's rules (mapd/daemon/receiver.py), on plain envelopes: no asyncio, no transports."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapd.daemon.receiver import AskKeyframe, Decode, Drop, Receiver
+from mapd.daemon.versions import EPOCH, VersionBounds, incarnation_at, make
+from mapd.envelope import Envelope
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.identity import Identity, Roster
+
+NOW = EPOCH + 1_000_000.0  # a wall clock, seconds
+INC = incarnation_at(NOW - 3600)  # robot1 started an hour ago
+B = Identity.generate("robot1")
+
+
+def env(
+    version: int, *, robot: str = "robot1", base: int = 0, w: int = 10, h: int = 10, signed: bool = False
+) -> Envelope:
+    e = Envelope(
+        fleet="f", robot=robot, version=version, base_version=base, codec="raw", width=w, height=h,
+        resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"",
+    )  # fmt: skip
+    return e.signed(B) if signed else e
+
+
+def grid(version: int, w: int = 10, h: int = 10) -> OccupancyGrid:
+    return OccupancyGrid(np.zeros((h, w), np.int8), 0.05, robot="robot1", version=version)
+
+
+def rx(**kw: object) -> Receiver:
+    return Receiver("robot0", "f", roster=Roster({"robot1": B.public_key}, allow_unsigned=True), **kw)  # type: ignore[arg-type]
+
+
+def take(r: Receiver, version: int, now: float = NOW) -> None:
+    r.accept(grid(version), env(version), "t", 100, now)
+
+
+def test_first_map_keyframe_and_deltas_need_their_base() -> None:
+    r = rx()
+    assert r.plan(env(make(INC, 1)), "robot1", NOW) == Decode(None)
+    take(r, make(INC, 1))
+    plan = r.plan(env(make(INC, 2), base=make(INC, 1)), "robot1", NOW)
+    assert isinstance(plan, Decode) and plan.base is not None
+    assert r.plan(env(make(INC, 3), base=make(INC, 2)), "robot1", NOW) == AskKeyframe("robot1")
+
+
+def test_duplicates_echoes_and_other_fleets_are_routine_drops() -> None:
+    r = rx()
+    take(r, make(INC, 5))
+    for e, peer in [(env(make(INC, 5)), "robot1"), (env(make(INC, 1), robot="robot0"), "robot0")]:
+        plan = r.plan(e, peer, NOW)
+        assert isinstance(plan, Drop) and plan.routine and not plan.forget
+
+
+def test_a_version_jump_is_refused_and_the_link_told_to_forget() -> None:
+    r = rx(bounds=VersionBounds(max_jump=1000, max_rate=10.0))
+    take(r, make(INC, 5), now=NOW - 60)  # heard a minute ago: 1000 + 600 versions may have passed
+    assert isinstance(r.plan(env(make(INC, 5 + 1600)), "robot1", NOW), Decode)
+    plan = r.plan(env(make(INC, 5 + 1700)), "robot1", NOW)
+    assert isinstance(plan, Drop) and plan.forget and "jumps 1700 ahead" in plan.reason
+    assert r.counters.refused_versions == 1
+    future = make(incarnation_at(NOW + 3 * 86400), 1)  # three days ahead of our clock
+    plan = r.plan(env(future), "robot1", NOW)
+    assert isinstance(plan, Drop) and "future" in plan.reason
+
+
+def test_a_new_incarnation_is_taken_at_once_and_forgets_old_bases() -> None:
+    r = rx()
+    take(r, make(INC, 900))
+    restarted = incarnation_at(NOW)
+    assert r.plan(env(make(restarted, 1)), "robot1", NOW) == Decode(None)
+    assert r.counters.new_incarnations == 1
+    # a delta of the new incarnation against an old version cannot be decoded: ask for a keyframe
+    assert r.plan(env(make(restarted, 2), base=make(INC, 900)), "robot1", NOW) == AskKeyframe("robot1")
+
+
+def test_an_unsigned_map_must_come_from_its_own_robot_and_sizes_are_bounded() -> None:
+    r = rx(max_cells=10_000)
+    plan = r.plan(env(make(INC, 1)), "robot3", NOW)  # a third radio sending "robot1's" map
+    assert isinstance(plan, Drop) and "came from 'robot3'" in plan.reason and r.counters.wrong_link == 1
+    assert isinstance(
+        r.plan(env(make(INC, 1), signed=True), "robot3", NOW), Decode
+    )  # signed: relays are fine
+    plan = r.plan(env(make(INC, 1), w=1000, h=1000), "robot1", NOW)
+    assert isinstance(plan, Drop) and "over the 10000 allowed" in plan.reason
+
+
+def test_robots_beyond_max_peers_and_off_the_roster_cost_nothing() -> None:
+    r = Receiver("robot0", "f", roster=Roster({"robot1": B.public_key}), max_peers=1)
+    r.presence("ghost", "zenoh", True)
+    assert r.info == {}
+    r.presence("robot1", "zenoh", True)
+    assert list(r.info) == ["robot1"]
+    take(r, make(INC, 1))
+    plan = r.plan(env(make(INC, 1), robot="robot2"), "robot2", NOW)
+    assert isinstance(plan, Drop) and "max_peers" in plan.reason
