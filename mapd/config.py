@@ -144,6 +144,12 @@ class FusionSection(Strict):
         default_factory=dict,
         description="robot -> [x m, y m, yaw rad] of its map frame in the fleet frame, or 'estimate'",
     )
+    anchor: str | None = Field(
+        default=None,
+        pattern=_NAME,
+        description="robot whose map frame is the fleet frame when no pose is configured; default: "
+        "this robot, or on a base station (source none) the first robot heard, by name",
+    )
     max_extent_m: float = Field(
         default=10_000.0,
         gt=0.0,

@@ -127,6 +127,8 @@ class Daemon:
             on_global=[self._on_global],
             max_cells=cfg.limits.max_cells,
             max_robots=cfg.limits.max_peers + 1,  # the peers and this robot
+            # a base station has no map frame of its own: the anchor, or the first robot heard
+            anchor=cfg.fusion.anchor or (None if cfg.source.use == "none" else self.me),
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
 

@@ -157,6 +157,9 @@ class Placer:
         """
         out: dict[str, Placement] = {}
         placed: dict[str, Pose2D] = {}
+        if self.anchor is None and not self.poses and maps:
+            # No own map (a base station): the first robot by name fixes the fleet frame, for good.
+            self.anchor = min(maps)
         for robot in sorted(maps):
             if robot in self.poses:
                 placed[robot] = self.poses[robot]

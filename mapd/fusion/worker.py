@@ -81,6 +81,7 @@ class FusionWorker:
         *,
         max_cells: int = DEFAULT_MAX_CELLS,
         max_robots: int = 64,
+        anchor: str | None = "",
         options: EstimateOptions | None = None,
     ) -> None:
         self.robot = robot
@@ -92,7 +93,7 @@ class FusionWorker:
         poses = {r: (Pose2D(*p) if isinstance(p, list) else None) for r, p in cfg.poses.items()}
         self.placer = Placer(
             poses,
-            anchor=robot,
+            anchor=robot if anchor == "" else anchor,  # "": this robot's map frame; None: the first map's
             min_confidence=cfg.min_confidence,
             min_agreement=cfg.min_agreement,
             options=options,

@@ -1,0 +1,72 @@
+"""A base station: `[source] use = "none"` receives, fuses and keeps the fleet's map, and sends none of its own."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from mapd.daemon.versions import split
+from mapd.demo.fleet import Fleet, write_config
+from mapd.grid import load_map
+
+pytestmark = pytest.mark.slow
+
+
+def held(s: dict[str, dict[str, Any]], who: str, of: str) -> int:
+    return split(int(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)))[1]
+
+
+@pytest.mark.parametrize("transport", ["zenoh", "uwb"])
+def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
+    args = argparse.Namespace(
+        robots=3, transport=transport, codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
+    )
+    f = Fleet(args)
+    f.prepare()
+    base = f.run_dir / "robot2" / "config.toml"
+    cfg = tomllib.loads(base.read_text())
+    cfg["source"] = {"use": "none"}
+    cfg["fusion"].pop("poses", None)  # it knows no poses: robot0's map frame becomes the fleet frame
+    write_config(base, cfg)
+    f.start()
+    try:
+        deadline = time.monotonic() + 150
+        snaps: dict[str, dict[str, Any]] = {}
+        while time.monotonic() < deadline:
+            f.check_alive()
+            snaps = f.status()
+            b = snaps.get("robot2", {})
+            if (
+                held(snaps, "robot2", "robot0") >= 2
+                and held(snaps, "robot2", "robot1") >= 2
+                and b.get("fusion", {}).get("maps", 0) >= 2
+            ):
+                break
+            time.sleep(1.0)
+        b = snaps["robot2"]
+        assert held(snaps, "robot2", "robot0") >= 2 and held(snaps, "robot2", "robot1") >= 2, json.dumps(b)[
+            :2000
+        ]
+        assert b["source"]["name"] == "none" and b["source"]["version"] == 0
+        assert b["codec"]["keyframes"] == 0 and b["codec"]["deltas"] == 0  # it sends no map
+        fusion = b["fusion"]
+        assert fusion["fleet_frame"] == "map frame of robot 'robot0'"
+        assert fusion["robots"]["robot0"]["source"] == "anchor" and fusion["robots"]["robot0"]["accepted"]
+        assert fusion["maps"] >= 2
+        # the robots go on as before, and hold no map of the base station
+        for me, other in (("robot0", "robot1"), ("robot1", "robot0")):
+            assert "robot2" not in {p for p, i in snaps[me]["peers"].items() if i.get("version")}
+            assert held(snaps, me, other) >= 1
+    finally:
+        codes = f.stop()
+    assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
+    glob = load_map(f.run_dir / "robot2" / "state" / "global" / "global.yaml")
+    robot0 = load_map(f.run_dir / "robot2" / "state" / "peers" / "robot0" / "map.yaml")
+    # the global map holds at least robot0's known cells (its frame is the fleet frame)
+    assert int((glob.data >= 0).sum()) >= int((robot0.data >= 0).sum()) * 0.9
