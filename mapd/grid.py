@@ -11,6 +11,11 @@ Conventions follow ``nav_msgs/OccupancyGrid`` and REP-103:
 ``occupied_thresh``, ``free_thresh``, and the modes trinary, scale and raw), including its quirks:
 the comparisons are strict, trinary mode averages every channel (alpha too), scale mode marks any
 pixel whose alpha is 0 as unknown, and raw mode stores the pixel value as a byte.
+
+This module holds the grid type, its cell constants and geometry bounds (:func:`geometry_problem`),
+the YAML reader (:func:`read_map_yaml`), those loading rules and :func:`save_map`. Decoding the
+image itself (PNM, PNG and Pillow, hardened against truncated and hostile files) is
+:mod:`mapd.imaging`'s, which hands back the pixels.
 """
 
 from __future__ import annotations
@@ -19,18 +24,20 @@ import dataclasses
 import hashlib
 import math
 import os
-import stat
 import struct
-import zlib
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import yaml
-from PIL import Image, UnidentifiedImageError
 
-from mapd.errors import LimitError, MapFileError
+from mapd.errors import MapFileError
 from mapd.files import atomic_write_bytes
+from mapd.imaging import MAX_PNM_HEADER as MAX_PNM_HEADER
+from mapd.imaging import PILLOW_FORMATS as PILLOW_FORMATS
+from mapd.imaging import PLAIN_PNM_MAX_CELLS as PLAIN_PNM_MAX_CELLS
+from mapd.imaging import read_pixels
+from mapd.imaging.pixels import one_line, open_regular
 
 UNKNOWN = -1
 FREE = 0
@@ -211,32 +218,11 @@ MAX_ORIGIN_YAW = 2.0 * math.pi
 
 #: Longest map_server YAML read. A real one is a few hundred bytes; a bigger file is refused unread.
 MAX_YAML_BYTES = 64 * 1024
-#: Longest PNM header (magic, sizes, maxval and comments) searched for the start of the pixels.
-MAX_PNM_HEADER = 64 * 1024
-#: Plain (ASCII) PNM is decoded by Pillow one number at a time (about 0.5 s per million pixels);
-#: above this many pixels it is refused, so that a large ASCII file cannot take minutes to load.
-PLAIN_PNM_MAX_CELLS = 1 << 22
-#: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
-#: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.
-PILLOW_FORMATS = ("BMP", "GIF", "JPEG", "TIFF", "TGA", "PCX", "WEBP", "XPM")
+# The image limits (MAX_PNM_HEADER, PLAIN_PNM_MAX_CELLS, PILLOW_FORMATS) live with the decoders in
+# mapd.imaging and are re-exported above, so `from mapd.grid import PLAIN_PNM_MAX_CELLS` still works.
 #: Cells converted at a time from pixels to occupancy: the float64 temporaries of map_server's
 #: rules stay a few MiB whatever the map's size.
 _BAND_CELLS = 1 << 18
-#: What Pillow raises on bytes it cannot decode (its plugins are not uniform about it).
-_PIL_ERRORS: tuple[type[BaseException], ...] = (
-    OSError,
-    ValueError,
-    SyntaxError,
-    EOFError,
-    struct.error,
-    IndexError,
-    KeyError,
-    TypeError,
-    ZeroDivisionError,
-    NotImplementedError,
-    MemoryError,
-    Image.DecompressionBombError,
-)
 
 
 def geometry_problem(resolution: float, origin: tuple[float, float, float]) -> str | None:
@@ -251,34 +237,6 @@ def geometry_problem(resolution: float, origin: tuple[float, float, float]) -> s
         if not (math.isfinite(v) and abs(v) <= bound):
             return f"origin {name} {v!r} is not within +-{bound:g}"
     return None
-
-
-def _one_line(exc: BaseException) -> str:
-    """An exception's message on one line (a CLI error is one line per problem)."""
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def _open_regular(path: Path, where: str, what: str) -> int:
-    """An O_RDONLY descriptor of ``path``, refusing anything but a regular file.
-
-    O_NONBLOCK so that a FIFO named as a map cannot block the open itself; the fstat then refuses
-    it, like a device (``/dev/zero`` would be read forever) or a directory.
-    """
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        raise
-    except OSError as exc:
-        raise MapFileError(f"{where}: cannot open {what} '{path}': {exc.strerror}") from None
-    try:
-        mode = os.fstat(fd).st_mode
-    except OSError as exc:
-        os.close(fd)
-        raise MapFileError(f"{where}: cannot read {what} '{path}': {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise MapFileError(f"{where}: {what} '{path}' is not a regular file")
-    return fd
 
 
 def _field(meta: dict[str, Any], key: str, path: Path, kind: type, default: Any = None) -> Any:
@@ -321,7 +279,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     path = Path(yaml_path)
     try:
-        fd = _open_regular(path, str(path), "map yaml")
+        fd = open_regular(path, str(path), "map yaml")
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
     try:
@@ -347,7 +305,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
         raise MapFileError(f"{path}: malformed YAML (nested too deeply)") from None
     except (ValueError, OverflowError, TypeError) as exc:
         # The safe constructor's own checks: a date like 2001-13-45, a bad !!float or !!int.
-        raise MapFileError(f"{path}: malformed YAML ({_one_line(exc)})") from None
+        raise MapFileError(f"{path}: malformed YAML ({one_line(exc)})") from None
     if not isinstance(meta, dict):
         raise MapFileError(f"{path}: expected a YAML mapping with image, resolution and origin")
 
@@ -403,344 +361,6 @@ def _short(value: object) -> str:
     return shown if len(shown) <= 60 else shown[:57] + "..."
 
 
-@dataclasses.dataclass
-class _Pixels:
-    """Decoded pixels ``(H, W, C)`` in the file's own sample type, and how samples become grey.
-
-    ``lut`` maps an integer sample to its grey level on map_server's 0..255 scale (float64); without
-    it a sample times ``scale`` is the grey level. Conversion happens a band of rows at a time, so
-    the float64 arrays of the loading rules never exist for the whole image.
-    """
-
-    arr: np.ndarray
-    has_alpha: bool
-    lut: np.ndarray | None = None
-    scale: float = 1.0
-
-    def grey(self, r0: int, r1: int) -> np.ndarray:
-        band = self.arr[r0:r1]
-        if self.lut is not None:
-            return self.lut[band]
-        out = band.astype(np.float64)
-        if self.scale != 1.0:
-            out *= self.scale
-        return out
-
-
-def _check_cells(width: int, height: int, where: str, image: Path, max_cells: int) -> None:
-    """Refuse an empty image or one over ``max_cells``, from its header, before any pixel is decoded."""
-    if width <= 0 or height <= 0:
-        raise MapFileError(f"{where}: image '{image}' has no pixels ({width}x{height})")
-    if width * height > max_cells:
-        raise LimitError(
-            f"{where}: image '{image}' is {width}x{height} = {width * height} cells, "
-            f"over the limit of {max_cells} cells"
-        )
-
-
-# PNM (netpbm): map_saver writes P5. The header is parsed here so that a truncated or malformed
-# file is one clear error and the size is checked before anything is allocated; P5 and P6 pixels are
-# read with numpy (Pillow converts maxval other than 255 one sample at a time in Python).
-
-_PNM_WS = b" \t\n\r\x0b\x0c"
-_PNM_DIGITS = b"0123456789"
-
-
-def _pnm_header(head: bytes, where: str, image: Path) -> tuple[int, list[int], int]:
-    """``(kind 1..6, [width, height(, maxval)], offset of the first pixel byte)`` of a PNM header."""
-    kind = head[1] - ord("0")
-    need = 2 if kind in (1, 4) else 3
-    values: list[int] = []
-    pos = 2
-    bad = f"{where}: image '{image}' has a malformed PNM header"
-    cut = f"{where}: image '{image}' is truncated in its PNM header"
-    while len(values) < need:
-        while True:  # white space and comments before the number
-            if pos >= len(head):
-                raise MapFileError(cut)
-            c = head[pos]
-            if c in _PNM_WS:
-                pos += 1
-            elif c == ord("#"):
-                ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
-                if not ends:
-                    raise MapFileError(cut)
-                pos = min(ends) + 1
-            else:
-                break
-        start = pos
-        while pos < len(head) and head[pos] in _PNM_DIGITS:
-            pos += 1
-        if pos == start:
-            raise MapFileError(f"{bad} (expected a number at byte {start})")
-        if pos >= len(head):
-            raise MapFileError(cut)  # the number may go on in the bytes that are missing
-        if pos - start > 9:
-            raise MapFileError(f"{bad} (a number of {pos - start} digits)")
-        values.append(int(head[start:pos]))
-    # Exactly one white-space byte ends the header (a comment there ends with its newline).
-    if pos >= len(head):
-        raise MapFileError(cut)
-    if head[pos] == ord("#"):
-        ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
-        if not ends:
-            raise MapFileError(cut)
-        pos = min(ends)
-    if head[pos] not in _PNM_WS:
-        raise MapFileError(f"{bad} (no white space after the last number)")
-    if need == 3 and not 1 <= values[2] <= 65535:
-        raise MapFileError(f"{where}: image '{image}' has PNM maxval {values[2]}; it must be 1..65535")
-    return kind, values, pos + 1
-
-
-def _pnm_lut(kind: int, maxval: int) -> np.ndarray:
-    """Grey level (0..255, float64) of every possible sample, with Pillow's rounding for maxval != 255
-    (the rule mapd has always loaded PNM with): 8-bit output ``min(255, round(v / maxval * 255))``;
-    a 16-bit grey image keeps 16 bits, ``min(65535, round(v / maxval * 65535))``, then scales to 255."""
-    v = np.arange(256 if maxval < 256 else 65536, dtype=np.float64)
-    if kind == 5 and maxval > 255:
-        return np.minimum(65535.0, np.rint(v / maxval * 65535.0)) * (255.0 / 65535.0)
-    if maxval == 255:
-        return v
-    return np.minimum(255.0, np.rint(v / maxval * 255.0))
-
-
-def _read_pnm(f: Any, size: int, where: str, image: Path, max_cells: int) -> _Pixels | None:
-    """PNM pixels (P5, P6); None when Pillow should decode the validated file (P1-P4)."""
-    head = f.read(MAX_PNM_HEADER)
-    try:
-        kind, values, offset = _pnm_header(head, where, image)
-    except MapFileError:
-        if len(head) >= MAX_PNM_HEADER:
-            raise MapFileError(
-                f"{where}: image '{image}' has no PNM header in its first {MAX_PNM_HEADER} bytes"
-            ) from None
-        raise
-    width, height = values[0], values[1]
-    _check_cells(width, height, where, image, max_cells)
-    maxval = values[2] if len(values) == 3 else 1
-    sample = 1 if maxval < 256 else 2
-    channels = 3 if kind in (3, 6) else 1
-    if kind in (1, 2, 3):
-        if width * height > PLAIN_PNM_MAX_CELLS:
-            raise LimitError(
-                f"{where}: image '{image}' is a plain (ASCII) PNM of {width * height} pixels, over the "
-                f"{PLAIN_PNM_MAX_CELLS} mapd decodes in that form; save it as binary P5"
-            )
-        # Each sample takes at least one digit and (but P1) one separator.
-        least = width * height if kind == 1 else 2 * width * height * channels - 1
-    elif kind == 4:
-        least = (width + 7) // 8 * height
-    else:
-        least = width * height * channels * sample
-    have = size - offset
-    if have < least:
-        raise MapFileError(
-            f"{where}: image '{image}' ends early: {max(have, 0)} of {least} pixel bytes "
-            "(truncated or still being written)"
-        )
-    if kind in (1, 2, 3, 4):
-        return None
-    f.seek(offset)
-    raw = f.read(least)
-    if len(raw) != least:
-        raise MapFileError(f"{where}: image '{image}' ends early (it changed while being read)")
-    dtype = np.dtype(np.uint8) if sample == 1 else np.dtype(">u2")
-    shape = (height, width, channels)
-    arr = np.frombuffer(raw, dtype=dtype).reshape(shape)
-    return _Pixels(arr, has_alpha=False, lut=_pnm_lut(kind, maxval))
-
-
-# PNG: Pillow pads an image whose compressed data ends early (a complete zlib stream that holds
-# too few rows) with black, which map_server's rules read as walls. So the chunks are walked first:
-# every CRC checked, IEND present, and the IDAT stream inflated (in bounded pieces, counted, not
-# kept) to at least the size IHDR implies.
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: colour type -> (samples per pixel, allowed bit depths)
-_PNG_TYPES = {
-    0: (1, (1, 2, 4, 8, 16)),
-    2: (3, (8, 16)),
-    3: (1, (1, 2, 4, 8)),
-    4: (2, (8, 16)),
-    6: (4, (8, 16)),
-}
-_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
-_PIECE = 1 << 20
-
-
-def _png_raw_size(width: int, height: int, bits: int, interlaced: bool) -> int:
-    """Bytes of filtered scanlines (a filter byte per row) IHDR's size and format imply."""
-    if not interlaced:
-        return height * (1 + (width * bits + 7) // 8)
-    total = 0
-    for xs, ys, dx, dy in _ADAM7:
-        cols = (width - xs + dx - 1) // dx if width > xs else 0
-        rows = (height - ys + dy - 1) // dy if height > ys else 0
-        if cols and rows:
-            total += rows * (1 + (cols * bits + 7) // 8)
-    return total
-
-
-def _check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
-    """Walk a PNG's chunks: raise MapFileError unless it is complete and consistent, LimitError when
-    IHDR's size is over ``max_cells`` (before any pixel data is inflated)."""
-    name = f"{where}: image '{image}'"
-    cut = f"{name} is truncated (ends before its IEND chunk)"
-    f.seek(len(_PNG_SIGNATURE))
-    inflater = zlib.decompressobj()
-    expect = -1
-    got = 0
-    first = True
-    while True:
-        head = f.read(8)
-        if len(head) < 8:
-            raise MapFileError(cut)
-        length, ctype = struct.unpack(">I4s", head)
-        if length > 0x7FFFFFFF or not ctype.isalpha():
-            raise MapFileError(f"{name} is corrupt (bad chunk header)")
-        if first and (ctype != b"IHDR" or length != 13):
-            raise MapFileError(f"{name} is corrupt (it does not start with IHDR)")
-        crc = zlib.crc32(ctype)
-        left = length
-        ihdr = b""
-        while left:
-            piece = f.read(min(left, _PIECE))
-            if not piece:
-                raise MapFileError(cut)
-            left -= len(piece)
-            crc = zlib.crc32(piece, crc)
-            if first:
-                ihdr += piece
-            elif ctype == b"IDAT" and got < expect:
-                got += _inflate_count(inflater, piece, expect - got, name)
-        tail = f.read(4)
-        if len(tail) < 4:
-            raise MapFileError(cut)
-        if struct.unpack(">I", tail)[0] != crc:
-            raise MapFileError(f"{name} is corrupt (CRC mismatch in its {ctype.decode()} chunk)")
-        if first:
-            width, height, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", ihdr)
-            if (
-                colour not in _PNG_TYPES
-                or depth not in _PNG_TYPES[colour][1]
-                or comp
-                or filt
-                or interlace > 1
-            ):
-                raise MapFileError(f"{name} is corrupt (impossible IHDR)")
-            _check_cells(width, height, where, image, max_cells)
-            expect = _png_raw_size(width, height, depth * _PNG_TYPES[colour][0], bool(interlace))
-            first = False
-        if ctype == b"IEND":
-            break
-    if got < expect:
-        raise MapFileError(
-            f"{name} ends early: its pixel data holds {got} of {expect} bytes (truncated or cut short)"
-        )
-
-
-def _inflate_count(inflater: Any, data: bytes, want: int, name: str) -> int:
-    """Inflate ``data`` into the running stream, counting output up to ``want`` bytes (not kept)."""
-    got = 0
-    buf = data
-    try:
-        while True:
-            out = inflater.decompress(buf, _PIECE)
-            got += len(out)
-            buf = inflater.unconsumed_tail
-            if inflater.eof or got >= want or (not buf and len(out) < _PIECE):
-                return got
-    except zlib.error as exc:
-        raise MapFileError(f"{name} is corrupt (its pixel data: {_one_line(exc)})") from None
-
-
-def _pillow_pixels(f: Any, formats: tuple[str, ...], where: str, image: Path, max_cells: int) -> _Pixels:
-    """Decode with Pillow (after any header checks of our own); every failure is one MapFileError.
-
-    ``max_cells`` is checked right after ``Image.open``, which reads only the header, so nothing over
-    the limit is decoded. Pillow's own decompression-bomb guard (``Image.MAX_IMAGE_PIXELS``, about
-    89 M pixels, refused at twice that) is deliberately left at its process-wide default: it is above
-    the default ``max_cells`` (67 M), so it only ever acts as a second fence, and mapd does not
-    change a global that other code in the process may rely on. Its refusal is a LimitError.
-    """
-    name = f"{where}: image '{image}'"
-    try:
-        img = Image.open(f, formats=list(formats))
-    except Image.DecompressionBombError as exc:
-        raise LimitError(f"{name} is too large: {_one_line(exc)}") from None
-    except UnidentifiedImageError:
-        raise MapFileError(
-            f"{name} is not an image mapd reads (PGM/PNM, PNG, {', '.join(PILLOW_FORMATS[:-1])} "
-            f"or {PILLOW_FORMATS[-1]}), or its header is damaged"
-        ) from None
-    except _PIL_ERRORS as exc:
-        raise MapFileError(f"{name} cannot be read: {_one_line(exc)}") from None
-    try:
-        with img:
-            _check_cells(img.size[0], img.size[1], where, image, max_cells)
-            return _pillow_array(img)
-    except (MapFileError, LimitError):
-        raise
-    except _PIL_ERRORS as exc:
-        raise MapFileError(f"{name} is truncated or corrupt: {_one_line(exc)}") from None
-
-
-def _pillow_array(img: Image.Image) -> _Pixels:
-    """Pixels of a Pillow image, converted as map_server's SDL_image would hand them over."""
-    mode = img.mode
-    if mode == "P":
-        img = img.convert("RGBA" if "transparency" in img.info else "RGB")
-    elif mode == "1":
-        img = img.convert("L")
-    elif mode == "PA":
-        img = img.convert("RGBA")
-    elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
-        img = img.convert("RGB")
-    mode = img.mode
-    arr = np.asarray(img)
-    if arr.ndim == 2:
-        arr = arr[:, :, None]
-    if arr.ndim != 3 or arr.dtype.kind not in "uif":
-        raise ValueError(f"pixel mode {mode} is not supported")
-    has_alpha = mode in ("LA", "RGBA", "La", "RGBa")
-    if mode.startswith("I;16"):
-        return _Pixels(arr, has_alpha, scale=255.0 / 65535.0)
-    if mode == "I":
-        # A 32-bit integer image (Pillow's 16-bit PNG): 16-bit samples unless none is above 255.
-        return _Pixels(arr, has_alpha, scale=255.0 / 65535.0 if int(arr.max(initial=0)) > 255 else 1.0)
-    return _Pixels(arr, has_alpha)
-
-
-def _read_pixels(image_path: Path, yaml_path: Path, max_cells: int) -> _Pixels:
-    """The image's pixels, its size checked against ``max_cells`` from the header before decoding."""
-    where = str(yaml_path)
-    try:
-        fd = _open_regular(image_path, where, "image")
-    except FileNotFoundError:
-        raise MapFileError(f"{where}: image '{image_path}' does not exist") from None
-    try:
-        with os.fdopen(fd, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            magic = f.read(8)
-            f.seek(0)
-            if len(magic) >= 3 and magic[0] == ord("P") and magic[1] in b"123456" and magic[2] in _PNM_WS:
-                pixels = _read_pnm(f, size, where, image_path, max_cells)
-                if pixels is not None:
-                    return pixels
-                f.seek(0)
-                return _pillow_pixels(f, ("PPM",), where, image_path, max_cells)
-            if magic == _PNG_SIGNATURE:
-                _check_png(f, where, image_path, max_cells)
-                f.seek(0)
-                return _pillow_pixels(f, ("PNG",), where, image_path, max_cells)
-            if _PNG_SIGNATURE.startswith(magic) or (magic[:1] == b"P" and len(magic) < 3):
-                raise MapFileError(f"{where}: image '{image_path}' is truncated ({len(magic)} bytes)")
-            return _pillow_pixels(f, PILLOW_FORMATS, where, image_path, max_cells)
-    except OSError as exc:
-        raise MapFileError(f"{where}: cannot read image '{image_path}': {exc.strerror or exc}") from None
-
-
 def _occupancy(px: np.ndarray, has_alpha: bool, meta: dict[str, Any]) -> np.ndarray:
     """map_server's rules on a band of pixels (float64, (rows, W, C), 0..255): int8 cells, image order."""
     n = px.shape[2]
@@ -784,7 +404,7 @@ def load_map(
     """
     path = Path(yaml_path)
     meta = read_map_yaml(path)
-    pixels = _read_pixels(meta["image"], path, max_cells)
+    pixels = read_pixels(meta["image"], str(path), max_cells)
     height, width = pixels.arr.shape[:2]
     data = np.empty((height, width), dtype=np.int8)
     step = max(1, _BAND_CELLS // width)

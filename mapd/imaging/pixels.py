@@ -1,0 +1,167 @@
+"""Decoded pixels, Pillow's decoding of them, and what every image reader here shares.
+
+* :class:`Pixels`: an image's samples ``(H, W, C)`` as the file holds them, turned into map_server's
+  0..255 grey scale a band of rows at a time.
+* :func:`pillow_pixels`: Pillow restricted to the formats asked for (only those map_server also
+  reads, :data:`PILLOW_FORMATS`), the size checked from the header before decoding, the pixels handed
+  over as map_server's SDL_image would (palette to RGB(A), 1-bit to grey, 16-bit scaled to 0..255),
+  and every failure one error.
+* :func:`check_cells`: an empty image, or one over the caller's cell limit, refused from its header
+  before a pixel is decoded.
+* :func:`open_regular`: a descriptor of a regular file, opened so that a FIFO or a device named as a
+  map can neither block nor be read for ever.
+* :func:`one_line`: an exception's message on one line, for the errors the readers raise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import stat
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from mapd.errors import LimitError, MapFileError
+
+#: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
+#: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.
+PILLOW_FORMATS = ("BMP", "GIF", "JPEG", "TIFF", "TGA", "PCX", "WEBP", "XPM")
+#: What Pillow raises on bytes it cannot decode (its plugins are not uniform about it).
+_PIL_ERRORS: tuple[type[BaseException], ...] = (
+    OSError,
+    ValueError,
+    SyntaxError,
+    EOFError,
+    struct.error,
+    IndexError,
+    KeyError,
+    TypeError,
+    ZeroDivisionError,
+    NotImplementedError,
+    MemoryError,
+    Image.DecompressionBombError,
+)
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (a CLI error is one line per problem)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def open_regular(path: Path, where: str, what: str) -> int:
+    """An O_RDONLY descriptor of ``path``, refusing anything but a regular file.
+
+    O_NONBLOCK so that a FIFO named as a map cannot block the open itself; the fstat then refuses
+    it, like a device (``/dev/zero`` would be read forever) or a directory.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise MapFileError(f"{where}: cannot open {what} '{path}': {exc.strerror}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+    except OSError as exc:
+        os.close(fd)
+        raise MapFileError(f"{where}: cannot read {what} '{path}': {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise MapFileError(f"{where}: {what} '{path}' is not a regular file")
+    return fd
+
+
+@dataclasses.dataclass
+class Pixels:
+    """Decoded pixels ``(H, W, C)`` in the file's own sample type, and how samples become grey.
+
+    ``lut`` maps an integer sample to its grey level on map_server's 0..255 scale (float64); without
+    it a sample times ``scale`` is the grey level. Conversion happens a band of rows at a time, so
+    the float64 arrays of the loading rules never exist for the whole image.
+    """
+
+    arr: np.ndarray
+    has_alpha: bool
+    lut: np.ndarray | None = None
+    scale: float = 1.0
+
+    def grey(self, r0: int, r1: int) -> np.ndarray:
+        band = self.arr[r0:r1]
+        if self.lut is not None:
+            return self.lut[band]
+        out = band.astype(np.float64)
+        if self.scale != 1.0:
+            out *= self.scale
+        return out
+
+
+def check_cells(width: int, height: int, where: str, image: Path, max_cells: int) -> None:
+    """Refuse an empty image or one over ``max_cells``, from its header, before any pixel is decoded."""
+    if width <= 0 or height <= 0:
+        raise MapFileError(f"{where}: image '{image}' has no pixels ({width}x{height})")
+    if width * height > max_cells:
+        raise LimitError(
+            f"{where}: image '{image}' is {width}x{height} = {width * height} cells, "
+            f"over the limit of {max_cells} cells"
+        )
+
+
+def pillow_pixels(f: Any, formats: tuple[str, ...], where: str, image: Path, max_cells: int) -> Pixels:
+    """Decode with Pillow (after any header checks of our own); every failure is one MapFileError.
+
+    ``max_cells`` is checked right after ``Image.open``, which reads only the header, so nothing over
+    the limit is decoded. Pillow's own decompression-bomb guard (``Image.MAX_IMAGE_PIXELS``, about
+    89 M pixels, refused at twice that) is deliberately left at its process-wide default: it is above
+    the default ``max_cells`` (67 M), so it only ever acts as a second fence, and mapd does not
+    change a global that other code in the process may rely on. Its refusal is a LimitError.
+    """
+    name = f"{where}: image '{image}'"
+    try:
+        img = Image.open(f, formats=list(formats))
+    except Image.DecompressionBombError as exc:
+        raise LimitError(f"{name} is too large: {one_line(exc)}") from None
+    except UnidentifiedImageError:
+        raise MapFileError(
+            f"{name} is not an image mapd reads (PGM/PNM, PNG, {', '.join(PILLOW_FORMATS[:-1])} "
+            f"or {PILLOW_FORMATS[-1]}), or its header is damaged"
+        ) from None
+    except _PIL_ERRORS as exc:
+        raise MapFileError(f"{name} cannot be read: {one_line(exc)}") from None
+    try:
+        with img:
+            check_cells(img.size[0], img.size[1], where, image, max_cells)
+            return _pillow_array(img)
+    except (MapFileError, LimitError):
+        raise
+    except _PIL_ERRORS as exc:
+        raise MapFileError(f"{name} is truncated or corrupt: {one_line(exc)}") from None
+
+
+def _pillow_array(img: Image.Image) -> Pixels:
+    """Pixels of a Pillow image, converted as map_server's SDL_image would hand them over."""
+    mode = img.mode
+    if mode == "P":
+        img = img.convert("RGBA" if "transparency" in img.info else "RGB")
+    elif mode == "1":
+        img = img.convert("L")
+    elif mode == "PA":
+        img = img.convert("RGBA")
+    elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+        img = img.convert("RGB")
+    mode = img.mode
+    arr = np.asarray(img)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or arr.dtype.kind not in "uif":
+        raise ValueError(f"pixel mode {mode} is not supported")
+    has_alpha = mode in ("LA", "RGBA", "La", "RGBa")
+    if mode.startswith("I;16"):
+        return Pixels(arr, has_alpha, scale=255.0 / 65535.0)
+    if mode == "I":
+        # A 32-bit integer image (Pillow's 16-bit PNG): 16-bit samples unless none is above 255.
+        return Pixels(arr, has_alpha, scale=255.0 / 65535.0 if int(arr.max(initial=0)) > 255 else 1.0)
+    return Pixels(arr, has_alpha)
