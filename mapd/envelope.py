@@ -42,6 +42,7 @@ _KEYS = {
     "t": "stamp",
     "n": "seq",
     "p": "payload",
+    "fp": "frame_pose",
     "s": "sig",
 }
 _MAX_STR = 64
@@ -72,6 +73,10 @@ class Envelope:
     frame_id: str = "map"
     stamp: float = 0.0
     seq: int = 0
+    #: Where the robot's map frame lies in the fleet's world frame, when its source knows (the
+    #: start pose of a simulated or logged robot, or ``start_pose`` in its config): receivers place
+    #: its map there, as a configured pose, unless their own config says otherwise.
+    frame_pose: Pose2D | None = None
     sig: bytes = field(default=b"", repr=False)
 
     @property
@@ -95,6 +100,7 @@ class Envelope:
             "t": self.stamp,
             "n": self.seq,
             "p": self.payload,
+            **({"fp": list(self.frame_pose)} if self.frame_pose is not None else {}),
         }
 
     def signed(self, identity: Identity) -> Envelope:
@@ -157,7 +163,7 @@ def unpack(
     unknown = set(obj) - set(_KEYS)
     if unknown:
         raise EnvelopeError(f"envelope has unknown fields {sorted(map(str, unknown))}")
-    missing = set(_KEYS) - {"s"} - set(obj)
+    missing = set(_KEYS) - {"s", "fp"} - set(obj)
     if missing:
         raise EnvelopeError(f"envelope is missing fields {sorted(_KEYS[k] for k in missing)}")
     if _want(obj, "f", int) != FORMAT:
@@ -178,6 +184,7 @@ def unpack(
     if not all(math.isfinite(float(x)) for x in (res, stamp, *origin)) or res <= 0:
         raise EnvelopeError("envelope has a non-finite resolution, stamp or origin")
     payload = _want(obj, "p", bytes)
+    frame_pose = _frame_pose(obj["fp"]) if "fp" in obj else None
     sig = obj.get("s", b"")
     if not isinstance(sig, bytes) or (sig and len(sig) != SIG_LEN):
         raise SignatureError("envelope signature has the wrong form")
@@ -201,5 +208,24 @@ def unpack(
         stamp=float(stamp),
         seq=ints["n"],
         payload=payload,
+        frame_pose=frame_pose,
         sig=sig,
     )
+
+
+#: A frame pose farther out than this is no place on Earth's surface a fleet maps (same bound as
+#: map origins in :mod:`mapd.grid`).
+_MAX_FRAME_POSE_M = 1e7
+
+
+def _frame_pose(v: Any) -> Pose2D:
+    if (
+        not isinstance(v, list)
+        or len(v) != 3
+        or not all(isinstance(x, float | int) and not isinstance(x, bool) for x in v)
+        or not all(math.isfinite(float(x)) for x in v)
+        or max(abs(float(v[0])), abs(float(v[1]))) > _MAX_FRAME_POSE_M
+        or abs(float(v[2])) > 2 * math.pi
+    ):
+        raise EnvelopeError("envelope frame pose must be [x, y, yaw], finite and within bounds")
+    return Pose2D(float(v[0]), float(v[1]), float(v[2]))

@@ -132,3 +132,19 @@ def test_fuzz_unpack_only_raises_envelope_errors(blob: bytes) -> None:
 def test_fuzz_structured_garbage(obj: object) -> None:
     with contextlib.suppress(EnvelopeError):
         unpack(msgpack.packb(obj))
+
+
+def test_frame_pose_travels_signed_and_is_checked() -> None:
+    env = make(frame_pose=Pose2D(12.5, -3.0, 1.2)).signed(ALPHA)
+    back = unpack(env.pack(), roster=ROSTER)
+    assert back.frame_pose == Pose2D(12.5, -3.0, 1.2)
+    assert unpack(make().pack()).frame_pose is None  # optional: absent when the source does not know
+    tampered = msgpack.unpackb(env.pack())
+    tampered["fp"] = [0.0, 0.0, 0.0]
+    with pytest.raises(SignatureError):
+        unpack(msgpack.packb(tampered), roster=ROSTER)
+    for bad in ([1.0, 2.0], [1e9, 0.0, 0.0], [0.0, 0.0, float("nan")], ["x", 0, 0]):
+        d = msgpack.unpackb(make().pack())
+        d["fp"] = bad
+        with pytest.raises(EnvelopeError, match="frame pose"):
+            unpack(msgpack.packb(d))

@@ -21,7 +21,7 @@ from mapd.codec.base import CodecOptions
 from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
-from mapd.grid import OccupancyGrid
+from mapd.grid import OccupancyGrid, Pose2D
 from mapd.identity import Identity
 
 
@@ -71,6 +71,8 @@ class Coder:
         self.log = log
         self._lock = threading.Lock()
         self.stats: dict[str, Any] = {"name": codec}
+        #: This robot's map frame in the fleet frame, when its source knows it (sent in every envelope).
+        self.frame_pose: Pose2D | None = None
 
     def envelope(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Envelope:
         """``grid`` coded against ``base`` (None: whole), wrapped, signed, logged."""
@@ -93,6 +95,7 @@ class Coder:
             stamp=grid.stamp,
             seq=self.store.next_seq(),
             payload=payload,
+            frame_pose=self.frame_pose,
         )
         if self.identity is not None:
             env = env.signed(self.identity)

@@ -145,6 +145,13 @@ class Daemon:
                 self._options("source", self.cfg.source.use, source_cls.Options),
                 SourceContext(robot=self.me, max_cells=self.cfg.limits.max_cells),
             )
+        # Where this robot's map frame lies in the fleet frame, when the source knows (a simulated
+        # or logged robot's start, or start_pose in its config): fused as a known pose here, and
+        # sent with every map so peers can too. Reading it may build a world or read a log.
+        start = await asyncio.to_thread(self.source.start_pose)
+        if start is not None:
+            self.coder.frame_pose = start
+            self.fusion.known_pose(self.me, start)
         for name in self.cfg.transports.use:
             cls = plugins.load("transport", name)
             state_dir = self.cfg.state.dir / "links" / name
@@ -447,6 +454,8 @@ class Daemon:
                 await transport.request_keyframe(ask.robot)
             return
         rx.accept(grid, env, ev.transport, len(ev.data), time.time())
+        if env.frame_pose is not None:
+            self.fusion.known_pose(env.robot, env.frame_pose)
         try:
             await asyncio.to_thread(self.store.save_peer, grid)
         except StateError as exc:

@@ -127,6 +127,16 @@ class FusionWorker:
         self._latest[robot] = grid
         self._wake.set()
 
+    def known_pose(self, robot: str, pose: Pose2D) -> None:
+        """``robot`` reports where its map frame lies in the fleet frame (its source's start pose).
+
+        Used as a configured pose, unless ``fusion.poses`` names that robot: the config wins.
+        """
+        if robot in self.cfg.poses or self.placer.poses.get(robot) == pose:
+            return
+        self.placer.poses[robot] = pose
+        self._wake.set()
+
     @property
     def global_map(self) -> OccupancyGrid | None:
         """The latest global map (the restored one until the first merge), or None."""

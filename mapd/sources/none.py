@@ -22,5 +22,6 @@ class NoneSource(MapSource):
 
     async def maps(self) -> AsyncIterator[OccupancyGrid]:
         await asyncio.Event().wait()  # until cancelled at shutdown
-        for grid in ():  # an async generator that yields nothing
+        nothing: tuple[OccupancyGrid, ...] = ()
+        for grid in nothing:  # an async generator that yields nothing
             yield grid
