@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "mapd.commands.link",  # link send / recv
     "mapd.commands.train",  # train
     "mapd.commands.keys",  # keygen
+    "mapd.commands.record",  # record info
     "mapd.commands.bench",  # bench ...
 ]
 

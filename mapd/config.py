@@ -173,6 +173,14 @@ class ControlSection(Strict):
     )
 
 
+class RecordSection(Strict):
+    """``[record]``: an MCAP recording of the fleet as this daemon sees it (off unless ``path`` is set)."""
+
+    path: Path | None = Field(default=None, description="the MCAP file to write; rotates to NAME.1.mcap, ...")
+    max_bytes: int = Field(default=256 << 20, ge=1 << 20, description="start the next file past this size")
+    stats_every_s: float = Field(default=5.0, gt=0.0, description="how often the link counters are recorded")
+
+
 class LogSection(Strict):
     level: Literal["debug", "info", "warning", "error"] = "info"
 
@@ -190,6 +198,7 @@ class MapdConfig(Strict):
     fusion: FusionSection = Field(default_factory=FusionSection)
     control: ControlSection = Field(default_factory=ControlSection)
     log: LogSection = Field(default_factory=LogSection)
+    record: RecordSection = Field(default_factory=RecordSection)
 
     @model_validator(mode="after")
     def _check_plugin_tables(self) -> MapdConfig:
@@ -289,6 +298,8 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
     base = p.parent
     if cfg.robot.key_file is not None and not cfg.robot.key_file.is_absolute():
         cfg.robot.key_file = base / cfg.robot.key_file
+    if cfg.record.path is not None and not cfg.record.path.is_absolute():
+        cfg.record.path = base / cfg.record.path
     if cfg.fleet.link_key_file is not None and not cfg.fleet.link_key_file.is_absolute():
         cfg.fleet.link_key_file = base / cfg.fleet.link_key_file
     return cfg

@@ -53,6 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
     p.add_argument("--seed", type=int, default=7, help="building and robots seed")
     p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="record robot0's view of the fleet to an MCAP file (global map, robots' maps, TF, links)",
+    )
     faults = p.add_argument_group("faults on the emulated UWB link (--transport uwb)")
     faults.add_argument("--drop", type=float, default=0.0, metavar="P", help="frame loss probability")
     faults.add_argument("--flip", type=float, default=0.0, metavar="P", help="bit-flip probability per byte")

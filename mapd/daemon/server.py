@@ -23,6 +23,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
@@ -44,7 +45,8 @@ from mapd.daemon.versions import VersionBounds
 from mapd.envelope import Envelope
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
-from mapd.grid import OccupancyGrid
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.record.writer import Recorder
 from mapd.sources.base import MapSource, SourceContext
 from transports.base import (
     Delivered,
@@ -131,6 +133,11 @@ class Daemon:
             anchor=cfg.fusion.anchor or (None if cfg.source.use == "none" else self.me),
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
+        # An MCAP recording, written on the file thread (CDR encoding and writes stay off the loop).
+        self.recorder = (
+            Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path is not None else None
+        )
+        self._recorded_tf: dict[str, Pose2D] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -202,6 +209,7 @@ class Daemon:
                 tg.create_task(self._event_loop(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
+                tg.create_task(self._record_links(), name="record"),
             ]
             await self._stop.wait()
             self._stopping_at = time.monotonic()
@@ -227,6 +235,9 @@ class Daemon:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
         t_closed = time.monotonic()
         await asyncio.to_thread(self._files.shutdown, wait=True)
+        if self.recorder is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(self.recorder.close)  # summary and footer
         with contextlib.suppress(MapdError, OSError):
             await asyncio.to_thread(self.store.flush)
         if self._stopping_at is not None:
@@ -305,6 +316,7 @@ class Daemon:
             )
             self.own = own
             self._pending = own  # latest wins: an unsaved older version is simply replaced
+            self._record_map(own)
             self._wake.set()
             self.fusion.submit(own)
         self.source_finished = True
@@ -364,6 +376,29 @@ class Daemon:
             self.publisher.remember_keyframe(env)
             return env
 
+    def _record(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run a recorder call on the file thread; a failing recording never stops the daemon."""
+
+        def call() -> None:
+            try:
+                fn(*args)
+            except Exception as exc:  # disk full, a bug: log it and keep the fleet running
+                log.error("recording failed: %s: %s", type(exc).__name__, exc)
+
+        self._files.submit(call)
+
+    async def _record_links(self) -> None:
+        if self.recorder is None:
+            return
+        while True:
+            await asyncio.sleep(self.cfg.record.stats_every_s)
+            links = {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports}
+            self._record(self.recorder.json, "/mapd/links", links, time.time())
+
+    def _record_map(self, grid: OccupancyGrid) -> None:
+        if self.recorder is not None:
+            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, f"{grid.robot}/map", time.time())
+
     def _on_global(self, grid: OccupancyGrid) -> None:
         """Log which version of each robot's map the new global map holds (for latency benches)."""
         now = round(time.time(), 3)
@@ -375,6 +410,17 @@ class Daemon:
         ]
         if rows:
             self._files.submit(self._fused_log.write, rows)
+        if self.recorder is not None:
+            wall = time.time()
+            self._record(self.recorder.grid, "/map", grid, "map", wall)
+            placed = {
+                f"{robot}/map": Pose2D(float(info["x"]), float(info["y"]), float(info["yaw"]))
+                for robot, info in robots.items()
+                if isinstance(info, dict) and info.get("accepted") and info.get("x") is not None
+            }
+            if placed != self._recorded_tf:  # latched: written again only when a placement changes
+                self._recorded_tf = placed
+                self._record(self.recorder.transforms, "/tf_static", "map", placed, wall)
 
     # ------------------------------------------------------------------ events in
     async def _event_loop(self) -> None:
@@ -461,6 +507,7 @@ class Daemon:
         except StateError as exc:
             log.error("%s", exc)
         self.fusion.submit(grid)
+        self._record_map(grid)
         if transport is not None:
             transport.ack(env.robot, env.version)
 

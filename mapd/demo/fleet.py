@@ -112,6 +112,9 @@ class Fleet:
                     "multicast_scouting": False,
                 }
             tables["fusion"] = {"mode": "logodds", "debounce_s": 1.0}
+            record = getattr(self.args, "record", None)
+            if record is not None and i == 0:
+                tables["record"] = {"path": str(Path(record).resolve())}
             tables["fusion.poses"] = {r: list(p) for r, p in poses.items()} if poses else {}
             write_config(d / "config.toml", tables)
 

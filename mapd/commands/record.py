@@ -1,0 +1,29 @@
+"""``mapd record info FILE``: the channels, message counts and time span of an MCAP recording."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "record",
+        help="inspect MCAP recordings made with [record] path or mapd demo --record",
+        description="Recordings hold the global map (/map), each robot's map (/<robot>/map), "
+        "/tf_static and /mapd/links; Foxglove and ros2 bag read them too.",
+    )
+    rsub = p.add_subparsers(dest="record_cmd", required=True, metavar="SUBCOMMAND")
+    info = rsub.add_parser("info", help="summarise a recording (also one cut short by a crash)")
+    info.add_argument("file", type=Path)
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(func=cmd_info)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from mapd.record.info import render, summarize
+
+    s = summarize(args.file)
+    print(json.dumps(s.to_json(), indent=1) if args.json else render(s))
+    return 0

@@ -1,0 +1,1 @@
+"""MCAP recordings of the fleet (:mod:`~mapd.record.writer`) and ``mapd record info`` (:mod:`~mapd.record.info`)."""

@@ -1,0 +1,174 @@
+"""MCAP recordings of a running fleet, readable by Foxglove and ``ros2 bag`` (ROS 2 CDR, schemas inside).
+
+Channels (REP-105 frame names: the fleet frame is ``map``, each robot's map frame ``<robot>/map``):
+
+* ``/map``: the global map, ``nav_msgs/msg/OccupancyGrid`` in the fleet frame, on every merge;
+* ``/<robot>/map``: each robot's map as this daemon holds it (received, or its own);
+* ``/tf_static``: ``tf2_msgs/msg/TFMessage``, fleet frame -> ``<robot>/map`` for every placed
+  robot, written again whenever a placement changes;
+* ``/mapd/links``: the transports' counters (JSON with a JSON schema), every ``stats_every_s``.
+
+Every message is stamped with the wall clock (log time and publish time, nanoseconds). The file is
+written in chunks (``chunk_bytes``) and flushed to the OS after each one, so a daemon killed with
+``kill -9`` leaves a file readable up to its last chunk; a clean stop writes the summary and
+footer. Past ``max_bytes`` the recording rotates: ``fleet.mcap``, ``fleet.1.mcap``, ...
+
+Blocking (file writes, CDR encoding): the daemon calls it from its file thread, never the loop.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from pathlib import Path
+from typing import IO, Any
+
+from mapd.errors import ConfigError
+from mapd.grid import OccupancyGrid, Pose2D
+
+GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+LINKS_SCHEMA = {
+    "type": "object",
+    "description": "mapd link counters by transport (see mapd status --json, links)",
+    "additionalProperties": {"type": "object"},
+}
+
+
+def _ns(wall: float) -> int:
+    return round(wall * 1e9)
+
+
+class Recorder:
+    """Writes one fleet's maps, transforms and link counters to MCAP files, rotating by size."""
+
+    def __init__(self, path: Path, *, max_bytes: int = 256 << 20, chunk_bytes: int = 256 << 10) -> None:
+        try:
+            from mcap.writer import CompressionType, Writer  # noqa: F401 - checked here, used below
+            from rosbags.typesys import Stores, get_typestore
+        except ModuleNotFoundError as exc:
+            raise ConfigError(f"record: needs {exc.name} (pip install 'mapd[record]')") from None
+        self.path = path
+        self.max_bytes = max_bytes
+        self.chunk_bytes = chunk_bytes
+        self._ts = get_typestore(Stores.ROS2_HUMBLE)
+        self._lock = threading.Lock()
+        self._file: IO[bytes] | None = None
+        self._writer: Any = None
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._index = 0
+        self.files: list[Path] = []
+        self.messages = 0
+        self._last_tf: tuple[bytes, float] | None = None
+
+    # ------------------------------------------------------------------ files
+    def _current_path(self) -> Path:
+        if self._index == 0:
+            return self.path
+        return self.path.with_name(f"{self.path.stem}.{self._index}{self.path.suffix}")
+
+    def _open(self) -> Any:
+        from mcap.writer import CompressionType, Writer
+
+        path = self._current_path()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(path, "wb")  # noqa: SIM115 - closed in _close
+        except OSError as exc:
+            raise ConfigError(f"record: cannot write {path}: {exc.strerror}") from None
+        self._writer = Writer(self._file, chunk_size=self.chunk_bytes, compression=CompressionType.ZSTD)
+        self._writer.start(profile="ros2", library="mapd")
+        self._channels.clear()
+        self._schemas.clear()
+        self.files.append(path)
+        if self._last_tf is not None:  # /tf_static is latched: every file starts with the transforms
+            data, wall = self._last_tf
+            ch = self._ros2_channel("/tf_static", TF_TYPE)
+            self._writer.add_message(channel_id=ch, log_time=_ns(wall), publish_time=_ns(wall), data=data)
+        return self._writer
+
+    def _close(self) -> None:
+        if self._writer is not None:
+            self._writer.finish()
+            self._writer = None
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def close(self) -> None:
+        """Write the summary and footer (a clean stop)."""
+        with self._lock:
+            self._close()
+
+    def _channel(
+        self, topic: str, schema: str, encoding: str, schema_data: bytes, schema_encoding: str
+    ) -> int:
+        writer = self._writer if self._writer is not None else self._open()
+        if schema not in self._schemas:
+            self._schemas[schema] = writer.register_schema(
+                name=schema, encoding=schema_encoding, data=schema_data
+            )
+        if topic not in self._channels:
+            self._channels[topic] = writer.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=self._schemas[schema]
+            )
+        return self._channels[topic]
+
+    def _ros2_channel(self, topic: str, msgtype: str) -> int:
+        msgdef, _ = self._ts.generate_msgdef(msgtype, ros_version=2)
+        return self._channel(topic, msgtype, "cdr", msgdef.encode(), "ros2msg")
+
+    def _write(self, channel: int, data: bytes, wall: float) -> None:
+        assert self._writer is not None and self._file is not None
+        t = _ns(wall)
+        self._writer.add_message(channel_id=channel, log_time=t, publish_time=t, data=data)
+        self._file.flush()  # what the writer has put out survives kill -9 (the OS holds it)
+        self.messages += 1
+        if self._file.tell() >= self.max_bytes:
+            self._close()
+            self._index += 1
+
+    # ------------------------------------------------------------------ messages
+    def grid(self, topic: str, grid: OccupancyGrid, frame_id: str, wall: float) -> None:
+        """An OccupancyGrid on ``topic``, stamped ``wall`` (seconds)."""
+        from mapd.ros2.cdr import encode
+
+        data = encode(grid, frame_id=frame_id, stamp=wall)
+        with self._lock:
+            self._write(self._ros2_channel(topic, GRID_TYPE), data, wall)
+
+    def transforms(self, topic: str, parent: str, children: dict[str, Pose2D], wall: float) -> None:
+        """A TFMessage: ``parent`` -> each child frame at its pose (x, y in m, yaw in rad)."""
+        t = self._ts.types
+        sec = math.floor(wall)
+        stamp = t["builtin_interfaces/msg/Time"](
+            sec=int(sec), nanosec=min(round((wall - sec) * 1e9), 999_999_999)
+        )
+        items = []
+        for child, pose in sorted(children.items()):
+            items.append(
+                t["geometry_msgs/msg/TransformStamped"](
+                    header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=parent),
+                    child_frame_id=child,
+                    transform=t["geometry_msgs/msg/Transform"](
+                        translation=t["geometry_msgs/msg/Vector3"](x=pose.x, y=pose.y, z=0.0),
+                        rotation=t["geometry_msgs/msg/Quaternion"](
+                            x=0.0, y=0.0, z=math.sin(pose.yaw / 2), w=math.cos(pose.yaw / 2)
+                        ),
+                    ),
+                )
+            )
+        data = bytes(self._ts.serialize_cdr(t[TF_TYPE](transforms=items), TF_TYPE))
+        with self._lock:
+            if topic == "/tf_static":
+                self._last_tf = (data, wall)
+            self._write(self._ros2_channel(topic, TF_TYPE), data, wall)
+
+    def json(self, topic: str, doc: dict[str, Any], wall: float) -> None:
+        """A JSON document (the link counters) on ``topic``."""
+        data = json.dumps(doc, default=str, sort_keys=True).encode()
+        with self._lock:
+            ch = self._channel(topic, "mapd.links", "json", json.dumps(LINKS_SCHEMA).encode(), "jsonschema")
+            self._write(ch, data, wall)

@@ -1,0 +1,163 @@
+"""MCAP recordings read back with the mcap library and its independent ROS 2 decoder (mcap-ros2-support)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+
+from mapd.demo.fleet import Fleet, write_config
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.record.info import summarize
+from mapd.record.writer import Recorder
+
+
+def grid(w: int, h: int, robot: str = "robot0", seed: int = 0) -> OccupancyGrid:
+    rng = np.random.default_rng(seed)
+    d = rng.choice(np.array([-1, 0, 100], np.int8), size=(h, w))
+    return OccupancyGrid(d, 0.05, Pose2D(1.5, -2.0, 0.3), robot=robot)
+
+
+def read_all(path: Path) -> list[tuple[str, str, int, Any]]:
+    """(topic, schema, log time, decoded) for every message, decoded with the schemas in the file."""
+    out = []
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            out.append((channel.topic, schema.name if schema else "", message.log_time, decoded))
+    return out
+
+
+def test_recorder_writes_grids_tf_and_links_that_an_independent_decoder_reads(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path / "r.mcap")
+    g = grid(40, 30)
+    rec.grid("/map", g, "map", 100.0)
+    rec.grid("/robot1/map", grid(20, 10, "robot1", 1), "robot1/map", 100.5)
+    rec.transforms(
+        "/tf_static", "map", {"robot0/map": Pose2D(0, 0, 0), "robot1/map": Pose2D(3.0, 4.0, 1.0)}, 101.0
+    )
+    rec.close()
+    msgs = [m for m in read_all(tmp_path / "r.mcap") if m[1] != "mapd.links"]
+    assert [(t, s) for t, s, _, _ in msgs] == [
+        ("/map", "nav_msgs/msg/OccupancyGrid"),
+        ("/robot1/map", "nav_msgs/msg/OccupancyGrid"),
+        ("/tf_static", "tf2_msgs/msg/TFMessage"),
+    ]
+    m = msgs[0][3]
+    assert (m.header.frame_id, m.info.width, m.info.height) == ("map", 40, 30)
+    assert m.info.resolution == pytest.approx(0.05) and m.info.origin.position.x == pytest.approx(1.5)
+    assert np.array_equal(np.asarray(m.data, np.int8).reshape(30, 40), g.data)
+    assert msgs[0][2] == 100_000_000_000 and (m.header.stamp.sec, m.header.stamp.nanosec) == (100, 0)
+    tf = msgs[2][3].transforms
+    assert [(t.header.frame_id, t.child_frame_id) for t in tf] == [
+        ("map", "robot0/map"),
+        ("map", "robot1/map"),
+    ]
+    assert tf[1].transform.translation.x == pytest.approx(3.0)
+    assert tf[1].transform.rotation.z == pytest.approx(np.sin(0.5))
+    assert summarize(tmp_path / "r.mcap").complete
+
+
+def test_recordings_rotate_by_size_and_each_file_starts_with_the_transforms(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path / "fleet.mcap", max_bytes=256 << 10, chunk_bytes=64 << 10)
+    rec.transforms("/tf_static", "map", {"robot0/map": Pose2D(0, 0, 0)}, 1.0)
+    for i in range(12):
+        rec.grid("/map", grid(400, 400, seed=i), "map", 2.0 + i)  # random cells: ~35 kB each, zstd or not
+    rec.close()
+    assert len(rec.files) >= 2 and rec.files[1].name == "fleet.1.mcap"
+    for f in rec.files:
+        assert f.stat().st_size < 512 << 10
+        topics = [t for t, _, _, _ in read_all(f)]
+        assert topics[0] == "/tf_static", f
+    assert sum(summarize(f).topics["/map"].messages for f in rec.files) == 12
+
+
+def test_a_cut_file_reads_up_to_its_last_chunk_and_garbage_is_one_line(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path / "c.mcap", chunk_bytes=32 << 10)
+    for i in range(10):
+        rec.grid("/map", grid(200, 200, seed=i), "map", 10.0 + i)
+    # no close(): as after kill -9, the footer is missing; what the writer put out is on disk
+    data = (tmp_path / "c.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) - 100])
+    s = summarize(tmp_path / "cut.mcap")
+    assert not s.complete and 1 <= s.topics["/map"].messages < 10
+    (tmp_path / "junk.mcap").write_bytes(os.urandom(5000))
+    out = subprocess.run([sys.executable, "-m", "mapd", "record", "info", str(tmp_path / "junk.mcap")],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert out.returncode != 0 and out.stderr.startswith("mapd: error:") and "Traceback" not in out.stderr
+
+
+@pytest.mark.slow
+def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(tmp_path: Path) -> None:
+    args = argparse.Namespace(
+        robots=2, transport="zenoh", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0,
+        record=tmp_path / "fleet.mcap",
+    )  # fmt: skip
+    f = Fleet(args)
+    f.prepare()
+    path = f.run_dir / "robot0" / "config.toml"
+    cfg = tomllib.loads(path.read_text())
+    cfg["record"]["stats_every_s"] = 1.0
+    cfg["record"]["max_bytes"] = 1 << 20
+    write_config(path, cfg)
+    f.start()
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            f.check_alive()
+            s = f.status().get("robot0", {})
+            if s.get("fusion", {}).get("maps", 0) >= 2 and s.get("fusion", {}).get("merges", 0) >= 4:
+                break
+            time.sleep(1.0)
+        time.sleep(3.0)
+        os.kill(f.procs["robot0"].pid, signal.SIGKILL)
+        f.procs["robot0"].wait(10)
+    finally:
+        f.stop()
+    files = sorted(tmp_path.glob("fleet*.mcap"))
+    assert files
+    topics: dict[str, list[int]] = {}
+    decoded: dict[str, Any] = {}
+    for fp in files:
+        with open(fp, "rb") as fh:
+            schemas, channels = {}, {}
+            try:
+                for record in StreamReader(fh).records:  # reads in order, so a file without a footer works
+                    name = type(record).__name__
+                    if name == "Schema":
+                        schemas[record.id] = record
+                    elif name == "Channel":
+                        channels[record.id] = record
+                    elif name == "Message":
+                        ch = channels[record.channel_id]
+                        topics.setdefault(ch.topic, []).append(record.log_time)
+                        sch = schemas[ch.schema_id]
+                        if sch.encoding == "ros2msg":
+                            decoded[ch.topic] = DecoderFactory().decoder_for("cdr", sch)(record.data)
+                        else:
+                            decoded[ch.topic] = json.loads(record.data)
+            except Exception:  # the killed file ends mid-chunk: everything before it was read
+                pass
+    assert {"/map", "/robot0/map", "/robot1/map", "/tf_static", "/mapd/links"} <= set(topics), topics.keys()
+    for topic, times in topics.items():
+        assert times == sorted(times), topic  # timestamps never go back
+    assert decoded["/map"].header.frame_id == "map" and decoded["/map"].info.width > 0
+    assert decoded["/robot1/map"].header.frame_id == "robot1/map"
+    assert {t.child_frame_id for t in decoded["/tf_static"].transforms} == {"robot0/map", "robot1/map"}
+    assert "zenoh" in decoded["/mapd/links"]
+    info = subprocess.run([sys.executable, "-m", "mapd", "record", "info", str(files[-1])],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert info.returncode == 0 and "messages" in info.stdout, info.stderr
