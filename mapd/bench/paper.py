@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapd.bench import paper_report
+from mapd.bench import paper_global, paper_report
 from mapd.bench.common import UWB_BPS, quality, timed
 from mapd.bench.paper_report import ROWS
 from mapd.tables import emit
@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from mapd.bench.paper_data import Run
+    from mapd.bench.paper_global import Recovered
     from mapd.grid import OccupancyGrid
 
 HELP = "the paper's Figures 8a, 8b and 9 on a log or a simulation: report.md and PNG figures"
@@ -137,14 +138,20 @@ class Coder:
         return rec, cells
 
 
-def fig8_updates(run: Run, coder: Coder, period: float) -> list[dict[str, Any]]:
-    """One record per robot update and row: size, rate, quality, bit/s, transfer and codec times."""
+def fig8_updates(run: Run, coder: Coder, period: float) -> tuple[list[dict[str, Any]], Recovered]:
+    """One record per robot update and row: size, rate, quality, bit/s, transfer and codec times.
+
+    Also the recovered cells of every update a row did not reproduce exactly, for Figure 7.
+    """
     out: list[dict[str, Any]] = []
+    recovered: Recovered = {}
     for name, snaps in run.streams.items():
         prev: OccupancyGrid | None = None
         for k, (stamp, grid) in enumerate(snaps):
             for row in ROWS:
-                rec, _ = coder(row, grid, prev)
+                rec, cells = coder(row, grid, prev)
+                if not rec["exact"]:
+                    recovered.setdefault((name, k), {})[row] = cells
                 b, c = rec["bytes"], grid.cells
                 rec.update(robot=name, row=row, t=stamp - run.t0, version=grid.version, cells=c)
                 rec.update(ratio=c / b, rate=1.0 - b / c, bps=8 * b / period, raw_bps=8 * c / period)
@@ -153,7 +160,7 @@ def fig8_updates(run: Run, coder: Coder, period: float) -> list[dict[str, Any]]:
             prev = grid
             print(f"\rfig 8: {name} update {k + 1}/{len(snaps)}", end="", file=sys.stderr, flush=True)
         print(file=sys.stderr)
-    return out
+    return out, recovered
 
 
 def _mean(vals: list[float]) -> float:
@@ -243,8 +250,9 @@ def run(args: argparse.Namespace) -> int:
     for name in ("paper", "lossless"):  # one-time costs (JIT cache, model loading) stay out of timings
         warm_up(name)
     coder = Coder()
-    updates = fig8_updates(the_run, coder, args.period)
+    updates, recovered = fig8_updates(the_run, coder, args.period)
     summary = fig8_summary(updates, args.period)
+    global7 = paper_global.fig7(the_run, recovered, ROWS)
     maps, global_rows = recovered_global(the_run, coder)
     fig9 = paper_localize.evaluate(maps, the_run.samples, args.poses, args.seed, the_run.truth)
     g = the_run.global_map
@@ -275,6 +283,7 @@ def run(args: argparse.Namespace) -> int:
             "global_known_cells": g.cells - g.counts()["unknown"],
         },
         "fig8": {"summary": summary, "updates": updates, "global": global_rows},
+        "fig7": {k: v for k, v in global7.items() if k != "maps"},
         "fig9": {
             "rows": fig9["rows"],
             "poses": fig9["poses"],
@@ -286,6 +295,7 @@ def run(args: argparse.Namespace) -> int:
     results["date"] = datetime.date.today().isoformat()
     results["wall_s"] = time.perf_counter() - t_start
     paper_report.write(args.out, results, maps, fig9)
+    paper_global.figure(args.out / "fig7_global.png", global7, ROWS[0])
     emit(
         results, args.json, lambda: f"{paper_report.text_summary(results)}\nreport: {args.out / 'report.md'}"
     )

@@ -223,3 +223,29 @@ def test_intel_log_short(intel_log: Path, tmp_path: Path) -> None:
     truth = loc[("original", "corrected pose")]
     assert truth["poses"] == 3 and truth["mean_x_cm"] < 15.0 and truth["mean_y_cm"] < 15.0
     assert (tmp_path / "report.md").read_text().count("intel-corrected.log.gz") >= 2
+
+
+def test_fig7_global_maps_with_and_without_compression(sim_run: tuple[Path, dict[str, Any]]) -> None:
+    """The paper's measure: global maps, the receiver's own map exact, peers' maps as recovered."""
+    out, res = sim_run
+    f7 = res["fig7"]
+    robot0 = [u for u in res["fig8"]["updates"] if u["robot"] == f7["receiver"] and u["row"] == "paper"]
+    assert f7["receiver"] == "robot0" and len(f7["steps"]) == len(robot0)  # one step per receiver snapshot
+    assert [s["t"] for s in f7["steps"]] == sorted(s["t"] for s in f7["steps"])
+    g = f7["global"]
+    assert set(g) == {"paper", "lossless", "lossless+delta", "zstd-19"}
+    for exact in ("lossless", "lossless+delta", "zstd-19"):  # exact codecs change nothing in the global map
+        assert num(g[exact]["psnr"]) == math.inf and num(g[exact]["ssim"]) == 1.0
+    steps = [s for s in f7["steps"] if s["robots"] == 2]
+    assert steps, "no step where both robots had a map"
+    lossy = [num(s["paper"]["psnr"]) for s in steps]
+    assert all(math.isfinite(v) and v > 10 for v in lossy)
+    # the receiver's own exact part raises the global figure over the per-robot one (Fig. 8a)
+    per_robot = {r["row"]: r for r in res["fig8"]["summary"]}["paper"]
+    assert num(g["paper"]["psnr"]) > num(per_robot["psnr"])
+    assert 0 < num(g["paper"]["ssim"]) <= 1
+    report = (out / "report.md").read_text()
+    assert "](fig7_global.png)" in report and f"{num(g['paper']['psnr']):.2f}" in report
+    with Image.open(out / "fig7_global.png") as im:
+        assert im.format == "PNG" and im.width >= 600 and im.height >= 400
+        im.verify()

@@ -32,7 +32,7 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
     base = f.run_dir / "robot2" / "config.toml"
     cfg = tomllib.loads(base.read_text())
     cfg["source"] = {"use": "none"}
-    cfg["fusion"].pop("poses", None)  # it knows no poses: robot0's map frame becomes the fleet frame
+    cfg["fusion"].pop("poses", None)  # it knows no poses of its own
     write_config(base, cfg)
     f.start()
     try:
@@ -56,8 +56,10 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
         assert b["source"]["name"] == "none" and b["source"]["version"] == 0
         assert b["codec"]["keyframes"] == 0 and b["codec"]["deltas"] == 0  # it sends no map
         fusion = b["fusion"]
-        assert fusion["fleet_frame"] == "map frame of robot 'robot0'"
-        assert fusion["robots"]["robot0"]["source"] == "anchor" and fusion["robots"]["robot0"]["accepted"]
+        # the robots' maps carry their start poses, which place them (the base knows no poses itself)
+        assert fusion["fleet_frame"] == "frame of the configured poses (robot0, robot1)"
+        for robot in ("robot0", "robot1"):
+            assert fusion["robots"][robot]["source"] == "pose" and fusion["robots"][robot]["accepted"]
         assert fusion["maps"] >= 2
         # the robots go on as before, and hold no map of the base station
         for me, other in (("robot0", "robot1"), ("robot1", "robot0")):

@@ -82,6 +82,18 @@ def test_anchor_frame_and_waiting(crops: dict[str, OccupancyGrid]) -> None:
     assert not out["a"].accepted and "waiting" in out["a"].reason
 
 
+def test_without_an_anchor_the_first_robot_by_name_fixes_the_frame_for_good(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    """A base station has no map of its own: the first robot heard, by name, anchors the fleet frame."""
+    placer = Placer({}, anchor=None)
+    out = placer.update({"b": crops["b"]})
+    assert placer.anchor == "b" and out["b"].source == "anchor"
+    out = placer.update({"a": crops["a"], "b": crops["b"]})  # "a" sorts first, but the frame stays b's
+    assert placer.anchor == "b" and out["b"].transform == ZERO
+    assert out["a"].accepted and _near(out["a"].transform, inverse(_truth(60, 110)), crops["a"])
+
+
 def test_accepted_placement_is_held_and_switches_only_to_a_clearly_better_one_twice(
     crops: dict[str, OccupancyGrid],
 ) -> None:
