@@ -30,6 +30,8 @@ from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
 
 M = TypeVar("M", bound=BaseModel)
+#: Config section -> plugin kind (mapd.plugins).
+_KINDS = {"source": "source", "codec": "codec", "transports": "transport", "output": "output"}
 
 _NAME = r"^[A-Za-z0-9_\-]{1,32}$"
 
@@ -125,6 +127,12 @@ class CodecSection(PluginSection):
     )
 
 
+class OutputSection(PluginSection):
+    use: list[str] = Field(
+        default_factory=list, description="output plugins fed each new global map (mapd.outputs)"
+    )
+
+
 class TransportsSection(PluginSection):
     use: list[str] = Field(default_factory=list, description="transport plugins to run (mapd.transports)")
 
@@ -195,6 +203,7 @@ class MapdConfig(Strict):
     source: SourceSection = Field(default_factory=SourceSection)
     codec: CodecSection = Field(default_factory=CodecSection)
     transports: TransportsSection = Field(default_factory=TransportsSection)
+    output: OutputSection = Field(default_factory=OutputSection)
     fusion: FusionSection = Field(default_factory=FusionSection)
     control: ControlSection = Field(default_factory=ControlSection)
     log: LogSection = Field(default_factory=LogSection)
@@ -202,7 +211,7 @@ class MapdConfig(Strict):
 
     @model_validator(mode="after")
     def _check_plugin_tables(self) -> MapdConfig:
-        for section in ("source", "codec", "transports"):
+        for section in ("source", "codec", "transports", "output"):
             for key, value in getattr(self, section).plugin_tables().items():
                 if not isinstance(value, dict):
                     raise ValueError(f"{section}.{key}: expected a table of plugin options")
@@ -307,7 +316,7 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
 
 def plugin_options(cfg: MapdConfig, section: str, name: str) -> BaseModel:
     """Validate the ``[section.name]`` table with that plugin's own ``Options`` model."""
-    kind = {"source": "source", "codec": "codec", "transports": "transport"}[section]
+    kind = _KINDS[section]
     cls = plugins.load(kind, name)
     where = str(cfg.path) if cfg.path else "config"
     table = getattr(cfg, section).table(name)
@@ -330,10 +339,11 @@ def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict
         "source": [cfg.source.use],
         "codec": [cfg.codec.use],
         "transports": list(cfg.transports.use),
+        "output": list(cfg.output.use),
     }
-    out: dict[str, dict[str, BaseModel]] = {"source": {}, "codec": {}, "transports": {}}
+    out: dict[str, dict[str, BaseModel]] = {"source": {}, "codec": {}, "transports": {}, "output": {}}
     for section, picked in chosen.items():
-        kind = {"source": "source", "codec": "codec", "transports": "transport"}[section]
+        kind = _KINDS[section]
         known = plugins.names(kind)
         for name in picked:
             if name not in known:

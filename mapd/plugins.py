@@ -1,6 +1,6 @@
 """The plugin spine: entry-point groups for sources, codecs and transports, imported lazily.
 
-A plugin is a class registered under one of three entry-point groups (see ``pyproject.toml``)::
+A plugin is a class registered under one of four entry-point groups (see ``pyproject.toml``)::
 
     [project.entry-points."mapd.codecs"]
     lossless = "mapd.codec.lossless:LosslessCodec"
@@ -21,16 +21,23 @@ from mapd.errors import PluginError
 
 if TYPE_CHECKING:  # the interfaces live above this module; only their types are needed here
     from mapd.codec.base import Codec
+    from mapd.outputs.base import Output
     from mapd.sources.base import MapSource
     from transports.base import Transport
 
-Kind = Literal["source", "codec", "transport"]
-GROUPS: dict[str, str] = {"source": "mapd.sources", "codec": "mapd.codecs", "transport": "mapd.transports"}
+Kind = Literal["source", "codec", "transport", "output"]
+GROUPS: dict[str, str] = {
+    "source": "mapd.sources",
+    "codec": "mapd.codecs",
+    "transport": "mapd.transports",
+    "output": "mapd.outputs",
+}
 #: The class every plugin of a group must subclass, imported only when a plugin is loaded.
 INTERFACES: dict[str, str] = {
     "source": "mapd.sources.base:MapSource",
     "codec": "mapd.codec.base:Codec",
     "transport": "transports.base:Transport",
+    "output": "mapd.outputs.base:Output",
 }
 
 # Import names that differ from the pip distribution a user must install.
@@ -95,6 +102,8 @@ def load(kind: Literal["source"], name: str) -> type[MapSource]: ...
 def load(kind: Literal["codec"], name: str) -> type[Codec]: ...
 @overload
 def load(kind: Literal["transport"], name: str) -> type[Transport]: ...
+@overload
+def load(kind: Literal["output"], name: str) -> type[Output]: ...
 @overload
 def load(kind: str, name: str) -> type: ...
 

@@ -59,5 +59,5 @@ def test_plugins_lists_all_kinds() -> None:
     out = run("plugins", "--json")
     assert out.returncode == 0
     rows = json.loads(out.stdout)
-    assert {r["kind"] for r in rows} == {"source", "codec", "transport"}
+    assert {r["kind"] for r in rows} == {"source", "codec", "transport", "output"}
     assert any(r["name"] == "zstd" and r["status"] == "ok" for r in rows)

@@ -45,7 +45,12 @@ def test_example_config_is_complete_and_valid() -> None:
     cfg = config.load(REPO_ROOT / "config.toml")
     checked = config.check_plugins(cfg)
     # The complete example carries a table for every installed plugin.
-    for section, kind in (("source", "source"), ("codec", "codec"), ("transports", "transport")):
+    for section, kind in (
+        ("source", "source"),
+        ("codec", "codec"),
+        ("transports", "transport"),
+        ("output", "output"),
+    ):
         assert set(checked[section]) >= set(plugins.names(kind)) - {"raw"}, section
     # Signed by default: it names the robot's key and the link key, which a robot makes with keygen.
     assert not cfg.fleet.allow_unsigned and cfg.robot.key_file is not None

@@ -69,7 +69,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     from mapd import plugins
 
     rows: list[dict[str, Any]] = []
-    for kind in ("source", "codec", "transport"):
+    for kind in plugins.GROUPS:
         for info in plugins.available(kind):
             status = "ok"
             try:
@@ -80,7 +80,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    for kind in ("source", "codec", "transport"):
+    for kind in plugins.GROUPS:
         print(f"{kind}s:")
         for r in (r for r in rows if r["kind"] == kind):
             mark = "" if r["status"] == "ok" else f"  [unavailable: {r['status']}]"

@@ -46,6 +46,7 @@ from mapd.envelope import Envelope
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.outputs.base import GlobalUpdate, Output, OutputContext
 from mapd.record.writer import Recorder
 from mapd.sources.base import MapSource, SourceContext
 from transports.base import (
@@ -138,6 +139,11 @@ class Daemon:
             Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path is not None else None
         )
         self._recorded_tf: dict[str, Pose2D] = {}
+        self.outputs: list[Output] = []
+        # Outputs run on a thread of their own, latest wins: a slow one skips maps, never queues them.
+        self._out_pool = ThreadPoolExecutor(1, thread_name_prefix="mapd-outputs")
+        self._out_next: GlobalUpdate | None = None
+        self._out_lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -175,9 +181,20 @@ class Daemon:
                 latest_keyframe=self.latest_keyframe,
             )
             self.transports.append(cls(self._options("transports", name, cls.Options), ctx))
+        out_ctx = OutputContext(
+            robot=self.me,
+            fleet=self.cfg.robot.fleet,
+            state_dir=self.cfg.state.dir,
+            identity=self.keys.identity,
+        )
+        for name in self.cfg.output.use:
+            out_cls = plugins.load("output", name)
+            self.outputs.append(out_cls(self._options("output", name, out_cls.Options), out_ctx))
         try:
             for t in self.transports:
                 await t.start()
+            for o in self.outputs:
+                await o.start()
             await self.status_server.start()
             if not self.keys.signed:
                 log.warning(
@@ -223,6 +240,9 @@ class Daemon:
             for t in self.transports:
                 with contextlib.suppress(Exception):
                     await t.close()
+            for o in self.outputs:
+                with contextlib.suppress(Exception):
+                    await o.close()
             if self.source is not None:
                 with contextlib.suppress(Exception):
                     await self.source.close()
@@ -235,6 +255,7 @@ class Daemon:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
         t_closed = time.monotonic()
         await asyncio.to_thread(self._files.shutdown, wait=True)
+        await asyncio.to_thread(self._out_pool.shutdown, wait=True)
         if self.recorder is not None:
             with contextlib.suppress(Exception):
                 await asyncio.to_thread(self.recorder.close)  # summary and footer
@@ -376,6 +397,37 @@ class Daemon:
             self.publisher.remember_keyframe(env)
             return env
 
+    def _to_outputs(self, grid: OccupancyGrid, robots: dict[str, Any]) -> None:
+        """Hand the new global map to every output, on the output thread; the newest wins."""
+        update = GlobalUpdate(
+            grid=grid,
+            frames={
+                r: Pose2D(float(i["x"]), float(i["y"]), float(i["yaw"]))
+                for r, i in robots.items()
+                if isinstance(i, dict) and i.get("accepted") and i.get("x") is not None
+            },
+            stamp=time.time(),
+            versions={
+                r: int(i["version"]) for r, i in robots.items() if isinstance(i, dict) and i.get("version")
+            },
+        )
+        with self._out_lock:
+            idle = self._out_next is None
+            self._out_next = update
+        if idle:
+            self._out_pool.submit(self._drain_outputs)
+
+    def _drain_outputs(self) -> None:
+        with self._out_lock:
+            update, self._out_next = self._out_next, None
+        if update is None:
+            return
+        for o in self.outputs:
+            try:
+                o.publish(update)
+            except Exception as exc:  # one failing output must not stop the others or the daemon
+                log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
+
     def _record(self, fn: Callable[..., None], *args: Any) -> None:
         """Run a recorder call on the file thread; a failing recording never stops the daemon."""
 
@@ -410,6 +462,8 @@ class Daemon:
         ]
         if rows:
             self._files.submit(self._fused_log.write, rows)
+        if self.outputs:
+            self._to_outputs(grid, robots)
         if self.recorder is not None:
             wall = time.time()
             self._record(self.recorder.grid, "/map", grid, "map", wall)
@@ -532,6 +586,7 @@ class Daemon:
             "codec": {**self.coder.stats, "keyframes": pub.keyframes_sent, "deltas": pub.deltas_sent},
             "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
+            "outputs": {o.name: o.stats() for o in self.outputs},
             "fusion": self.fusion.status(),
             "counters": {
                 **vars(self.receiver.counters),

@@ -33,6 +33,7 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
     cfg = tomllib.loads(base.read_text())
     cfg["source"] = {"use": "none"}
     cfg["fusion"].pop("poses", None)  # it knows no poses of its own
+    cfg["output"] = {"use": ["files"], "files": {"dir": str(tmp_path / "served")}}  # say, for a map_server
     write_config(base, cfg)
     f.start()
     try:
@@ -69,6 +70,9 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
         codes = f.stop()
     assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
     glob = load_map(f.run_dir / "robot2" / "state" / "global" / "global.yaml")
+    served = load_map(tmp_path / "served" / "map.yaml")  # the files output got the fused map too
+    assert served.width > 0 and int((served.data >= 0).sum()) > 0
+    assert b["outputs"]["files"]["written"] >= 1
     robot0 = load_map(f.run_dir / "robot2" / "state" / "peers" / "robot0" / "map.yaml")
     # the global map holds at least robot0's known cells (its frame is the fleet frame)
     assert int((glob.data >= 0).sum()) >= int((robot0.data >= 0).sum()) * 0.9

@@ -1,0 +1,76 @@
+"""The output interface: a plugin that takes every new global map, off the event loop.
+
+The daemon builds each configured output with its validated options and an
+:class:`OutputContext`, awaits :meth:`Output.start`, then calls :meth:`Output.publish` with a
+:class:`GlobalUpdate` each time the fusion worker makes a new global map. ``publish`` runs on the
+daemon's output thread, one call at a time and in order, never on the event loop: it may block (a
+file write, a zenoh put). An output that fails logs and is called again with the next update; it
+never stops the daemon.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.identity import Identity
+
+
+class OutputOptions(BaseModel):
+    """Options an output reads from its ``[output.<name>]`` table. Subclass to add fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass(frozen=True)
+class GlobalUpdate:
+    """One new global map: the grid (in the fleet frame) and where each robot's map frame lies in it."""
+
+    grid: OccupancyGrid
+    #: Robot -> its map frame's pose in the fleet frame, for every accepted placement.
+    frames: dict[str, Pose2D]
+    #: Wall-clock seconds when the map was made.
+    stamp: float
+    #: Which version of each robot's map the global map holds.
+    versions: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class OutputContext:
+    """What the daemon hands every output."""
+
+    robot: str
+    fleet: str
+    state_dir: Path | None = None
+    #: This robot's signing key (outputs that send the map to others sign with it), if any.
+    identity: Identity | None = None
+
+
+class Output(ABC):
+    """A pluggable place the global map goes. Subclasses set ``name`` and ``Options``."""
+
+    name: ClassVar[str]
+    Options: ClassVar[type[OutputOptions]] = OutputOptions
+
+    def __init__(self, options: OutputOptions | None, ctx: OutputContext) -> None:
+        self.options = options if options is not None else self.Options()
+        self.ctx = ctx
+
+    async def start(self) -> None:  # noqa: B027 - optional hook
+        """Open what the output needs (a session, a folder); one clear MapdError line on failure."""
+
+    @abstractmethod
+    def publish(self, update: GlobalUpdate) -> None:
+        """Take a new global map (blocking is fine: called on the output thread)."""
+
+    async def close(self) -> None:  # noqa: B027 - optional hook
+        """Release everything promptly."""
+
+    def stats(self) -> dict[str, int | float | str]:
+        """Counters for ``mapd status``."""
+        return {}

@@ -1,0 +1,62 @@
+"""``[output.files]``: the global map as map_server files in a folder (for map_server, nav2, a viewer).
+
+Each update replaces ``<dir>/<name>.yaml`` + ``<dir>/<name>.pgm`` and ``<dir>/transforms.json``
+atomically (the image first, the YAML naming it last), so a reader never sees half a map. The
+daemon's own state directory keeps its copy regardless (``state/global``); this output is for
+another place, say where a ``map_server`` on the same robot or a web server looks.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+
+from mapd.errors import ConfigError
+from mapd.files import atomic_write_json
+from mapd.grid import save_map
+from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
+
+
+class FilesOptions(OutputOptions):
+    dir: Path = Field(description="folder to write the map_server files and transforms.json into")
+    name: str = Field(default="map", pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="file name stem")
+    frame_id: str = Field(default="map", description="the fleet frame's name (REP-105), in transforms.json")
+
+
+class FilesOutput(Output):
+    """Writes map_server files of every global map."""
+
+    name = "files"
+    Options = FilesOptions
+
+    def __init__(self, options: OutputOptions | None, ctx: OutputContext) -> None:
+        super().__init__(options, ctx)
+        if not isinstance(self.options, FilesOptions):
+            raise TypeError("files output needs FilesOptions")
+        self.opts: FilesOptions = self.options
+        self.written = 0
+
+    async def start(self) -> None:
+        try:
+            self.opts.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"output.files: cannot create {self.opts.dir}: {exc.strerror}") from None
+
+    def publish(self, update: GlobalUpdate) -> None:
+        save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml")
+        doc: dict[str, Any] = {
+            "frame_id": self.opts.frame_id,
+            "stamp": update.stamp,
+            "robots": {
+                robot: {"child_frame_id": f"{robot}/map", "x": p.x, "y": p.y, "yaw": p.yaw,
+                        "version": update.versions.get(robot)}
+                for robot, p in sorted(update.frames.items())
+            },
+        }  # fmt: skip
+        atomic_write_json(self.opts.dir / "transforms.json", doc)
+        self.written += 1
+
+    def stats(self) -> dict[str, int | float | str]:
+        return {"written": self.written, "dir": str(self.opts.dir)}
