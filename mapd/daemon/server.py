@@ -23,8 +23,6 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
 from pydantic import BaseModel
@@ -38,6 +36,7 @@ from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
+from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
@@ -45,8 +44,8 @@ from mapd.daemon.versions import VersionBounds
 from mapd.envelope import Envelope
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
-from mapd.grid import OccupancyGrid, Pose2D
-from mapd.outputs.base import GlobalUpdate, Output, OutputContext
+from mapd.grid import OccupancyGrid
+from mapd.outputs.base import Output, OutputContext
 from mapd.record.writer import Recorder
 from mapd.sources.base import MapSource, SourceContext
 from transports.base import (
@@ -94,8 +93,6 @@ class Daemon:
         self._pending: OccupancyGrid | None = None  # newest own version, not yet saved
         self._events = EventQueue(EVENT_QUEUE, max_peers=EVENT_QUEUE)
         self._kf_lock = threading.Lock()
-        # File appends that the loop hands off (fused.csv); one thread keeps them in order.
-        self._files = ThreadPoolExecutor(1, thread_name_prefix="mapd-files")
         codec_opts = self.options["codec"].get(cfg.codec.use)
         options = codec_opts if isinstance(codec_opts, CodecOptions) else None
         codec = get_codec(cfg.codec.use, options)
@@ -122,7 +119,6 @@ class Daemon:
             store=self.store,
             log=CsvLog(cfg.state.dir / "updates.csv"),
         )
-        self._fused_log = CsvLog(cfg.state.dir / "fused.csv")
         self.fusion = FusionWorker(
             self.me,
             cfg.fusion,
@@ -134,16 +130,10 @@ class Daemon:
             anchor=cfg.fusion.anchor or (None if cfg.source.use == "none" else self.me),
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
-        # An MCAP recording, written on the file thread (CDR encoding and writes stay off the loop).
-        self.recorder = (
-            Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path is not None else None
-        )
-        self._recorded_tf: dict[str, Pose2D] = {}
         self.outputs: list[Output] = []
-        # Outputs run on a thread of their own, latest wins: a slow one skips maps, never queues them.
-        self._out_pool = ThreadPoolExecutor(1, thread_name_prefix="mapd-outputs")
-        self._out_next: GlobalUpdate | None = None
-        self._out_lock = threading.Lock()
+        # Outputs, the MCAP recording and fused.csv, each on a worker thread, never on the loop.
+        recorder = Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path else None
+        self.sinks = Sinks(self.outputs, recorder, CsvLog(cfg.state.dir / "fused.csv"))
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -254,11 +244,7 @@ class Daemon:
         except TimeoutError:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
         t_closed = time.monotonic()
-        await asyncio.to_thread(self._files.shutdown, wait=True)
-        await asyncio.to_thread(self._out_pool.shutdown, wait=True)
-        if self.recorder is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.to_thread(self.recorder.close)  # summary and footer
+        await asyncio.to_thread(self.sinks.close)  # queued writes, then the recording's footer
         with contextlib.suppress(MapdError, OSError):
             await asyncio.to_thread(self.store.flush)
         if self._stopping_at is not None:
@@ -337,7 +323,7 @@ class Daemon:
             )
             self.own = own
             self._pending = own  # latest wins: an unsaved older version is simply replaced
-            self._record_map(own)
+            self.sinks.robot_map(own)
             self._wake.set()
             self.fusion.submit(own)
         self.source_finished = True
@@ -397,84 +383,16 @@ class Daemon:
             self.publisher.remember_keyframe(env)
             return env
 
-    def _to_outputs(self, grid: OccupancyGrid, robots: dict[str, Any]) -> None:
-        """Hand the new global map to every output, on the output thread; the newest wins."""
-        update = GlobalUpdate(
-            grid=grid,
-            frames={
-                r: Pose2D(float(i["x"]), float(i["y"]), float(i["yaw"]))
-                for r, i in robots.items()
-                if isinstance(i, dict) and i.get("accepted") and i.get("x") is not None
-            },
-            stamp=time.time(),
-            versions={
-                r: int(i["version"]) for r, i in robots.items() if isinstance(i, dict) and i.get("version")
-            },
-        )
-        with self._out_lock:
-            idle = self._out_next is None
-            self._out_next = update
-        if idle:
-            self._out_pool.submit(self._drain_outputs)
-
-    def _drain_outputs(self) -> None:
-        with self._out_lock:
-            update, self._out_next = self._out_next, None
-        if update is None:
-            return
-        for o in self.outputs:
-            try:
-                o.publish(update)
-            except Exception as exc:  # one failing output must not stop the others or the daemon
-                log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
-
-    def _record(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run a recorder call on the file thread; a failing recording never stops the daemon."""
-
-        def call() -> None:
-            try:
-                fn(*args)
-            except Exception as exc:  # disk full, a bug: log it and keep the fleet running
-                log.error("recording failed: %s: %s", type(exc).__name__, exc)
-
-        self._files.submit(call)
+    def _on_global(self, grid: OccupancyGrid) -> None:
+        """The fusion worker made a new global map: outputs, recording and fused.csv take it."""
+        self.sinks.global_map(grid, self.fusion.status().get("robots", {}))
 
     async def _record_links(self) -> None:
-        if self.recorder is None:
+        if self.sinks.recorder is None:
             return
         while True:
             await asyncio.sleep(self.cfg.record.stats_every_s)
-            links = {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports}
-            self._record(self.recorder.json, "/mapd/links", links, time.time())
-
-    def _record_map(self, grid: OccupancyGrid) -> None:
-        if self.recorder is not None:
-            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, f"{grid.robot}/map", time.time())
-
-    def _on_global(self, grid: OccupancyGrid) -> None:
-        """Log which version of each robot's map the new global map holds (for latency benches)."""
-        now = round(time.time(), 3)
-        robots = self.fusion.status().get("robots", {})
-        rows = [
-            {"time": now, "robot": robot, "version": info["version"]}
-            for robot, info in robots.items()
-            if isinstance(info, dict) and info.get("accepted") and info.get("version")
-        ]
-        if rows:
-            self._files.submit(self._fused_log.write, rows)
-        if self.outputs:
-            self._to_outputs(grid, robots)
-        if self.recorder is not None:
-            wall = time.time()
-            self._record(self.recorder.grid, "/map", grid, "map", wall)
-            placed = {
-                f"{robot}/map": Pose2D(float(info["x"]), float(info["y"]), float(info["yaw"]))
-                for robot, info in robots.items()
-                if isinstance(info, dict) and info.get("accepted") and info.get("x") is not None
-            }
-            if placed != self._recorded_tf:  # latched: written again only when a placement changes
-                self._recorded_tf = placed
-                self._record(self.recorder.transforms, "/tf_static", "map", placed, wall)
+            self.sinks.links({t.name: {**t.stats(), "peers": t.peers()} for t in self.transports})
 
     # ------------------------------------------------------------------ events in
     async def _event_loop(self) -> None:
@@ -561,7 +479,7 @@ class Daemon:
         except StateError as exc:
             log.error("%s", exc)
         self.fusion.submit(grid)
-        self._record_map(grid)
+        self.sinks.robot_map(grid)
         if transport is not None:
             transport.ack(env.robot, env.version)
 
@@ -586,7 +504,7 @@ class Daemon:
             "codec": {**self.coder.stats, "keyframes": pub.keyframes_sent, "deltas": pub.deltas_sent},
             "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
-            "outputs": {o.name: o.stats() for o in self.outputs},
+            "outputs": self.sinks.status(),
             "fusion": self.fusion.status(),
             "counters": {
                 **vars(self.receiver.counters),

@@ -1,0 +1,122 @@
+"""Where the daemon's results go: outputs, the MCAP recording and ``fused.csv``, all off the event loop.
+
+:class:`Sinks` is called on the loop (:meth:`Sinks.global_map` by the fusion worker's callback,
+:meth:`Sinks.robot_map` for every own or received map, :meth:`Sinks.links` on a timer) and hands
+the work to two threads: one for the outputs (latest wins: a slow output skips maps, never queues
+them) and one for files (the recording and the CSV, in order). Nothing that fails there stops the
+daemon: it logs one line.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from mapd.daemon.coding import CsvLog
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.outputs.base import GlobalUpdate, Output
+from mapd.record.writer import Recorder
+
+log = logging.getLogger("mapd.daemon")
+
+
+def _frames(robots: dict[str, Any]) -> dict[str, Pose2D]:
+    """Robot -> its map frame in the fleet frame, for every accepted placement of a fusion status."""
+    return {
+        r: Pose2D(float(i["x"]), float(i["y"]), float(i["yaw"]))
+        for r, i in robots.items()
+        if isinstance(i, dict) and i.get("accepted") and i.get("x") is not None
+    }
+
+
+class Sinks:
+    """The outputs, the recording and ``fused.csv`` of one daemon."""
+
+    def __init__(self, outputs: list[Output], recorder: Recorder | None, fused_log: CsvLog) -> None:
+        self.outputs = outputs
+        self.recorder = recorder
+        self.fused_log = fused_log
+        self._files = ThreadPoolExecutor(1, thread_name_prefix="mapd-files")
+        self._out_pool = ThreadPoolExecutor(1, thread_name_prefix="mapd-outputs")
+        self._out_next: GlobalUpdate | None = None
+        self._out_lock = threading.Lock()
+        self._recorded_tf: dict[str, Pose2D] = {}
+
+    # ------------------------------------------------------------------ on the loop
+    def global_map(self, grid: OccupancyGrid, robots: dict[str, Any]) -> None:
+        """A new global map; ``robots`` is the fusion worker's status of each robot."""
+        wall = time.time()
+        rows = [
+            {"time": round(wall, 3), "robot": robot, "version": info["version"]}
+            for robot, info in robots.items()
+            if isinstance(info, dict) and info.get("accepted") and info.get("version")
+        ]
+        if rows:  # which version of each robot the global map holds (for latency benches)
+            self._files.submit(self.fused_log.write, rows)
+        frames = _frames(robots)
+        if self.outputs:
+            versions = {
+                r: int(i["version"]) for r, i in robots.items() if isinstance(i, dict) and i.get("version")
+            }
+            self._to_outputs(GlobalUpdate(grid=grid, frames=frames, stamp=wall, versions=versions))
+        if self.recorder is not None:
+            self._record(self.recorder.grid, "/map", grid, "map", wall)
+            placed = {f"{r}/map": p for r, p in frames.items()}
+            if placed != self._recorded_tf:  # latched: written again only when a placement changes
+                self._recorded_tf = placed
+                self._record(self.recorder.transforms, "/tf_static", "map", placed, wall)
+
+    def robot_map(self, grid: OccupancyGrid) -> None:
+        """A robot's map as this daemon now holds it (its own, or one received)."""
+        if self.recorder is not None:
+            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, f"{grid.robot}/map", time.time())
+
+    def links(self, links: dict[str, Any]) -> None:
+        """The transports' counters, for the recording."""
+        if self.recorder is not None:
+            self._record(self.recorder.json, "/mapd/links", links, time.time())
+
+    def status(self) -> dict[str, Any]:
+        return {o.name: o.stats() for o in self.outputs}
+
+    # ------------------------------------------------------------------ worker side
+    def _to_outputs(self, update: GlobalUpdate) -> None:
+        with self._out_lock:
+            idle = self._out_next is None
+            self._out_next = update
+        if idle:
+            self._out_pool.submit(self._drain_outputs)
+
+    def _drain_outputs(self) -> None:
+        with self._out_lock:
+            update, self._out_next = self._out_next, None
+        if update is None:
+            return
+        for o in self.outputs:
+            try:
+                o.publish(update)
+            except Exception as exc:  # one failing output must not stop the others or the daemon
+                log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
+
+    def _record(self, fn: Callable[..., None], *args: Any) -> None:
+        def call() -> None:
+            try:
+                fn(*args)
+            except Exception as exc:  # disk full, a bug: log it and keep the fleet running
+                log.error("recording failed: %s: %s", type(exc).__name__, exc)
+
+        self._files.submit(call)
+
+    def close(self) -> None:
+        """Finish what is queued, then write the recording's footer (blocking: call it from a thread)."""
+        self._files.shutdown(wait=True)
+        self._out_pool.shutdown(wait=True)
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except Exception as exc:  # the fleet is stopping anyway: say why the footer is missing
+                log.error("recording not closed: %s: %s", type(exc).__name__, exc)
