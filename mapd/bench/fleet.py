@@ -20,7 +20,7 @@ from typing import Any
 
 from mapd.tables import emit, table
 
-HELP = "N daemons over zenoh on loopback: latency publish->fused, bytes/robot/s, CPU per daemon"
+HELP = "N daemons over zenoh on loopback (peers, or clients of one router): latency, bytes, CPU, memory"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,6 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--codec", default="lossless", help="codec (default lossless)")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--out", type=Path, default=Path("out/bench-fleet"), help="work folder")
+    p.add_argument(
+        "--router",
+        action="store_true",
+        help="robots as zenoh clients of one router process (deploy/zenoh/router.json5) instead of peers",
+    )
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -38,6 +43,17 @@ def _cpu_seconds(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return float("nan")
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident memory of a live process in MB, from /proc (Linux)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return float("nan")
 
 
 def _read_csv(path: Path) -> list[dict[str, str]]:
@@ -64,6 +80,7 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
         seed=args.seed,
         out=args.out / f"n{n}",
         duration=args.duration,
+        router=args.router,
     )
     fleet = Fleet(fa)
     fleet.prepare()
@@ -75,6 +92,9 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
             fleet.check_alive()
         wall = time.monotonic() - t0
         cpu = {name: _cpu_seconds(p.pid) for name, p in fleet.procs.items()}
+        rss = {name: _rss_mb(p.pid) for name, p in fleet.procs.items()}
+        router_cpu = _cpu_seconds(fleet.router.pid) if fleet.router is not None else float("nan")
+        router_rss = _rss_mb(fleet.router.pid) if fleet.router is not None else float("nan")
         snaps = fleet.status()
     finally:
         fleet.stop()
@@ -99,6 +119,9 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
         "payload_bps_per_robot": 8 * sum(sent_bytes.values()) / max(len(sent_bytes), 1) / wall,
         "wire_bps_per_robot": 8 * sum(tx) / max(len(tx), 1) / wall if tx else float("nan"),
         "cpu_per_daemon": sum(cpu.values()) / len(cpu) / wall,
+        "rss_mb_per_daemon": sum(rss.values()) / len(rss),
+        "router_cpu": router_cpu / wall,
+        "router_rss_mb": router_rss,
     }
 
 
@@ -128,6 +151,9 @@ def _text(rows: list[dict[str, Any]]) -> str:
         ("wire_bps_per_robot", "wire b/s/robot", ".0f"),
         ("cpu_per_daemon", "CPU/daemon", ".2f"),
         ("cpu_per_daemon_x", f"CPU x N={base}", ".2f"),
+        ("rss_mb_per_daemon", "MB/daemon", ".0f"),
     ]
+    if any(r["router_cpu"] == r["router_cpu"] for r in rows):  # not NaN: a --router run
+        cols += [("router_cpu", "router CPU", ".2f"), ("router_rss_mb", "router MB", ".0f")]
     note = f"(CPU/daemon is CPU seconds per wall second; this machine has {os.cpu_count()} cores)"
     return f"{table(rows, cols)}\n{note}"

@@ -72,6 +72,7 @@ class Fleet:
         self.run_dir = args.out / "run"
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.relay: subprocess.Popen[str] | None = None
+        self.router: subprocess.Popen[str] | None = None
         self.ports: dict[str, str] = {}
 
     # ------------------------------------------------------------------ setup
@@ -81,6 +82,7 @@ class Fleet:
         self.run_dir.mkdir(parents=True)
         if self.args.transport == "uwb":
             self._start_relay()
+        router = self._start_router() if getattr(self.args, "router", False) else None
         zenoh_ports = [_free_port() for _ in self.names]
         poses = self._start_poses()
         key_files, roster, link_key = self._make_keys()
@@ -103,6 +105,13 @@ class Fleet:
                     "mac": "tdma" if self.n > 2 else "none",
                 }
                 tables["transports.uwb.nodes"] = {r: j + 1 for j, r in enumerate(self.names)}
+            elif router is not None:  # every robot a client of one router, as in a building
+                tables["transports"] = {"use": ["zenoh"]}
+                tables["transports.zenoh"] = {
+                    "mode": "client",
+                    "connect": [router],
+                    "multicast_scouting": False,
+                }
             else:
                 tables["transports"] = {"use": ["zenoh"]}
                 tables["transports.zenoh"] = {
@@ -140,6 +149,22 @@ class Fleet:
         link.write_text(secrets.token_hex(32) + "\n")
         link.chmod(0o600)
         return files, roster, link
+
+    def _start_router(self) -> str:
+        """A zenoh router process (deploy/zenoh/router.json5, on a loopback port); returns its endpoint."""
+        from mapd.data import REPO_ROOT
+
+        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        cmd = [sys.executable, "-m", "transports.zenoh.router", "--listen", endpoint]
+        example = REPO_ROOT / "deploy" / "zenoh" / "router.json5"
+        if example.exists():
+            cmd += ["--config", str(example)]
+        self.router = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert self.router.stdout is not None
+        line = self.router.stdout.readline()
+        if not line.startswith("listening"):
+            raise DaemonError(f"the zenoh router did not start: {line.strip() or 'no output'}")
+        return endpoint
 
     def _start_relay(self) -> None:
         """The emulated radio: a separate process joining every robot's socat pty at 12.5 kb/s."""
@@ -261,6 +286,12 @@ class Fleet:
             except subprocess.TimeoutExpired:
                 p.kill()
                 codes[name] = None
+        if self.router is not None and self.router.poll() is None:
+            self.router.send_signal(signal.SIGTERM)
+            try:
+                self.router.wait(5)
+            except subprocess.TimeoutExpired:
+                self.router.kill()
         if self.relay is not None and self.relay.poll() is None:
             self.relay.send_signal(signal.SIGTERM)
             try:

@@ -1,0 +1,74 @@
+"""Robots as zenoh clients of one router (deploy/zenoh/router.json5 in a process of its own), daemons and all."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from mapd.daemon.versions import split
+from mapd.data import REPO_ROOT
+from mapd.demo.fleet import Fleet
+
+pytestmark = pytest.mark.slow
+
+
+def held(s: dict[str, dict[str, Any]], who: str, of: str) -> int:
+    return split(int(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)))[1]
+
+
+def test_three_daemons_through_one_router(tmp_path: Path) -> None:
+    args = argparse.Namespace(
+        robots=3,
+        transport="zenoh",
+        codec="lossless",
+        log=None,
+        seed=7,
+        out=tmp_path,
+        duration=60.0,
+        router=True,
+    )
+    f = Fleet(args)
+    f.prepare()
+    assert f.router is not None and f.router.poll() is None
+    cfg = (f.run_dir / "robot0" / "config.toml").read_text()
+    assert 'mode = "client"' in cfg and "listen" not in cfg.split("[transports.zenoh]")[1].split("[")[0]
+    f.start()
+    try:
+        deadline = time.monotonic() + 120
+        snaps: dict[str, dict[str, Any]] = {}
+        pairs = [(a, b) for a in f.names for b in f.names if a != b]
+        while time.monotonic() < deadline:
+            f.check_alive()
+            snaps = f.status()
+            if all(held(snaps, a, b) >= 2 for a, b in pairs):
+                break
+            time.sleep(1.0)
+        assert all(held(snaps, a, b) >= 2 for a, b in pairs), json.dumps(snaps)[:2000]
+        for me in f.names:  # every robot waits for the other two (both showed signed messages)
+            assert sorted(snaps[me]["links"]["zenoh"]["peers"]) == sorted(n for n in f.names if n != me)
+    finally:
+        codes = f.stop()
+    assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
+    assert f.router.poll() is not None  # stopped with the fleet
+
+
+def test_router_with_a_bad_config_says_so_in_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: ")
+    out = subprocess.run(
+        [sys.executable, "-m", "transports.zenoh.router", "--config", str(bad)],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert (
+        out.returncode == 1
+        and out.stderr.startswith("router: cannot start:")
+        and "Traceback" not in out.stderr
+    )
+    assert (REPO_ROOT / "deploy" / "zenoh" / "router.json5").exists()
