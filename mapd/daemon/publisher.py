@@ -10,7 +10,8 @@ The rules:
 
 * **P1 Code only what a link can take now.** A version is coded when some transport has not been
   offered it and is free: its previous offer is acked by every peer it was meant for, failed, or
-  older than ``inflight_timeout_s``. So a slow link never queues stale maps, and versions that would
+  older than ``inflight_timeout_s``. A peer that already acked a version (a late joiner's keyframe
+  query got it first) is not waited for when that version is offered: it drops it as stale. So a slow link never queues stale maps, and versions that would
   be replaced unsent are never coded.
 * **P2 Latest wins.** Only the newest own version is ever coded; older unsent ones are dropped.
 * **P3 Delta against what every peer holds.** The base is the newest own version that *every*
@@ -160,7 +161,9 @@ class PublisherCore:
             self.counters.deltas_sent += 1
         for t in job.transports:
             self._offered[t] = envelope.version
-            self._inflight[t] = InFlight(envelope.version, now, set(peers.get(t, ())))
+            # a peer that already holds this version (a late joiner's query got it) will not ack it again
+            waiting = {p for p in peers.get(t, ()) if self._acked.get(p, 0) < envelope.version}
+            self._inflight[t] = InFlight(envelope.version, now, waiting)
         return job.transports
 
     def next_deadline(self) -> float | None:

@@ -168,3 +168,20 @@ def test_a_late_joiner_keyframe_never_replaces_a_newer_one() -> None:
     old = envelope(EncodeJob(grid(1), None, ()))
     c.remember_keyframe(old)
     assert c.cached_keyframe(2) is env2
+
+
+def test_a_peer_that_already_holds_the_version_is_not_waited_for() -> None:
+    """A late joiner's query reply carried v3 and it acked v3 before the publisher offered v3 whole:
+    it drops the offer as stale and never acks again, so waiting for it would stall the link 30 s."""
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    for t in PEERS:
+        for p in PEERS[t]:
+            c.acked(t, p, 1)
+    c.new_version(grid(3))
+    assert c.acked("zenoh", "robot1", 3)[1]  # acked off the reply, before any offer of v3
+    c.keyframe_needed("robot2")
+    job, _ = code(c, 1.0)
+    assert job.grid.version == 3
+    assert c.acked("zenoh", "robot2", 3)[0]  # robot2 alone was waited for on zenoh

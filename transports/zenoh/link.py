@@ -304,6 +304,10 @@ class ZenohTransport(Transport):
         env = self.ctx.latest_keyframe()
         if env is None:
             return self._last_keyframe
+        # The asker will ack this version: tell the core it was offered before the reply goes out
+        # (the loop runs posted calls in order, so this lands before any ack of it), or the ack is
+        # taken for one of a version never sent and dropped, and the publisher waits out its timeout.
+        self._post(self.core.offered, env, time.monotonic())
         if self._kf_cache is None or self._kf_cache[0] is not env:
             self._kf_cache = (env, env.pack())
         return self._kf_cache[1]
