@@ -278,13 +278,12 @@ class FusionWorker:
             if math.isfinite(reach) and reach <= limit:
                 keep.append(r)
                 continue
-            placements[r] = replace(
-                placements[r],
-                accepted=False,
-                reason=f"left out of the global map: it reaches {reach:.4g} m from the fleet frame's origin, "
-                f"beyond fusion.max_extent_m = {limit:g} m (a damaged map origin or a wrong pose?)",
+            _leave_out(
+                placements,
+                r,
+                f"it reaches {reach:.4g} m from the fleet frame's origin, beyond fusion.max_extent_m = "
+                f"{limit:g} m (a damaged map origin or a wrong pose?)",
             )
-            log.warning("fusion: %s: %s", r, placements[r].reason)
         return keep
 
     def _within_cell_limit(
@@ -309,13 +308,12 @@ class FusionWorker:
                 break
             far = max(keep, key=lambda r: _reach(maps[r], placements[r]))
             keep.remove(far)
-            placements[far] = replace(
-                placements[far],
-                accepted=False,
-                reason=f"left out of the global map: with it the global map would be {box.width} x "
-                f"{box.height} cells, over the limit of {self.max_cells} cells ({MAX_SIDE} a side)",
+            _leave_out(
+                placements,
+                far,
+                f"with it the global map would be {box.width} x {box.height} cells, over the limit of "
+                f"{self.max_cells} cells ({MAX_SIDE} a side)",
             )
-            log.warning("fusion: %s: %s", far, placements[far].reason)
         return keep
 
     def _apply(self, fused: _Fused, publish: bool = True) -> None:
@@ -430,6 +428,14 @@ class FusionWorker:
             "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
         }
         write_json_atomic(self.state_dir / TRANSFORMS_JSON, doc)
+
+
+def _leave_out(placements: dict[str, Placement], robot: str, why: str) -> None:
+    """Mark ``robot``'s placement as left out of the global map, with the reason, and say so once."""
+    placements[robot] = replace(
+        placements[robot], accepted=False, reason=f"left out of the global map: {why}"
+    )
+    log.warning("fusion: %s: %s", robot, placements[robot].reason)
 
 
 def _reach(grid: OccupancyGrid, placement: Placement) -> float:
