@@ -135,12 +135,15 @@ class Placer:
         self.research_every = max(1, research_every)
         self.placements: dict[str, Placement] = {}
         self._tracks: dict[str, _Track] = {}
+        #: Robots whose pose came with their maps (a source's start pose), not from the config.
+        self.reported: set[str] = set()
 
     @property
     def fleet_frame(self) -> str:
         """A description of the fleet frame, for status output."""
         if self.poses:
-            return "frame of the configured poses (" + ", ".join(sorted(self.poses)) + ")"
+            what = "known" if self.reported else "configured"
+            return f"frame of the {what} poses (" + ", ".join(sorted(self.poses)) + ")"
         return f"map frame of robot '{self.anchor}'" if self.anchor else "map frame of the first map"
 
     def restore(self, placements: Mapping[str, Placement]) -> None:
@@ -221,8 +224,13 @@ class Placer:
                         f"{chk.agreement:.2f}): check the pose (x, y in meters and yaw in radians of "
                         "the map frame, not of the map's origin cell)"
                     )
-                return Placement(robot, t, "pose", True, 1.0, chk.agreement, "configured pose" + note, other)
-        return Placement(robot, t, "pose", True, 1.0, None, "configured pose")
+                return Placement(
+                    robot, t, "pose", True, 1.0, chk.agreement, self._pose_word(robot) + note, other
+                )
+        return Placement(robot, t, "pose", True, 1.0, None, self._pose_word(robot))
+
+    def _pose_word(self, robot: str) -> str:
+        return "start pose reported by the robot" if robot in self.reported else "configured pose"
 
     def _place(
         self, robot: str, maps: Mapping[str, OccupancyGrid], placed: Mapping[str, Pose2D]

@@ -135,6 +135,7 @@ class FusionWorker:
         if robot in self.cfg.poses or self.placer.poses.get(robot) == pose:
             return
         self.placer.poses[robot] = pose
+        self.placer.reported.add(robot)
         self._wake.set()
 
     @property

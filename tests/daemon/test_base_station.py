@@ -58,7 +58,7 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
         assert b["codec"]["keyframes"] == 0 and b["codec"]["deltas"] == 0  # it sends no map
         fusion = b["fusion"]
         # the robots' maps carry their start poses, which place them (the base knows no poses itself)
-        assert fusion["fleet_frame"] == "frame of the configured poses (robot0, robot1)"
+        assert fusion["fleet_frame"] == "frame of the known poses (robot0, robot1)"
         for robot in ("robot0", "robot1"):
             assert fusion["robots"][robot]["source"] == "pose" and fusion["robots"][robot]["accepted"]
         assert fusion["maps"] >= 2

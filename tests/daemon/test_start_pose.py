@@ -44,10 +44,11 @@ def test_start_poses_from_the_sources_place_the_maps_without_configured_poses(tm
             time.sleep(1.0)
         for me in f.names:
             fusion = snaps[me]["fusion"]
-            assert fusion["fleet_frame"] == "frame of the configured poses (robot0, robot1)", fusion
+            assert fusion["fleet_frame"] == "frame of the known poses (robot0, robot1)", fusion
             for robot, pose in truth.items():
                 p = fusion["robots"][robot]
                 assert p["source"] == "pose" and p["accepted"], p
+                assert p["reason"].startswith("start pose reported by the robot"), p
                 assert math.isclose(p["x"], pose[0], abs_tol=1e-6) and math.isclose(
                     p["y"], pose[1], abs_tol=1e-6
                 )
