@@ -19,7 +19,7 @@ from typing import Any
 import msgpack
 
 from mapd.errors import EnvelopeError, SignatureError
-from mapd.grid import Pose2D
+from mapd.grid import MAX_ORIGIN_M, MAX_ORIGIN_YAW, Pose2D
 from mapd.identity import SIG_LEN, Identity, Roster
 
 #: 2: Ed25519 signatures by each robot's own key (1 had a fleet-wide HMAC).
@@ -213,19 +213,14 @@ def unpack(
     )
 
 
-#: A frame pose farther out than this is no place on Earth's surface a fleet maps (same bound as
-#: map origins in :mod:`mapd.grid`).
-_MAX_FRAME_POSE_M = 1e7
-
-
 def _frame_pose(v: Any) -> Pose2D:
     if (
         not isinstance(v, list)
         or len(v) != 3
         or not all(isinstance(x, float | int) and not isinstance(x, bool) for x in v)
         or not all(math.isfinite(float(x)) for x in v)
-        or max(abs(float(v[0])), abs(float(v[1]))) > _MAX_FRAME_POSE_M
-        or abs(float(v[2])) > 2 * math.pi
+        or max(abs(float(v[0])), abs(float(v[1]))) > MAX_ORIGIN_M  # the bounds of map origins
+        or abs(float(v[2])) > MAX_ORIGIN_YAW
     ):
         raise EnvelopeError("envelope frame pose must be [x, y, yaw], finite and within bounds")
     return Pose2D(float(v[0]), float(v[1]), float(v[2]))

@@ -385,7 +385,7 @@ class Daemon:
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """The fusion worker made a new global map: outputs, recording and fused.csv take it."""
-        self.sinks.global_map(grid, self.fusion.status().get("robots", {}))
+        self.sinks.global_map(grid, self.fusion.placements, self.fusion.status().get("robots", {}))
 
     async def _record_links(self) -> None:
         if self.sinks.recorder is None:

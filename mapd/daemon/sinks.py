@@ -17,20 +17,12 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from mapd.daemon.coding import CsvLog
+from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.outputs.base import GlobalUpdate, Output
 from mapd.record.writer import Recorder
 
 log = logging.getLogger("mapd.daemon")
-
-
-def _frames(robots: dict[str, Any]) -> dict[str, Pose2D]:
-    """Robot -> its map frame in the fleet frame, for every accepted placement of a fusion status."""
-    return {
-        r: Pose2D(float(i["x"]), float(i["y"]), float(i["yaw"]))
-        for r, i in robots.items()
-        if isinstance(i, dict) and i.get("accepted") and i.get("x") is not None
-    }
 
 
 class Sinks:
@@ -47,8 +39,10 @@ class Sinks:
         self._recorded_tf: dict[str, Pose2D] = {}
 
     # ------------------------------------------------------------------ on the loop
-    def global_map(self, grid: OccupancyGrid, robots: dict[str, Any]) -> None:
-        """A new global map; ``robots`` is the fusion worker's status of each robot."""
+    def global_map(
+        self, grid: OccupancyGrid, placements: dict[str, Placement], robots: dict[str, Any]
+    ) -> None:
+        """A new global map, the placements it was merged with, and the fusion worker's status per robot."""
         wall = time.time()
         rows = [
             {"time": round(wall, 3), "robot": robot, "version": info["version"]}
@@ -57,7 +51,7 @@ class Sinks:
         ]
         if rows:  # which version of each robot the global map holds (for latency benches)
             self._files.submit(self.fused_log.write, rows)
-        frames = _frames(robots)
+        frames = {r: p.transform for r, p in placements.items() if p.accepted and p.transform is not None}
         if self.outputs:
             versions = {
                 r: int(i["version"]) for r, i in robots.items() if isinstance(i, dict) and i.get("version")

@@ -134,6 +134,7 @@ class Fleet:
         """
         import secrets
 
+        from mapd.files import write_new_secret
         from mapd.identity import Identity
 
         keys = self.run_dir / "keys"
@@ -146,8 +147,7 @@ class Fleet:
             identity.write(files[name])
             roster[name] = identity.public_text
         link = (keys / "link.key").resolve()
-        link.write_text(secrets.token_hex(32) + "\n")
-        link.chmod(0o600)
+        write_new_secret(link, secrets.token_hex(32).encode() + b"\n")  # as mapd keygen --link-key
         return files, roster, link
 
     def _start_router(self) -> str:

@@ -23,13 +23,9 @@ from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
+from transports.zenoh.keys import global_key
 
 MAX_MESSAGE_BYTES = 64 << 20
-
-
-def global_key(fleet: str, robot: str) -> str:
-    """Where ``robot``'s global map is published and queried."""
-    return f"mapd/{fleet}/{robot}/global"
 
 
 class ZenohOutputOptions(OutputOptions):

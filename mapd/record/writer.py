@@ -141,11 +141,11 @@ class Recorder:
 
     def transforms(self, topic: str, parent: str, children: dict[str, Pose2D], wall: float) -> None:
         """A TFMessage: ``parent`` -> each child frame at its pose (x, y in m, yaw in rad)."""
+        from mapd.ros2.cdr import split_stamp
+
         t = self._ts.types
-        sec = math.floor(wall)
-        stamp = t["builtin_interfaces/msg/Time"](
-            sec=int(sec), nanosec=min(round((wall - sec) * 1e9), 999_999_999)
-        )
+        sec, nanosec = split_stamp(wall)
+        stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
         items = []
         for child, pose in sorted(children.items()):
             items.append(

@@ -59,14 +59,18 @@ def type_hash() -> str:
 # ------------------------------------------------------------------------------------------------
 
 
+def split_stamp(wall: float) -> tuple[int, int]:
+    """``builtin_interfaces/Time``'s (sec, nanosec) of wall-clock seconds."""
+    sec = math.floor(wall)
+    return int(sec), min(round((wall - sec) * 1e9), 999_999_999)
+
+
 def encode(grid: OccupancyGrid, *, frame_id: str | None = None, stamp: float | None = None) -> bytes:
     """A CDR-serialised (little-endian, with encapsulation header) ``nav_msgs/msg/OccupancyGrid``."""
     ts = _typestore()
     t = ts.types
-    when = grid.stamp if stamp is None else stamp
-    sec = math.floor(when)
-    nanosec = min(round((when - sec) * 1e9), 999_999_999)
-    stamp_msg = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=nanosec)
+    sec, nanosec = split_stamp(grid.stamp if stamp is None else stamp)
+    stamp_msg = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     yaw = grid.origin.yaw
     pose = t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=grid.origin.x, y=grid.origin.y, z=0.0),

@@ -17,7 +17,8 @@ from mapd.grid import OccupancyGrid, Pose2D, load_map
 from mapd.identity import Identity, Roster
 from mapd.outputs.base import GlobalUpdate, OutputContext
 from mapd.outputs.files import FilesOptions, FilesOutput
-from mapd.outputs.zenoh import ZenohOutput, ZenohOutputOptions, global_key
+from mapd.outputs.zenoh import ZenohOutput, ZenohOutputOptions
+from transports.zenoh.keys import global_key
 
 
 def update(room_grid: OccupancyGrid, version: int = 3) -> GlobalUpdate:

@@ -6,6 +6,7 @@ other's traffic (and a router ACL can fence a fleet with one rule)::
     mapd/<fleet>/<robot>/update          map updates of <robot> (packed envelopes), pub/sub
     mapd/<fleet>/<robot>                 liveliness token: <robot> is present
     mapd/<fleet>/<robot>/latest          queryable: <robot>'s latest keyframe envelope
+    mapd/<fleet>/<robot>/global          <robot>'s global map (the zenoh output), put + queryable
     mapd/<fleet>/<peer>/ack/<robot>      <peer> has applied <robot>'s map version (8-byte payload)
 
 Fleet and robot ids are the config's names (``[A-Za-z0-9_-]{1,32}``), so they hold no zenoh
@@ -48,6 +49,12 @@ def latest_key(fleet: str, robot: str) -> str:
     """The queryable that answers with ``robot``'s latest keyframe."""
     _check(fleet, robot)
     return f"{PREFIX}/{fleet}/{robot}/latest"
+
+
+def global_key(fleet: str, robot: str) -> str:
+    """Where ``robot``'s global map goes (the ``zenoh`` output) and is queried by late joiners."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/{robot}/global"
 
 
 def ack_key(fleet: str, peer: str, robot: str) -> str:
