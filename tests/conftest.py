@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import gzip
+import json
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -114,3 +118,37 @@ def box_log(tmp_path: Path) -> Callable[..., tuple[Path, list[Pose2D]]]:
 @pytest.fixture
 def box_world() -> OccupancyGrid:
     return make_box_world()
+
+
+# Fleets of real daemons (mapd.demo.fleet.Fleet): waiting on their status, reading what they hold.
+
+
+def wait_for_fleet(pred: Any, timeout: float, fleet: Any) -> dict[str, dict[str, Any]]:
+    """Poll every daemon's status until ``pred(snapshots)`` holds; fail with the last ones after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    snaps: dict[str, dict[str, Any]] = {}
+    while time.monotonic() < deadline:
+        fleet.check_alive()
+        snaps = fleet.status()
+        if pred(snaps):
+            return snaps
+        time.sleep(1.0)
+    raise AssertionError(f"condition not met in {timeout} s: {json.dumps(snaps)[:3000]}")
+
+
+def held_version(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
+    """The version of ``of``'s map that ``who`` holds (0: none), incarnation and all."""
+    return int(snaps.get(who, {}).get("peers", {}).get(of, {}).get("version", 0))
+
+
+def held_number(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
+    """Which map of ``of``'s current incarnation ``who`` holds: how many it has made (see versions.py)."""
+    from mapd.daemon.versions import split
+
+    return split(held_version(snaps, who, of))[1]
+
+
+@pytest.fixture
+def fk() -> SimpleNamespace:
+    """The fleet helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
+    return SimpleNamespace(wait_for=wait_for_fleet, held=held_number, version=held_version)

@@ -4,26 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 import tomllib
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
 
 import pytest
 
-from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet, write_config
 from mapd.grid import load_map
 
 pytestmark = pytest.mark.slow
 
 
-def held(s: dict[str, dict[str, Any]], who: str, of: str) -> int:
-    return split(int(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)))[1]
-
-
 @pytest.mark.parametrize("transport", ["zenoh", "uwb"])
-def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
+def test_two_robots_and_a_base_station(tmp_path: Path, transport: str, fk: SimpleNamespace) -> None:
     args = argparse.Namespace(
         robots=3, transport=transport, codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
     )
@@ -37,23 +31,19 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
     write_config(base, cfg)
     f.start()
     try:
-        deadline = time.monotonic() + 150
-        snaps: dict[str, dict[str, Any]] = {}
-        while time.monotonic() < deadline:
-            f.check_alive()
-            snaps = f.status()
-            b = snaps.get("robot2", {})
-            if (
-                held(snaps, "robot2", "robot0") >= 2
-                and held(snaps, "robot2", "robot1") >= 2
-                and b.get("fusion", {}).get("maps", 0) >= 2
-            ):
-                break
-            time.sleep(1.0)
+        snaps = fk.wait_for(
+            lambda s: (
+                fk.held(s, "robot2", "robot0") >= 2
+                and fk.held(s, "robot2", "robot1") >= 2
+                and s.get("robot2", {}).get("fusion", {}).get("maps", 0) >= 2
+            ),
+            150,
+            f,
+        )
         b = snaps["robot2"]
-        assert held(snaps, "robot2", "robot0") >= 2 and held(snaps, "robot2", "robot1") >= 2, json.dumps(b)[
-            :2000
-        ]
+        assert fk.held(snaps, "robot2", "robot0") >= 2 and fk.held(snaps, "robot2", "robot1") >= 2, (
+            json.dumps(b)[:2000]
+        )
         assert b["source"]["name"] == "none" and b["source"]["version"] == 0
         assert b["codec"]["keyframes"] == 0 and b["codec"]["deltas"] == 0  # it sends no map
         fusion = b["fusion"]
@@ -65,7 +55,7 @@ def test_two_robots_and_a_base_station(tmp_path: Path, transport: str) -> None:
         # the robots go on as before, and hold no map of the base station
         for me, other in (("robot0", "robot1"), ("robot1", "robot0")):
             assert "robot2" not in {p for p, i in snaps[me]["peers"].items() if i.get("version")}
-            assert held(snaps, me, other) >= 1
+            assert fk.held(snaps, me, other) >= 1
     finally:
         codes = f.stop()
     assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}

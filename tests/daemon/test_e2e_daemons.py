@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -35,18 +36,6 @@ def fleet(tmp: Path, transport: str, duration: float = 30.0, robots: int = 2) ->
     return f
 
 
-def wait_for(pred: Any, timeout: float, f: Fleet) -> dict[str, dict[str, Any]]:
-    deadline = time.monotonic() + timeout
-    snaps: dict[str, dict[str, Any]] = {}
-    while time.monotonic() < deadline:
-        f.check_alive()
-        snaps = f.status()
-        if pred(snaps):
-            return snaps
-        time.sleep(1.0)
-    raise AssertionError(f"condition not met in {timeout} s: {json.dumps(snaps)[:2000]}")
-
-
 def holds_each_other(snaps: dict[str, dict[str, Any]], min_version: int = 3) -> bool:
     return len(snaps) == 2 and all(
         any(num(p.get("version", 0)) >= min_version for p in s.get("peers", {}).values())
@@ -55,11 +44,11 @@ def holds_each_other(snaps: dict[str, dict[str, Any]], min_version: int = 3) -> 
 
 
 @pytest.mark.parametrize("transport", ["zenoh", "uwb"])
-def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str) -> None:
+def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, transport)
     f.start()
     try:
-        snaps = wait_for(holds_each_other, 90, f)
+        snaps = fk.wait_for(holds_each_other, 90, f)
         # mapd status --json against a live daemon, as a user runs it
         sock = f.run_dir / "robot0" / "run" / "mapd.sock"
         out = subprocess.run(
@@ -76,7 +65,7 @@ def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str) -> None:
         assert doc["peers"]["robot1"]["acked_our_version"] >= 1
         assert doc["peers"]["robot1"]["restored"] is False  # a live peer's map came over the link
         assert doc["links"][transport]["rtt_ms"] > 0
-        wait_for(lambda s: all(x.get("fusion", {}).get("maps", 0) >= 2 for x in s.values()), 60, f)
+        fk.wait_for(lambda s: all(x.get("fusion", {}).get("maps", 0) >= 2 for x in s.values()), 60, f)
         assert snaps
     finally:
         codes = f.stop(timeout=10)
@@ -85,11 +74,11 @@ def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str) -> None:
         assert (f.run_dir / name / "state" / "global" / "global.yaml").exists()
 
 
-def test_sigterm_exits_cleanly_within_2s(tmp_path: Path) -> None:
+def test_sigterm_exits_cleanly_within_2s(tmp_path: Path, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, "zenoh")
     f.start()
     try:
-        wait_for(lambda s: len(s) == 2 and all(x.get("peers") for x in s.values()), 60, f)
+        fk.wait_for(lambda s: len(s) == 2 and all(x.get("peers") for x in s.values()), 60, f)
         p = f.procs["robot0"]
         t0 = time.monotonic()
         p.send_signal(signal.SIGTERM)
@@ -100,13 +89,13 @@ def test_sigterm_exits_cleanly_within_2s(tmp_path: Path) -> None:
         f.stop()
 
 
-def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
+def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, "zenoh")
     f.start()
     try:
-        wait_for(holds_each_other, 90, f)
+        fk.wait_for(holds_each_other, 90, f)
         # the crash must find a global map already written, so that there is one to restore
-        wait_for(lambda s: s.get("robot0", {}).get("fusion", {}).get("global") is not None, 60, f)
+        fk.wait_for(lambda s: s.get("robot0", {}).get("fusion", {}).get("global") is not None, 60, f)
         before = f.status()["robot0"]
         v_own = before["source"]["version"]
         os.kill(f.procs["robot0"].pid, signal.SIGKILL)
@@ -120,7 +109,7 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
             stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
             stderr=subprocess.STDOUT,
         )
-        snaps = wait_for(
+        snaps = fk.wait_for(
             lambda s: "robot0" in s and s["robot0"]["peers"].get("robot1", {}).get("version", 0) > 0, 60, f
         )
         after = snaps["robot0"]
@@ -130,11 +119,11 @@ def test_kill_9_and_restart_resumes(tmp_path: Path) -> None:
         # at least the version the state directory held at the crash (received after it: newer)
         assert held["version"] >= state["peers"]["robot1"]["version"]
         assert held["restored"] == ("age_s" not in held)  # status says where the map came from
-        snaps = wait_for(
+        snaps = fk.wait_for(
             lambda s: "robot0" in s and s["robot0"]["source"]["version"] > state["own_version"], 60, f
         )
         # the peer accepts the restarted robot's new versions (never a stale or repeated one)
-        wait_for(
+        fk.wait_for(
             lambda s: (
                 s.get("robot1", {}).get("peers", {}).get("robot0", {}).get("version", 0)
                 > state["own_version"]
@@ -182,11 +171,11 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     assert "Traceback" not in out.stderr
 
 
-def test_second_sigint_forces_exit(tmp_path: Path) -> None:
+def test_second_sigint_forces_exit(tmp_path: Path, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, "zenoh")
     f.start()
     try:
-        wait_for(lambda s: len(s) == 2, 60, f)
+        fk.wait_for(lambda s: len(s) == 2, 60, f)
         p = f.procs["robot0"]
         p.send_signal(signal.SIGINT)
         p.send_signal(signal.SIGINT)
@@ -236,7 +225,9 @@ def _same_on_lattice(a: Any, b: Any) -> str | None:
     return None if diff == 0 else f"{diff} cells differ of {int((big_a >= 0).sum())} known"
 
 
-def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_path: Path) -> None:
+def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
     """Over a lossy, bit-flipping link with an outage, robot0 is killed mid-transfer and restarted.
 
     Both sims are finite and deterministic, so the fault-free answer is known without a link: the
@@ -259,7 +250,7 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_p
             link = r0.get("links", {}).get("uwb", {})
             return num(r0.get("source", {}).get("version", 0)) >= 3 and link.get("in_flight", 0) > 0
 
-        wait_for(mid_transfer, 90, f)
+        fk.wait_for(mid_transfer, 90, f)
         os.kill(f.procs["robot0"].pid, signal.SIGKILL)
         f.procs["robot0"].wait(10)
         d = f.run_dir / "robot0"
@@ -276,7 +267,7 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_p
                 for me, other in (("robot0", "robot1"), ("robot1", "robot0"))
             )
 
-        snaps = wait_for(exchanged_final, 150, f)
+        snaps = fk.wait_for(exchanged_final, 150, f)
         final = _final_maps(f)
         poses = {r: Pose2D(*p) for r, p in f._start_poses().items()}
         expected = merge([final[r] for r in f.names], [poses[r] for r in f.names], "logodds")
@@ -300,7 +291,7 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(tmp_p
     assert stats["dropped"] > 0 and stats["flipped_bits"] > 0
 
 
-def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path) -> None:
+def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path, fk: SimpleNamespace) -> None:
     """robot0 talks UWB (socat + relay) to robot1 and zenoh to robot2, both at once."""
     import tomllib
 
@@ -333,7 +324,7 @@ def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path) -
         def holds(s: dict[str, dict[str, Any]], who: str, of: str) -> bool:
             return num(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)) >= 2
 
-        snaps = wait_for(
+        snaps = fk.wait_for(
             lambda s: (
                 holds(s, "robot0", "robot1")
                 and holds(s, "robot0", "robot2")

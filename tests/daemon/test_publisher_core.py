@@ -32,6 +32,13 @@ def code(core: PublisherCore, now: float, peers: dict[str, list[str]] = PEERS) -
     return job, env
 
 
+def ack_all(c: PublisherCore, version: int) -> None:
+    """Every peer acks ``version`` on every transport."""
+    for t in PEERS:
+        for p in PEERS[t]:
+            c.acked(t, p, version)
+
+
 def core(**kw: object) -> PublisherCore:
     return PublisherCore(uses_base=True, keyframe_every=50, **kw)  # type: ignore[arg-type]
 
@@ -123,9 +130,7 @@ def test_keyframe_request_resends_whole_on_every_transport() -> None:
     c = core()
     c.new_version(grid(1))
     code(c, 0.0)
-    for t in PEERS:
-        for p in PEERS[t]:
-            c.acked(t, p, 1)
+    ack_all(c, 1)
     assert c.poll(1.0, PEERS) is None  # everyone has v1
     assert c.keyframe_needed("robot2")  # P4
     job, _ = code(c, 2.0)
@@ -176,9 +181,7 @@ def test_a_peer_that_already_holds_the_version_is_not_waited_for() -> None:
     c = core()
     c.new_version(grid(1))
     code(c, 0.0)
-    for t in PEERS:
-        for p in PEERS[t]:
-            c.acked(t, p, 1)
+    ack_all(c, 1)
     c.new_version(grid(3))
     assert c.acked("zenoh", "robot1", 3)[1]  # acked off the reply, before any offer of v3
     c.keyframe_needed("robot2")

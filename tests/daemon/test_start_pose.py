@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -16,7 +16,9 @@ from mapd.demo.fleet import Fleet, write_config
 pytestmark = pytest.mark.slow
 
 
-def test_start_poses_from_the_sources_place_the_maps_without_configured_poses(tmp_path: Path) -> None:
+def test_start_poses_from_the_sources_place_the_maps_without_configured_poses(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
     args = argparse.Namespace(
         robots=2, transport="zenoh", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
     )
@@ -31,17 +33,14 @@ def test_start_poses_from_the_sources_place_the_maps_without_configured_poses(tm
     assert set(truth) == {"robot0", "robot1"}
     f.start()
     try:
-        deadline = time.monotonic() + 120
-        snaps: dict[str, dict[str, Any]] = {}
-        while time.monotonic() < deadline:
-            f.check_alive()
-            snaps = f.status()
+
+        def both_placed(snaps: dict[str, dict[str, Any]]) -> bool:
             robots = [s.get("fusion", {}).get("robots", {}) for s in snaps.values()]
-            if len(robots) == 2 and all(
+            return len(robots) == 2 and all(
                 len(r) == 2 and all(p.get("accepted") for p in r.values()) for r in robots
-            ):
-                break
-            time.sleep(1.0)
+            )
+
+        snaps = fk.wait_for(both_placed, 120, f)
         for me in f.names:
             fusion = snaps[me]["fusion"]
             assert fusion["fleet_frame"] == "frame of the known poses (robot0, robot1)", fusion

@@ -11,6 +11,7 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -101,7 +102,9 @@ def test_a_cut_file_reads_up_to_its_last_chunk_and_garbage_is_one_line(tmp_path:
 
 
 @pytest.mark.slow
-def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(tmp_path: Path) -> None:
+def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
     args = argparse.Namespace(
         robots=2, transport="zenoh", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0,
         record=tmp_path / "fleet.mcap",
@@ -115,13 +118,14 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(tmp_path: 
     write_config(path, cfg)
     f.start()
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            f.check_alive()
-            s = f.status().get("robot0", {})
-            if s.get("fusion", {}).get("maps", 0) >= 2 and s.get("fusion", {}).get("merges", 0) >= 4:
-                break
-            time.sleep(1.0)
+        fk.wait_for(
+            lambda s: (
+                s.get("robot0", {}).get("fusion", {}).get("maps", 0) >= 2
+                and s.get("robot0", {}).get("fusion", {}).get("merges", 0) >= 4
+            ),
+            120,
+            f,
+        )
         time.sleep(3.0)
         os.kill(f.procs["robot0"].pid, signal.SIGKILL)
         f.procs["robot0"].wait(10)

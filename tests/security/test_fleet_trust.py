@@ -17,6 +17,7 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -49,22 +50,6 @@ def start_fleet(tmp: Path, *, extra_roster: dict[str, str] | None = None) -> Fle
             write_config(path, cfg)
     f.start()
     return f
-
-
-def wait_for(pred: Any, timeout: float, f: Fleet) -> dict[str, dict[str, Any]]:
-    deadline = time.monotonic() + timeout
-    snaps: dict[str, dict[str, Any]] = {}
-    while time.monotonic() < deadline:
-        f.check_alive()
-        snaps = f.status()
-        if pred(snaps):
-            return snaps
-        time.sleep(0.5)
-    raise AssertionError(f"condition not met in {timeout} s: {json.dumps(snaps)[:3000]}")
-
-
-def held(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
-    return int(snaps.get(who, {}).get("peers", {}).get(of, {}).get("version", 0))
 
 
 def envelope(robot: str, version: int, signer: Identity | None = None) -> Envelope:
@@ -113,13 +98,17 @@ def restart(f: Fleet, name: str, log: str) -> None:
     )
 
 
-def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(tmp_path: Path) -> None:
+def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
     mallory = Identity.generate("mallory")  # on the roster: a robot of the fleet whose key leaked
     f = start_fleet(tmp_path, extra_roster={"mallory": mallory.public_text})
     robot1 = read_identity(f.run_dir / "keys" / "robot1.key", "robot1")
     try:
-        snaps = wait_for(lambda s: held(s, "robot0", "robot1") > 0 and held(s, "robot1", "robot0") > 0, 90, f)
-        real = held(snaps, "robot0", "robot1")
+        snaps = fk.wait_for(
+            lambda s: fk.version(s, "robot0", "robot1") > 0 and fk.version(s, "robot1", "robot0") > 0, 90, f
+        )
+        real = fk.version(snaps, "robot0", "robot1")
         incarnation = split(real)[0]
         top = make(incarnation, (1 << 32) - 1)  # the largest version robot1 could ever reach
         with rogue_session(f) as z:
@@ -139,10 +128,10 @@ def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(tmp_pat
                 time.sleep(0.3)
             # robot1's real maps keep arriving while 65 fake robots are "present": the publisher
             # waits for none of them (only robots that showed a valid signed message count)
-            snaps = wait_for(
+            snaps = fk.wait_for(
                 lambda s: (
-                    split(held(s, "robot0", "robot1"))[1] >= split(real)[1] + 3
-                    and split(held(s, "robot1", "robot0"))[1] >= 3
+                    split(fk.version(s, "robot0", "robot1"))[1] >= split(real)[1] + 3
+                    and split(fk.version(s, "robot1", "robot0"))[1] >= 3
                 ),
                 60,
                 f,
@@ -158,19 +147,19 @@ def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(tmp_pat
         # robot0 restarts: robot1's next versions are still taken (nothing was locked in)
         os.kill(f.procs["robot0"].pid, signal.SIGTERM)
         assert f.procs["robot0"].wait(15) == 0
-        before = held(snaps, "robot0", "robot1")
+        before = fk.version(snaps, "robot0", "robot1")
         restart(f, "robot0", "daemon2.log")
-        wait_for(lambda s: held(s, "robot0", "robot1") > before, 60, f)
+        fk.wait_for(lambda s: fk.version(s, "robot0", "robot1") > before, 60, f)
         # a version jump signed by robot1's own key (a bug, or the key in wrong hands) is refused,
         # and robot1's real maps still follow
         with rogue_session(f) as z:
             jump = make(incarnation, split(before)[1] + 1_000_000)
             time.sleep(1.0)
             z.put(f"mapd/{FLEET}/robot1/update", envelope("robot1", jump, robot1).pack())
-            snaps = wait_for(lambda s: s["robot0"]["counters"].get("refused_versions", 0) >= 1, 30, f)
-        after = held(snaps, "robot0", "robot1")
+            snaps = fk.wait_for(lambda s: s["robot0"]["counters"].get("refused_versions", 0) >= 1, 30, f)
+        after = fk.version(snaps, "robot0", "robot1")
         assert after < jump
-        wait_for(lambda s: after < held(s, "robot0", "robot1") < jump, 60, f)
+        fk.wait_for(lambda s: after < fk.version(s, "robot0", "robot1") < jump, 60, f)
     finally:
         codes = f.stop()
     assert codes == {"robot0": 0, "robot1": 0}
@@ -179,11 +168,11 @@ def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(tmp_pat
         assert "Traceback" not in log, log[-3000:]
 
 
-def test_a_robot_that_lost_its_disk_is_heard_at_once(tmp_path: Path) -> None:
+def test_a_robot_that_lost_its_disk_is_heard_at_once(tmp_path: Path, fk: SimpleNamespace) -> None:
     f = start_fleet(tmp_path)
     try:
-        snaps = wait_for(lambda s: split(held(s, "robot0", "robot1"))[1] >= 5, 120, f)
-        old = held(snaps, "robot0", "robot1")
+        snaps = fk.wait_for(lambda s: split(fk.version(s, "robot0", "robot1"))[1] >= 5, 120, f)
+        old = fk.version(snaps, "robot0", "robot1")
         os.kill(f.procs["robot1"].pid, signal.SIGKILL)
         f.procs["robot1"].wait(10)
         state = f.run_dir / "robot1" / "state"
@@ -193,9 +182,9 @@ def test_a_robot_that_lost_its_disk_is_heard_at_once(tmp_path: Path) -> None:
         restart(f, "robot1", "daemon2.log")
         t0 = time.monotonic()
         # its first new map (number 1 of a new incarnation) is newer than all the old ones
-        snaps = wait_for(lambda s: split(held(s, "robot0", "robot1"))[0] > split(old)[0], 60, f)
+        snaps = fk.wait_for(lambda s: split(fk.version(s, "robot0", "robot1"))[0] > split(old)[0], 60, f)
         took = time.monotonic() - t0
-        assert split(held(snaps, "robot0", "robot1"))[1] < split(old)[1]  # it counts again from 1
+        assert split(fk.version(snaps, "robot0", "robot1"))[1] < split(old)[1]  # it counts again from 1
         assert snaps["robot0"]["counters"]["new_incarnations"] >= 1
         assert took < 45, took  # heard as soon as its first map arrives, not after passing the old count
     finally:

@@ -15,11 +15,10 @@ import random
 import shutil
 import time
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
 
 import pytest
 
-from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
 from transports.uwb import wire
 from transports.uwb.framing import encode_frame
@@ -29,10 +28,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed"),
 ]
-
-
-def held(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
-    return split(int(snaps.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)))[1]
 
 
 def forgeries(session_of: dict[int, int]) -> list[bytes]:
@@ -54,7 +49,9 @@ def forgeries(session_of: dict[int, int]) -> list[bytes]:
     return [encode_frame(b) for b in bodies + signed]
 
 
-def test_forged_hello_reject_and_fake_link_ids_do_not_stop_a_signed_transfer(tmp_path: Path) -> None:
+def test_forged_hello_reject_and_fake_link_ids_do_not_stop_a_signed_transfer(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
     args = argparse.Namespace(
         robots=3, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
     )
@@ -64,15 +61,8 @@ def test_forged_hello_reject_and_fake_link_ids_do_not_stop_a_signed_transfer(tmp
     f.start()
     rogue_port = f.ports["robot2"]
     try:
-        deadline = time.monotonic() + 120
-        snaps: dict[str, dict[str, Any]] = {}
-        while time.monotonic() < deadline:
-            f.check_alive()
-            snaps = f.status()
-            if held(snaps, "robot1", "robot0") >= 2:
-                break
-            time.sleep(1.0)
-        before = held(snaps, "robot1", "robot0")
+        snaps = fk.wait_for(lambda s: fk.held(s, "robot1", "robot0") >= 2, 120, f)
+        before = fk.held(snaps, "robot1", "robot0")
         assert before >= 2, json.dumps(snaps)[:2000]
         fd = os.open(rogue_port, os.O_RDWR | os.O_NOCTTY)
         try:
@@ -83,14 +73,8 @@ def test_forged_hello_reject_and_fake_link_ids_do_not_stop_a_signed_transfer(tmp
                     time.sleep(len(fr) * 8 / 12_500)
         finally:
             os.close(fd)
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            f.check_alive()
-            snaps = f.status()
-            if held(snaps, "robot1", "robot0") >= before + 3:
-                break
-            time.sleep(1.0)
-        assert held(snaps, "robot1", "robot0") >= before + 3, json.dumps(snaps)[:3000]
+        snaps = fk.wait_for(lambda s: fk.held(s, "robot1", "robot0") >= before + 3, 90, f)
+        assert fk.held(snaps, "robot1", "robot0") >= before + 3
         for me, other in (("robot0", "robot1"), ("robot1", "robot0")):
             link = snaps[me]["links"]["uwb"]
             # the rogue's frames were dropped before the protocol saw them, and counted

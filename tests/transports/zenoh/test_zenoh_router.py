@@ -3,27 +3,20 @@
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
-import time
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
 
 import pytest
 
-from mapd.daemon.versions import split
 from mapd.data import REPO_ROOT
 from mapd.demo.fleet import Fleet
 
 pytestmark = pytest.mark.slow
 
 
-def held(s: dict[str, dict[str, Any]], who: str, of: str) -> int:
-    return split(int(s.get(who, {}).get("peers", {}).get(of, {}).get("version", 0)))[1]
-
-
-def test_three_daemons_through_one_router(tmp_path: Path) -> None:
+def test_three_daemons_through_one_router(tmp_path: Path, fk: SimpleNamespace) -> None:
     args = argparse.Namespace(
         robots=3,
         transport="zenoh",
@@ -41,16 +34,8 @@ def test_three_daemons_through_one_router(tmp_path: Path) -> None:
     assert 'mode = "client"' in cfg and "listen" not in cfg.split("[transports.zenoh]")[1].split("[")[0]
     f.start()
     try:
-        deadline = time.monotonic() + 120
-        snaps: dict[str, dict[str, Any]] = {}
         pairs = [(a, b) for a in f.names for b in f.names if a != b]
-        while time.monotonic() < deadline:
-            f.check_alive()
-            snaps = f.status()
-            if all(held(snaps, a, b) >= 2 for a, b in pairs):
-                break
-            time.sleep(1.0)
-        assert all(held(snaps, a, b) >= 2 for a, b in pairs), json.dumps(snaps)[:2000]
+        snaps = fk.wait_for(lambda s: all(fk.held(s, a, b) >= 2 for a, b in pairs), 120, f)
         for me in f.names:  # every robot waits for the other two (both showed signed messages)
             assert sorted(snaps[me]["links"]["zenoh"]["peers"]) == sorted(n for n in f.names if n != me)
     finally:
