@@ -72,6 +72,13 @@ class Pose2D(NamedTuple):
 ZERO_POSE = Pose2D()
 
 
+class StampedPose(NamedTuple):
+    """Where a robot's ``base_link`` was, in its own map frame, at ``stamp`` (wall-clock seconds)."""
+
+    pose: Pose2D
+    stamp: float
+
+
 @dataclasses.dataclass(eq=False)
 class OccupancyGrid:
     """A 2D occupancy grid in the ``nav_msgs/OccupancyGrid`` layout.

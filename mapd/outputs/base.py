@@ -17,7 +17,7 @@ from typing import ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.identity import Identity
 
 
@@ -38,6 +38,20 @@ class GlobalUpdate:
     stamp: float
     #: Which version of each robot's map the global map holds.
     versions: dict[str, int] = field(default_factory=dict)
+    #: The latest known pose of each robot's ``base_link`` in that robot's own map frame.
+    poses: dict[str, StampedPose] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PoseUpdate:
+    """New robot poses (more often than maps): each robot's ``base_link`` in its own map frame.
+
+    ``frames`` is the latest placement of each robot's map frame in the fleet frame, so an output can
+    put a pose in the fleet frame as ``compose(frames[robot], poses[robot].pose)``.
+    """
+
+    poses: dict[str, StampedPose]
+    frames: dict[str, Pose2D]
 
 
 @dataclass(frozen=True)
@@ -67,6 +81,9 @@ class Output(ABC):
     @abstractmethod
     def publish(self, update: GlobalUpdate) -> None:
         """Take a new global map (blocking is fine: called on the output thread)."""
+
+    def publish_poses(self, update: PoseUpdate) -> None:  # noqa: B027 - optional hook
+        """Take new robot poses (on the output thread, like :meth:`publish`); default: ignore them."""
 
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release everything promptly."""
