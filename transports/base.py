@@ -89,7 +89,35 @@ class KeyframeNeeded:
     robot: str
 
 
-TransportEvent = Received | Delivered | Failed | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded
+@dataclass(frozen=True)
+class PoseReceived:
+    """Pose message bytes arrived from ``peer`` (unverified: the daemon unpacks and checks them)."""
+
+    transport: str
+    peer: str
+    data: bytes
+
+
+TransportEvent = (
+    Received | Delivered | Failed | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded | PoseReceived
+)
+
+
+@dataclass
+class PoseThrottle:
+    """At most one pose per ``period_s`` on a link (0 turns poses off); ``now`` is passed in."""
+
+    period_s: float
+    sent: int = 0
+    _next: float = float("-inf")
+
+    def due(self, now: float) -> bool:
+        """Whether a pose may go at ``now``; if so, the next may go one period later."""
+        if self.period_s <= 0 or now < self._next:
+            return False
+        self._next = now + self.period_s
+        self.sent += 1
+        return True
 
 
 @dataclass
@@ -116,9 +144,9 @@ class TransportContext:
 class Transport(ABC):
     """A pluggable link. Subclasses set ``name`` and ``Options`` and implement the methods.
 
-    These are all the methods the daemon calls: start and close; offer (own maps out); ack and
-    request_keyframe (answers to what was received); peers and stats (for the publisher's choice of
-    base and for ``mapd status``).
+    These are all the methods the daemon calls: start and close; offer (own maps out); send_pose
+    (the robot's pose out, latest wins); ack and request_keyframe (answers to what was received);
+    peers and stats (for the publisher's choice of base and for ``mapd status``).
     """
 
     name: ClassVar[str]
@@ -139,6 +167,15 @@ class Transport(ABC):
     @abstractmethod
     def offer(self, envelope: Envelope) -> None:
         """Queue ``envelope`` for every peer; replaces any unsent older version of the same robot."""
+
+    def send_pose(self, data: bytes, now: float) -> bool:
+        """Send this robot's packed, signed pose message if the link's pose period allows it now.
+
+        Poses are latest wins and best effort: a link sends one only when ``now`` (loop seconds) is
+        its pose period past the last, and drops it rather than let it delay a map. Returns whether
+        it went out. The default carries no poses.
+        """
+        return False
 
     async def request_keyframe(self, robot: str) -> None:  # noqa: B027 - optional hook
         """Ask peers for a whole map of ``robot`` (after a gap or an unknown base)."""

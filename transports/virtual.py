@@ -23,6 +23,8 @@ import asyncio
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
+from pydantic import Field
+
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from transports.base import (
@@ -30,6 +32,8 @@ from transports.base import (
     KeyframeNeeded,
     PeerDown,
     PeerUp,
+    PoseReceived,
+    PoseThrottle,
     Received,
     Transport,
     TransportContext,
@@ -44,6 +48,7 @@ class VirtualOptions(TransportOptions):
     """``[transports.virtual]``: which channel to join."""
 
     channel: str = "default"
+    pose_period_s: float = Field(default=0.5, ge=0, description="seconds between pose messages (0: none)")
 
 
 @dataclass
@@ -55,6 +60,8 @@ class VirtualStats:
     updates_in: int = 0
     acks_out: int = 0
     keyframe_requests_out: int = 0
+    poses_out: int = 0
+    poses_in: int = 0
 
 
 @dataclass
@@ -93,6 +100,7 @@ class VirtualTransport(Transport):
         self.stats_ = VirtualStats()
         self.offers: list[Envelope] = []  # everything offered, for tests to read
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._poses = PoseThrottle(self.opts.pose_period_s)
 
     def post(self, event: TransportEvent) -> None:
         """Emit ``event`` on this member's loop, after the caller returns."""
@@ -122,6 +130,16 @@ class VirtualTransport(Transport):
         self.stats_.offers += 1
         self.stats_.bytes_out += len(envelope.pack())
         self.channel.deliver(self.ctx.robot, envelope)
+
+    def send_pose(self, data: bytes, now: float) -> bool:
+        if not self._poses.due(now):
+            return False
+        self.stats_.poses_out += 1
+        for robot, member in self.channel.members.items():
+            if robot != self.ctx.robot:
+                member.stats_.poses_in += 1
+                member.post(PoseReceived(NAME, self.ctx.robot, data))
+        return True
 
     def ack(self, robot: str, version: int) -> None:
         owner = self.channel.members.get(robot)

@@ -35,7 +35,7 @@ def forgeries(session_of: dict[int, int]) -> list[bytes]:
     64 fake link ids, and the same frames 'signed' with a key that is not the fleet's."""
     bodies = []
     for src, dst in ((1, 2), (2, 1)):
-        bodies.append(wire.pack(wire.Hello(src, wire.BROADCAST, random.getrandbits(32))))
+        bodies.append(wire.pack(wire.Hello(src, wire.BROADCAST, random.getrandbits(24))))
         for msg in range(1, 40):
             for flags in (wire.REJECT, wire.COMPLETE):
                 ack = wire.Ack(

@@ -8,12 +8,14 @@ frames go out one at a time (:meth:`~ArqEndpoint.data_to_send`), one timer says 
 The rules
 ---------
 Framing and trust
-  R1. Every frame is COBS-encoded with a CRC-32 and a 0x00 delimiter (``framing.py``), at most
-      ``max_frame`` bytes on the wire. Frames failing COBS, CRC or parsing are counted and dropped.
+  R1. Every frame is COBS-encoded with a 0x00 delimiter (``framing.py``), at most ``max_frame`` bytes
+      on the wire, and checked: by a CRC-32 without a key, by its signature with one. Frames failing
+      COBS, the check or parsing are counted and dropped.
   R2. With a key, frames without a valid signature or with a replayed counter are counted and dropped
       before anything else looks at them (``signing.py``); so is a counter far ahead of this node's
       clock (``check_counter_clock``), which a key holder could send to make the real sender's later
-      frames look replayed. Without a key, signatures are not checked.
+      frames look replayed. Without a key, signed frames are dropped (counted ``signed_no_key``):
+      they carry no CRC, so a node that cannot check their tag cannot tell them from damage.
   R3. A frame carries its sender's link id and session id. The first frame of an unknown sender makes
       it a peer (PeerUp). A new session id from a known peer means it restarted (PeerRestarted): all it
       was reassembling from us is forgotten, and all it had acked of our messages counts for nothing,
@@ -23,9 +25,10 @@ Framing and trust
 Sending
   R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
-      harmless. Message ids rise within a session.
+      harmless. Message ids rise within a session (24-bit, compared modulo 2^24).
   R5. Latest wins: sending on a stream that already has a message in flight drops that message at
-      once (MessageClosed "superseded"); no radio time is spent on a stale map.
+      once (MessageClosed "superseded"); no radio time is spent on a stale map. A background
+      message (a pose) is sent only when no other message has a chunk to send.
   R6. A message goes to one peer (unicast) or to several (broadcast); it is delivered to a peer when
       that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
       failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
@@ -81,11 +84,11 @@ from transports.uwb.arq_types import (
     PeerRestarted,
     PeerUp,
 )
-from transports.uwb.framing import CRC_LEN, MIN_FRAME, FrameReader, cobs_max_len, encode_frame, max_body
+from transports.uwb.framing import MIN_FRAME, FrameReader, check_len, cobs_max_len, encode_frame, max_body
 from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.receiving import Partial, PeerState
 from transports.uwb.sending import HASH_LEN, Outgoing
-from transports.uwb.signing import TRAILER_LEN, Signer, Verifier, strip_unverified
+from transports.uwb.signing import TRAILER_LEN, Signer, Verifier
 
 # The config, events and counters live in arq_types; callers reach them through this module.
 __all__ = [
@@ -112,9 +115,11 @@ class ArqEndpoint:
     def __init__(self, config: ArqConfig, *, session: int, seed: int = 0) -> None:
         self.cfg = config
         self.node = config.node_id
-        self.session = session & 0xFFFFFFFF
+        self.session = session & wire.MASK24
         self._rng = random.Random(seed)
-        self._reader = FrameReader(config.max_frame)
+        # A keyed link's frames end with their signature, which is their check too: no CRC.
+        self._crc = not config.key
+        self._reader = FrameReader(config.max_frame, crc=self._crc)
         # Two frames deep, so a late wake-up can catch up; the 1 s window still bounds every second.
         self._pacer = Pacer(config.rate_bps, 2 * config.max_frame)
         self._mac = MediumAccess(
@@ -137,7 +142,8 @@ class ArqEndpoint:
         # 1562 bytes of 12.5 kb/s, where frames of 224 would leave room for only 6.
         budget = self._pacer.budget
         self.frame_size = min(config.max_frame, int(budget // math.ceil(budget / config.max_frame)))
-        self.chunk_size = max_body(max(self.frame_size, MIN_FRAME)) - wire.DATA_HEADER_LEN - self._trailer
+        body = max_body(max(self.frame_size, MIN_FRAME), crc=self._crc)
+        self.chunk_size = body - wire.DATA_HEADER_LEN - self._trailer
         if self.chunk_size < 8:
             raise ValueError(f"uwb: max_frame {config.max_frame} leaves no room for data")
         self._max_total = config.max_message_bytes + HASH_LEN
@@ -147,7 +153,7 @@ class ArqEndpoint:
         self._peers: dict[int, PeerState] = {}
         self._rtt: dict[int, RttEstimator] = {}
         self._out: OrderedDict[int, Outgoing] = OrderedDict()
-        self._next_msg = self._rng.getrandbits(31)
+        self._next_msg = self._rng.getrandbits(23)
         self._events: deque[Event] = deque()
         self._now = -math.inf
         self._hello_due = -math.inf
@@ -166,8 +172,11 @@ class ArqEndpoint:
         dests: list[int],
         stream: int = 0,
         deadline: float | None = None,
+        background: bool = False,
     ) -> int:
         """Queue ``data`` for ``dests`` (link ids); return its message id (latest wins per stream).
+
+        A ``background`` message (a pose) gets a frame only when no other message has one to send.
 
         :class:`LimitError` when the message is too large to send; ValueError for a stream outside
         0..255 or no valid peer in ``dests`` (the caller's mistakes).
@@ -176,6 +185,10 @@ class ArqEndpoint:
         if len(data) > self.cfg.max_message_bytes:
             raise LimitError(
                 f"uwb: message of {len(data)} bytes is over the limit of {self.cfg.max_message_bytes}"
+            )
+        if len(data) + HASH_LEN > wire.MAX_TOTAL:
+            raise LimitError(
+                f"uwb: message of {len(data)} bytes is over the wire's limit of {wire.MAX_TOTAL}"
             )
         if -(-(len(data) + HASH_LEN) // self.chunk_size) > MAX_CHUNKS:
             raise LimitError(f"uwb: message of {len(data)} bytes needs more than {MAX_CHUNKS} chunks")
@@ -189,10 +202,12 @@ class ArqEndpoint:
             self.counters.superseded += 1
             self._events.append(MessageClosed(old.msg, "superseded"))
         msg = self._next_msg
-        self._next_msg = (self._next_msg + 1) & 0xFFFFFFFF
+        self._next_msg = (self._next_msg + 1) & wire.MASK24
         dst = targets[0] if len(targets) == 1 else wire.BROADCAST
         when = now + self.cfg.deadline_s if deadline is None else deadline
-        self._out[msg] = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
+        out = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
+        out.background = background
+        self._out[msg] = out
         for d in targets:
             self._rtt_of(d)
         self.counters.messages_tx += 1
@@ -225,7 +240,7 @@ class ArqEndpoint:
         body = wire.pack(frame, signed=self._signer is not None)
         if self._signer is not None:
             body = self._signer.sign(body)
-        out = encode_frame(body)
+        out = encode_frame(body, crc=self._crc)
         self._pacer.consume(len(out), now)
         self._mac.sent(len(out), now)
         self._hello_due = now + self.cfg.beacon_s
@@ -335,11 +350,11 @@ class ArqEndpoint:
             plain = self._verifier.check(body, signed, wall)
             if plain is None:
                 return
+        elif signed:
+            self.counters.signed_no_key += 1
+            return
         else:
-            plain = strip_unverified(body) if signed else body
-            if plain is None:  # marked signed, but too short to hold the trailer
-                self.counters.bad_frames += 1
-                return
+            plain = body
         try:
             frame = wire.parse(plain)
         except ProtocolError:
@@ -411,7 +426,7 @@ class ArqEndpoint:
         part = peer.partials.get(d.msg)
         if part is None:
             top = peer.stream_top.get(d.stream)
-            if top is not None and d.msg < top:
+            if top is not None and wire.msg_before(d.msg, top):
                 self.counters.stale += 1
                 return
             for old in [p for p in peer.partials.values() if p.stream == d.stream]:
@@ -525,7 +540,7 @@ class ArqEndpoint:
         return rtt
 
     def _est(self, body_len: int) -> int:
-        return cobs_max_len(body_len + self._trailer + CRC_LEN) + 1
+        return cobs_max_len(body_len + self._trailer + check_len(self._crc)) + 1
 
     def _owed_ack(self) -> tuple[float, PeerState, int] | None:
         best: tuple[float, PeerState, int] | None = None
@@ -551,7 +566,8 @@ class ArqEndpoint:
         owed = self._owed_ack()
         if owed is not None and owed[0] <= now:
             return "ack", (owed[1], owed[2]), self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)
-        for m in self._out.values():
+        # Round-robin over messages, background ones (poses) only when no other has a chunk to go.
+        for m in sorted(self._out.values(), key=lambda m: m.background):
             i = m.next_index(self.cfg.window)
             if i is not None:
                 return "data", (m, i), self._est(wire.DATA_HEADER_LEN + len(m.chunk(i)))

@@ -144,6 +144,8 @@ class ArqCounters:
     timeouts: int = 0
     # frames and chunks dropped, by cause
     bad_frames: int = 0
+    #: Signed frames reaching a node without the link key (a fleet configured half signed).
+    signed_no_key: int = 0
     duplicates: int = 0
     stale: int = 0
     stale_session: int = 0

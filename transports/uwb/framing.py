@@ -1,12 +1,17 @@
-"""Self-synchronising framing for a byte stream: COBS with a 0x00 delimiter and a CRC-32 per frame.
+"""Self-synchronising framing for a byte stream: COBS with a 0x00 delimiter and a check per frame.
 
-On the wire a frame is ``COBS(body || crc32_le(body)) || 0x00``. COBS removes every zero byte from
-the encoded part, so the only zero on the line is the delimiter: a reader that joins mid-stream, or
-that saw garbage, a cut line or a flipped bit, loses at most the frame it was in and recovers at the
-next delimiter. The CRC catches what COBS cannot (flipped bits inside a frame).
+On the wire a frame is ``COBS(body || crc32_le(body)) || 0x00`` on an unkeyed link, and
+``COBS(body) || 0x00`` on a keyed one. COBS removes every zero byte from the encoded part, so the
+only zero on the line is the delimiter: a reader that joins mid-stream, or that saw garbage, a cut
+line or a flipped bit, loses at most the frame it was in and recovers at the next delimiter. The CRC
+catches what COBS cannot (flipped bits inside a frame). A keyed link's bodies end with a 48-bit
+HMAC tag (:mod:`transports.uwb.signing`) that the verifier checks before anything reads the body:
+it catches damage at least as surely as a CRC-32 (2^-48 against 2^-32 for a random error), so a
+CRC there would spend 4 of a frame's bytes saying the same thing twice.
 
 :class:`FrameReader` is a pure, bounded parser: it never holds more than ``max_frame`` bytes, counts
-every kind of bad input instead of raising, and hands out frame bodies that passed the CRC.
+every kind of bad input instead of raising, and hands out frame bodies that passed COBS (and the CRC
+when ``crc`` is set).
 """
 
 from __future__ import annotations
@@ -74,32 +79,44 @@ def cobs_max_len(n: int) -> int:
     return n + 1 + n // 254
 
 
-def max_body(max_frame: int) -> int:
-    """The largest frame body whose wire form (COBS + CRC + delimiter) fits in ``max_frame`` bytes."""
+def check_len(crc: bool) -> int:
+    """Bytes a frame's check adds to its body: the CRC-32, or nothing on a keyed link."""
+    return CRC_LEN if crc else 0
+
+
+def max_body(max_frame: int, *, crc: bool = True) -> int:
+    """The largest frame body whose wire form (COBS + check + delimiter) fits in ``max_frame`` bytes."""
     if max_frame < MIN_FRAME:
         raise ValueError(f"uwb: max_frame {max_frame} is below the minimum of {MIN_FRAME}")
-    n = max_frame - 2 - CRC_LEN
-    while cobs_max_len(n + CRC_LEN) + 1 > max_frame:
+    extra = check_len(crc)
+    n = max_frame - 2 - extra
+    while cobs_max_len(n + extra) + 1 > max_frame:
         n -= 1
     return n
 
 
-def encode_frame(body: bytes) -> bytes:
-    """The wire form of one frame body."""
-    return cobs_encode(body + zlib.crc32(body).to_bytes(CRC_LEN, "little")) + b"\x00"
+def encode_frame(body: bytes, *, crc: bool = True) -> bytes:
+    """The wire form of one frame body (with its CRC-32 unless the link is keyed)."""
+    if crc:
+        body += zlib.crc32(body).to_bytes(CRC_LEN, "little")
+    return cobs_encode(body) + b"\x00"
 
 
-def decode_frame(wire: bytes) -> bytes:
+def decode_frame(wire: bytes, *, crc: bool = True) -> bytes:
     """The body of one frame given without its delimiter.
 
     Raises a :class:`ProtocolError` whose type says what was wrong (:class:`CobsError`,
     :class:`RuntFrameError`, :class:`CrcError`), so :class:`FrameReader` counts each apart.
     """
     raw = cobs_decode(wire)
+    if not crc:
+        if not raw:
+            raise RuntFrameError("uwb: empty frame")
+        return raw
     if len(raw) <= CRC_LEN:
         raise RuntFrameError("uwb: frame shorter than its CRC")
-    body, crc = raw[:-CRC_LEN], raw[-CRC_LEN:]
-    if zlib.crc32(body).to_bytes(CRC_LEN, "little") != crc:
+    body, crc_bytes = raw[:-CRC_LEN], raw[-CRC_LEN:]
+    if zlib.crc32(body).to_bytes(CRC_LEN, "little") != crc_bytes:
         raise CrcError("uwb: frame CRC mismatch")
     return body
 
@@ -123,14 +140,15 @@ class FrameReader:
     as ``oversize``), so an endless stream without zeros costs constant memory.
     """
 
-    def __init__(self, max_frame: int) -> None:
+    def __init__(self, max_frame: int, *, crc: bool = True) -> None:
         self.max_frame = max_frame
+        self.crc = crc
         self.stats = ReaderStats()
         self._buf = bytearray()
         self._skipping = False
 
     def feed(self, data: bytes) -> list[bytes]:
-        """Consume ``data``; return the bodies of the complete frames that passed COBS and CRC."""
+        """Consume ``data``; return the bodies of the complete frames that passed COBS and the CRC."""
         self.stats.bytes_in += len(data)
         bodies: list[bytes] = []
         start = 0
@@ -157,7 +175,7 @@ class FrameReader:
 
     def _one(self, wire: bytes) -> bytes | None:
         try:
-            body = decode_frame(wire)
+            body = decode_frame(wire, crc=self.crc)
         except CobsError:
             self.stats.cobs_errors += 1
             return None

@@ -34,6 +34,8 @@ from transports.base import (
     PeerDown,
     PeerRestarted,
     PeerUp,
+    PoseReceived,
+    PoseThrottle,
     Received,
     Transport,
     TransportContext,
@@ -43,7 +45,14 @@ from transports.uwb import arq
 from transports.uwb import keyframe_requests as control
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.pacing import ByteWindow
+from transports.uwb.sending import HASH_LEN
 from transports.uwb.signing import CounterStore, clock_floor
+from transports.uwb.wire import MAX_TOTAL
+
+#: The stream robot poses travel on (255 is control; maps use 0..253).
+POSE_STREAM = 254
+#: The largest map a uwb link carries: what a DATA frame's 24-bit size field describes.
+MAX_MESSAGE = MAX_TOTAL - HASH_LEN
 
 log = logging.getLogger("mapd.uwb")
 
@@ -68,9 +77,15 @@ class UwbOptions(TransportOptions):
     )
     deadline_s: float = Field(default=120.0, gt=0, description="give up on a map after this long")
     max_message_bytes: int | None = Field(
-        default=None, ge=1024, description="default: limits.max_message_bytes"
+        default=None,
+        ge=1024,
+        le=MAX_MESSAGE,
+        description="default: limits.max_message_bytes, at most 16 MiB (three hours at 12.5 kb/s)",
     )
     window: int = Field(default=128, ge=1, le=256, description="chunks in flight past the receiver's base")
+    pose_period_s: float = Field(
+        default=5.0, ge=0.0, description="seconds between pose messages; they yield to maps (0: send none)"
+    )
     mac: Literal["none", "tdma", "backoff"] = Field(
         default="none", description="medium access on a shared channel"
     )
@@ -183,7 +198,9 @@ class UwbLink:
         self._on_event = on_event or (lambda e: None)
         self._store = counter_store or CounterStore(None)
         self._cfg = config
-        self._session = session if session is not None else int.from_bytes(os.urandom(4), "little")
+        self._session = (
+            session if session is not None else int.from_bytes(os.urandom(3), "little")
+        )  # 24-bit on the wire
         self.core: arq.ArqEndpoint | None = None
         self._proto: _Proto | None = None
         self._task: asyncio.Task[None] | None = None
@@ -240,13 +257,21 @@ class UwbLink:
             self._proto.transport.abort()
         self._proto = None
 
-    def send(self, data: bytes, dests: list[int], *, stream: int = 0, deadline_s: float | None = None) -> int:
+    def send(
+        self,
+        data: bytes,
+        dests: list[int],
+        *,
+        stream: int = 0,
+        deadline_s: float | None = None,
+        background: bool = False,
+    ) -> int:
         """Queue a message (latest wins per stream); returns its id for the events that follow."""
         if self.core is None:
             raise TransportError("uwb: link not started")
         now = asyncio.get_running_loop().time()
         deadline = None if deadline_s is None else now + deadline_s
-        msg = self.core.send(data, now, dests=dests, stream=stream, deadline=deadline)
+        msg = self.core.send(data, now, dests=dests, stream=stream, deadline=deadline, background=background)
         self._wake.set()
         return msg
 
@@ -378,6 +403,7 @@ class UwbTransport(Transport):
         self._msgs: dict[int, tuple[str, int]] = {}
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
+        self._poses = PoseThrottle(opts.pose_period_s)
         self.control_counters = control.ControlCounters()
 
     def _name(self, link_id: int) -> str:
@@ -386,8 +412,8 @@ class UwbTransport(Transport):
     def _stream(self, robot: str) -> int:
         if robot not in self._streams:
             n = len(self._streams)
-            # Stream 255 carries control messages (keyframe requests), maps use 0..254.
-            self._streams[robot] = n if n < control.CONTROL_STREAM else zlib.crc32(robot.encode()) % 255
+            # Stream 255 carries control messages (keyframe requests), 254 poses, maps 0..253.
+            self._streams[robot] = n if n < POSE_STREAM else zlib.crc32(robot.encode()) % POSE_STREAM
         return self._streams[robot]
 
     def _config(self, loop: asyncio.AbstractEventLoop) -> arq.ArqConfig:
@@ -397,7 +423,8 @@ class UwbTransport(Transport):
             node_id=self.node_id,
             max_frame=o.max_frame,
             rate_bps=float(o.link_rate_bps),
-            max_message_bytes=o.max_message_bytes or self.ctx.max_message_bytes,
+            # the wire describes messages up to 16 MiB; limits.max_message_bytes may allow more (zenoh)
+            max_message_bytes=o.max_message_bytes or min(self.ctx.max_message_bytes, MAX_MESSAGE),
             window=o.window,
             deadline_s=o.deadline_s,
             beacon_s=o.beacon_s,
@@ -449,6 +476,24 @@ class UwbTransport(Transport):
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
 
+    def send_pose(self, data: bytes, now: float) -> bool:
+        """Broadcast this robot's pose on the pose stream, behind every map chunk (latest wins)."""
+        link = self._link
+        if link is None or link.core is None:
+            return False
+        dests = self.peer_ids or link.core.peers_up()
+        if not dests or not self._poses.due(now):
+            return False
+        try:
+            # Superseded by the next pose if maps keep the channel busy until then.
+            link.send(
+                data, dests, stream=POSE_STREAM, deadline_s=2 * self.opts.pose_period_s, background=True
+            )
+        except (MapdError, ValueError) as exc:
+            log.info("uwb: pose not sent: %s", exc)
+            return False
+        return True
+
     async def request_keyframe(self, robot: str) -> None:
         """Ask ``robot`` (over this link) for a whole map: a control message, throttled per robot."""
         link = self._link
@@ -485,6 +530,8 @@ class UwbTransport(Transport):
         if isinstance(e, arq.MessageReceived):
             if e.stream == control.CONTROL_STREAM:
                 self._on_control(e)
+            elif e.stream == POSE_STREAM:
+                emit(PoseReceived("uwb", self._name(e.src), e.data))
             else:
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):

@@ -82,6 +82,8 @@ class Outgoing:
         self.xmit = 0
         self._resend: list[int] = []
         self._resend_set: set[int] = set()
+        #: Sent only when no other message has a chunk to send (poses yield to maps).
+        self.background = False
 
     def chunk(self, i: int) -> bytes:
         return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]

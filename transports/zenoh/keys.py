@@ -8,6 +8,7 @@ other's traffic (and a router ACL can fence a fleet with one rule)::
     mapd/<fleet>/<robot>/latest          queryable: <robot>'s latest keyframe envelope
     mapd/<fleet>/<robot>/global          <robot>'s global map (the zenoh output), put + queryable
     mapd/<fleet>/<peer>/ack/<robot>      <peer> has applied <robot>'s map version (8-byte payload)
+    mapd/<fleet>/<robot>/pose            <robot>'s pose (a signed pose message), put, latest wins
 
 Fleet and robot ids are the config's names (``[A-Za-z0-9_-]{1,32}``), so they hold no zenoh
 wildcard or separator and a key built from them matches exactly one thing. The parsers take keys
@@ -57,6 +58,18 @@ def global_key(fleet: str, robot: str) -> str:
     return f"{PREFIX}/{fleet}/{robot}/global"
 
 
+def pose_key(fleet: str, robot: str) -> str:
+    """Where ``robot`` puts its pose messages."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{fleet}/{robot}/pose"
+
+
+def all_poses(fleet: str) -> str:
+    """Subscription to every robot's poses in ``fleet``."""
+    _check(fleet)
+    return f"{PREFIX}/{fleet}/*/pose"
+
+
 def ack_key(fleet: str, peer: str, robot: str) -> str:
     """Where ``peer`` says which of ``robot``'s versions it has applied."""
     _check(fleet, peer, robot)
@@ -92,6 +105,14 @@ def parse_update(fleet: str, key: str) -> str | None:
     """The robot of an update key in ``fleet``, or None when ``key`` is not one."""
     parts = _chunks(fleet, key, 4)
     if parts is None or parts[3] != "update" or not valid_name(parts[2]):
+        return None
+    return parts[2]
+
+
+def parse_pose(fleet: str, key: str) -> str | None:
+    """The robot of a pose key in ``fleet``, or None when ``key`` is not one."""
+    parts = _chunks(fleet, key, 4)
+    if parts is None or parts[3] != "pose" or not valid_name(parts[2]):
         return None
     return parts[2]
 

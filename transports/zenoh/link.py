@@ -41,7 +41,7 @@ from typing import Any
 
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
-from transports.base import Transport, TransportContext, TransportOptions
+from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.core import NAME, Step, ZenohCore
 from transports.zenoh.handlers import HandlerSet
@@ -49,6 +49,8 @@ from transports.zenoh.jobs import JobQueue
 from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
 
 log = logging.getLogger(__name__)
+#: Pose messages are about 100 bytes; larger samples on a pose key are dropped before they are read.
+MAX_POSE_BYTES = 512
 
 
 @dataclass
@@ -62,6 +64,7 @@ class SendCounters:
     errors: int = 0
     #: Own envelopes over limits.max_message_bytes, never sent.
     oversize: int = 0
+    poses_tx: int = 0
 
 
 class ZenohTransport(Transport):
@@ -102,6 +105,7 @@ class ZenohTransport(Transport):
         # Written on the outbox thread and read on the loop's (stats), hence the lock.
         self._tx_lock = threading.Lock()
         self._tx = SendCounters()
+        self._poses = PoseThrottle(self.opts.pose_period_s)
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -145,6 +149,9 @@ class ZenohTransport(Transport):
             )
             ents.append(
                 session.declare_subscriber(keys.acks_for(fleet, me), cb(self._cb_ack), allowed_origin=remote)
+            )
+            ents.append(
+                session.declare_subscriber(keys.all_poses(fleet), cb(self._cb_pose), allowed_origin=remote)
             )
             ents.append(
                 session.liveliness().declare_subscriber(
@@ -226,6 +233,10 @@ class ZenohTransport(Transport):
     def _cb_update(self, sample: Any) -> None:
         self._post(self._on_update, str(sample.key_expr), sample.payload.to_bytes())
 
+    def _cb_pose(self, sample: Any) -> None:
+        if len(sample.payload) <= MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
+            self._post(self._on_pose, str(sample.key_expr), sample.payload.to_bytes())
+
     def _cb_ack(self, sample: Any) -> None:
         self._post(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
 
@@ -259,6 +270,11 @@ class ZenohTransport(Transport):
 
     def _on_query_done(self, robot: str) -> None:
         self._apply(self.core.query_done(robot, time.monotonic()))
+
+    def _on_pose(self, key_expr: str, data: bytes) -> None:
+        robot = keys.parse_pose(self.ctx.fleet, key_expr)
+        if robot is not None and robot != self.ctx.robot:
+            self.ctx.emit(PoseReceived(NAME, robot, data))
 
     def _on_ack(self, key_expr: str, data: bytes) -> None:
         self._apply(self.core.on_ack(key_expr, data, time.monotonic()))
@@ -354,6 +370,25 @@ class ZenohTransport(Transport):
                 self._tx.updates_tx += 1
 
         self._jobs.submit(("update", robot), job)
+
+    def send_pose(self, data: bytes, now: float) -> bool:
+        """Put this robot's pose message (best effort: zenoh may drop it under congestion)."""
+        if self._closing or self._jobs is None or not self._poses.due(now):
+            return False
+        key = keys.pose_key(self.ctx.fleet, self.ctx.robot)
+
+        def job() -> None:
+            if self._session is None:
+                return
+            import zenoh
+
+            self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
+            with self._tx_lock:
+                self._tx.bytes_tx += len(data)
+                self._tx.poses_tx += 1
+
+        self._jobs.submit(("pose",), job)  # latest wins: a pose not yet put is replaced
+        return True
 
     def ack(self, robot: str, version: int) -> None:
         """Tell ``robot`` that its ``version`` has been decoded here (call after a successful decode).

@@ -55,6 +55,9 @@ class ZenohOptions(TransportOptions):
         description="when zenoh's send queue is full: block the sender thread (a newer offer still replaces"
         " the pending one) or let zenoh drop the message (receivers then recover by query)",
     )
+    pose_period_s: float = Field(
+        default=0.5, ge=0.0, description="seconds between this robot's pose messages (0: send none)"
+    )
     base_window: int = Field(
         default=8, ge=1, le=1024, description="recent versions per peer accepted as a delta base"
     )

@@ -20,12 +20,20 @@ KEY = bytes(range(32))
 
 def test_frames_round_trip() -> None:
     frames: list[wire.Frame] = [
-        wire.Data(1, 2, 0xDEADBEEF, 7, 3, 4, 10, 1000, b"payload"),
-        wire.Ack(2, 1, 5, 0xDEADBEEF, 7, 9, wire.COMPLETE, 3, b"\x01\x80"),
+        wire.Data(1, 2, 0xADBEEF, 0xFFFFFE, 3, 4, 10, wire.MAX_TOTAL, b"payload"),
+        wire.Ack(2, 1, 5, 0xADBEEF, 0x7, 9, wire.COMPLETE, 3, b"\x01\x80"),
         wire.Hello(3, wire.BROADCAST, 42),
     ]
     for f in frames:
         assert wire.parse(wire.pack(f)) == f
+    # 24-bit fields: a value that does not fit is the caller's mistake, not silently cut
+    with pytest.raises(ValueError, match="24-bit"):
+        wire.pack(wire.Hello(3, wire.BROADCAST, 1 << 24))
+
+
+def test_msg_ids_compare_across_the_wrap() -> None:
+    assert wire.msg_before(wire.MASK24, 0) and not wire.msg_before(0, wire.MASK24)
+    assert wire.msg_before(5, 6) and not wire.msg_before(6, 5) and not wire.msg_before(6, 6)
 
 
 @pytest.mark.parametrize(
@@ -51,9 +59,9 @@ def test_absurd_fields_are_protocol_errors(frame: wire.Frame, why: str) -> None:
 def test_bad_version_type_and_truncation() -> None:
     body = bytearray(wire.pack(wire.Hello(1, 2, 3)))
     with pytest.raises(ProtocolError, match="version"):
-        wire.parse(bytes([body[0] & 0x8F | 0x20]) + bytes(body[1:]))
+        wire.parse(bytes([body[0] & 0x8F | 0x10]) + bytes(body[1:]))  # version 1, the old layout
     with pytest.raises(ProtocolError, match="type"):
-        wire.parse(bytes([0x1F]) + bytes(body[1:]))
+        wire.parse(bytes([0x2F]) + bytes(body[1:]))
     with pytest.raises(ProtocolError, match="shorter"):
         wire.parse(bytes(body[:5]))
     with pytest.raises(ProtocolError, match="no payload"):
