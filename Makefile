@@ -1,6 +1,6 @@
 # Two commands set up everything on a fresh machine:
 #   make demo   - create .venv and run the main job (two robots sharing maps)
-#   make test   - create .venv with test extras, install socat if missing, lint, run pytest
+#   make test   - create .venv with test extras, install socat and chromium if missing, lint, run pytest
 # The torch wheel on this machine is built for CPython 3.11, so prefer that interpreter.
 PY ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed-stamp
 FIND_LINKS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels)
 PYTEST_ARGS ?=
 
-.PHONY: demo test lint venv socat clean
+.PHONY: demo test lint venv socat chromium clean
 
 venv: $(STAMP)
 
@@ -32,13 +32,24 @@ socat:
 	    echo "socat is missing; install it with: sudo apt-get install -y socat"; exit 1; \
 	  fi; }
 
+# The live view's browser tests use Debian's headless chromium; without it they skip, saying so.
+chromium:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing chromium (the live view's browser tests use it headless)"; \
+	    (apt-get install -y -qq chromium >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null 2>&1)) \
+	      || echo "chromium could not be installed: the browser tests will be skipped"; \
+	  else \
+	    echo "chromium is missing (sudo apt-get install -y chromium): the browser tests will be skipped"; \
+	  fi; }
+
 lint: $(STAMP)
 	$(BIN)/ruff check mapd transports tests
 	$(BIN)/ruff format --check mapd transports tests
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
 
-test: $(STAMP) socat lint
+test: $(STAMP) socat chromium lint
 	$(BIN)/pytest -n 2 $(PYTEST_ARGS)
 
 demo: $(STAMP)

@@ -13,6 +13,7 @@ so a complete example config can hold every plugin's table while only the chosen
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
 import re
@@ -25,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mapd import plugins
 from mapd.errors import ConfigError, MapdError
+from mapd.files import read_capped
 from mapd.grid import DEFAULT_MAX_CELLS
 from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
@@ -193,6 +195,80 @@ class LogSection(Strict):
     level: Literal["debug", "info", "warning", "error"] = "info"
 
 
+#: Shortest view token accepted: a guessable token on a non-loopback port is no protection.
+MIN_VIEW_TOKEN = 16
+
+
+def split_listen(listen: str) -> tuple[str, int]:
+    """``"HOST:PORT"`` (``"[::1]:8080"`` for IPv6) -> ``(host, port)``; ValueError when malformed."""
+    host, sep, port = listen.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"listen must be HOST:PORT with a port 1-65535 (got {listen!r})")
+    return host.removeprefix("[").removesuffix("]"), int(port)
+
+
+def is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses (127.0.0.0/8, ::1); names are not resolved."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class ViewSection(Strict):
+    """``[view]``: the live web view of the fleet, read-only (off unless ``listen`` is set)."""
+
+    listen: str | None = Field(
+        default=None, description='HOST:PORT to serve the view on, e.g. "127.0.0.1:8080"; unset: no view'
+    )
+    token_file: Path | None = Field(
+        default=None,
+        description=f"file holding the access token ({MIN_VIEW_TOKEN}+ characters); required unless "
+        "listen is a loopback address",
+    )
+    max_viewers: int = Field(default=256, ge=1, le=4096, description="concurrent viewers; more get 503")
+
+    @field_validator("listen")
+    @classmethod
+    def _check_listen(cls, v: str | None) -> str | None:
+        if v is not None:
+            split_listen(v)
+        return v
+
+
+def read_view_token(cfg: MapdConfig) -> str | None:
+    """The view's token (None: none configured), refusing a non-loopback ``listen`` without one.
+
+    Raises :class:`ConfigError` with one line naming the file and the key.
+    """
+    where = str(cfg.path) if cfg.path else "config"
+    view = cfg.view
+    path = view.token_file
+    if view.listen is not None and path is None and not is_loopback(split_listen(view.listen)[0]):
+        raise ConfigError(
+            f"{where}: view.token_file: listen = {view.listen!r} is not a loopback address, so the view "
+            "needs a token file (or listen on 127.0.0.1)"
+        )
+    if path is None:
+        return None
+    try:
+        raw = read_capped(path, 4096)
+    except OSError as exc:
+        raise ConfigError(f"{where}: view.token_file: cannot read {path}: {exc.strerror}") from None
+    try:
+        token = raw.decode("ascii").strip()
+    except UnicodeDecodeError:
+        token = ""
+    if len(raw) > 4096 or len(token) < MIN_VIEW_TOKEN or not token.isprintable() or " " in token:
+        raise ConfigError(
+            f"{where}: view.token_file: {path} must hold one token of {MIN_VIEW_TOKEN}+ printable "
+            "ASCII characters without spaces (e.g. from: openssl rand -hex 24)"
+        )
+    return token
+
+
 class MapdConfig(Strict):
     """The whole ``config.toml``."""
 
@@ -208,6 +284,7 @@ class MapdConfig(Strict):
     control: ControlSection = Field(default_factory=ControlSection)
     log: LogSection = Field(default_factory=LogSection)
     record: RecordSection = Field(default_factory=RecordSection)
+    view: ViewSection = Field(default_factory=ViewSection)
 
     @model_validator(mode="after")
     def _check_plugin_tables(self) -> MapdConfig:
@@ -311,6 +388,8 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
         cfg.record.path = base / cfg.record.path
     if cfg.fleet.link_key_file is not None and not cfg.fleet.link_key_file.is_absolute():
         cfg.fleet.link_key_file = base / cfg.fleet.link_key_file
+    if cfg.view.token_file is not None and not cfg.view.token_file.is_absolute():
+        cfg.view.token_file = base / cfg.view.token_file
     return cfg
 
 
@@ -425,6 +504,8 @@ class Checked:
 
     options: dict[str, dict[str, BaseModel]]
     keys: Keys
+    #: The live view's access token (``[view] token_file``), if any.
+    view_token: str | None = None
 
 
 def check(cfg: MapdConfig) -> Checked:
@@ -433,4 +514,4 @@ def check(cfg: MapdConfig) -> Checked:
     Every plugin table is validated, also those of plugins not chosen (a typo in one is an error,
     not a table silently ignored), and the key files are read and matched against the roster.
     """
-    return Checked(check_plugins(cfg), read_keys(cfg))
+    return Checked(check_plugins(cfg), read_keys(cfg), read_view_token(cfg))

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Modules directly in mapd/: what every layer uses, the command line, and the small shared helpers.
 TOP_LEVEL = {
     "__init__", "__main__", "cli", "errors", "config", "plugins", "grid", "envelope",
-    "files", "data", "keys", "tables", "identity",
+    "files", "data", "keys", "tables", "identity", "poses",
 }  # fmt: skip
 
 

@@ -9,6 +9,9 @@ Scenarios, each a fresh relay and two fresh endpoints in this process:
              intact, goodput >= 60 % of the link rate);
 * ``signed`` the clean link with the fleet's link key (every frame carries a 6-byte counter and a
              6-byte tag, and no CRC): how deployed fleets run, signed by default (target: goodput >= 85 %).
+* ``poses``  the signed link with both robots sending signed pose messages every ``--pose-period``
+             seconds (stream 254, background): the same map's goodput (poses must yield to maps),
+             and the bytes per second poses cost on an idle link, over the HELLOs it sends anyway.
 
 Goodput is the message's bytes over the time from ``send`` to the receiver's verified COMPLETE
 acknowledgement reaching the sender.
@@ -23,8 +26,8 @@ from typing import Any
 from mapd.tables import emit, table
 
 HELP = "UWB transport goodput through the fault relay at 12.5 kb/s: clean, faulty, vs the raw line"
-SCENARIOS = ("line", "clean", "faulty", "signed")
-TARGETS = {"clean": 0.85, "faulty": 0.60, "signed": 0.85}
+SCENARIOS = ("line", "clean", "faulty", "signed", "poses")
+TARGETS = {"clean": 0.85, "faulty": 0.60, "signed": 0.85, "poses": 0.85}
 #: The terminal's table.
 COLUMNS = [
     ("scenario", "scenario", ""),
@@ -45,6 +48,7 @@ COLUMNS = [
     ("acks", "acks", ""),
     ("rtt_ms", "RTT ms", ".0f"),
     ("peak_bps_1s", "peak b/s (1 s)", ".0f"),
+    ("pose_bps", "pose b/s per robot", ".0f"),
     ("faults", "relay faults", ""),
 ]
 
@@ -61,6 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="which to run (default: line clean signed faulty)",
     )
     p.add_argument("--outage-at", type=float, default=5.0, help="faulty: outage start, s (default 5)")
+    p.add_argument("--pose-period", type=float, default=5.0, help="poses: seconds between poses (default 5)")
+    p.add_argument("--idle", type=float, default=60.0, help="poses: idle seconds measured (default 60)")
 
 
 async def _line(size: int, rate: float, seed: int) -> dict[str, Any]:
@@ -104,7 +110,15 @@ async def _line(size: int, rate: float, seed: int) -> dict[str, Any]:
     }
 
 
-async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: float) -> dict[str, Any]:
+async def _arq(
+    size: int,
+    rate: float,
+    seed: int,
+    scenario: str,
+    outage_at: float,
+    pose_period: float = 5.0,
+    idle_s: float = 60.0,
+) -> dict[str, Any]:
     import asyncio
 
     from transports.uwb import arq
@@ -115,20 +129,21 @@ async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: floa
     faults = Faults()
     if scenario == "faulty":
         faults = Faults(drop=0.02, flip=1e-4, outages=((outage_at, 1.0),))
-    key = os.urandom(32) if scenario == "signed" else None
+    key = os.urandom(32) if scenario in ("signed", "poses") else None
     data = os.urandom(size)
     received: list[bytes] = []
     closed: asyncio.Future[str] = asyncio.get_running_loop().create_future()
     up = asyncio.Event()
+    watch: list[int] = []  # the map's message id (poses close too, on their own stream)
 
     def on_a(e: arq.Event) -> None:
         if isinstance(e, arq.PeerUp):
             up.set()
-        if isinstance(e, arq.MessageClosed) and not closed.done():
+        if isinstance(e, arq.MessageClosed) and e.msg in watch and not closed.done():
             closed.set_result(e.outcome)
 
     def on_b(e: arq.Event) -> None:
-        if isinstance(e, arq.MessageReceived):
+        if isinstance(e, arq.MessageReceived) and e.stream == 0:
             received.append(e.data)
 
     deadline = 20 + 4 * size * 8 / rate
@@ -139,12 +154,17 @@ async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: floa
         b = UwbLink(cfg_b, relay.ports[1], on_event=on_b)
         await a.start()
         await b.start()
+        posing = None
         try:
             await asyncio.wait_for(up.wait(), 10)
             loop = asyncio.get_running_loop()
+            pose_bps = None
+            if scenario == "poses":
+                posing = asyncio.create_task(_send_poses([(a, 1, "robot0"), (b, 2, "robot1")], pose_period))
+                pose_bps = await _idle_cost(a, b, idle_s, pose_period)
             t0 = loop.time()
             relay.rebase(t0)  # scheduled outages count from the send, not from the relay's start
-            a.send(data, [2])
+            watch.append(a.send(data, [2]))
             outcome = await closed
             dt = loop.time() - t0
             await asyncio.sleep(0.2)
@@ -152,6 +172,8 @@ async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: floa
             assert a.core is not None
             chunk = a.core.chunk_size
         finally:
+            if posing is not None:
+                posing.cancel()
             await a.close()
             await b.close()
         rstats = relay.stats()
@@ -170,7 +192,48 @@ async def _arq(size: int, rate: float, seed: int, scenario: str, outage_at: floa
         "chunk": chunk,
         "overhead": cfg_a.max_frame - chunk,  # header, signature trailer, CRC and COBS at most
         "relay": rstats,
+        "pose_bps": pose_bps,
     }
+
+
+async def _send_poses(links: list[tuple[Any, int, str]], period: float) -> None:
+    """Each link's robot sends a signed pose message every ``period`` s, as the daemon does."""
+    import asyncio
+    import time
+
+    from mapd.grid import Pose2D
+    from mapd.identity import Identity
+    from mapd.poses import PoseMessage
+    from transports.uwb.link import POSE_STREAM
+
+    ids = {name: Identity.generate(name) for _, _, name in links}
+    while True:
+        for link, node, name in links:
+            msg = PoseMessage("demo", name, time.time(), Pose2D(12.345, -6.789, 1.234)).signed(ids[name])
+            peer = 2 if node == 1 else 1
+            link.send(
+                msg.pack(), [peer], stream=POSE_STREAM, deadline_s=2 * period, background=True, reliable=False
+            )
+        await asyncio.sleep(period)
+
+
+async def _idle_cost(a: Any, b: Any, idle_s: float, period: float) -> float:
+    """Bits per second per robot the poses add on an idle link: the bytes both sides wrote over
+    ``idle_s``, less what HELLO beacons alone cost (a beacon goes after 5 s without sending).
+    Poses go as unacknowledged DGRAM frames, as the daemon sends them."""
+    import asyncio
+
+    from transports.uwb import wire
+    from transports.uwb.framing import cobs_max_len
+    from transports.uwb.signing import TRAILER_LEN
+
+    await asyncio.sleep(1.0)  # the first poses are on their way
+    before = a.stats()["bytes_tx"] + b.stats()["bytes_tx"]
+    await asyncio.sleep(idle_s)
+    spent = a.stats()["bytes_tx"] + b.stats()["bytes_tx"] - before
+    hello = cobs_max_len(wire.HEADER_LEN + TRAILER_LEN) + 1
+    beacons = 2 * hello * idle_s / max(5.0, period)  # what the two robots send anyway
+    return 8 * max(0.0, spent - beacons) / idle_s / 2
 
 
 def run(args: argparse.Namespace) -> int:
@@ -182,7 +245,9 @@ def run(args: argparse.Namespace) -> int:
         if sc == "line":
             r = asyncio.run(_line(args.size, args.rate_bps, args.seed))
         else:
-            r = asyncio.run(_arq(args.size, args.rate_bps, args.seed, sc, args.outage_at))
+            r = asyncio.run(
+                _arq(args.size, args.rate_bps, args.seed, sc, args.outage_at, args.pose_period, args.idle)
+            )
         r["scenario"] = sc
         r["goodput_bps"] = 8 * args.size / r["seconds"]
         r["of_rate"] = r["goodput_bps"] / args.rate_bps

@@ -60,6 +60,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="record robot0's view of the fleet to an MCAP file (global map, robots' maps, TF, links)",
     )
+    p.add_argument(
+        "--view",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve robot0's live web view on http://127.0.0.1:PORT/ while the demo runs",
+    )
+    p.add_argument(
+        "--ros2-listen",
+        default=None,
+        metavar="ENDPOINT",
+        help="also run a base station whose ros2 output (rmw_zenoh: /map, /tf_static, /tf) listens on this "
+        "zenoh endpoint, e.g. tcp/127.0.0.1:7447",
+    )
     faults = p.add_argument_group("faults on the emulated UWB link (--transport uwb)")
     faults.add_argument("--drop", type=float, default=0.0, metavar="P", help="frame loss probability")
     faults.add_argument("--flip", type=float, default=0.0, metavar="P", help="bit-flip probability per byte")
@@ -165,7 +179,16 @@ def render_status(s: dict[str, Any]) -> str:
         )
     out.append("links")
     for name, st in s.get("links", {}).items():
-        keys = ("rate_bps", "goodput_bps", "bytes_tx", "bytes_rx", "resends", "crc_errors", "rtt_ms")
+        keys = (
+            "rate_bps",
+            "goodput_bps",
+            "bytes_tx",
+            "bytes_rx",
+            "resends",
+            "crc_errors",
+            "bad_signature",
+            "rtt_ms",
+        )
         parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st]
         others = [f"{k}={v}" for k, v in st.items() if k not in keys and isinstance(v, int | float)]
         out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
@@ -182,6 +205,16 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {robot:<12} {label(t.get('version'))}  x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
                 f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {t.get('source', '')}  {acc}"
             )
+    poses = (s.get("poses") or {}).get("robots") or {}
+    if poses:
+        out.append(
+            "poses   (x m, y m, yaw rad; in each robot's map frame, and in the fleet frame once placed)"
+        )
+    for robot, p in poses.items():
+        where = " ".join(_num(v, ".2f") for v in p.get("map", []))
+        fleet = p.get("fleet")
+        in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
+        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}")
     bad = {k: v for k, v in s.get("counters", {}).items() if v}
     if bad:
         out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))

@@ -4,8 +4,9 @@ A peer may send faster than the daemon can verify and decode (a flood, or a fast
 robot). A plain bounded queue would then drop the *newest* update, which is the one that matters.
 Here each ``(transport, peer)`` holds at most one waiting :class:`~transports.base.Received`: a newer
 one replaces it (counted as ``superseded``), so the daemon always ends on the peer's latest map and
-memory stays bounded by the number of peers. Other events (acks, presence, keyframe needs) are small
-and must not be lost to a flood of maps, so they wait in their own bounded FIFO and go first.
+memory stays bounded by the number of peers. Pose messages are latest-wins too, one waiting per
+peer beside its map. Other events (acks, presence, keyframe needs) are small and must not be lost
+to a flood of maps or poses, so they wait in their own bounded FIFO and go first.
 
 Transports report every robot's updates under that robot's peer name (zenoh: the robot; UWB: the
 sending node, which only sends its own robot's map), so "latest per peer" is "latest per robot".
@@ -17,7 +18,7 @@ import asyncio
 from collections import deque
 from dataclasses import dataclass
 
-from transports.base import Received, TransportEvent
+from transports.base import PoseReceived, Received, TransportEvent
 
 
 @dataclass
@@ -35,7 +36,7 @@ class EventQueue:
         self.max_events = max_events
         self.max_peers = max_peers
         self._control: deque[TransportEvent] = deque()
-        self._updates: dict[tuple[str, str], Received] = {}
+        self._updates: dict[tuple[bool, str, str], Received | PoseReceived] = {}
         self._wake = asyncio.Event()
         self.counters = EventQueueCounters()
 
@@ -44,8 +45,8 @@ class EventQueue:
 
     def put(self, event: TransportEvent) -> None:
         """Add an event (event-loop thread only); never blocks."""
-        if isinstance(event, Received):
-            key = (event.transport, event.peer)
+        if isinstance(event, Received | PoseReceived):
+            key = (isinstance(event, PoseReceived), event.transport, event.peer)
             if key in self._updates:
                 del self._updates[key]  # re-insert at the end: peers take turns in arrival order
                 self.counters.superseded += 1

@@ -23,7 +23,7 @@ import os
 import signal
 import threading
 import time
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel
 
@@ -34,9 +34,10 @@ from mapd.codec.api import encode_problem
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
+from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
-from mapd.daemon.sinks import Sinks
+from mapd.daemon.sinks import Sinks, placed_frames
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
@@ -47,7 +48,7 @@ from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
 from mapd.record.writer import Recorder
-from mapd.sources.base import MapSource, SourceContext
+from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from transports.base import (
     Delivered,
     Failed,
@@ -55,11 +56,15 @@ from transports.base import (
     PeerDown,
     PeerRestarted,
     PeerUp,
+    PoseReceived,
     Received,
     Transport,
     TransportContext,
     TransportEvent,
 )
+
+if TYPE_CHECKING:
+    from mapd.view.live import LiveView
 
 log = logging.getLogger("mapd.daemon")
 EVENT_QUEUE = 256
@@ -127,13 +132,37 @@ class Daemon:
             max_cells=cfg.limits.max_cells,
             max_robots=cfg.limits.max_peers + 1,  # the peers and this robot
             # a base station has no map frame of its own: the anchor, or the first robot heard
-            anchor=cfg.fusion.anchor or (None if cfg.source.use == "none" else self.me),
+            anchor=cfg.fusion.anchor or (self.me if self._own_map_source() else None),
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
         self.outputs: list[Output] = []
         # Outputs, the MCAP recording and fused.csv, each on a worker thread, never on the loop.
         recorder = Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path else None
         self.sinks = Sinks(self.outputs, recorder, CsvLog(cfg.state.dir / "fused.csv"))
+        self.poses = PoseRelay(
+            self.me,
+            cfg.robot.fleet,
+            identity=self.keys.identity,
+            roster=self.keys.roster,
+            max_robots=cfg.limits.max_peers + 1,
+            frames=lambda: placed_frames(self.fusion.placements),
+            publish=self.sinks.poses,
+        )
+        # The live web view ([view] listen): an output like the others, plus the status dict.
+        self.view: LiveView | None = None
+        if cfg.view.listen is not None:
+            from mapd.view.live import LiveView  # aiohttp is imported only when the view is on
+
+            ctx = OutputContext(robot=self.me, fleet=cfg.robot.fleet, state_dir=cfg.state.dir)
+            self.view = LiveView(cfg.view, ctx, token=checked.view_token, snapshot=self.snapshot)
+            self.sinks.map_watchers.append(self.view.robot_map)
+
+    def _own_map_source(self) -> bool:
+        """Whether the source yields this robot's own map (not ``none``, nor only other robots' maps)."""
+        if self.cfg.source.use == "none":
+            return False
+        opts = self.options["source"].get(self.cfg.source.use)
+        return not isinstance(opts, SourceOptions) or opts.yields_own_map
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -180,6 +209,8 @@ class Daemon:
         for name in self.cfg.output.use:
             out_cls = plugins.load("output", name)
             self.outputs.append(out_cls(self._options("output", name, out_cls.Options), out_ctx))
+        if self.view is not None:
+            self.outputs.append(self.view)
         try:
             for t in self.transports:
                 await t.start()
@@ -217,6 +248,7 @@ class Daemon:
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
                 tg.create_task(self._record_links(), name="record"),
+                tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
             ]
             await self._stop.wait()
             self._stopping_at = time.monotonic()
@@ -308,6 +340,9 @@ class Daemon:
     async def _source_loop(self) -> None:
         assert self.source is not None
         async for grid in self.source.maps():
+            if grid.robot and grid.robot != self.me:  # another robot's map, taken on this machine
+                self._local_peer_map(grid)
+                continue
             if grid.cells > self.cfg.limits.max_cells:
                 log.warning("source map of %d cells is over the limit; skipped", grid.cells)
                 continue
@@ -328,6 +363,22 @@ class Daemon:
             self.fusion.submit(own)
         self.source_finished = True
         log.info("source finished; still serving peers")
+
+    def _local_peer_map(self, grid: OccupancyGrid) -> None:
+        """A map of another robot from this daemon's source (ros2 ``discover_robots``, a map_merge
+        drop-in): fused and recorded as a peer's map received over a transport is, placed by the
+        source's known pose of that robot if any; it is neither sent nor kept in the state dir."""
+        assert self.source is not None
+        if grid.cells > self.cfg.limits.max_cells:
+            log.warning(
+                "map of %s from the source (%d cells) is over the limit; skipped", grid.robot, grid.cells
+            )
+            return
+        pose = self.source.robot_poses().get(grid.robot)
+        if pose is not None:
+            self.fusion.known_pose(grid.robot, pose)
+        self.fusion.submit(grid)
+        self.sinks.robot_map(grid)
 
     def _peers_by_transport(self) -> dict[str, list[str]]:
         return {t.name: t.peers() for t in self.transports}
@@ -410,6 +461,8 @@ class Daemon:
         core = self.publisher
         if isinstance(ev, Received):
             await self._on_received(ev)
+        elif isinstance(ev, PoseReceived):
+            await self.poses.received(ev)
         elif isinstance(ev, Delivered):
             if ev.robot != self.me:
                 return
@@ -506,6 +559,7 @@ class Daemon:
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "outputs": self.sinks.status(),
             "fusion": self.fusion.status(),
+            "poses": self.poses.status(now),
             "counters": {
                 **vars(self.receiver.counters),
                 "keyframes_sent": pub.keyframes_sent,

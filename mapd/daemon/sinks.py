@@ -18,11 +18,16 @@ from typing import Any
 
 from mapd.daemon.coding import CsvLog
 from mapd.fusion.placement import Placement
-from mapd.grid import OccupancyGrid, Pose2D
-from mapd.outputs.base import GlobalUpdate, Output
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
 
 log = logging.getLogger("mapd.daemon")
+
+
+def placed_frames(placements: dict[str, Placement]) -> dict[str, Pose2D]:
+    """Each robot's map frame in the fleet frame, for the placements fusion accepted."""
+    return {r: p.transform for r, p in placements.items() if p.accepted and p.transform is not None}
 
 
 class Sinks:
@@ -35,8 +40,13 @@ class Sinks:
         self._files = ThreadPoolExecutor(1, thread_name_prefix="mapd-files")
         self._out_pool = ThreadPoolExecutor(1, thread_name_prefix="mapd-outputs")
         self._out_next: GlobalUpdate | None = None
+        self._pose_next: PoseUpdate | None = None
         self._out_lock = threading.Lock()
+        #: The latest known robot poses, which every GlobalUpdate carries too.
+        self.poses_now: dict[str, StampedPose] = {}
         self._recorded_tf: dict[str, Pose2D] = {}
+        #: Called on the loop with every robot map the daemon holds (the live view notes its size).
+        self.map_watchers: list[Callable[[OccupancyGrid], None]] = []
 
     # ------------------------------------------------------------------ on the loop
     def global_map(
@@ -51,12 +61,15 @@ class Sinks:
         ]
         if rows:  # which version of each robot the global map holds (for latency benches)
             self._files.submit(self.fused_log.write, rows)
-        frames = {r: p.transform for r, p in placements.items() if p.accepted and p.transform is not None}
+        frames = placed_frames(placements)
         if self.outputs:
             versions = {
                 r: int(i["version"]) for r, i in robots.items() if isinstance(i, dict) and i.get("version")
             }
-            self._to_outputs(GlobalUpdate(grid=grid, frames=frames, stamp=wall, versions=versions))
+            update = GlobalUpdate(
+                grid=grid, frames=frames, stamp=wall, versions=versions, poses=self.poses_now
+            )
+            self._to_outputs(update)
         if self.recorder is not None:
             self._record(self.recorder.grid, "/map", grid, "map", wall)
             placed = {f"{r}/map": p for r, p in frames.items()}
@@ -66,8 +79,26 @@ class Sinks:
 
     def robot_map(self, grid: OccupancyGrid) -> None:
         """A robot's map as this daemon now holds it (its own, or one received)."""
+        for watch in self.map_watchers:
+            watch(grid)
         if self.recorder is not None:
             self._record(self.recorder.grid, f"/{grid.robot}/map", grid, f"{grid.robot}/map", time.time())
+
+    def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
+        """New robot poses (each ``base_link`` in its robot's map frame) and the current placements."""
+        self.poses_now = poses
+        if self.outputs:
+            with self._out_lock:
+                idle = self._out_next is None and self._pose_next is None
+                self._pose_next = PoseUpdate(poses=poses, frames=frames)
+            if idle:
+                self._out_pool.submit(self._drain_outputs)
+        if self.recorder is not None:
+            wall = time.time()
+            for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link
+                self._record(
+                    self.recorder.transforms, "/tf", f"{robot}/map", {f"{robot}/base_link": sp.pose}, wall
+                )
 
     def links(self, links: dict[str, Any]) -> None:
         """The transports' counters, for the recording."""
@@ -80,7 +111,7 @@ class Sinks:
     # ------------------------------------------------------------------ worker side
     def _to_outputs(self, update: GlobalUpdate) -> None:
         with self._out_lock:
-            idle = self._out_next is None
+            idle = self._out_next is None and self._pose_next is None
             self._out_next = update
         if idle:
             self._out_pool.submit(self._drain_outputs)
@@ -88,11 +119,13 @@ class Sinks:
     def _drain_outputs(self) -> None:
         with self._out_lock:
             update, self._out_next = self._out_next, None
-        if update is None:
-            return
+            poses, self._pose_next = self._pose_next, None
         for o in self.outputs:
             try:
-                o.publish(update)
+                if update is not None:
+                    o.publish(update)
+                if poses is not None:
+                    o.publish_poses(poses)
             except Exception as exc:  # one failing output must not stop the others or the daemon
                 log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
 

@@ -25,6 +25,8 @@ from mapd.daemon.versions import label
 from mapd.errors import DaemonError, MapdError
 
 UWB_RATE = 12500
+#: The base station's name with ``--ros2-listen``.
+BASE = "base"
 
 
 def _free_port() -> int:
@@ -69,6 +71,8 @@ class Fleet:
         self.sim_options = sim_options or {}
         self.n = args.robots
         self.names = [f"robot{i}" for i in range(self.n)]
+        #: ``--ros2-listen``: a base station (source ``none``) whose ros2 output listens there.
+        self.base = BASE if getattr(args, "ros2_listen", None) else None
         self.run_dir = args.out / "run"
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.relay: subprocess.Popen[str] | None = None
@@ -83,10 +87,10 @@ class Fleet:
         if self.args.transport == "uwb":
             self._start_relay()
         router = self._start_router() if getattr(self.args, "router", False) else None
-        zenoh_ports = [_free_port() for _ in self.names]
+        zenoh_ports = [_free_port() for _ in self.members]
         poses = self._start_poses()
         key_files, roster, link_key = self._make_keys()
-        for i, name in enumerate(self.names):
+        for i, name in enumerate(self.members):
             d = self.run_dir / name
             (d / "state").mkdir(parents=True)
             tables: dict[str, dict[str, Any]] = {
@@ -95,16 +99,16 @@ class Fleet:
                 "state": {"dir": str((d / "state").resolve()), "runtime_dir": str((d / "run").resolve())},
                 "log": {"level": "info"},
             }
-            tables.update(self._source_tables(i))
+            tables.update(self._source_tables(i) if name != self.base else self._base_tables())
             tables["codec"] = {"use": self.args.codec, "keyframe_every": 10, "measure_quality": True}
             if self.args.transport == "uwb":
                 tables["transports"] = {"use": ["uwb"]}
                 tables["transports.uwb"] = {
                     "port": self.ports[name],
                     "link_rate_bps": UWB_RATE,
-                    "mac": "tdma" if self.n > 2 else "none",
+                    "mac": "tdma" if len(self.members) > 2 else "none",
                 }
-                tables["transports.uwb.nodes"] = {r: j + 1 for j, r in enumerate(self.names)}
+                tables["transports.uwb.nodes"] = {r: j + 1 for j, r in enumerate(self.members)}
             elif router is not None:  # every robot a client of one router, as in a building
                 tables["transports"] = {"use": ["zenoh"]}
                 tables["transports.zenoh"] = {
@@ -125,6 +129,9 @@ class Fleet:
             if record is not None and i == 0:
                 tables["record"] = {"path": str(Path(record).resolve())}
             tables["fusion.poses"] = {r: list(p) for r, p in poses.items()} if poses else {}
+            view = getattr(self.args, "view", None)
+            if view is not None and i == 0:  # robot0's live view, on loopback (no token needed)
+                tables["view"] = {"listen": f"127.0.0.1:{view}"}
             write_config(d / "config.toml", tables)
 
     def _make_keys(self) -> tuple[dict[str, Path], dict[str, str], Path]:
@@ -141,7 +148,7 @@ class Fleet:
         keys.mkdir(mode=0o700)
         files: dict[str, Path] = {}
         roster: dict[str, str] = {}
-        for name in self.names:
+        for name in self.members:
             identity = Identity.generate(name)
             files[name] = (keys / f"{name}.key").resolve()
             identity.write(files[name])
@@ -175,7 +182,7 @@ class Fleet:
             "-m",
             "transports.uwb.relay",
             "--robots",
-            str(self.n),
+            str(len(self.members)),
             "--rate-bps",
             str(UWB_RATE),
             "--seed",
@@ -192,13 +199,13 @@ class Fleet:
         self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert self.relay.stdout is not None
         deadline = time.monotonic() + 15
-        while len(self.ports) < self.n:
+        while len(self.ports) < len(self.members):
             line = self.relay.stdout.readline()
             if not line or time.monotonic() > deadline:
                 raise DaemonError(f"the UWB relay did not start: {line.strip() or 'no output'}")
             if line.startswith("robot "):
                 idx, port = line[len("robot ") :].split(":", 1)
-                self.ports[self.names[int(idx)]] = port.strip()
+                self.ports[self.members[int(idx)]] = port.strip()
 
     def _source_tables(self, i: int) -> dict[str, dict[str, Any]]:
         if self.args.log is not None:
@@ -227,6 +234,20 @@ class Fleet:
             },
         }
 
+    @property
+    def members(self) -> list[str]:
+        """Every daemon to run: the robots (``names``, which a test may cut down after ``prepare``),
+        then the base station if any."""
+        return self.names + ([self.base] if self.base else [])
+
+    def _base_tables(self) -> dict[str, dict[str, Any]]:
+        """The base station's: no map of its own, and the fused map on ROS 2 (rmw_zenoh) at the endpoint."""
+        return {
+            "source": {"use": "none"},
+            "output": {"use": ["ros2"]},
+            "output.ros2": {"listen": [self.args.ros2_listen], "connect": [], "frame": "map"},
+        }
+
     def _start_poses(self) -> dict[str, tuple[float, float, float]]:
         """Known start poses for known-pose fusion, from the deterministic source itself."""
         from mapd import config, plugins
@@ -246,7 +267,7 @@ class Fleet:
 
     def start(self) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        for name in self.names:
+        for name in self.members:
             d = self.run_dir / name
             log = open(d / "daemon.log", "wb")  # noqa: SIM115 - lives as long as the process
             self.procs[name] = subprocess.Popen(
@@ -258,7 +279,7 @@ class Fleet:
 
     def status(self) -> dict[str, dict[str, Any]]:
         out = {}
-        for name in self.names:
+        for name in self.members:
             sock = self.run_dir / name / "run" / "mapd.sock"
             try:
                 out[name] = query(sock, timeout=2.0)
@@ -342,6 +363,14 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     fleet.prepare()
     fleet.start()
+    if fleet.base is not None:
+        print(
+            f"ROS 2 (rmw_zenoh): the base station publishes /map, /tf_static and /tf on {args.ros2_listen}; "
+            f"see README 'With ROS 2'",
+            flush=True,
+        )
+    if getattr(args, "view", None) is not None:
+        print(f"live view of robot0: http://127.0.0.1:{args.view}/", flush=True)
     t0 = time.monotonic()
     snaps: dict[str, dict[str, Any]] = {}
     try:

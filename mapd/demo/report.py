@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import shutil
 from pathlib import Path
 from typing import Any
@@ -61,6 +62,28 @@ def coloured_global(global_map: OccupancyGrid, contributions: np.ndarray | None)
             tint = COLOURS[r % len(COLOURS)]
             img[m] = 0.55 * img[m] + 0.45 * tint
     return img.astype(np.uint8)
+
+
+def mark_robots(
+    img: np.ndarray, global_map: OccupancyGrid, positions: dict[str, list[float]], names: list[str]
+) -> np.ndarray:
+    """``img`` (from :func:`coloured_global`) with each robot drawn where it is: a disc in its colour
+    with a dark rim and a line along its heading. ``positions`` are [x, y, yaw] in the fleet frame."""
+    from PIL import Image, ImageDraw
+
+    pic = Image.fromarray(img)
+    draw = ImageDraw.Draw(pic)
+    o, res, h = global_map.origin, global_map.resolution, img.shape[0]
+    r = max(4, min(img.shape[:2]) // 60)
+    for robot, (x, y, yaw) in positions.items():
+        # the global map's origin has no rotation (fusion builds it axis-aligned); rows are flipped
+        col, row = (x - o.x) / res, h - 1 - (y - o.y) / res
+        tint = tuple(int(v) for v in COLOURS[(names.index(robot) if robot in names else 0) % len(COLOURS)])
+        draw.ellipse((col - r, row - r, col + r, row + r), fill=tint, outline=(20, 20, 20), width=2)
+        draw.line(
+            (col, row, col + 2 * r * math.cos(yaw), row - 2 * r * math.sin(yaw)), fill=(20, 20, 20), width=2
+        )
+    return np.asarray(pic)
 
 
 def with_legend(img: np.ndarray, names: list[str]) -> np.ndarray:
@@ -176,7 +199,12 @@ def write_report(
                 # owner.npy indexes owner.json's names; colour by the robot's place in the fleet
                 lut = np.array([names.index(r) if r in names else -1 for r in owners] + [-1], dtype=np.int16)
                 contrib = np.where(idx >= 0, lut[np.clip(idx, 0, len(owners))], -1)
-            Image.fromarray(with_legend(coloured_global(g, contrib), names)).save(out / "global_map.png")
+            pic = coloured_global(g, contrib)
+            # where each robot was at the end, as robot0 last heard (own pose and peers' pose messages)
+            seen = (snaps.get(names[0], {}).get("poses") or {}).get("robots") or {}
+            where = {r: p["fleet"] for r, p in seen.items() if isinstance(p, dict) and p.get("fleet")}
+            pic = mark_robots(pic, g, where, names)
+            Image.fromarray(with_legend(pic, names)).save(out / "global_map.png")
             for f in gdir.iterdir():
                 if f.suffix in (".yaml", ".pgm", ".json"):
                     shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)

@@ -1,29 +1,19 @@
-"""ROS 2 ``nav_msgs/msg/OccupancyGrid`` over zenoh, with no ROS install: CDR, keys, sessions, a sink.
+"""ROS 2 messages over zenoh with no ROS install: CDR, key helpers, sessions.
 
-* :func:`encode` / :func:`decode` turn an :class:`~mapd.grid.OccupancyGrid` into a CDR payload and
-  back with the ``rosbags`` type store (pure Python). :func:`decode` checks sizes against limits and
-  raises one :class:`~mapd.errors.CodecError` for anything that does not parse.
-* Key expressions for the two ways ROS 2 meets zenoh: ``rmw_zenoh``
-  (``<domain>/<topic>/nav_msgs::msg::dds_::OccupancyGrid_/<type hash>``; subscribe with ``*`` for
-  the hash) and ``zenoh-bridge-ros2dds`` (the topic without its leading slash, under an optional
-  namespace).
+* :func:`encode` / :func:`decode` turn an :class:`~mapd.grid.OccupancyGrid` into a CDR
+  ``nav_msgs/msg/OccupancyGrid`` payload and back with the ``rosbags`` type store (pure Python).
+  :func:`decode` checks sizes against limits and raises one :class:`~mapd.errors.CodecError` for
+  anything that does not parse. :func:`encode_tf` makes a ``tf2_msgs/msg/TFMessage``.
+* Key helpers for the two ways ROS 2 meets zenoh (the rules themselves, tokens and GIDs included,
+  are in :mod:`mapd.ros2.rmw`).
 * :func:`open_session` builds a zenoh session from plain options (timestamping on, which the
-  advanced publisher's cache needs).
-* :class:`Ros2Sink` publishes a grid as CDR the way an ``rmw_zenoh`` transient-local publisher does
-  (an advanced publisher with a one-sample cache and publisher detection, the rmw attachment, and
-  liveliness tokens so ``ros2 topic list`` sees it), so RViz or Nav2 can take mapd's global map.
+  advanced publisher's cache needs). Publishing as an rmw_zenoh node is :mod:`mapd.ros2.node`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import itertools
 import json
 import math
-import os
-import struct
-import time
-from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
 
@@ -31,27 +21,28 @@ import numpy as np
 
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+from mapd.ros2 import rmw
 
 MSGTYPE = "nav_msgs/msg/OccupancyGrid"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 DDS_TYPE = "nav_msgs::msg::dds_::OccupancyGrid_"
-KeyFormat = Literal["rmw_zenoh", "ros2dds"]
+KeyFormat = rmw.KeyFormat
 #: CDR bytes beyond the cells: header, frame id, metadata (a generous bound for the size check).
 _OVERHEAD = 64 * 1024
 
 
-@lru_cache(maxsize=1)
+def typestore(distro: str = "jazzy") -> Any:
+    """rosbags' type store of a ROS 2 distro (see :func:`mapd.ros2.rmw.typestore`)."""
+    return rmw.typestore(distro)
+
+
 def _typestore() -> Any:
-    try:
-        from rosbags.typesys import Stores, get_typestore
-    except ModuleNotFoundError:
-        raise CodecError("ROS 2 CDR needs rosbags (pip install 'mapd[ros2]')") from None
-    return get_typestore(Stores.ROS2_JAZZY)
+    return typestore("jazzy")
 
 
-@lru_cache(maxsize=1)
 def type_hash() -> str:
-    """The RIHS01 type hash of ``nav_msgs/msg/OccupancyGrid``, as rmw_zenoh puts it in keys."""
-    return str(_typestore().hash_rihs01(MSGTYPE))
+    """The RIHS01 type hash of ``nav_msgs/msg/OccupancyGrid`` (Jazzy), as rmw_zenoh puts it in keys."""
+    return rmw.type_hash(MSGTYPE, "jazzy")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -135,28 +126,49 @@ def decode(
     )
 
 
+def encode_tf(transforms: list[tuple[str, str, Pose2D, float]]) -> bytes:
+    """A CDR ``tf2_msgs/msg/TFMessage``: one ``TransformStamped`` per (parent, child, pose, stamp).
+
+    A pose is x, y (m) and yaw (rad, counter-clockwise) of the child frame in the parent frame (REP-103);
+    z is 0 and the rotation is about z only.
+    """
+    ts = _typestore()
+    t = ts.types
+    items = [
+        t["geometry_msgs/msg/TransformStamped"](
+            header=t["std_msgs/msg/Header"](
+                stamp=t["builtin_interfaces/msg/Time"](*split_stamp(stamp)), frame_id=parent
+            ),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=float(pose.x), y=float(pose.y), z=0.0),
+                rotation=t["geometry_msgs/msg/Quaternion"](
+                    x=0.0, y=0.0, z=math.sin(pose.yaw / 2), w=math.cos(pose.yaw / 2)
+                ),
+            ),
+        )
+        for parent, child, pose, stamp in transforms
+    ]
+    return bytes(ts.serialize_cdr(t[TF_TYPE](transforms=items), TF_TYPE))
+
+
 # ------------------------------------------------------------------------------------------------
-# Keys
+# Keys (the rules are in mapd.ros2.rmw)
 # ------------------------------------------------------------------------------------------------
 
 
 def _check_topic(topic: str) -> str:
-    name = topic.strip("/")
-    if not name or any(not part for part in name.split("/")) or any(c in name for c in "*$?#"):
-        raise ValueError(f"not a ROS 2 topic name: {topic!r}")
-    return name
+    return rmw.check_name(topic)
 
 
 def rmw_zenoh_key(topic: str, *, domain: int = 0, hash_: str | None = None) -> str:
     """rmw_zenoh's key for an OccupancyGrid topic; ``hash_='*'`` gives the subscription wildcard."""
-    return f"{domain}/{_check_topic(topic)}/{DDS_TYPE}/{hash_ if hash_ is not None else type_hash()}"
+    return rmw.data_key(topic, MSGTYPE, domain=domain, hash_=hash_)
 
 
 def ros2dds_key(topic: str, *, namespace: str = "") -> str:
     """zenoh-bridge-ros2dds's key: the topic without its leading slash, under ``namespace`` if given."""
-    ns = namespace.strip("/")
-    name = _check_topic(topic)
-    return f"{_check_topic(ns)}/{name}" if ns else name
+    return rmw.bridge_key(topic, namespace=namespace)
 
 
 def key_for(
@@ -166,20 +178,6 @@ def key_for(
     if key_format == "rmw_zenoh":
         return rmw_zenoh_key(topic, domain=domain, hash_="*" if subscribe else None)
     return ros2dds_key(topic, namespace=namespace)
-
-
-def _mangle(name: str) -> str:
-    # rmw_zenoh replaces '/' by '%' in liveliness keys, and writes an empty name as '%'.
-    return name.replace("/", "%") or "%"
-
-
-def rmw_attachment(sequence: int, gid: bytes, now_ns: int | None = None) -> bytes:
-    """The attachment rmw_zenoh puts on each sample: sequence, source time (ns), 16-byte publisher GID,
-    in zenoh's serialization format (little-endian int64s, then a LEB128 length and the bytes)."""
-    if len(gid) != 16:
-        raise ValueError("an rmw GID has 16 bytes")
-    stamp = time.time_ns() if now_ns is None else now_ns
-    return struct.pack("<qq", sequence, stamp) + b"\x10" + gid
 
 
 # ------------------------------------------------------------------------------------------------
@@ -231,81 +229,3 @@ def open_session(**options: Any) -> Any:
         return zenoh.open(cfg)
     except Exception as exc:  # zenoh.ZError: refused endpoint, address in use
         raise TransportError(f"cannot open zenoh session: {exc}") from None
-
-
-# ------------------------------------------------------------------------------------------------
-# The sink
-# ------------------------------------------------------------------------------------------------
-
-_entity_ids = itertools.count(1)
-
-
-class Ros2Sink:
-    """Publishes grids as ``nav_msgs/msg/OccupancyGrid`` CDR on a zenoh session, like a ROS 2 /map.
-
-    With ``key_format="rmw_zenoh"`` it behaves as a transient-local, reliable, depth-1 rmw_zenoh
-    publisher: late subscribers that ask for history (RViz, Nav2 with map QoS) get the current
-    map; liveliness tokens announce a node ``node`` and its publisher to the ROS graph. With
-    ``"ros2dds"`` it publishes where ``zenoh-bridge-ros2dds`` routes the topic into DDS.
-    The session stays the caller's: :meth:`close` undeclares only what the sink declared.
-    """
-
-    def __init__(
-        self,
-        session: Any,
-        topic: str = "/map",
-        *,
-        key_format: KeyFormat = "rmw_zenoh",
-        domain: int = 0,
-        namespace: str = "",
-        node: str = "mapd",
-        frame_id: str = "map",
-    ) -> None:
-        import zenoh.ext as zext
-
-        self.session = session
-        self.topic = "/" + _check_topic(topic)
-        self.key_format = key_format
-        self.frame_id = frame_id
-        self.key = key_for(topic, key_format, domain=domain, namespace=namespace)
-        self._seq = 0
-        self._tokens: list[Any] = []
-        self.gid = os.urandom(16)
-        try:
-            self._pub = zext.declare_advanced_publisher(
-                session, self.key, cache=zext.CacheConfig(max_samples=1), publisher_detection=True
-            )
-            if key_format == "rmw_zenoh":
-                zid = str(session.zid())
-                nid, eid = next(_entity_ids), next(_entity_ids)
-                node_ke = f"@ros2_lv/{domain}/{zid}/{nid}/{nid}/NN/%/{_mangle(namespace)}/{_mangle(node)}"
-                # QoS: reliable (1), transient local (1), keep last (1) with depth 1; rest default.
-                pub_ke = (
-                    f"@ros2_lv/{domain}/{zid}/{nid}/{eid}/MP/%/{_mangle(namespace)}/{_mangle(node)}/"
-                    f"{_mangle(self.topic)}/{DDS_TYPE}/{type_hash()}/1:1:1,1:,:,:,,"
-                )
-                liveliness = session.liveliness()
-                self._tokens = [liveliness.declare_token(node_ke), liveliness.declare_token(pub_ke)]
-        except Exception as exc:  # zenoh.ZError
-            raise TransportError(f"cannot publish {self.topic} on zenoh key '{self.key}': {exc}") from None
-
-    def publish(self, grid: OccupancyGrid, *, stamp: float | None = None) -> int:
-        """Publish one grid; returns the payload size in bytes."""
-        payload = encode(grid, frame_id=self.frame_id, stamp=stamp)
-        self._seq += 1
-        attachment = rmw_attachment(self._seq, self.gid) if self.key_format == "rmw_zenoh" else None
-        try:
-            self._pub.put(payload, attachment=attachment)
-        except Exception as exc:  # zenoh.ZError: session closed
-            raise TransportError(f"cannot publish {self.topic}: {exc}") from None
-        return len(payload)
-
-    def close(self) -> None:
-        """Undeclare the publisher and tokens (the session is left open)."""
-        for tok in self._tokens:
-            # Already gone when the session was closed first.
-            with contextlib.suppress(Exception):
-                tok.undeclare()
-        self._tokens = []
-        with contextlib.suppress(Exception):
-            self._pub.undeclare()

@@ -10,13 +10,19 @@ from typing import ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, StampedPose
 
 
 class SourceOptions(BaseModel):
     """Options a source reads from its ``[source.<name>]`` table. Subclass to add fields."""
 
     model_config = ConfigDict(extra="forbid")
+
+    @property
+    def yields_own_map(self) -> bool:
+        """False for a source that yields only other robots' maps (a base station's, say ros2 with
+        ``discover_robots``): the daemon then has no map frame of its own (as with source ``none``)."""
+        return True
 
 
 class FleetSliceOptions(SourceOptions):
@@ -45,7 +51,8 @@ class SourceContext:
 class MapSource(ABC):
     """Yields :class:`OccupancyGrid` versions of one robot's map, in that robot's map frame.
 
-    Versions strictly increase. ``robot`` is set to the context's robot id. A source that meets bad
+    Versions strictly increase (per robot). ``robot`` is set to the context's robot id, or, for a
+    source that carries several robots' maps, to the robot each map belongs to. A source that meets bad
     input (a bad log line, a half-written file) logs it, counts it in :meth:`stats` and goes on.
     """
 
@@ -64,6 +71,19 @@ class MapSource(ABC):
         """Where this robot's map frame sits in the fleet/world frame, when the source knows it
         (a simulator or a log with corrected poses); ``None`` otherwise."""
         return None
+
+    def pose(self) -> StampedPose | None:
+        """Where the robot's ``base_link`` is now, in its own map frame, and when that was (wall
+        clock); ``None`` when the source does not know (a map file). Polled by the daemon at its
+        pose rate, so it must be cheap and never block."""
+        return None
+
+    def robot_poses(self) -> dict[str, Pose2D]:
+        """Known map-frame poses (in the fleet frame) of other robots whose maps this source yields.
+
+        A source may yield maps whose ``robot`` is not the daemon's own (several robots' maps on one
+        machine); the daemon fuses those as maps received from peers, placed by these poses."""
+        return {}
 
     def stats(self) -> dict[str, int | float | str]:
         """Counters for ``mapd status`` (scans, skipped lines, last error ...)."""

@@ -29,13 +29,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 from pydantic import Field, model_validator
 
 from mapd.errors import LimitError, SourceError
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, first_pose, relative, replay_scans
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
@@ -82,6 +83,7 @@ class LaserLogSource(MapSource):
         self._scans = 0
         self._limit_skips = 0
         self._late = 0.0
+        self._pose: StampedPose | None = None
 
     @property
     def path(self) -> Path:
@@ -132,8 +134,11 @@ class LaserLogSource(MapSource):
             else:
                 # Let other tasks run between scans; a replay is CPU work.
                 await asyncio.sleep(0)
+            here = relative(frame, scan.pose)
+            # stamped on the wall clock: a replayed log's own times are years old
+            self._pose = StampedPose(here, time.time())
             try:
-                mapper.integrate(scan.ranges, scan.angles, relative(frame, scan.pose))
+                mapper.integrate(scan.ranges, scan.angles, here)
             except LimitError as exc:
                 self._limit_skips += 1
                 self.log_stats.skip(f"{path}: line {scan.line}", str(exc))
@@ -149,6 +154,10 @@ class LaserLogSource(MapSource):
                 yield self._snapshot(mapper, scan.stamp)
         if pending:
             yield self._snapshot(mapper, stamp)
+
+    def pose(self) -> StampedPose | None:
+        """The robot's pose in its map frame at the last replayed scan."""
+        return self._pose
 
     def _snapshot(self, mapper: Mapper, stamp: float) -> OccupancyGrid:
         self._versions += 1

@@ -15,14 +15,41 @@ Zenoh delivers samples on its own threads; the callback only hands the bytes to 
 A payload that does not parse, or is over the size limit, is logged with the topic and counted,
 and the source waits for the next one. A map equal to the last one emitted is not emitted again.
 
-Example ``config.toml`` table::
+The source announces itself to the ROS 2 graph as rmw_zenoh does: a node token (``node``) and a
+subscription token per topic it takes, so ``ros2 node list`` and ``ros2 topic info`` show it.
+
+**The robot's pose** (:meth:`Ros2Source.pose`, one robot only): with ``pose_topic`` set, the latest
+``geometry_msgs/msg/PoseWithCovarianceStamped`` (AMCL's ``/amcl_pose``) or ``PoseStamped``
+(``pose_type``) in frame ``pose_frame``, stamped at reception (:mod:`mapd.sources.ros2_pose`).
+Refused with ``discover_robots``: the other robots' poses are not this daemon's to send.
+
+**Several robots on one machine** (a drop-in for m-explore's ``multirobot_map_merge``): with
+``discover_robots = true`` the source takes ``/<robot>/<robot_map_topic>`` of every robot that
+appears (a key-expression wildcard on the data, and the publishers' liveliness tokens), keeps only
+robots whose name starts with ``robot_namespace``, and yields each robot's maps with ``robot`` set
+to that name. The daemon fuses a map whose robot is not itself as it fuses one received from a peer
+(:meth:`Ros2Source.robot_poses` gives their known initial poses). With ``known_init_poses = true``
+(m-explore's default) a robot is merged only once ``init_poses`` has its ``[x, y, yaw]``; with
+``false`` placements are estimated.
+
+Example ``config.toml`` tables::
 
     [source.ros2]
     topic = "/map"
+    pose_topic = "/amcl_pose"         # the robot's pose (off when unset)
     key_format = "rmw_zenoh"          # or "ros2dds"
     domain = 0
     mode = "client"
     connect = ["tcp/127.0.0.1:7447"]  # rmw_zenohd, the ROS 2 zenoh router
+
+    [source.ros2]                     # a base station merging /robot1/map, /robot2/map, ...
+    discover_robots = true
+    robot_map_topic = "map"
+    robot_namespace = "robot"
+    known_init_poses = true
+    [source.ros2.init_poses]
+    robot1 = [0.0, 0.0, 0.0]
+    robot2 = [4.0, -1.0, 1.5708]
 """
 
 from __future__ import annotations
@@ -31,16 +58,19 @@ import asyncio
 import contextlib
 import logging
 import math
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from mapd.errors import CodecError, LimitError, TransportError
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.ros2 import cdr as ros2cdr
+from mapd.ros2 import rmw
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
+from mapd.sources.ros2_pose import PoseSubscription, PoseType
 
 log = logging.getLogger(__name__)
 
@@ -66,12 +96,61 @@ class Ros2Options(SourceOptions):
     start_pose: list[float] | None = Field(
         default=None, description="[x, y, yaw] of the ROS map frame in the fleet frame, when known"
     )
+    node: str = Field(default="mapd_source", description="the ROS 2 node name mapd's tokens announce")
+    distro: rmw.Distro = Field(default="jazzy", description="ROS 2 distro (type hash in tokens)")
+    discover_robots: bool = Field(
+        default=False, description="take /<robot>/<robot_map_topic> of every robot (map_merge)"
+    )
+    robot_map_topic: str = Field(default="map", description="each robot's map topic, under its namespace")
+    robot_namespace: str = Field(default="", description="only robots whose namespace starts with this")
+    known_init_poses: bool = Field(
+        default=True, description="merge a robot only with its init_poses entry (false: estimate)"
+    )
+    init_poses: dict[str, list[float]] = Field(
+        default_factory=dict, description="robot -> [x, y, yaw] of its map frame in the fleet frame"
+    )
+    max_robots: int = Field(default=32, ge=1, le=256, description="robots taken at most")
+    pose_topic: str | None = Field(default=None, description="the robot's pose topic, e.g. /amcl_pose")
+    pose_type: PoseType = Field(default="PoseWithCovarianceStamped", description="its geometry_msgs type")
+    pose_frame: str = Field(default="map", min_length=1, description="poses in other frames are ignored")
+
+    @property
+    def yields_own_map(self) -> bool:
+        return not self.discover_robots
+
+    @field_validator("robot_map_topic")
+    @classmethod
+    def _check_robot_topic(cls, v: str) -> str:
+        rmw.check_name(v)
+        return v
+
+    @field_validator("init_poses")
+    @classmethod
+    def _check_init_poses(cls, v: dict[str, list[float]]) -> dict[str, list[float]]:
+        for robot, pose in v.items():
+            if len(pose) != 3 or not all(math.isfinite(x) for x in pose):
+                raise ValueError(f"init pose of '{robot}' must be [x, y, yaw] (m, m, rad)")
+        return v
 
     @field_validator("topic")
     @classmethod
     def _check_topic(cls, v: str) -> str:
         ros2cdr.rmw_zenoh_key(v, hash_="*")  # raises ValueError for a bad name
         return v
+
+    @field_validator("pose_topic")
+    @classmethod
+    def _check_pose_topic(cls, v: str | None) -> str | None:
+        return v if v is None else rmw.fq_topic(v)  # ValueError for a bad name
+
+    @model_validator(mode="after")
+    def _one_robot_pose(self) -> Ros2Options:
+        if self.pose_topic is not None and self.discover_robots:
+            raise ValueError(
+                "pose_topic is for one robot's source; with discover_robots = true the robots' poses "
+                "are not this daemon's to send (each robot's mapd sends its own)"
+            )
+        return self
 
     @field_validator("start_pose")
     @classmethod
@@ -81,8 +160,11 @@ class Ros2Options(SourceOptions):
         return v
 
 
+_ROBOT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,32}$")  # mapd's robot names (config.py)
+
+
 class Ros2Source(MapSource):
-    """Map versions from a ROS 2 OccupancyGrid topic, received over zenoh."""
+    """Map versions from ROS 2 OccupancyGrid topics received over zenoh: one robot's, or many robots'."""
 
     name = "ros2"
     Options = Ros2Options
@@ -92,22 +174,91 @@ class Ros2Source(MapSource):
         assert isinstance(self.options, Ros2Options)
         self.opts: Ros2Options = self.options
         o = self.opts
-        self.key = o.key or ros2cdr.key_for(
-            o.topic, o.key_format, domain=o.domain, namespace=o.namespace, subscribe=True
+        if o.discover_robots:
+            if o.key_format == "rmw_zenoh":
+                dds = rmw.dds_type(ros2cdr.MSGTYPE)
+                self.key = f"{o.domain}/*/{rmw.check_name(o.robot_map_topic)}/{dds}/*"
+            else:
+                ns = o.namespace.strip("/")
+                self.key = (f"{ns}/" if ns else "") + f"*/{rmw.check_name(o.robot_map_topic)}"
+        else:
+            self.key = o.key or ros2cdr.key_for(
+                o.topic, o.key_format, domain=o.domain, namespace=o.namespace, subscribe=True
+            )
+        self._pose = (
+            PoseSubscription(
+                o.pose_topic,
+                o.pose_type,
+                frame=o.pose_frame,
+                key_format=o.key_format,
+                domain=o.domain,
+                distro=o.distro,
+                namespace=o.namespace,
+            )
+            if o.pose_topic is not None
+            else None
         )
+        self._pose_sub: PoseSubscription | None = None  # the pose subscription while declared
         self._session: Any = None
         self._sub: Any = None
-        self._pending: tuple[str, bytes] | None = None
+        self._lv_sub: Any = None
+        self._node: Any = None
+        self._pending: dict[str, tuple[str, bytes]] = {}
         self._wake: asyncio.Event | None = None
+        self._robots: dict[str, int] = {}  # robot -> versions yielded
+        self._digests: dict[str, bytes] = {}
+        self._announced: set[str] = set()
+        self._waiting_pose: set[str] = set()
+        self._ignored: set[str] = set()
         self._versions = 0
         self._received = 0
         self._dropped = 0
         self._bad = 0
         self._last_error = ""
-        self._last_digest: bytes | None = None
 
     def start_pose(self) -> Pose2D | None:
         return Pose2D(*self.opts.start_pose) if self.opts.start_pose is not None else None
+
+    def pose(self) -> StampedPose | None:
+        """The robot's latest pose from ``pose_topic`` (in its map frame, stamped at reception)."""
+        return self._pose.latest() if self._pose is not None else None
+
+    def robot_poses(self) -> dict[str, Pose2D]:
+        """Known initial poses of the robots whose maps this source yields (``init_poses``)."""
+        if not (self.opts.discover_robots and self.opts.known_init_poses):
+            return {}
+        return {r: Pose2D(*p) for r, p in self.opts.init_poses.items()}
+
+    # -- names -----------------------------------------------------------------------------------------
+    def robot_of_key(self, key: str) -> str | None:
+        """The robot a data key belongs to (discovery), or this robot; None for a robot not taken."""
+        o = self.opts
+        if not o.discover_robots:
+            return self.ctx.robot
+        parts = key.split("/")
+        if o.key_format == "rmw_zenoh":
+            robot = parts[1] if len(parts) > 1 else ""
+        else:
+            robot = parts[len([p for p in o.namespace.strip("/").split("/") if p])] if parts else ""
+        return self._accept_robot(robot)
+
+    def robot_of_topic(self, topic: str) -> str | None:
+        """The robot of a fully qualified topic ``/<robot>/<robot_map_topic>``, if it is one taken."""
+        parts = topic.strip("/").split("/")
+        if len(parts) != 2 or parts[1] != rmw.check_name(self.opts.robot_map_topic):
+            return None
+        return self._accept_robot(parts[0])
+
+    def _accept_robot(self, robot: str) -> str | None:
+        o = self.opts
+        if not _ROBOT_NAME.match(robot) or not robot.startswith(o.robot_namespace):
+            return None
+        if robot not in self._robots and len(self._robots) >= o.max_robots:
+            if robot not in self._ignored:
+                self._ignored.add(robot)
+                log.warning("ros2 source: already %d robots; ignoring %s", o.max_robots, robot)
+            return None
+        return robot
 
     # -- zenoh side (runs on zenoh threads) ------------------------------------------------------------
     def _on_sample(self, loop: asyncio.AbstractEventLoop, sample: Any) -> None:
@@ -120,17 +271,51 @@ class Ros2Source(MapSource):
         with contextlib.suppress(RuntimeError):
             loop.call_soon_threadsafe(self._offer, key, payload)
 
+    def _on_token(self, loop: asyncio.AbstractEventLoop, sample: Any) -> None:
+        import zenoh
+
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            entity = rmw.parse_token(str(sample.key_expr))
+        except ValueError:
+            return
+        if entity.kind != "MP" or entity.topic is None or entity.type != rmw.dds_type(ros2cdr.MSGTYPE):
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._discovered, entity.topic)
+
     # -- asyncio side ----------------------------------------------------------------------------------
     def _offer(self, key: str, payload: bytes) -> None:
+        robot = self.robot_of_key(key)
+        if robot is None:
+            return
         self._received += 1
-        if self._pending is not None:
-            self._dropped += 1  # latest wins: an older, undecoded map is replaced
-        self._pending = (key, payload)
+        if robot in self._pending:
+            self._dropped += 1  # latest wins: an older, undecoded map of that robot is replaced
+        self._pending[robot] = (key, payload)
+        self._announce(robot, f"/{robot}/{self.opts.robot_map_topic}")
         if self._wake is not None:
             self._wake.set()
 
+    def _discovered(self, topic: str) -> None:
+        robot = self.robot_of_topic(topic)
+        if robot is not None:
+            self._announce(robot, topic)
+
+    def _announce(self, robot: str, topic: str) -> None:
+        """Declare mapd's subscription to a robot's topic (once), off the loop."""
+        if not self.opts.discover_robots or robot in self._announced or self._node is None:
+            return
+        self._announced.add(robot)
+        log.info("ros2 source: taking %s", topic)
+        node = self._node
+        asyncio.get_running_loop().run_in_executor(None, _declare_sub, node, topic)
+
     def _open(self, loop: asyncio.AbstractEventLoop) -> None:
         import zenoh.ext as zext
+
+        from mapd.ros2.node import Ros2Node
 
         o = self.opts
         self._session = ros2cdr.open_session(
@@ -145,14 +330,27 @@ class Ros2Source(MapSource):
             self._sub = zext.declare_advanced_subscriber(
                 self._session, self.key, lambda s: self._on_sample(loop, s), history=history
             )
+            if o.key_format == "rmw_zenoh" and o.key is None:
+                self._node = Ros2Node(self._session, o.node, domain=o.domain, distro=o.distro)
+                if o.discover_robots:
+                    self._lv_sub = self._session.liveliness().declare_subscriber(
+                        f"{rmw.ADMIN_SPACE}/{o.domain}/**", lambda s: self._on_token(loop, s), history=True
+                    )
+                else:
+                    self._node.subscription(o.topic, ros2cdr.MSGTYPE, rmw.LATCHED)
+            if self._pose is not None:
+                self._pose_sub = self._pose
+                self._pose.declare(self._session, self._node)
         except Exception as exc:  # zenoh.ZError: bad key expression
-            self._session.close()
-            self._session = None
+            _close(self._node, self._pose_sub, self._lv_sub, self._sub, self._session)
+            self._session = self._sub = self._lv_sub = self._node = self._pose_sub = None
+            if isinstance(exc, TransportError):  # a token or the pose topic: it names what failed
+                raise
             raise TransportError(f"ros2 source: cannot subscribe to '{self.key}': {exc}") from None
         log.info("ros2 source: subscribed to %s", self.key)
 
     def _decode(self, key: str, payload: bytes) -> OccupancyGrid | None:
-        where = f"topic {self.opts.topic} (key {key})"
+        where = f"key {key}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {key})"
         try:
             grid = ros2cdr.decode(payload, max_cells=self.ctx.max_cells, where=where)
         except (CodecError, LimitError) as exc:
@@ -162,8 +360,19 @@ class Ros2Source(MapSource):
             return None
         return grid
 
+    def _waiting_for_pose(self, robot: str) -> bool:
+        o = self.opts
+        if not (o.discover_robots and o.known_init_poses) or robot in o.init_poses:
+            return False
+        if robot not in self._waiting_pose:
+            self._waiting_pose.add(robot)
+            log.warning(
+                "ros2 source: no init_poses entry for %s (known_init_poses = true); not merged", robot
+            )
+        return True
+
     async def maps(self) -> AsyncIterator[OccupancyGrid]:
-        """Each new, different map received on the topic; runs until closed."""
+        """Each new, different map received (per robot when discovering); runs until closed."""
         loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         await asyncio.to_thread(self._open, loop)
@@ -171,30 +380,32 @@ class Ros2Source(MapSource):
             while True:
                 await self._wake.wait()
                 self._wake.clear()
-                item, self._pending = self._pending, None
-                if item is None:
-                    continue
-                grid = await asyncio.to_thread(self._decode, *item)
-                if grid is None:
-                    continue
-                digest = grid.digest()
-                if digest == self._last_digest:
-                    continue
-                self._last_digest = digest
-                self._versions += 1
-                yield grid.replace(robot=self.ctx.robot, version=self._versions)
+                items, self._pending = self._pending, {}
+                for robot, item in sorted(items.items()):
+                    if self._waiting_for_pose(robot):
+                        continue
+                    grid = await asyncio.to_thread(self._decode, *item)
+                    if grid is None:
+                        continue
+                    digest = grid.digest()
+                    if digest == self._digests.get(robot):
+                        continue
+                    self._digests[robot] = digest
+                    self._robots[robot] = self._robots.get(robot, 0) + 1
+                    self._versions += 1
+                    yield grid.replace(robot=robot, version=self._robots[robot])
         finally:
             await self.close()
 
     async def close(self) -> None:
-        """Undeclare the subscriber and close the session."""
-        sub, session = self._sub, self._session
-        self._sub = self._session = None
-        if sub is not None or session is not None:
-            await asyncio.to_thread(_close, sub, session)
+        """Undeclare the subscribers and tokens and close the session."""
+        things = (self._node, self._pose_sub, self._lv_sub, self._sub, self._session)
+        self._node = self._pose_sub = self._lv_sub = self._sub = self._session = None
+        if any(t is not None for t in things):
+            await asyncio.to_thread(_close, *things)
 
     def stats(self) -> dict[str, int | float | str]:
-        return {
+        out: dict[str, int | float | str] = {
             "key": self.key,
             "versions": self._versions,
             "received": self._received,
@@ -202,17 +413,35 @@ class Ros2Source(MapSource):
             "bad_payloads": self._bad,
             "last_error": self._last_error,
         }
+        if self.opts.discover_robots:
+            out["robots"] = ",".join(f"{r}:{n}" for r, n in sorted(self._robots.items())) or "-"
+            out["waiting_for_init_pose"] = ",".join(sorted(self._waiting_pose)) or "-"
+        if self._pose is not None:
+            out.update(self._pose.stats())
+        return out
 
 
-def _close(sub: Any, session: Any) -> None:
-    # Both may already be gone; closing is best effort.
-    if sub is not None:
+def _declare_sub(node: Any, topic: str) -> None:
+    try:
+        node.subscription(topic, ros2cdr.MSGTYPE, rmw.LATCHED)
+    except Exception as exc:  # TransportError, or the session closed meanwhile
+        log.debug("declaring the subscription token of %s: %s", topic, exc)
+
+
+def _close(node: Any, *things: Any) -> None:
+    # All may already be gone; closing is best effort (the session last).
+    if node is not None:
         try:
-            sub.undeclare()
+            node.close()
         except Exception as exc:
-            log.debug("undeclaring subscriber: %s", exc)
-    if session is not None:
+            log.debug("closing the ROS 2 node: %s", exc)
+    for thing in things:
+        if thing is None:
+            continue
         try:
-            session.close()
+            if hasattr(thing, "undeclare"):
+                thing.undeclare()
+            else:
+                thing.close()
         except Exception as exc:
-            log.debug("closing zenoh session: %s", exc)
+            log.debug("closing zenoh %s: %s", type(thing).__name__, exc)

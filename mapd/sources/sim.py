@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -35,8 +36,8 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, field_validator
 
 from mapd.errors import LimitError, MapFileError, SourceError
-from mapd.grid import OccupancyGrid, Pose2D, load_map
-from mapd.mapping.mapper import MapperOptions
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose, load_map
+from mapd.mapping.mapper import MapperOptions, relative
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
 
 if TYPE_CHECKING:
@@ -99,6 +100,7 @@ class SimSource(MapSource):
         self._versions = 0
         self._late = 0.0
         self._slips = 0
+        self._pose: StampedPose | None = None
 
     @property
     def sim(self) -> SimRobot:
@@ -167,6 +169,10 @@ class SimSource(MapSource):
         """This robot's map frame (its start pose) in the fleet frame, the simulated world's frame."""
         return self.sim.start
 
+    def pose(self) -> StampedPose | None:
+        """The simulated robot's pose in its map frame (its start pose), stamped at the last step."""
+        return self._pose
+
     def _emit(self) -> OccupancyGrid:
         self._versions += 1
         return self.sim.snapshot(robot=self.ctx.robot, version=self._versions)
@@ -182,6 +188,7 @@ class SimSource(MapSource):
         pending = False
         while o.duration is None or sim.time < sim0 + o.duration - 1e-9:
             sim.step()
+            self._pose = StampedPose(relative(sim.start, sim.pose), time.time())
             pending = True
             if next_emit is None or sim.time >= next_emit - 1e-9:
                 next_emit = (sim.time if next_emit is None else next_emit) + o.emit_period

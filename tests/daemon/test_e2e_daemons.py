@@ -43,6 +43,15 @@ def holds_each_other(snaps: dict[str, dict[str, Any]], min_version: int = 3) -> 
     )
 
 
+PAIRS = (("robot0", "robot1"), ("robot1", "robot0"))
+
+
+def _placed_pose(snaps: dict[str, Any], holder: str, robot: str) -> dict[str, Any] | None:
+    """``robot``'s pose as ``holder`` knows it, if placed in the fleet frame."""
+    p = ((snaps.get(holder, {}).get("poses") or {}).get("robots") or {}).get(robot)
+    return p if isinstance(p, dict) and p.get("fleet") else None
+
+
 @pytest.mark.parametrize("transport", ["zenoh", "uwb"])
 def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, transport)
@@ -66,7 +75,22 @@ def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str, fk: Simpl
         assert doc["peers"]["robot1"]["restored"] is False  # a live peer's map came over the link
         assert doc["links"][transport]["rtt_ms"] > 0
         fk.wait_for(lambda s: all(x.get("fusion", {}).get("maps", 0) >= 2 for x in s.values()), 60, f)
-        assert snaps
+        # each robot's pose reached the other (signed, over the same link), placed in the fleet frame
+        snaps = fk.wait_for(lambda s: all(_placed_pose(s, a, b) for a, b in PAIRS), 90, f)
+        for holder, robot in PAIRS:
+            p = _placed_pose(snaps, holder, robot)
+            assert p is not None and p["age_s"] < 60
+            g = snaps[holder]["fusion"]["global"]
+            x0, y0 = g["origin"]["x"], g["origin"]["y"]  # inside the global map the robots are building
+            assert x0 <= p["fleet"][0] <= x0 + g["width"] * g["resolution"], (p, g)
+            assert y0 <= p["fleet"][1] <= y0 + g["height"] * g["resolution"], (p, g)
+        text = subprocess.run(
+            [sys.executable, "-m", "mapd", "status", "--socket", str(sock)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        ).stdout
+        assert "poses" in text and "robot1" in text
     finally:
         codes = f.stop(timeout=10)
     assert codes == {"robot0": 0, "robot1": 0}

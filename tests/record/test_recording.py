@@ -135,6 +135,8 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
     assert files
     topics: dict[str, list[int]] = {}
     decoded: dict[str, Any] = {}
+    tf_msgs: list[Any] = []
+    tf_children: set[str] = set()
     for fp in files:
         with open(fp, "rb") as fh:
             schemas, channels = {}, {}
@@ -151,16 +153,26 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
                         sch = schemas[ch.schema_id]
                         if sch.encoding == "ros2msg":
                             decoded[ch.topic] = DecoderFactory().decoder_for("cdr", sch)(record.data)
+                            if ch.topic == "/tf":
+                                tf_msgs.append(decoded[ch.topic])
                         else:
                             decoded[ch.topic] = json.loads(record.data)
             except Exception:  # the killed file ends mid-chunk: everything before it was read
                 pass
-    assert {"/map", "/robot0/map", "/robot1/map", "/tf_static", "/mapd/links"} <= set(topics), topics.keys()
+    assert {"/map", "/robot0/map", "/robot1/map", "/tf_static", "/tf", "/mapd/links"} <= set(topics), (
+        topics.keys()
+    )
     for topic, times in topics.items():
         assert times == sorted(times), topic  # timestamps never go back
     assert decoded["/map"].header.frame_id == "map" and decoded["/map"].info.width > 0
     assert decoded["/robot1/map"].header.frame_id == "robot1/map"
     assert {t.child_frame_id for t in decoded["/tf_static"].transforms} == {"robot0/map", "robot1/map"}
+    # robot poses: <robot>/map -> <robot>/base_link, one robot a message, both robots seen
+    for msg in tf_msgs:
+        for t in msg.transforms:
+            assert t.header.frame_id == t.child_frame_id.replace("/base_link", "/map")
+            tf_children.add(t.child_frame_id)
+    assert {"robot0/base_link", "robot1/base_link"} <= tf_children
     assert "zenoh" in decoded["/mapd/links"]
     info = subprocess.run([sys.executable, "-m", "mapd", "record", "info", str(files[-1])],
                           capture_output=True, text=True, timeout=60)  # fmt: skip

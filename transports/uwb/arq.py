@@ -109,6 +109,10 @@ __all__ = [
 MAX_CHUNKS = 0xFFFF
 
 
+def _no_ack(msg: int, when: float) -> None:
+    """What a receiver owes for a DGRAM chunk: nothing."""
+
+
 class ArqEndpoint:
     """One node's protocol state: many peers, many messages, one byte stream."""
 
@@ -173,10 +177,12 @@ class ArqEndpoint:
         stream: int = 0,
         deadline: float | None = None,
         background: bool = False,
+        reliable: bool = True,
     ) -> int:
         """Queue ``data`` for ``dests`` (link ids); return its message id (latest wins per stream).
 
         A ``background`` message (a pose) gets a frame only when no other message has one to send.
+        An unreliable one is sent once, unacknowledged, and closes ("sent") after its last chunk.
 
         :class:`LimitError` when the message is too large to send; ValueError for a stream outside
         0..255 or no valid peer in ``dests`` (the caller's mistakes).
@@ -207,6 +213,7 @@ class ArqEndpoint:
         when = now + self.cfg.deadline_s if deadline is None else deadline
         out = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
         out.background = background
+        out.reliable = reliable
         self._out[msg] = out
         for d in targets:
             self._rtt_of(d)
@@ -410,6 +417,8 @@ class ArqEndpoint:
 
     def _on_data(self, peer: PeerState, d: wire.Data, now: float) -> None:
         cfg = self.cfg
+        # A DGRAM's sender waits for no ack: owe none (a lost one is replaced by the next).
+        owe = peer.owe_ack if d.reliable else _no_ack
         if d.dst not in (self.node, wire.BROADCAST):
             self.counters.not_for_me += 1
             return
@@ -417,11 +426,11 @@ class ArqEndpoint:
             if d.msg not in peer.rejected:
                 self.counters.rejected += 1
             peer.remember_rejected(d.msg)
-            peer.owe_ack(d.msg, now)
+            owe(d.msg, now)
             return
         if d.msg in peer.completed or d.msg in peer.rejected:
             self.counters.duplicates += 1
-            peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
+            owe(d.msg, now + cfg.ack_min_gap_s)
             return
         part = peer.partials.get(d.msg)
         if part is None:
@@ -445,7 +454,7 @@ class ArqEndpoint:
             return
         if d.index in part.chunks:
             self.counters.duplicates += 1
-            peer.owe_ack(d.msg, now + cfg.ack_min_gap_s)
+            owe(d.msg, now + cfg.ack_min_gap_s)
             return
         if part.held + len(d.payload) > part.total:
             self.counters.bad_frames += 1
@@ -466,10 +475,10 @@ class ArqEndpoint:
                 peer.remember_completed(d.msg, part.gen)
                 self.counters.messages_rx += 1
                 self._events.append(MessageReceived(peer.id, d.stream, d.msg, data))
-            peer.owe_ack(d.msg, now)
+            owe(d.msg, now)
             return
         urgent = gap or part.fresh >= cfg.ack_every
-        peer.owe_ack(d.msg, now if urgent else now + self._ack_delay)
+        owe(d.msg, now if urgent else now + self._ack_delay)
 
     def _make_room(self, n: int, keep: Partial) -> bool:
         """Drop the least recently active partials (not ``keep``) until ``n`` more bytes fit."""
@@ -583,13 +592,20 @@ class ArqEndpoint:
         m, i = ref
         resend = m.mark_sent(i, now)
         self._out.move_to_end(m.msg)  # round-robin between messages
-        for p in m.pending():
-            if p.rto_at is None:
-                p.rto_at = now + self._rtt_of(p.peer).rto
         self.counters.data_tx += 1
         if resend:
             self.counters.resends += 1
-        return wire.Data(self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i))
+        frame = wire.Data(
+            self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i), m.reliable
+        )
+        if not m.reliable:
+            if m.next_new >= m.count:  # every chunk went once: nothing more will
+                self._close(m, "sent")
+            return frame
+        for p in m.pending():
+            if p.rto_at is None:
+                p.rto_at = now + self._rtt_of(p.peer).rto
+        return frame
 
     def _build_ack(self, peer: PeerState, msg: int, now: float) -> wire.Ack | None:
         del peer.acks_due[msg]
@@ -616,7 +632,8 @@ class ArqEndpoint:
             self._goodput_bps = 8 * m.size / max(now - m.created, 1e-9)
         self._close(m)
 
-    def _close(self, m: Outgoing) -> None:
+    def _close(self, m: Outgoing, outcome: str | None = None) -> None:
         self._out.pop(m.msg, None)
-        outcome = "delivered" if all(p.done for p in m.peers.values()) else "failed"
+        if outcome is None:
+            outcome = "delivered" if all(p.done for p in m.peers.values()) else "failed"
         self._events.append(MessageClosed(m.msg, outcome))

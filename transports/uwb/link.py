@@ -265,13 +265,16 @@ class UwbLink:
         stream: int = 0,
         deadline_s: float | None = None,
         background: bool = False,
+        reliable: bool = True,
     ) -> int:
         """Queue a message (latest wins per stream); returns its id for the events that follow."""
         if self.core is None:
             raise TransportError("uwb: link not started")
         now = asyncio.get_running_loop().time()
         deadline = None if deadline_s is None else now + deadline_s
-        msg = self.core.send(data, now, dests=dests, stream=stream, deadline=deadline, background=background)
+        msg = self.core.send(
+            data, now, dests=dests, stream=stream, deadline=deadline, background=background, reliable=reliable
+        )
         self._wake.set()
         return msg
 
@@ -485,9 +488,15 @@ class UwbTransport(Transport):
         if not dests or not self._poses.due(now):
             return False
         try:
-            # Superseded by the next pose if maps keep the channel busy until then.
+            # Sent once, unacknowledged (the next pose replaces a lost one), and only in the gaps
+            # maps leave; superseded by the next pose if maps keep the channel busy until then.
             link.send(
-                data, dests, stream=POSE_STREAM, deadline_s=2 * self.opts.pose_period_s, background=True
+                data,
+                dests,
+                stream=POSE_STREAM,
+                deadline_s=2 * self.opts.pose_period_s,
+                background=True,
+                reliable=False,
             )
         except (MapdError, ValueError) as exc:
             log.info("uwb: pose not sent: %s", exc)

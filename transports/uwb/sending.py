@@ -84,6 +84,8 @@ class Outgoing:
         self._resend_set: set[int] = set()
         #: Sent only when no other message has a chunk to send (poses yield to maps).
         self.background = False
+        #: False: each chunk goes once, as DGRAM frames, and nobody acks (poses).
+        self.reliable = True
 
     def chunk(self, i: int) -> bytes:
         return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]

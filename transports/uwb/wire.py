@@ -12,6 +12,9 @@ then, by type::
     DATA   u24 msg, u8 stream, u16 index, u16 count, u24 total, payload (1.. bytes)
     ACK    u24 target_session, u24 msg, u8 gen, u8 flags, u16 base, bitmap (0..32 bytes)
     HELLO  (nothing: presence and session announcement)
+    DGRAM  as DATA, for a message that is sent once and never acknowledged (robot poses: the next
+           one replaces a lost one, and an ack would cost a receiver a whole frame slot of its
+           1 s pacing window)
 
 A signed body ends with a 12-byte trailer (u48 counter, 6-byte truncated HMAC; see
 :mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
@@ -41,8 +44,8 @@ VERSION = 2
 BROADCAST = 255
 SIGNED = 0x80
 
-DATA, ACK, HELLO = 1, 2, 3
-KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO"}
+DATA, ACK, HELLO, DGRAM = 1, 2, 3, 4
+KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM"}
 
 # ACK flags
 COMPLETE = 0x01  # the whole message is held and its hash verified
@@ -79,7 +82,7 @@ def msg_before(a: int, b: int) -> bool:
 
 @dataclass(frozen=True, slots=True)
 class Data:
-    """One chunk of a message."""
+    """One chunk of a message (a DGRAM when ``reliable`` is false: no acks)."""
 
     src: int
     dst: int
@@ -90,6 +93,7 @@ class Data:
     count: int
     total: int
     payload: bytes
+    reliable: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,7 +132,7 @@ def _head(kind: int, signed: bool, src: int, dst: int, session: int) -> bytes:
 
 
 def pack_data(d: Data, *, signed: bool = False) -> bytes:
-    head = _head(DATA, signed, d.src, d.dst, d.session)
+    head = _head(DATA if d.reliable else DGRAM, signed, d.src, d.dst, d.session)
     return head + _DATA.pack(*_split(d.msg), d.stream, d.index, d.count, *_split(d.total)) + d.payload
 
 
@@ -173,7 +177,7 @@ def parse(body: bytes) -> Frame:
         raise ProtocolError(f"uwb: frame source id {src} is out of range")
     if not 1 <= dst <= 255:
         raise ProtocolError(f"uwb: frame destination id {dst} is out of range")
-    if kind == DATA:
+    if kind in (DATA, DGRAM):
         if len(body) <= DATA_HEADER_LEN:
             raise ProtocolError("uwb: DATA frame has no payload")
         m_lo, m_hi, stream, index, count, t_lo, t_hi = _DATA.unpack_from(body, HEADER_LEN)
@@ -183,7 +187,7 @@ def parse(body: bytes) -> Frame:
             raise ProtocolError(f"uwb: DATA chunk index {index} is not below its count {count}")
         if count > total or len(payload) > total:
             raise ProtocolError(f"uwb: DATA sizes are inconsistent ({count} chunks, {total} bytes)")
-        return Data(src, dst, session, msg, stream, index, count, total, payload)
+        return Data(src, dst, session, msg, stream, index, count, total, payload, kind == DATA)
     if kind == ACK:
         if len(body) < ACK_HEADER_LEN:
             raise ProtocolError("uwb: ACK frame is truncated")

@@ -162,6 +162,51 @@ def test_outage_resumes_from_what_the_receiver_holds() -> None:
     assert 21.0 < net.now < 30.0  # and resumed promptly once the line was back
 
 
+def _data_streams(frames: list[bytes]) -> list[int]:
+    out = []
+    for f in frames:
+        frame = wire.parse(decode_frame(f[:-1]))
+        if isinstance(frame, wire.Data):
+            out.append(frame.stream)
+    return out
+
+
+def test_a_background_message_yields_to_maps() -> None:
+    # A pose queued after a map goes out only once the map has no chunk left to send, and a pose
+    # queued while a map is in flight never takes one of its frames (latest wins between poses).
+    a, b = ep(1, rate_bps=12_500), ep(2, rate_bps=12_500)
+    net = SimNet([a, b], rate_bps=12_500)
+    frames = _tap(net, 1)
+    pose1 = a.send(b"p" * 100, 0.0, dests=[2], stream=254, background=True)
+    big = a.send(os.urandom(8_000), 0.0, dests=[2], stream=0)
+    pose2 = a.send(b"q" * 100, 0.0, dests=[2], stream=254, background=True)
+    assert net.run(30, stop=lambda: closed(net, 1, big) and closed(net, 1, pose2))
+    streams = _data_streams(frames)
+    assert streams.index(254) > max(i for i, s in enumerate(streams) if s == 0)  # after every map chunk
+    assert streams.count(254) == 1  # pose1 was superseded by pose2 before it got a frame
+    assert [(r.stream, r.data) for r in net.received(2)] == [(0, net.received(2)[0].data), (254, b"q" * 100)]
+    assert closed(net, 1, pose1)
+
+
+def test_an_unreliable_message_goes_once_and_costs_the_receiver_no_ack() -> None:
+    a, b, c = ep(1), ep(2), ep(3)
+    net = SimNet([a, b, c], shared=True)
+    net.run(6.0)  # HELLOs: everyone knows everyone
+    acks_before = b.stats()["acks_tx"] + c.stats()["acks_tx"]
+    frames = _tap(net, 1)
+    data = os.urandom(500)  # three DGRAM chunks, broadcast
+    msg = a.send(data, net.now, dests=[2, 3], stream=254, reliable=False)
+    assert net.run(net.now + 5, stop=lambda: closed(net, 1, msg))
+    assert [e.outcome for e in net.events[1] if isinstance(e, arq.MessageClosed) and e.msg == msg] == ["sent"]
+    net.run(net.now + 3)  # the last chunk is still on the air when the sender closes it
+    assert [r.data for r in net.received(2)] == [data] and [r.data for r in net.received(3)] == [data]
+    assert b.stats()["acks_tx"] + c.stats()["acks_tx"] == acks_before  # nobody acked
+    kinds = [wire.parse(decode_frame(f[:-1])) for f in frames]
+    sent = [k for k in kinds if isinstance(k, wire.Data)]
+    assert len(sent) == 3 and not any(k.reliable for k in sent)  # each chunk once, as DGRAM
+    assert not any(isinstance(e, arq.MessageDelivered) for e in net.events[1])
+
+
 def test_receiver_restart_gets_a_clean_start() -> None:
     a, b = ep(1), ep(2, session=5)
     net = SimNet([a, b])

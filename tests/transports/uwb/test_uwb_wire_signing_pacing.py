@@ -23,6 +23,7 @@ def test_frames_round_trip() -> None:
         wire.Data(1, 2, 0xADBEEF, 0xFFFFFE, 3, 4, 10, wire.MAX_TOTAL, b"payload"),
         wire.Ack(2, 1, 5, 0xADBEEF, 0x7, 9, wire.COMPLETE, 3, b"\x01\x80"),
         wire.Hello(3, wire.BROADCAST, 42),
+        wire.Data(1, wire.BROADCAST, 5, 6, 254, 0, 1, 4, b"pose", False),  # a DGRAM
     ]
     for f in frames:
         assert wire.parse(wire.pack(f)) == f

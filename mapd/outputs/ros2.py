@@ -1,0 +1,228 @@
+"""``[output.ros2]``: the global map and the robots' frames on ROS 2, over zenoh, with no ROS install.
+
+Each global map goes out as ``nav_msgs/msg/OccupancyGrid`` on ``topic`` (default ``/map``) in the
+fleet frame ``frame`` (default ``map``; m-explore's ``world_frame``), exactly as an rmw_zenoh
+publisher with reliable, transient-local, depth-1 QoS sends it: on rmw_zenoh's data key, with its
+attachment, announced by node and publisher liveliness tokens, through an advanced publisher whose
+cache gives a late subscriber (RViz, Nav2) the current map. The rules (keys, tokens, QoS strings,
+GIDs, type hashes per ``distro``) are :mod:`mapd.ros2.rmw`'s; the zenoh side is
+:mod:`mapd.ros2.node`.
+
+With ``tf = true`` (the default) it also publishes, following REP-105 frame names:
+
+* ``/tf_static`` (transient local): ``<frame> -> <robot>/map`` for every placed robot, sent again
+  (all of them, as one latched message) whenever a placement changes;
+* ``/tf``: ``<robot>/map -> <robot>/base_link`` for every robot whose pose is known
+  (:meth:`publish_poses`, and the poses a :class:`GlobalUpdate` carries).
+
+``format = "ros2dds"`` publishes plain CDR on zenoh-bridge-ros2dds keys instead (no tokens, no
+attachment, a queryable answers late joiners). Example::
+
+    [output]
+    use = ["ros2"]
+    [output.ros2]
+    topic = "/map"
+    frame = "map"
+    distro = "jazzy"                  # humble | jazzy | kilted | rolling
+    listen = ["tcp/0.0.0.0:7448"]     # or connect = ["tcp/127.0.0.1:7447"] (rmw_zenohd)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, field_validator
+
+from mapd.grid import Pose2D
+from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
+from mapd.ros2 import rmw
+
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+class Ros2OutputOptions(OutputOptions):
+    """``[output.ros2]``: topic, frames, ROS 2 identity, key format and how to reach zenoh."""
+
+    topic: str = Field(default="/map", description="topic of the global nav_msgs/msg/OccupancyGrid")
+    frame: str = Field(default="map", description="the fleet frame's name (m-explore's world_frame)")
+    distro: rmw.Distro = Field(default="jazzy", description="ROS 2 distro: sets the type hash in keys")
+    namespace: str = Field(default="", description="the node's namespace (ros2dds: the bridge namespace)")
+    node: str = Field(default="mapd", description="the ROS 2 node name")
+    domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID")
+    format: rmw.KeyFormat = Field(default="rmw_zenoh", description="rmw_zenoh, or zenoh-bridge-ros2dds keys")
+    tf: bool = Field(default=True, description="publish /tf_static (robot map frames) and /tf (poses)")
+    mode: Literal["peer", "client"] = Field(default="peer", description="zenoh session mode")
+    connect: list[str] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        description="zenoh endpoints to connect to (default: rmw_zenohd on this machine, as rmw_zenoh nodes do)",
+    )
+    listen: list[str] = Field(default_factory=list, description="zenoh endpoints to listen on")
+    multicast_scouting: bool = Field(default=False, description="find peers by UDP multicast")
+    zenoh_config: Path | None = Field(default=None, description="a zenoh JSON5 config to start from")
+
+    @field_validator("topic")
+    @classmethod
+    def _check_topic(cls, v: str) -> str:
+        rmw.check_name(v)
+        return v
+
+    @field_validator("node", "frame")
+    @classmethod
+    def _check_node(cls, v: str) -> str:
+        rmw.check_name(v, "node or frame")
+        return v
+
+    @field_validator("namespace")
+    @classmethod
+    def _check_ns(cls, v: str) -> str:
+        rmw.fq_namespace(v)
+        return v
+
+
+def static_transforms(
+    frame: str, frames: dict[str, Pose2D], stamp: float
+) -> list[tuple[str, str, Pose2D, float]]:
+    """``frame -> <robot>/map`` for each placed robot, by name."""
+    return [(frame, f"{robot}/map", pose, stamp) for robot, pose in sorted(frames.items())]
+
+
+def pose_transforms(
+    update: PoseUpdate | GlobalUpdate, sent: dict[str, float] | None = None
+) -> list[tuple[str, str, Pose2D, float]]:
+    """``<robot>/map -> <robot>/base_link`` for each robot with a known pose, at the pose's stamp.
+
+    With ``sent`` (robot -> stamp already published), only newer poses: tf2 warns about, and drops,
+    a transform repeated with the same stamp (``TF_REPEATED_DATA``).
+    """
+    last = sent or {}
+    return [
+        (f"{r}/map", f"{r}/base_link", sp.pose, sp.stamp)
+        for r, sp in sorted(update.poses.items())
+        if sp.stamp > last.get(r, float("-inf"))
+    ]
+
+
+class Ros2Output(Output):
+    """Publishes every global map, the robots' map frames and their poses as a ROS 2 node would."""
+
+    name = "ros2"
+    Options = Ros2OutputOptions
+
+    def __init__(self, options: OutputOptions | None, ctx: OutputContext) -> None:
+        super().__init__(options, ctx)
+        if not isinstance(self.options, Ros2OutputOptions):
+            raise TypeError("ros2 output needs Ros2OutputOptions")
+        self.opts: Ros2OutputOptions = self.options
+        self._session: Any = None
+        self._node: Any = None
+        self._map: Any = None
+        self._tf_static: Any = None
+        self._tf: Any = None
+        self._lock = threading.Lock()
+        self._static_sent: dict[str, Pose2D] | None = None
+        self._pose_sent: dict[str, float] = {}
+        self.maps = 0
+        self.static_msgs = 0
+        self.tf_msgs = 0
+        self.bytes = 0
+
+    async def start(self) -> None:
+        await asyncio.to_thread(self._open)
+
+    def _open(self) -> None:
+        from mapd.ros2 import cdr
+        from mapd.ros2.node import Ros2Node
+
+        o = self.opts
+        self._session = cdr.open_session(
+            mode=o.mode,
+            connect=o.connect,
+            listen=o.listen,
+            multicast_scouting=o.multicast_scouting,
+            config_file=o.zenoh_config,
+        )
+        try:
+            rmw_format = o.format == "rmw_zenoh"
+            self._node = Ros2Node(
+                self._session,
+                o.node,
+                namespace=o.namespace if rmw_format else "",
+                domain=o.domain_id,
+                distro=o.distro,
+                key_format=o.format,
+                bridge_namespace="" if rmw_format else o.namespace,
+            )
+            self._map = self._node.publisher(o.topic, cdr.MSGTYPE, rmw.LATCHED)
+            if o.tf:
+                self._tf_static = self._node.publisher("/tf_static", TF_TYPE, rmw.LATCHED)
+                self._tf = self._node.publisher("/tf", TF_TYPE, rmw.TF_QOS)
+        except BaseException:
+            self._close()
+            raise
+
+    def publish(self, update: GlobalUpdate) -> None:
+        from mapd.ros2 import cdr
+
+        if self._map is None:
+            return
+        payload = cdr.encode(update.grid, frame_id=self.opts.frame, stamp=update.stamp)
+        self._map.put(payload)
+        self.maps += 1
+        self.bytes += len(payload)
+        if self._tf_static is not None:
+            self._send_static(update.frames, update.stamp)
+        if update.poses:
+            self._send_poses(update)
+
+    def publish_poses(self, update: PoseUpdate) -> None:
+        if self._tf_static is not None and update.frames:
+            self._send_static(update.frames, max((p.stamp for p in update.poses.values()), default=0.0))
+        self._send_poses(update)
+
+    def _send_static(self, frames: dict[str, Pose2D], stamp: float) -> None:
+        with self._lock:
+            if frames == self._static_sent or not frames:
+                return
+            self._static_sent = dict(frames)
+        from mapd.ros2 import cdr
+
+        self._tf_static.put(cdr.encode_tf(static_transforms(self.opts.frame, frames, stamp)))
+        self.static_msgs += 1
+
+    def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
+        from mapd.ros2 import cdr
+
+        if self._tf is None:
+            return
+        with self._lock:
+            items = pose_transforms(update, self._pose_sent)
+            self._pose_sent.update({child.split("/")[0]: stamp for _, child, _, stamp in items})
+        if not items:
+            return
+        self._tf.put(cdr.encode_tf(items))
+        self.tf_msgs += 1
+
+    async def close(self) -> None:
+        await asyncio.to_thread(self._close)
+
+    def _close(self) -> None:
+        node, session = self._node, self._session
+        self._node = self._session = self._map = self._tf = self._tf_static = None
+        if node is not None:
+            node.close()
+        if session is not None:
+            with contextlib.suppress(Exception):  # already closed; closing is best effort
+                session.close()
+
+    def stats(self) -> dict[str, int | float | str]:
+        return {
+            "key": self._map.key if self._map is not None else "",
+            "maps": self.maps,
+            "tf_static": self.static_msgs,
+            "tf": self.tf_msgs,
+            "bytes": self.bytes,
+        }

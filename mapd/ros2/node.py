@@ -1,0 +1,265 @@
+"""A ROS 2 node on a zenoh session, as rmw_zenoh shows one: tokens, publishers and subscription tokens.
+
+The thin zenoh adapter around :mod:`mapd.ros2.rmw` (which holds every rule). A :class:`Ros2Node`
+declares the node's liveliness token; :meth:`Ros2Node.publisher` declares a publisher entity: its
+token, and a zenoh advanced publisher on rmw_zenoh's data key whose samples carry rmw_zenoh's
+attachment (sequence number from 1, source timestamp, the GID derived from the token). As in
+rmw_zenoh's ``rmw_publisher_data.cpp``, a transient-local publisher's cache holds ``depth`` samples
+and it announces itself (publisher detection), so a late subscriber asking for history (RViz, Nav2
+with map QoS) gets the current message; a reliable one also sends sporadic heartbeats (500 ms) for
+sample-miss detection; congestion control blocks only for reliable keep-all. :meth:`Ros2Node.subscription` declares only a subscription's
+token, so ``ros2 topic info`` counts mapd as a subscriber; the caller subscribes to the data itself.
+
+With ``key_format="ros2dds"`` there are no tokens and no attachment: samples go on the topic's
+zenoh-bridge-ros2dds key, and a queryable answers with the newest (transient local for bridges).
+
+The session stays the caller's; :meth:`Ros2Node.close` undeclares only what the node declared.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import threading
+import time
+from typing import Any
+
+from mapd.errors import TransportError
+from mapd.ros2 import rmw
+
+#: rmw_zenoh numbers a context's nodes and entities from one counter; here one counter per session.
+_counters: dict[str, itertools.count[int]] = {}
+_counters_lock = threading.Lock()
+
+
+def _next_id(zid: str) -> int:
+    with _counters_lock:
+        return next(_counters.setdefault(zid, itertools.count(0)))
+
+
+#: rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms) for reliable, transient-local publishers.
+HEARTBEAT_S = 0.5
+
+
+def _advanced_options(qos: rmw.Qos) -> dict[str, Any]:
+    """The advanced publisher's options rmw_zenoh uses for ``qos`` (``rmw_publisher_data.cpp``)."""
+    import zenoh
+    import zenoh.ext as zext
+
+    reliable = qos.reliability == rmw.RELIABLE
+    opts: dict[str, Any] = {
+        "reliability": zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+        "congestion_control": zenoh.CongestionControl.BLOCK
+        if reliable and qos.history == rmw.KEEP_ALL
+        else zenoh.CongestionControl.DROP,
+    }
+    if qos.durability == rmw.TRANSIENT_LOCAL:
+        # Late subscribers that ask for history get the cached samples; they find the publisher by
+        # its liveliness (publisher detection); a reliable one heartbeats so misses are recovered.
+        opts["publisher_detection"] = True
+        opts["cache"] = zext.CacheConfig(max_samples=qos.depth)
+        if reliable:
+            opts["sample_miss_detection"] = zext.MissDetectionConfig(
+                heartbeat=None, sporadic_heartbeat=HEARTBEAT_S
+            )
+    return opts
+
+
+class Ros2Publisher:
+    """One topic's publisher (see the module docstring). ``put`` is thread-safe."""
+
+    def __init__(
+        self, node: Ros2Node, topic: str, msgtype: str, qos: rmw.Qos, entity: rmw.Entity | None
+    ) -> None:
+        import zenoh.ext as zext
+
+        self.node = node
+        self.topic = topic
+        self.msgtype = msgtype
+        self.qos = qos
+        self.entity = entity
+        self.gid = entity.gid() if entity is not None else b""
+        if node.key_format == "rmw_zenoh":
+            self.key = rmw.data_key(topic, msgtype, domain=node.domain, distro=node.distro)
+        else:
+            self.key = rmw.bridge_key(topic, namespace=node.bridge_namespace)
+        self._lock = threading.Lock()
+        self._seq = 0
+        self._latest: bytes | None = None
+        self._token: Any = None
+        self._queryable: Any = None
+        self.published = 0
+        session = node.session
+        try:
+            if node.key_format == "rmw_zenoh":
+                self._pub = zext.declare_advanced_publisher(session, self.key, **_advanced_options(qos))
+            else:
+                self._pub = session.declare_publisher(self.key)
+            if qos.durability == rmw.TRANSIENT_LOCAL and node.key_format == "ros2dds":
+                self._queryable = session.declare_queryable(self.key, self._on_query)
+            if entity is not None:
+                self._token = session.liveliness().declare_token(entity.token())
+        except Exception as exc:  # zenoh.ZError
+            raise TransportError(f"cannot publish {topic} on zenoh key '{self.key}': {exc}") from None
+
+    def _on_query(self, query: Any) -> None:
+        with self._lock:
+            data = self._latest
+        if data is not None:
+            query.reply(self.key, data)
+
+    def put(self, payload: bytes) -> None:
+        """Publish one CDR payload (with rmw_zenoh's attachment when the format is rmw_zenoh)."""
+        with self._lock:
+            self._seq += 1
+            seq = self._seq
+            self._latest = payload
+        att = rmw.attachment(seq, time.time_ns(), self.gid) if self.entity is not None else None
+        try:
+            self._pub.put(payload, attachment=att)
+        except Exception as exc:  # zenoh.ZError: the session closed
+            raise TransportError(f"cannot publish {self.topic}: {exc}") from None
+        self.published += 1
+
+    def close(self) -> None:
+        for thing in (self._token, self._queryable, self._pub):
+            if thing is not None:
+                with contextlib.suppress(Exception):  # already gone when the session closed first
+                    thing.undeclare()
+        self._token = self._queryable = None
+
+
+class Ros2Node:
+    """A ROS 2 node named ``name`` in ``namespace`` on domain ``domain``, as rmw_zenoh announces one."""
+
+    def __init__(
+        self,
+        session: Any,
+        name: str = "mapd",
+        *,
+        namespace: str = "",
+        domain: int = 0,
+        distro: rmw.Distro = "jazzy",
+        key_format: rmw.KeyFormat = "rmw_zenoh",
+        enclave: str = "/",
+        bridge_namespace: str = "",
+    ) -> None:
+        self.session = session
+        self.name = rmw.check_name(name, "node")
+        self.namespace = rmw.fq_namespace(namespace)
+        self.domain = domain
+        self.distro = distro
+        self.key_format = key_format
+        self.enclave = enclave
+        self.bridge_namespace = bridge_namespace
+        self.zid = str(session.zid())
+        self.nid = _next_id(self.zid)
+        self.entity = rmw.Entity(
+            domain, self.zid, self.nid, self.nid, "NN", self.namespace, self.name, enclave
+        )
+        self._things: list[Any] = []
+        self._token: Any = None
+        if key_format == "rmw_zenoh":
+            try:
+                self._token = session.liveliness().declare_token(self.entity.token())
+            except Exception as exc:  # zenoh.ZError
+                raise TransportError(f"cannot declare ROS 2 node {self.name}: {exc}") from None
+
+    def topic_entity(self, kind: rmw.EntityKind, topic: str, msgtype: str, qos: rmw.Qos) -> rmw.Entity:
+        """The publisher (``MP``) or subscription (``MS``) entity of this node on ``topic``."""
+        return rmw.Entity(
+            self.domain,
+            self.zid,
+            self.nid,
+            _next_id(self.zid),
+            kind,
+            self.namespace,
+            self.name,
+            self.enclave,
+            topic=rmw.fq_topic(topic, self.namespace),
+            type=rmw.dds_type(msgtype),
+            type_hash=rmw.type_hash(msgtype, self.distro),
+            qos=qos,
+        )
+
+    def publisher(self, topic: str, msgtype: str, qos: rmw.Qos) -> Ros2Publisher:
+        """Declare a publisher on ``topic`` (relative names are taken under the node's namespace)."""
+        fq = rmw.fq_topic(topic, self.namespace)
+        entity = self.topic_entity("MP", fq, msgtype, qos) if self.key_format == "rmw_zenoh" else None
+        pub = Ros2Publisher(self, fq, msgtype, qos, entity)
+        self._things.append(pub)
+        return pub
+
+    def subscription(self, topic: str, msgtype: str, qos: rmw.Qos) -> Any:
+        """Declare a subscription's liveliness token (``MS``); returns it (``undeclare()`` drops it)."""
+        if self.key_format != "rmw_zenoh":
+            return None
+        entity = self.topic_entity("MS", topic, msgtype, qos)
+        try:
+            token = self.session.liveliness().declare_token(entity.token())
+        except Exception as exc:  # zenoh.ZError
+            raise TransportError(f"cannot declare a subscription to {topic}: {exc}") from None
+        self._things.append(token)
+        return token
+
+    def close(self) -> None:
+        """Undeclare the node's publishers, tokens and the node (the session is left open)."""
+        for thing in reversed(self._things):
+            with contextlib.suppress(Exception):
+                if isinstance(thing, Ros2Publisher):
+                    thing.close()
+                else:
+                    thing.undeclare()
+        self._things = []
+        if self._token is not None:
+            with contextlib.suppress(Exception):
+                self._token.undeclare()
+            self._token = None
+
+
+class Ros2Sink:
+    """Publishes grids as ``nav_msgs/msg/OccupancyGrid`` on one topic, as a one-publisher ROS 2 node.
+
+    Reliable, transient local, depth 1 (``rmw.LATCHED``): late subscribers that ask for history get
+    the current map.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        topic: str = "/map",
+        *,
+        key_format: rmw.KeyFormat = "rmw_zenoh",
+        domain: int = 0,
+        namespace: str = "",
+        node: str = "mapd",
+        frame_id: str = "map",
+        distro: rmw.Distro = "jazzy",
+    ) -> None:
+        from mapd.ros2 import cdr
+
+        self._encode = cdr.encode
+        self.frame_id = frame_id
+        ns_node = "" if key_format == "ros2dds" else namespace
+        self.node = Ros2Node(
+            session,
+            node,
+            namespace=ns_node,
+            domain=domain,
+            distro=distro,
+            key_format=key_format,
+            bridge_namespace=namespace if key_format == "ros2dds" else "",
+        )
+        self.pub = self.node.publisher(topic, cdr.MSGTYPE, rmw.LATCHED)
+        self.topic = self.pub.topic
+        self.key = self.pub.key
+        self.gid = self.pub.gid
+
+    def publish(self, grid: Any, *, stamp: float | None = None) -> int:
+        """Publish one grid; returns the payload size in bytes."""
+        payload = self._encode(grid, frame_id=self.frame_id, stamp=stamp)
+        self.pub.put(payload)
+        return len(payload)
+
+    def close(self) -> None:
+        self.node.close()

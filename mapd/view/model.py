@@ -1,0 +1,294 @@
+"""The live view's state and the messages it sends: sans-I/O (no asyncio, no clock; ``now`` comes in).
+
+Two models, because they live on two threads and must never wait for each other:
+
+* :class:`MapModel`, fed on the daemon's output thread: the global map as tiles (only changed tiles
+  are encoded and sent), each robot's placed map outline, its pose and trail in the fleet frame.
+* :class:`StatusModel`, fed on the event loop with the daemon's status dict (what ``mapd status``
+  shows): link rates against the radio budget (from byte counters between two snapshots), RTT,
+  resends, last heard, and per robot its versions, keyframes/deltas, bytes and fusion confidence.
+
+Both return :class:`~mapd.view.queue.Message` frames, encoded once for all viewers.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mapd.fusion.transforms import compose
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.outputs.base import GlobalUpdate
+from mapd.view.queue import Message, sse
+from mapd.view.tiles import Geometry, changed_tiles, class_image, encode_tile
+
+#: Robot colours (the demo report's, as CSS): robots get them in the order they are first seen.
+COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf")
+#: Trail points kept per robot (older ones fall off: memory stays bounded however long it runs).
+TRAIL = 300
+#: Link rates are averaged over about this long (seconds).
+RATE_WINDOW_S = 10.0
+#: A trail point is added once the robot moved this far (m), so a robot standing still adds none.
+TRAIL_STEP_M = 0.05
+
+
+@dataclass(frozen=True)
+class RobotMap:
+    """A robot's own map, as far as the view needs it: its size and where cell (0, 0) lies."""
+
+    width: int
+    height: int
+    resolution: float
+    origin: Pose2D
+
+    @staticmethod
+    def of(grid: OccupancyGrid) -> RobotMap:
+        return RobotMap(grid.width, grid.height, grid.resolution, grid.origin)
+
+    def outline(self, frame: Pose2D) -> list[list[float]]:
+        """The map's four corners in the fleet frame, given its map frame's pose there."""
+        w, h = self.width * self.resolution, self.height * self.resolution
+        corners = [Pose2D(0, 0, 0), Pose2D(w, 0, 0), Pose2D(w, h, 0), Pose2D(0, h, 0)]
+        out = []
+        for c in corners:
+            p = compose(frame, compose(self.origin, c))
+            out.append([round(p.x, 3), round(p.y, 3)])
+        return out
+
+
+def _pose(p: Pose2D) -> list[float]:
+    return [round(p.x, 3), round(p.y, 3), round(p.yaw, 4)]
+
+
+class MapModel:
+    """The global map's tiles and the robots' placements, poses and trails (one thread only)."""
+
+    def __init__(self, trail: int = TRAIL) -> None:
+        self.seq = 0  # map messages made; a viewer's map is current when it has the latest seq
+        self._image: np.ndarray | None = None
+        self._geometry: Geometry | None = None
+        self._tiles: dict[tuple[int, int], str] = {}  # base64 PNG per tile: the full state
+        self._head: dict[str, Any] = {}
+        self._full: Message | None = None
+        self._colours: dict[str, str] = {}
+        self._frames: dict[str, Pose2D] = {}
+        self._maps: dict[str, RobotMap] = {}
+        self._poses: dict[str, StampedPose] = {}
+        self._trails: dict[str, deque[tuple[float, float]]] = {}
+        self._trail_len = trail
+        #: Tiles encoded, in all (a measure of the work the diffs save).
+        self.tiles_encoded = 0
+
+    # -- the global map ----------------------------------------------------------------------
+    def global_map(self, update: GlobalUpdate) -> Message:
+        """A new global map: the ``map`` message with only the tiles that changed (all on a resize)."""
+        grid = update.grid
+        image = class_image(grid)
+        geometry = Geometry.of(grid)
+        full = geometry != self._geometry or self._image is None
+        tiles = changed_tiles(None if full else self._image, image)
+        if full:
+            self._tiles.clear()
+        encoded = []
+        for tx, ty in tiles:
+            b64 = base64.b64encode(encode_tile(image, tx, ty)).decode("ascii")
+            self._tiles[(tx, ty)] = b64
+            encoded.append([tx, ty, b64])
+        self.tiles_encoded += len(tiles)
+        self._image, self._geometry = image, geometry
+        self.seq += 1
+        self._head = {
+            "seq": self.seq,
+            "version": grid.version,
+            "stamp": round(update.stamp, 3),
+            "versions": dict(update.versions),
+            "geometry": geometry.as_dict(),
+        }
+        self._full = None  # built when a viewer needs it
+        self._frames = dict(update.frames)
+        if update.poses:
+            self._note_poses(update.poses)
+        return sse("map", {**self._head, "full": full, "tiles": encoded}, self.seq)
+
+    def full_map(self) -> Message | None:
+        """The whole current map as one ``map`` message (for a new or resyncing viewer)."""
+        if self._geometry is None:
+            return None
+        if self._full is None:
+            tiles = [[tx, ty, b64] for (tx, ty), b64 in sorted(self._tiles.items())]
+            self._full = sse("map", {**self._head, "full": True, "tiles": tiles}, self.seq)
+        return self._full
+
+    # -- robots ------------------------------------------------------------------------------
+    def robot_maps(self, maps: dict[str, RobotMap]) -> None:
+        """The size and origin of each robot's map (for its outline in the fleet frame)."""
+        self._maps.update(maps)
+
+    def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> Message:
+        """New robot poses (each in its own map frame) and the placements to put them in the fleet frame."""
+        self._frames.update(frames)
+        self._note_poses(poses)
+        return self.robots()
+
+    def _note_poses(self, poses: dict[str, StampedPose]) -> None:
+        for robot, sp in poses.items():
+            held = self._poses.get(robot)
+            if held is not None and sp.stamp < held.stamp:
+                continue  # a global map may carry a pose older than one already shown
+            self._poses[robot] = sp
+            frame = self._frames.get(robot)
+            if frame is None:
+                continue
+            p = compose(frame, sp.pose)
+            trail = self._trails.setdefault(robot, deque(maxlen=self._trail_len))
+            if not trail or math.dist(trail[-1], (p.x, p.y)) >= TRAIL_STEP_M:
+                trail.append((round(p.x, 3), round(p.y, 3)))
+
+    def colour(self, robot: str) -> str:
+        """This robot's colour in the view (sticky: the order robots were first seen)."""
+        if robot not in self._colours:
+            self._colours[robot] = COLOURS[len(self._colours) % len(COLOURS)]
+        return self._colours[robot]
+
+    def robots(self) -> Message:
+        """The ``robots`` message: per robot its colour, placement, outline, pose and trail."""
+        out: dict[str, Any] = {}
+        for robot in sorted(set(self._frames) | set(self._maps) | set(self._poses)):
+            frame = self._frames.get(robot)
+            rmap = self._maps.get(robot)
+            sp = self._poses.get(robot)
+            pose = None
+            if sp is not None and frame is not None:
+                pose = _pose(compose(frame, sp.pose))
+            out[robot] = {
+                "colour": self.colour(robot),
+                "frame": None if frame is None else _pose(frame),
+                "outline": None if frame is None or rmap is None else rmap.outline(frame),
+                "pose": pose,
+                "pose_stamp": None if sp is None else round(sp.stamp, 3),
+                "trail": [list(p) for p in self._trails.get(robot, ())],
+            }
+        return sse("robots", {"robots": out})
+
+
+# ---------------------------------------------------------------------------------- status
+
+
+def _label(version: Any) -> str:
+    """``v<number>`` as ``mapd status`` shows a version (the incarnation, the high 32 bits, left out)."""
+    if not isinstance(version, int) or isinstance(version, bool) or version < 0:
+        return "-"
+    return f"v{version & 0xFFFFFFFF}"
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+class StatusModel:
+    """Turns the daemon's status dict into the ``status`` message (one thread only: the loop)."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
+        self.window_s = window_s
+        # link -> (now, bytes_tx, bytes_rx) samples of the last window_s: a rate over a few
+        # seconds, since one map update every few seconds makes a one-second rate jump 0 <-> peak
+        self._samples: dict[str, deque[tuple[float, float, float]]] = {}
+
+    def message(self, snap: dict[str, Any], now: float) -> Message:
+        """The ``status`` message for a snapshot taken at ``now`` (seconds, any monotonic clock)."""
+        peers: dict[str, Any] = snap.get("peers") or {}
+        links = []
+        for name, st in sorted((snap.get("links") or {}).items()):
+            if not isinstance(st, dict):
+                continue
+            tx, rx = _num(st.get("bytes_tx")) or 0.0, _num(st.get("bytes_rx")) or 0.0
+            samples = self._samples.setdefault(name, deque(maxlen=256))
+            while samples and now - samples[0][0] > self.window_s:
+                samples.popleft()
+            prev = samples[0] if samples else None
+            samples.append((now, tx, rx))
+            tx_bps = rx_bps = None
+            if prev is not None and now > prev[0]:
+                tx_bps = round(8 * max(0.0, tx - prev[1]) / (now - prev[0]), 1)
+                rx_bps = round(8 * max(0.0, rx - prev[2]) / (now - prev[0]), 1)
+            budget = _num(st.get("link_rate_bps"))
+            heard = [
+                _num(p.get("age_s")) for p in peers.values() if isinstance(p, dict) and p.get("link") == name
+            ]
+            ages = [a for a in heard if a is not None]
+            links.append(
+                {
+                    "name": name,
+                    "tx_bps": tx_bps,
+                    "rx_bps": rx_bps,
+                    "budget_bps": budget,
+                    "use": None if tx_bps is None or not budget else round(tx_bps / budget, 4),
+                    "rtt_ms": _num(st.get("rtt_ms")),
+                    "resends": _num(st.get("resends")),
+                    "timeouts": _num(st.get("timeouts")),
+                    "bytes_tx": tx,
+                    "bytes_rx": rx,
+                    "peers": st.get("peers") if isinstance(st.get("peers"), list) else [],
+                    "last_heard_s": min(ages) if ages else None,
+                }
+            )
+        fusion = snap.get("fusion") or {}
+        placed: dict[str, Any] = fusion.get("robots") or {}
+        me = str(snap.get("robot", ""))
+        codec = snap.get("codec") or {}
+        robots: dict[str, Any] = {}
+        for robot in sorted(set(peers) | set(placed) | ({me} if me else set())):
+            p = placed.get(robot) or {}
+            entry: dict[str, Any] = {
+                "accepted": bool(p.get("accepted")),
+                "confidence": _num(p.get("confidence")),
+                "agreement": _num(p.get("agreement")),
+                "source": p.get("source"),
+                "reason": p.get("reason") or "",
+            }
+            if robot == me:
+                src = snap.get("source") or {}
+                entry.update(
+                    own=True,
+                    version=src.get("version"),
+                    size=src.get("size"),
+                    keyframes=codec.get("keyframes", 0),
+                    deltas=codec.get("deltas", 0),
+                    bytes=codec.get("last_bytes"),
+                )
+            else:
+                peer = peers.get(robot) or {}
+                entry.update(
+                    own=False,
+                    version=peer.get("version"),
+                    updates=peer.get("updates", 0),
+                    bytes=peer.get("bytes", 0),
+                    last_kind=peer.get("last_kind"),
+                    age_s=_num(peer.get("age_s")),
+                    present=peer.get("present"),
+                    link=peer.get("link"),
+                )
+            entry["label"] = _label(entry.get("version"))
+            robots[robot] = entry
+        g = fusion.get("global") or {}
+        return sse(
+            "status",
+            {
+                "robot": me,
+                "fleet": snap.get("fleet"),
+                "uptime_s": snap.get("uptime_s"),
+                "signed": (snap.get("security") or {}).get("signed"),
+                "links": links,
+                "robots": robots,
+                "global": {
+                    "width": g.get("width"),
+                    "height": g.get("height"),
+                    "merges": fusion.get("merges"),
+                },
+            },
+        )

@@ -1,0 +1,243 @@
+"""The live view's aiohttp adapter: the page, its static assets, one SSE stream, the token. Thin.
+
+Routes (everything else is 404; with a token configured, any request without it is 401 first)::
+
+    GET /                 the page (index.html)
+    GET /static/<asset>   view.js, view.css (shipped in the package: no CDN, works offline)
+    GET /events           server-sent events: map (tiles), robots, status
+
+Read-only: nothing here changes the daemon. Messages are encoded off the loop (the map on the
+output thread) or are small (the status); the loop only hands shared ``bytes`` to each viewer's
+bounded :class:`~mapd.view.queue.ClientQueue` and writes them. At most ``max_viewers`` streams run at
+once; one more gets a 503.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+from urllib.parse import quote
+
+from aiohttp import web
+
+from mapd.errors import DaemonError
+from mapd.view.model import StatusModel
+from mapd.view.queue import ClientQueue, Message
+
+log = logging.getLogger("mapd.view")
+
+#: Asset name -> content type. Only these are served; a name not listed is 404 (no path tricks).
+ASSETS = {"view.js": "text/javascript; charset=utf-8", "view.css": "text/css; charset=utf-8"}
+#: An idle stream gets an SSE comment this often, so proxies and phones keep it open.
+KEEPALIVE_S = 15.0
+#: A viewer that cannot take one write in this long is dropped (its socket is stuck).
+WRITE_TIMEOUT_S = 30.0
+#: Messages queued per viewer before it is resynced with the full state (see ClientQueue).
+QUEUE_LIMIT = 8
+_HEADERS = {
+    "Cache-Control": "no-store",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",  # the token may be in the URL: never pass it on
+    "X-Frame-Options": "DENY",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:; style-src 'self'; "
+    "script-src 'self'; connect-src 'self'",
+}
+
+
+def _asset(name: str) -> bytes:
+    return resources.files("mapd.view").joinpath("static", name).read_bytes()
+
+
+@dataclass(eq=False)
+class _Viewer:
+    queue: ClientQueue
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+class ViewServer:
+    """Serves the live view on ``host:port``; :meth:`post` hands it new messages (on the loop)."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        token: str | None = None,
+        max_viewers: int = 256,
+        snapshot: Callable[[], dict[str, Any]] | None = None,
+        status_every_s: float = 1.0,
+    ) -> None:
+        self.host, self.port = host, port
+        self.token = token
+        self.max_viewers = max_viewers
+        self.snapshot = snapshot
+        self.status_every_s = status_every_s
+        self._viewers: set[_Viewer] = set()
+        self._state: dict[str, Message] = {}  # kind -> the newest full message of that kind
+        self._status_model = StatusModel()
+        self._runner: web.AppRunner | None = None
+        self._status_task: asyncio.Task[None] | None = None
+        self._closing = False
+        self._page = b""
+        self._assets: dict[str, bytes] = {}
+        #: Counters for ``mapd status``.
+        self.counters = {"viewers_total": 0, "refused_busy": 0, "refused_token": 0, "dropped_msgs": 0}
+
+    @property
+    def viewers(self) -> int:
+        return len(self._viewers)
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self) -> None:
+        """Bind and serve; raises :class:`DaemonError` (one line) when the address cannot be used."""
+        self._page = _asset("index.html")
+        self._assets = {name: _asset(name) for name in ASSETS}
+        app = web.Application(middlewares=[self._guard])
+        app.router.add_get("/", self._index)
+        app.router.add_get("/static/{name}", self._static)
+        app.router.add_get("/events", self._events)
+        # handler_cancellation: a viewer that leaves ends its stream at once, freeing its place
+        # under the cap, instead of at the next write (up to KEEPALIVE_S later).
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0, handler_cancellation=True)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
+        try:
+            await site.start()
+        except OSError as exc:
+            await self._runner.cleanup()
+            self._runner = None
+            raise DaemonError(f"view: cannot listen on {self.host}:{self.port}: {exc.strerror}") from None
+        if self.port == 0:  # an ephemeral port (tests): say which one
+            server = site._server
+            if isinstance(server, asyncio.base_events.Server) and server.sockets:
+                self.port = int(server.sockets[0].getsockname()[1])
+        if self.snapshot is not None:
+            self._status_task = asyncio.create_task(self._status_loop(), name="view-status")
+        log.info("live view on %s", self.url)
+
+    async def close(self) -> None:
+        """Stop every stream and the server promptly."""
+        self._closing = True
+        for v in self._viewers:
+            v.wake.set()
+        if self._status_task is not None:
+            self._status_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._status_task
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    # ------------------------------------------------------------------ messages in (loop thread)
+    def post(self, *msgs: Message, full_map: Message | None = None) -> None:
+        """New messages for every viewer; ``full_map``: the whole map as of the ``map`` delta in ``msgs``."""
+        if full_map is not None:
+            self._state["map"] = full_map
+        for msg in msgs:
+            if msg.kind != "map":
+                self._state[msg.kind] = msg
+            for v in self._viewers:
+                before = v.queue.dropped
+                v.queue.put(msg)
+                self.counters["dropped_msgs"] += v.queue.dropped - before
+                v.wake.set()
+
+    def _current(self) -> list[Message]:
+        return [self._state[k] for k in ("map", "robots", "status") if k in self._state]
+
+    async def _status_loop(self) -> None:
+        assert self.snapshot is not None
+        while True:
+            if self._viewers:
+                try:
+                    msg = self._status_model.message(self.snapshot(), time.monotonic())
+                except Exception:  # a status bug must never stop the view or the daemon
+                    log.exception("view: status snapshot failed")
+                else:
+                    self.post(msg)
+            await asyncio.sleep(self.status_every_s)
+
+    # ------------------------------------------------------------------ HTTP
+    def _authorized(self, request: web.Request) -> bool:
+        assert self.token is not None
+        given = request.query.get("token")
+        auth = request.headers.get("Authorization", "")
+        if given is None and auth.startswith("Bearer "):
+            given = auth[len("Bearer ") :].strip()
+        return given is not None and hmac.compare_digest(given.encode(), self.token.encode())
+
+    @web.middleware
+    async def _guard(
+        self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
+        if self.token is not None and not self._authorized(request):
+            self.counters["refused_token"] += 1
+            resp: web.StreamResponse = web.Response(
+                status=401, text="401: a valid token is needed (?token=... or Authorization: Bearer ...)\n"
+            )
+            resp.headers["WWW-Authenticate"] = 'Bearer realm="mapd view"'
+        else:
+            try:
+                resp = await handler(request)
+            except web.HTTPException as exc:  # 404 and 405 as plain text, with the same headers
+                resp = web.Response(status=exc.status, text=f"{exc.status}: {exc.reason}\n")
+        if not resp.prepared:  # an SSE stream has sent its headers already
+            resp.headers.update(_HEADERS)
+        return resp
+
+    async def _index(self, request: web.Request) -> web.Response:
+        # The page passes the token it was opened with on to its assets and its stream.
+        query = f"?token={quote(self.token, safe='')}" if self.token is not None else ""
+        body = self._page.replace(b"__QUERY__", query.encode())
+        return web.Response(body=body, content_type="text/html", charset="utf-8")
+
+    async def _static(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in self._assets:
+            raise web.HTTPNotFound()
+        return web.Response(body=self._assets[name], headers={"Content-Type": ASSETS[name]})
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        if len(self._viewers) >= self.max_viewers or self._closing:
+            self.counters["refused_busy"] += 1
+            return web.Response(
+                status=503,
+                text=f"503: {self.max_viewers} viewers are watching already; try again later\n",
+                headers={"Retry-After": "10"},
+            )
+        resp = web.StreamResponse(
+            headers={**_HEADERS, "Content-Type": "text/event-stream", "X-Accel-Buffering": "no"}
+        )
+        await resp.prepare(request)
+        viewer = _Viewer(ClientQueue(QUEUE_LIMIT))
+        viewer.wake.set()  # the first write is the full current state
+        self._viewers.add(viewer)
+        self.counters["viewers_total"] += 1
+        try:
+            await resp.write(b"retry: 2000\n\n")
+            while not self._closing:
+                try:
+                    await asyncio.wait_for(viewer.wake.wait(), KEEPALIVE_S)
+                except TimeoutError:
+                    await asyncio.wait_for(resp.write(b": keep-alive\n\n"), WRITE_TIMEOUT_S)
+                    continue
+                viewer.wake.clear()
+                for msg in viewer.queue.take(self._current):
+                    await asyncio.wait_for(resp.write(msg.frame), WRITE_TIMEOUT_S)
+        except (ConnectionError, TimeoutError, RuntimeError):
+            pass  # the viewer left or is stuck: it just stops getting messages
+        finally:
+            self._viewers.discard(viewer)
+        return resp

@@ -1,0 +1,303 @@
+// mapd live view: one EventSource; map tiles drawn into an offscreen canvas (one pixel per cell),
+// then that canvas, the robots' outlines, trails and markers drawn at the current zoom and pan.
+// window.mapdView exposes the state for tests (what is drawn, and where a fleet point lands).
+"use strict";
+(function () {
+  const script = document.currentScript;
+  const query = (script && script.dataset.query) || "";
+  const canvas = document.getElementById("map");
+  const ctx = canvas.getContext("2d");
+  const off = document.createElement("canvas");
+  const offctx = off.getContext("2d");
+  const $ = (id) => document.getElementById(id);
+
+  const st = {
+    geometry: null, // {width, height, resolution, origin: [x, y], tile}
+    seq: 0, // newest map message received
+    drawnSeq: 0, // newest map message whose tiles are all in the canvas
+    version: null,
+    pending: 0,
+    gen: 0, // bumps when the canvas is recreated: older tile decodes are dropped
+    tileSeq: new Map(), // "tx,ty" -> seq of the newest image for that tile
+    robots: {},
+    status: null,
+    view: { scale: 1, x: 0, y: 0, fitted: false, moved: false }, // moved: the user zoomed or panned
+    maps: 0,
+    loadedAt: Date.now(),
+  };
+  window.mapdView = st;
+
+  // ---------------------------------------------------------------- coordinates
+  // fleet metres -> map pixel (row 0 at the top) -> CSS pixel on the screen
+  function toMap(x, y) {
+    const g = st.geometry;
+    return [(x - g.origin[0]) / g.resolution, g.height - (y - g.origin[1]) / g.resolution];
+  }
+  function toScreen(x, y) {
+    const [px, py] = toMap(x, y);
+    return [st.view.x + px * st.view.scale, st.view.y + py * st.view.scale];
+  }
+  st.toScreen = toScreen;
+
+  function fit() {
+    const g = st.geometry;
+    if (!g) return;
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    const s = Math.min(w / g.width, h / g.height) * 0.96;
+    st.view = { scale: s, x: (w - g.width * s) / 2, y: (h - g.height * s) / 2, fitted: true, moved: false };
+    redraw();
+  }
+
+  // ---------------------------------------------------------------- drawing
+  let frameAsked = false;
+  function redraw() {
+    if (!frameAsked) {
+      frameAsked = true;
+      requestAnimationFrame(draw);
+    }
+  }
+
+  function draw() {
+    frameAsked = false;
+    const dpr = window.devicePixelRatio || 1;
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
+      canvas.width = Math.round(w * dpr);
+      canvas.height = Math.round(h * dpr);
+    }
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.fillStyle = "#1b1e22";
+    ctx.fillRect(0, 0, w, h);
+    const g = st.geometry;
+    if (!g) return;
+    const v = st.view;
+    ctx.imageSmoothingEnabled = false; // cells stay crisp squares when zoomed in
+    ctx.drawImage(off, v.x, v.y, g.width * v.scale, g.height * v.scale);
+    for (const [name, r] of Object.entries(st.robots)) {
+      const colour = r.colour || "#888";
+      if (r.outline) {
+        ctx.beginPath();
+        r.outline.forEach(([x, y], i) => {
+          const [sx, sy] = toScreen(x, y);
+          if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+        });
+        ctx.closePath();
+        ctx.setLineDash([6, 4]);
+        ctx.lineWidth = 2;
+        ctx.strokeStyle = colour;
+        ctx.stroke();
+        ctx.setLineDash([]);
+      }
+      if (r.trail && r.trail.length > 1) {
+        ctx.beginPath();
+        r.trail.forEach(([x, y], i) => {
+          const [sx, sy] = toScreen(x, y);
+          if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+        });
+        ctx.lineWidth = 2.5;
+        ctx.strokeStyle = colour;
+        ctx.globalAlpha = 0.75;
+        ctx.stroke();
+        ctx.globalAlpha = 1;
+      }
+      // the robot itself; before any pose is known, its map frame's origin (where it started)
+      const at = r.pose || r.frame;
+      if (!at) continue;
+      const [sx, sy] = toScreen(at[0], at[1]);
+      ctx.beginPath();
+      ctx.arc(sx, sy, 9, 0, 2 * Math.PI);
+      ctx.fillStyle = colour;
+      ctx.fill();
+      ctx.lineWidth = 2;
+      ctx.strokeStyle = "#ffffff";
+      ctx.stroke();
+      const yaw = at[2] || 0; // heading: screen y points down
+      ctx.beginPath();
+      ctx.moveTo(sx, sy);
+      ctx.lineTo(sx + 15 * Math.cos(yaw), sy - 15 * Math.sin(yaw));
+      ctx.stroke();
+      ctx.font = "bold 12px system-ui, sans-serif";
+      ctx.lineWidth = 3;
+      ctx.strokeStyle = "rgba(0,0,0,.7)";
+      const label = r.pose ? name : name + " (start)";
+      ctx.strokeText(label, sx + 12, sy - 10);
+      ctx.fillStyle = "#fff";
+      ctx.fillText(label, sx + 12, sy - 10);
+    }
+  }
+
+  // ---------------------------------------------------------------- messages
+  function onMap(m) {
+    const g = m.geometry;
+    const same = st.geometry && g.width === st.geometry.width && g.height === st.geometry.height &&
+      g.origin[0] === st.geometry.origin[0] && g.origin[1] === st.geometry.origin[1];
+    if (!same) {
+      if (!m.full) return; // a delta for another geometry: the full map follows
+      const old = st.geometry;
+      off.width = g.width;
+      off.height = g.height;
+      offctx.fillStyle = "#a3a7ad";
+      offctx.fillRect(0, 0, g.width, g.height);
+      st.gen += 1;
+      st.tileSeq.clear();
+      st.pending = 0;
+      if (old && st.view.moved) {
+        // keep the same fleet point under the same screen point when the map grows
+        const dx = (g.origin[0] - old.origin[0]) / g.resolution;
+        const dy = (old.height - g.height) + (g.origin[1] - old.origin[1]) / g.resolution;
+        st.view.x += dx * st.view.scale;
+        st.view.y += dy * st.view.scale;
+      }
+    }
+    st.geometry = g;
+    st.seq = m.seq;
+    st.version = m.version;
+    st.maps += 1;
+    if (!st.view.moved) fit();
+    const gen = st.gen, seq = m.seq;
+    for (const [tx, ty, b64] of m.tiles) {
+      const key = tx + "," + ty;
+      st.tileSeq.set(key, seq);
+      st.pending += 1;
+      const img = new Image();
+      img.onload = img.onerror = () => {
+        if (gen === st.gen) {
+          st.pending -= 1;
+          if (img.complete && img.naturalWidth && st.tileSeq.get(key) === seq) {
+            offctx.drawImage(img, tx * g.tile, ty * g.tile);
+          }
+          if (st.pending === 0) st.drawnSeq = st.seq;
+          redraw();
+        }
+      };
+      img.src = "data:image/png;base64," + b64;
+    }
+    if (m.tiles.length === 0) st.drawnSeq = st.pending === 0 ? seq : st.drawnSeq;
+    $("mapinfo").textContent = g.width + " × " + g.height + " cells · " + g.resolution + " m";
+    redraw();
+  }
+
+  const fmt = (v, d = 0) => (v === null || v === undefined ? "–" : Number(v).toFixed(d));
+  function kb(v) {
+    if (v === null || v === undefined) return "–";
+    return v >= 10240 ? (v / 1024).toFixed(0) + " kB" : v >= 1024 ? (v / 1024).toFixed(1) + " kB" : v + " B";
+  }
+  function cell(tr, text, cls) {
+    const td = document.createElement("td");
+    td.textContent = text;
+    if (cls) td.className = cls;
+    tr.appendChild(td);
+    return td;
+  }
+
+  function renderPanel() {
+    const s = st.status;
+    if (!s) return;
+    $("who").textContent = s.robot + " · fleet " + s.fleet + (s.signed ? "" : " · UNSIGNED");
+    const rb = $("robots").tBodies[0];
+    rb.textContent = "";
+    for (const [name, r] of Object.entries(s.robots)) {
+      const tr = rb.insertRow();
+      const dot = document.createElement("span");
+      dot.className = "dot";
+      dot.style.background = (st.robots[name] && st.robots[name].colour) || "#888";
+      cell(tr, "").appendChild(dot);
+      cell(tr, name + (r.own ? " (this)" : ""));
+      cell(tr, r.label || "–");
+      cell(tr, r.own ? r.keyframes + "k+" + r.deltas + "d" : (r.updates || 0) + " got" + (r.last_kind ? ", last " + r.last_kind : ""));
+      cell(tr, r.own ? "last " + kb(r.bytes) : kb(r.bytes));
+      const conf = r.confidence === null ? "–" : r.confidence.toFixed(2);
+      cell(tr, (r.accepted ? "✓ " : "✗ ") + conf + (r.source ? " " + r.source : ""), r.accepted ? "good" : "warn");
+      if (r.reason) {
+        const tr2 = rb.insertRow();
+        cell(tr2, "");
+        const td = cell(tr2, r.reason, "reason");
+        td.colSpan = 5;
+      }
+    }
+    const lb = $("links").tBodies[0];
+    lb.textContent = "";
+    for (const l of s.links) {
+      const tr = lb.insertRow();
+      cell(tr, l.name);
+      cell(tr, fmt(l.tx_bps));
+      cell(tr, l.use === null ? "–" : (100 * l.use).toFixed(0) + "% of " + fmt(l.budget_bps), l.use > 0.8 ? "warn" : "");
+      cell(tr, l.rtt_ms === null ? "–" : fmt(l.rtt_ms) + " ms");
+      cell(tr, fmt(l.resends));
+      cell(tr, l.last_heard_s === null ? "–" : fmt(l.last_heard_s, 1) + " s", l.last_heard_s > 30 ? "warn" : "");
+    }
+  }
+
+  // ---------------------------------------------------------------- the stream
+  function connect() {
+    const es = new EventSource("events" + query);
+    es.onopen = () => { $("conn").textContent = "live"; $("conn").className = "ok"; };
+    es.onerror = () => { $("conn").textContent = "reconnecting"; $("conn").className = "bad"; };
+    es.addEventListener("map", (e) => onMap(JSON.parse(e.data)));
+    es.addEventListener("robots", (e) => { st.robots = JSON.parse(e.data).robots; redraw(); renderPanel(); });
+    es.addEventListener("status", (e) => { st.status = JSON.parse(e.data); renderPanel(); });
+  }
+
+  // ---------------------------------------------------------------- zoom and pan (mouse, touch, pen)
+  function zoomAt(cx, cy, factor) {
+    const v = st.view;
+    const s = Math.min(64, Math.max(0.02, v.scale * factor));
+    const k = s / v.scale;
+    v.moved = true;
+    v.x = cx - (cx - v.x) * k;
+    v.y = cy - (cy - v.y) * k;
+    v.scale = s;
+    redraw();
+  }
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const r = canvas.getBoundingClientRect();
+    zoomAt(e.clientX - r.left, e.clientY - r.top, Math.exp(-e.deltaY * 0.0015));
+  }, { passive: false });
+  const pointers = new Map();
+  let pinch = null;
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    canvas.classList.add("dragging");
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    const prev = pointers.get(e.pointerId);
+    if (!prev) return;
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    st.view.moved = true;
+    if (pointers.size === 1) {
+      st.view.x += e.clientX - prev[0];
+      st.view.y += e.clientY - prev[1];
+      redraw();
+    } else if (pointers.size === 2) {
+      const [a, b] = [...pointers.values()];
+      const d = Math.hypot(a[0] - b[0], a[1] - b[1]);
+      const r = canvas.getBoundingClientRect();
+      const mx = (a[0] + b[0]) / 2 - r.left, my = (a[1] + b[1]) / 2 - r.top;
+      if (pinch) {
+        st.view.x += mx - pinch.mx;
+        st.view.y += my - pinch.my;
+        zoomAt(mx, my, d / pinch.d);
+      }
+      pinch = { d, mx, my };
+    }
+  });
+  const up = (e) => {
+    pointers.delete(e.pointerId);
+    pinch = null;
+    if (pointers.size === 0) canvas.classList.remove("dragging");
+  };
+  canvas.addEventListener("pointerup", up);
+  canvas.addEventListener("pointercancel", up);
+  canvas.addEventListener("dblclick", fit);
+  $("fit").addEventListener("click", fit);
+  $("toggle").addEventListener("click", () => { $("panel").classList.toggle("hidden"); refit(); });
+  // until the user moves the map, it stays fitted to the window (a phone turned, the panel hidden)
+  const refit = () => (st.view.moved ? redraw() : fit());
+  window.addEventListener("resize", refit);
+  if (window.ResizeObserver) new ResizeObserver(refit).observe(canvas);
+
+  connect();
+  redraw();
+})();

@@ -1,0 +1,89 @@
+"""How the daemon takes several robots' maps from one source (the map_merge drop-in), in one process."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import numpy as np
+
+from mapd import config as configmod
+from mapd.daemon.server import Daemon
+from mapd.demo.fleet import write_config
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.identity import Identity
+from mapd.sources.base import MapSource, SourceContext
+
+
+def _config(tmp_path: Path, source: dict[str, object]) -> configmod.MapdConfig:
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    key = tmp_path / "base.key"
+    identity = Identity.generate("base")
+    identity.write(key)
+    path = tmp_path / "config.toml"
+    write_config(
+        path,
+        {
+            "robot": {"name": "base", "fleet": "lab", "key_file": str(key)},
+            "fleet": {"roster": {"base": identity.public_text}},
+            "state": {"dir": str(tmp_path / "state"), "runtime_dir": str(tmp_path / "run")},
+            "source": {"use": "ros2"},
+            "source.ros2": source,
+            "fusion": {"debounce_s": 0.05},
+        },
+    )
+    return configmod.load(path)
+
+
+class TwoRobots(MapSource):
+    """Yields robot1's and robot2's maps, and knows where their map frames lie."""
+
+    name = "two"
+
+    def __init__(self) -> None:
+        super().__init__(None, SourceContext(robot="base"))
+
+    def robot_poses(self) -> dict[str, Pose2D]:
+        return {"robot1": Pose2D(0.0, 0.0, 0.0), "robot2": Pose2D(3.0, 0.0, 0.0)}
+
+    async def maps(self) -> AsyncIterator[OccupancyGrid]:
+        for robot in ("robot1", "robot2"):
+            data = np.zeros((20, 30), np.int8)
+            data[0, :] = 100
+            yield OccupancyGrid(data, 0.1, robot=robot, version=1)
+        await asyncio.Event().wait()
+
+
+def test_a_discovering_source_leaves_the_fleet_frame_to_the_robots(tmp_path: Path) -> None:
+    own = Daemon(_config(tmp_path / "a", {"topic": "/map"}))
+    merge = Daemon(_config(tmp_path / "b", {"discover_robots": True}))
+    assert own.fusion.placer.anchor == "base"  # a robot's own map frame is the fleet frame
+    assert merge.fusion.placer.anchor is None  # as with source none: the first robot by name
+
+
+def test_other_robots_maps_are_fused_as_peers_and_never_sent(tmp_path: Path) -> None:
+    cfg = _config(tmp_path, {"discover_robots": True})
+    daemon = Daemon(cfg, source=TwoRobots())
+
+    async def go() -> dict[str, object]:
+        task = asyncio.ensure_future(daemon.run())
+        end = time.monotonic() + 20
+        while daemon.fusion.status()["maps"] < 2 and time.monotonic() < end:
+            await asyncio.sleep(0.05)
+        status = daemon.snapshot()
+        daemon.request_stop()
+        await asyncio.wait_for(task, 20)
+        return status
+
+    status = asyncio.run(go())
+    robots = status["fusion"]["robots"]  # type: ignore[index]
+    # placed by the source's known poses, as a peer's map is placed by the pose it sends
+    assert all(robots[r]["source"] == "pose" and robots[r]["accepted"] for r in ("robot1", "robot2"))
+    assert (robots["robot2"]["x"], robots["robot2"]["y"]) == (3.0, 0.0)
+    assert status["fusion"]["fleet_frame"] == "frame of the known poses (robot1, robot2)"  # type: ignore[index]
+    assert status["source"]["version"] == 0  # type: ignore[index]  # no own map: nothing to send
+    assert daemon.own is None and daemon.publisher.counters.keyframes_sent == 0
+    g = daemon.fusion.global_map
+    assert g is not None and g.width >= 60 and g.resolution == 0.1  # robot2's 3 m to the right of robot1

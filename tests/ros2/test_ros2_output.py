@@ -1,0 +1,149 @@
+"""The ros2 output, seen by an independent rmw_zenoh peer: /map, /tf_static, /tf, QoS and the graph."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mapd import plugins
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.outputs.base import GlobalUpdate, OutputContext, PoseUpdate
+from mapd.outputs.ros2 import Ros2Output, Ros2OutputOptions
+
+
+def _output(endpoint: str, **kw: Any) -> Ros2Output:
+    out = Ros2Output(
+        Ros2OutputOptions(listen=[endpoint], connect=[], **kw), OutputContext(robot="base", fleet="f")
+    )
+    asyncio.run(out.start())
+    return out
+
+
+def _update(k: int, frames: dict[str, Pose2D] | None = None) -> GlobalUpdate:
+    rng = np.random.default_rng(k)
+    data = rng.choice(np.array([-1, 0, 100], dtype=np.int8), size=(40 + k, 60))
+    grid = OccupancyGrid(data, 0.05, Pose2D(-3.0, 2.5, 0.0), frame_id="ignored", robot="base", version=k)
+    return GlobalUpdate(grid=grid, frames=frames or {"robot0": Pose2D()}, stamp=1700000000.5 + k)
+
+
+def test_registered_under_mapd_outputs() -> None:
+    assert plugins.load("output", "ros2") is Ros2Output
+
+
+def test_late_subscriber_gets_the_current_map_and_frames(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any]
+) -> None:
+    out = _output(endpoint, frame="world")
+    try:
+        frames = {"robot0": Pose2D(), "robot1": Pose2D(4.0, -1.0, math.pi / 2)}
+        out.publish(_update(1, frames))
+        out.publish(_update(2, frames))  # the current one; a depth-1 cache holds only it
+        time.sleep(0.3)
+        peer = rmw_peer.RmwPeer(endpoint)  # joins after both were published
+        peers.append(peer)
+        peer.subscribe("/map", rmw_peer.GRID)
+        peer.subscribe("/tf_static", rmw_peer.TF)
+        got = peer.wait("/map", lambda r: True)
+        m = got.msg
+        assert (m.info.width, m.info.height) == (60, 42)  # update 2, not 1
+        assert m.header.frame_id == "world" and m.info.resolution == pytest.approx(0.05)
+        assert (m.info.origin.position.x, m.info.origin.position.y) == (-3.0, 2.5)
+        assert np.array_equal(np.asarray(m.data).reshape(42, 60), _update(2).grid.data)
+        assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1700000002, 500000000)
+        # the attachment: sequence 2 (the second map), a wall-clock stamp, the GID of the MP token
+        assert got.seq == 2 and abs(got.stamp_ns / 1e9 - time.time()) < 60
+        graph = peer.graph()
+        mine = [t for t in graph if t.node == "mapd"]
+        pub = next(t for t in mine if t.kind == "MP" and t.topic == "/map")
+        assert got.gid == rmw_peer.gid(pub.key)
+        assert pub.hash == rmw_peer.GRID_HASH and pub.qos == rmw_peer.qos(True, 1)
+        assert got.key == f"0/map/nav_msgs::msg::dds_::OccupancyGrid_/{rmw_peer.GRID_HASH}"
+        assert any(t.kind == "NN" and t.namespace == "/" and t.enclave == "/" for t in mine)
+        assert {t.topic for t in mine if t.kind == "MP"} == {"/map", "/tf_static", "/tf"}
+        assert len({t.zid for t in mine}) == 1 and {t.nid for t in mine} == {pub.nid}
+        tf = peer.wait("/tf_static", lambda r: True).msg
+        placed = {t.child_frame_id: t for t in tf.transforms}
+        assert set(placed) == {"robot0/map", "robot1/map"}
+        r1 = placed["robot1/map"]
+        assert r1.header.frame_id == "world" and (r1.transform.translation.x, r1.transform.translation.y) == (
+            4.0,
+            -1.0,
+        )
+        assert 2 * math.atan2(r1.transform.rotation.z, r1.transform.rotation.w) == pytest.approx(math.pi / 2)
+        # the same placements are not sent again; a changed one is, with every robot
+        out.publish(_update(3, frames))
+        moved = {**frames, "robot1": Pose2D(5.0, -1.0, 0.0)}
+        out.publish(_update(4, moved))
+        again = peer.wait(
+            "/tf_static", lambda r: any(t.transform.translation.x == 5.0 for t in r.msg.transforms)
+        )
+        assert len(again.msg.transforms) == 2
+        assert len(peer.received("/tf_static")) == 2 and out.stats()["tf_static"] == 2
+    finally:
+        asyncio.run(out.close())
+
+
+def test_poses_go_on_tf(endpoint: str, rmw_peer: ModuleType, peers: list[Any]) -> None:
+    out = _output(endpoint)
+    peer = rmw_peer.RmwPeer(endpoint)
+    peers.append(peer)
+    peer.subscribe("/tf", rmw_peer.TF, transient_local=False, depth=100)
+    try:
+        time.sleep(0.5)
+        poses = {"robot0": StampedPose(Pose2D(1.5, 2.0, -0.5), 1700000100.0)}
+        out.publish_poses(PoseUpdate(poses=poses, frames={"robot0": Pose2D()}))
+        got = peer.wait("/tf", lambda r: True).msg.transforms[0]
+        assert (got.header.frame_id, got.child_frame_id) == ("robot0/map", "robot0/base_link")
+        assert (got.transform.translation.x, got.transform.translation.y) == (1.5, 2.0)
+        assert got.header.stamp.sec == 1700000100
+        # the same stamped pose again (a global map carries the latest poses too): not repeated
+        out.publish(GlobalUpdate(grid=_update(1).grid, frames={"robot0": Pose2D()}, stamp=1.0, poses=poses))
+        newer = {"robot0": StampedPose(Pose2D(1.6, 2.0, -0.5), 1700000100.5)}
+        out.publish_poses(PoseUpdate(poses=newer, frames={"robot0": Pose2D()}))
+        peer.wait("/tf", lambda r: r.msg.transforms[0].transform.translation.x == 1.6)
+        assert len(peer.received("/tf")) == 2 and out.stats()["tf"] == 2
+        tf_token = next(t for t in peer.graph() if t.node == "mapd" and t.topic == "/tf")
+        assert tf_token.qos == rmw_peer.qos(False, 100)  # volatile, keep last 100 (tf2's broadcaster)
+    finally:
+        asyncio.run(out.close())
+
+
+def test_humble_namespace_and_domain(endpoint: str, rmw_peer: ModuleType, peers: list[Any]) -> None:
+    out = _output(endpoint, distro="humble", namespace="/fleet", topic="merged", domain_id=7, tf=False)
+    try:
+        out.publish(_update(1))
+        peer = rmw_peer.RmwPeer(endpoint, domain=7, distro="humble")
+        peers.append(peer)
+        peer.subscribe("/fleet/merged", rmw_peer.GRID)
+        got = peer.wait("/fleet/merged", lambda r: True)
+        assert got.key == "7/fleet/merged/nav_msgs::msg::dds_::OccupancyGrid_/TypeHashNotSupported"
+        mine = [t for t in peer.graph() if t.node == "mapd"]
+        assert {(t.kind, t.topic) for t in mine} == {("NN", ""), ("MP", "/fleet/merged")}
+        assert all(t.namespace == "/fleet" for t in mine)
+        assert "%fleet/mapd/%fleet%merged/" in next(t.key for t in mine if t.kind == "MP")
+    finally:
+        asyncio.run(out.close())
+
+
+def test_ros2dds_format_plain_keys_no_attachment(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any]
+) -> None:
+    out = _output(endpoint, format="ros2dds", namespace="site")
+    try:
+        out.publish(_update(1))
+        peer = rmw_peer.RmwPeer(endpoint)
+        peers.append(peer)
+        time.sleep(0.3)
+        replies = list(peer.session.get("site/map", timeout=3.0))  # late joiner: the queryable answers
+        sample = next(r.ok for r in replies if r.ok is not None)
+        msg = rmw_peer.TS.deserialize_cdr(sample.payload.to_bytes(), rmw_peer.GRID)
+        assert (msg.info.width, msg.info.height) == (60, 41) and sample.attachment is None
+        assert not [t for t in peer.graph() if t.node == "mapd"]  # a bridge announces topics, not mapd
+    finally:
+        asyncio.run(out.close())
