@@ -67,3 +67,20 @@ def test_global_map_picture_names_each_robots_tint() -> None:
         assert (np.abs(strip - tint).max(axis=1) <= 1).sum() > 50  # a swatch of that robot's colour
     dark = (strip.max(axis=1) < 80).sum()
     assert dark > 30  # and text beside the swatches
+
+
+def test_global_map_picture_marks_each_robot_where_it_is() -> None:
+    import numpy as np
+
+    from mapd.demo.report import COLOURS, mark_robots
+    from mapd.grid import OccupancyGrid, Pose2D
+
+    g = OccupancyGrid(np.zeros((100, 200), np.int8), 0.1, origin=Pose2D(-5.0, 2.0, 0.0))
+    img = np.full((100, 200, 3), 250, dtype=np.uint8)
+    # robot1 at x = 5 m, y = 6 m: column (5 - -5) / 0.1 = 100, row 99 - (6 - 2) / 0.1 = 59
+    out = mark_robots(img, g, {"robot1": [5.0, 6.0, 0.0]}, ["robot0", "robot1"])
+    assert np.array_equal(out[59, 98], COLOURS[1].astype(np.uint8))  # robot1's colour at its place
+    assert (out[59, 100:110].max(axis=1) < 60).any()  # the heading line points along +x (yaw 0)
+    assert np.array_equal(out[10, 10], img[10, 10])  # the rest untouched
+    changed = np.argwhere((out != img).any(axis=2))
+    assert 50 <= changed[:, 0].min() and changed[:, 0].max() <= 68  # one marker, around row 59
