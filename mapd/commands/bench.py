@@ -17,6 +17,7 @@ BENCHES = {
     "merge": "mapd.bench.merge",
     "fleet": "mapd.bench.fleet",
     "paper": "mapd.bench.paper",
+    "swarm": "mapd.bench.swarm",
 }
 
 

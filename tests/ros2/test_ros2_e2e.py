@@ -61,6 +61,15 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
             )
             assert (t.translation.x, t.translation.y) == pytest.approx((want["x"], want["y"]), abs=1e-6)
             assert 2 * math.atan2(t.rotation.z, t.rotation.w) == pytest.approx(want["yaw"], abs=1e-6)
+        # the robots' poses reach the base station (signed, over zenoh) and leave it as /tf
+        peer.subscribe("/tf", rmw_peer.TF, transient_local=False, depth=100)
+        for robot in ("robot0", "robot1"):
+            child = f"{robot}/base_link"
+            got = peer.wait(
+                "/tf", lambda r, c=child: any(t.child_frame_id == c for t in r.msg.transforms), 30
+            )
+            moved = next(t for t in got.msg.transforms if t.child_frame_id == child)
+            assert moved.header.frame_id == f"{robot}/map"
         graph = peer.graph()
         mine = {(t.kind, t.topic) for t in graph if t.node == "mapd"}
         assert {("NN", ""), ("MP", "/map"), ("MP", "/tf_static"), ("MP", "/tf")} <= mine

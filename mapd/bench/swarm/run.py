@@ -1,0 +1,214 @@
+"""``mapd bench swarm``: options, the loop over fleet sizes, codecs and MACs, and the table."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from mapd.tables import emit, table
+
+COLUMNS = [
+    ("robots", "robots", ""),
+    ("codec", "codec", ""),
+    ("mac", "mac", ""),
+    ("stale_p50_s", "stale p50 s", ".1f"),
+    ("stale_p95_s", "p95 s", ".1f"),
+    ("stale_max_s", "max s", ".0f"),
+    ("stale_p95_periods", "p95 periods", ".2f"),
+    ("stale_p95_reach_s", "p95 reach s", ".1f"),
+    ("never_in_range", "never in range", ".0%"),
+    ("converge_s", "converge s", ".0f"),
+    ("channel_use", "channel use", ".2f"),
+    ("coded_share", "coded load", ".3f"),
+    ("ack_share", "ack %", ".0%"),
+    ("bps_per_robot", "bit/s/robot", ".0f"),
+    ("x_coded", "x coded", ".1f"),
+    ("collided", "collided", ""),
+    ("lost", "lost", ""),
+    ("degree", "hears", ".1f"),
+    ("wall_s", "wall s", ".1f"),
+]
+
+
+def _size(text: str) -> tuple[float, float]:
+    try:
+        w, h = (float(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not WxH in metres (e.g. 60x40)") from None
+    return w, h
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group()
+    src.add_argument(
+        "--sim",
+        type=int,
+        metavar="SEED",
+        default=None,
+        help="drive the simulator's building (default seed 7)",
+    )
+    src.add_argument("--log", type=Path, default=None, help="robots replay slices of this CARMEN log")
+    p.add_argument(
+        "--robots", type=int, nargs="+", default=[2, 4, 8, 16, 32, 64], help="fleet sizes (default 2 .. 64)"
+    )
+    p.add_argument(
+        "--codec",
+        nargs="+",
+        default=["lossless"],
+        help="codecs (default lossless; deltas when the codec takes a base)",
+    )
+    p.add_argument(
+        "--mac",
+        nargs="+",
+        default=["tdma"],
+        choices=["tdma", "backoff", "none"],
+        help="medium access (default tdma)",
+    )
+    p.add_argument(
+        "--period", type=float, default=30.0, help="seconds between map versions (default 30, as the paper)"
+    )
+    p.add_argument(
+        "--duration", type=float, default=600.0, help="seconds during which versions are made (default 600)"
+    )
+    p.add_argument(
+        "--drain", type=float, default=300.0, help="then at most this long to converge (default 300)"
+    )
+    p.add_argument("--rate", type=float, default=12_500.0, help="channel bit/s (default 12500)")
+    p.add_argument("--loss", type=float, default=0.0, help="per-frame loss probability (default 0)")
+    p.add_argument(
+        "--range",
+        dest="range_m",
+        type=float,
+        default=math.inf,
+        help="radio range in m of line-of-sight distance (default: all in range)",
+    )
+    p.add_argument("--wall-loss", type=float, default=0.0, help="extra loss per wall crossed (default 0)")
+    p.add_argument(
+        "--building",
+        type=_size,
+        default=(30.0, 20.0),
+        metavar="WxH",
+        help="sim building size in m (default 30x20)",
+    )
+    p.add_argument("--scan-rate", type=float, default=1.0, help="sim lidar scans per second (default 1)")
+    p.add_argument(
+        "--unsigned",
+        action="store_true",
+        help="frames without the link key's 14-byte trailer (fleets sign by default)",
+    )
+    p.add_argument(
+        "--relay",
+        default="none",
+        choices=["none", "flood"],
+        help="relay policy hook (default none: today's daemon)",
+    )
+    p.add_argument(
+        "--acks",
+        default="configured",
+        choices=["configured", "up"],
+        help="who must ack a map (default: every configured robot)",
+    )
+    p.add_argument(
+        "--slot-ms", type=float, default=250.0, help="tdma slot per robot (default 250, the daemon's)"
+    )
+    p.add_argument(
+        "--inflight-s",
+        type=float,
+        default=30.0,
+        help="publisher's in-flight timeout (default 30, the daemon's)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=Path("out/swarm-cache"),
+        help="streams and payload sizes (default out/swarm-cache)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from mapd.bench.swarm.metrics import summarize
+    from mapd.bench.swarm.sim import Swarm, SwarmConfig
+    from mapd.bench.swarm.streams import Payloads, load_fleet
+    from mapd.codec.api import warm_up
+    from mapd.errors import SourceError
+
+    if args.log is not None and not args.log.exists():
+        raise SourceError(f"{args.log}: no such log file")
+    seed = 7 if args.sim is None and args.log is None else args.sim
+    rows: list[dict[str, Any]] = []
+    t_all = time.perf_counter()
+    for name in dict.fromkeys(args.codec):
+        warm_up(name)
+    for n in args.robots:
+        if not 2 <= n <= 254:
+            raise SourceError(f"--robots {n}: a channel holds 2 to 254 robots")
+        t0 = time.perf_counter()
+        fleet = load_fleet(
+            cache=args.cache, n=n, period=args.period, duration=args.duration,
+            sim_seed=seed if args.log is None else None, log=args.log,
+            size=args.building, scan_rate=args.scan_rate,
+        )  # fmt: skip
+        print(f"swarm: {n} robots: streams ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        for codec in dict.fromkeys(args.codec):
+            payloads = Payloads(args.cache, codec)
+            for mac in args.mac:
+                cfg = SwarmConfig(
+                    codec=codec, period=args.period, duration=args.duration, drain=args.drain,
+                    rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
+                    mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
+                    slot_s=args.slot_ms / 1000.0,
+                    inflight_s=args.inflight_s,
+                )  # fmt: skip
+                res = Swarm(fleet, payloads, cfg).run()
+                payloads.flush()
+                row = summarize(res)
+                row["coded_share"] = row["coded_bps_per_robot"] * n / args.rate
+                row["source"] = fleet.source
+                rows.append(row)
+                print(
+                    f"swarm: {n} robots, {codec}, {mac}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
+                    f"({res.events} events, {payloads.encodes} encodes)",
+                    file=sys.stderr,
+                )
+    base = {(r["codec"], r["mac"]): r for r in rows if r["robots"] == min(args.robots)}
+    for r in rows:
+        b = base.get((r["codec"], r["mac"]))
+        r["p95_x_smallest"] = r["stale_p95_s"] / b["stale_p95_s"] if b and b["stale_p95_s"] > 0 else math.nan
+    info = {
+        "source": rows[0]["source"] if rows else "",
+        "period_s": args.period,
+        "duration_s": args.duration,
+        "drain_s": args.drain,
+        "rate_bps": args.rate,
+        "loss": args.loss,
+        "range_m": args.range_m,
+        "wall_loss": args.wall_loss,
+        "signed": not args.unsigned,
+        "relay": args.relay,
+        "acks": args.acks,
+        "slot_ms": args.slot_ms,
+        "inflight_s": args.inflight_s,
+        "wall_s": time.perf_counter() - t_all,
+    }
+    emit({**info, "rows": rows}, args.json, lambda: _text(info, rows))
+    return 0
+
+
+def _text(info: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    rng = (
+        "all in range"
+        if math.isinf(info["range_m"])
+        else f"range {info['range_m']:g} m, {info['wall_loss']:g} loss per wall"
+    )
+    head = (
+        f"{info['source']}: a version every {info['period_s']:g} s for {info['duration_s']:g} s, "
+        f"{info['rate_bps']:g} bit/s shared, {rng}, frame loss {info['loss']:g}, "
+        f"{'signed' if info['signed'] else 'unsigned'}, relay {info['relay']}, acks from {info['acks']} peers; "
+        f"{info['wall_s']:.0f} s wall"
+    )
+    return f"{head}\n{table(rows, COLUMNS)}"

@@ -1,0 +1,197 @@
+"""``mapd bench swarm``: the radio, the staleness metric and small swarms of the real UWB cores."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mapd.bench.swarm.links import count_walls, link_matrices
+from mapd.bench.swarm.metrics import convergence, staleness_samples, summarize
+from mapd.bench.swarm.radio import Radio, channel_use
+from mapd.bench.swarm.sim import Swarm, SwarmConfig
+from mapd.bench.swarm.streams import Building, Fleet, Payloads, RobotStream, load_fleet
+from mapd.cli import main
+from mapd.codec import encode
+from mapd.grid import OccupancyGrid
+
+
+def _stream(i: int, xy: tuple[float, float], versions: int = 3, period: float = 30.0) -> RobotStream:
+    """A robot standing at ``xy`` whose map grows by a row of cells every ``period`` seconds."""
+    data = np.full((8, 16), -1, dtype=np.int8)
+    kfs = []
+    for v in range(versions):
+        data[v % 8, :] = 0
+        data[v % 8, (i + v) % 16] = 100
+        kfs.append(encode(OccupancyGrid(data.copy(), 0.05), "lossless"))
+    poses = np.tile(np.asarray(xy, dtype=np.float64), (10, 1))
+    return RobotStream(f"r{i}", f"test-{i}", [v * period for v in range(versions)], kfs, poses)
+
+
+def _fleet(positions: list[tuple[float, float]], building: Building | None = None) -> Fleet:
+    return Fleet([_stream(i, xy) for i, xy in enumerate(positions)], building, "test")
+
+
+def _run(fleet: Fleet, tmp_path: Path, **kw: Any) -> dict[str, Any]:
+    cfg = SwarmConfig(**{"duration": 90.0, "drain": 60.0, "start_spread": 5.0, **kw})
+    res = Swarm(fleet, Payloads(tmp_path, "lossless"), cfg).run()
+    row = summarize(res)
+    row["accepted_log"] = res.accepted
+    return row
+
+
+# --- the radio -----------------------------------------------------------------------------------
+
+
+def test_two_frames_at_once_collide_at_every_receiver() -> None:
+    radio = Radio(3, rate_bps=8000.0)  # 1 byte per ms
+    a = radio.transmit(0, b"x" * 100, 0.0)
+    b = radio.transmit(1, b"y" * 100, 0.05)
+    assert (a.start, a.end) == (0.0, pytest.approx(0.1))
+    got_a, got_b = radio.finish(a, a.end), radio.finish(b, b.end)
+    assert [d for d, _ in got_a] == [2] and [d for d, _ in got_b] == [2]
+    assert got_a[0][1] != a.data and len(got_a[0][1]) == len(a.data)  # garbled: its CRC fails
+    c = radio.counters
+    assert c.collided == 2  # node 2 heard both frames over each other
+    assert c.deaf == 2  # nodes 0 and 1 were sending while the other's frame arrived
+    assert c.delivered == 0
+    late = radio.transmit(0, b"z" * 10, 1.0)
+    assert radio.finish(late, late.end) == [(1, late.data), (2, late.data)]
+
+
+def test_out_of_range_frames_neither_arrive_nor_interfere() -> None:
+    radio = Radio(3)
+    hears = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=bool)  # 0 and 2 are out of range
+    radio.set_links(hears)
+    a = radio.transmit(0, b"a" * 50, 0.0)
+    assert radio.finish(a, a.end) == [(1, a.data)]
+    # 0 and 2 send at once: 1 hears both (collision), but neither disturbs the other's silence
+    a, b = radio.transmit(0, b"a" * 50, 1.0), radio.transmit(2, b"b" * 50, 1.0)
+    assert [d for d, _ in radio.finish(a, a.end) + radio.finish(b, b.end)] == [1, 1]
+    assert radio.counters.collided == 2 and radio.counters.deaf == 0
+
+
+def test_channel_use_is_the_union_of_airtime() -> None:
+    assert channel_use([(0.0, 1.0), (0.5, 1.5), (3.0, 4.0)], 0.0, 10.0) == pytest.approx(0.25)
+    assert channel_use([(0.0, 20.0)], 0.0, 10.0) == pytest.approx(1.0)
+    assert channel_use([], 0.0, 10.0) == 0.0
+
+
+def test_walls_are_counted_once_per_crossing() -> None:
+    data = np.zeros((20, 100), dtype=np.int8)
+    data[:, 30:33] = 100  # a wall three cells thick
+    data[:, 60] = 100  # and a thin one
+    b = Building(OccupancyGrid(data, 0.1))
+    walls = count_walls(b, np.array([[0.5, 1.0], [0.5, 1.0]]), np.array([[9.5, 1.0], [4.0, 1.0]]))
+    assert walls.tolist() == [2, 1]
+    hears, w = link_matrices(np.array([[0.5, 1.0], [9.5, 1.0], [50.0, 1.0]]), 20.0, b)
+    assert hears.tolist() == [[False, True, False], [True, False, False], [False, False, False]]
+    assert w[0, 1] == w[1, 0] == 2
+
+
+# --- staleness -----------------------------------------------------------------------------------
+
+
+def test_staleness_on_a_hand_made_scenario() -> None:
+    # origin 0 makes v1 at 0 s and v2 at 10 s; holder 1 gets v1 at 3 s, v2 at 14 s.
+    # origin 1 makes v1 at 0 s; holder 0 never gets it.
+    made = [[0.0, 10.0], [0.0]]
+    accepted = [(3.0, 1, 0, 1), (14.0, 1, 0, 2)]
+    st = staleness_samples(made, accepted, 20.0, dt=1.0)
+    pair_1_0 = st[:21]  # origin 0, holder 1
+    pair_0_1 = st[21:]  # origin 1, holder 0
+    expect = [0, 1, 2, 0, 0, 0, 0, 0, 0, 0, 0, 1, 2, 3, 0, 0, 0, 0, 0, 0, 0]
+    assert pair_1_0.tolist() == expect
+    assert pair_0_1.tolist() == [float(t) for t in range(21)]
+    assert convergence(made, accepted, 2) == math.inf
+    assert convergence(made, [*accepted, (25.0, 0, 1, 1)], 2) == pytest.approx(15.0)
+
+
+# --- small swarms of the real cores --------------------------------------------------------------
+
+
+def test_two_robots_in_range_exchange_every_version(tmp_path: Path) -> None:
+    row = _run(_fleet([(0.0, 0.0), (5.0, 0.0)]), tmp_path, mac="tdma")
+    assert row["accepted"] == 6  # 3 versions each way
+    assert math.isfinite(row["converge_s"])
+    assert 0.0 < row["channel_use"] <= 1.0
+    assert row["stale_p95_s"] < 30.0
+    assert row["deltas"] > 0  # lossless sends deltas against the acked version
+    assert row["collided"] == 0  # TDMA: one robot per slot
+
+
+def test_a_robot_out_of_range_never_receives_without_relay(tmp_path: Path) -> None:
+    row = _run(_fleet([(0.0, 0.0), (5.0, 0.0), (500.0, 0.0)]), tmp_path, range_m=50.0, mac="backoff")
+    log = row["accepted_log"]
+    assert isinstance(log, list)
+    assert not [a for a in log if a[1] == 2 or a[2] == 2]  # robot 2 neither gets nor gives a map
+    assert {(a[1], a[2]) for a in log} == {(0, 1), (1, 0)}
+    assert row["converge_s"] == math.inf
+    assert row["stale_max_s"] > 85.0  # robot 2's first version, made within 5 s of the start, never received
+    assert row["never_in_range"] == pytest.approx(4 / 6)
+    assert row["stale_p95_reach_s"] < 30.0  # the two robots in range keep up with each other
+
+
+def test_relay_hook_carries_maps_over_two_hops(tmp_path: Path) -> None:
+    fleet = _fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
+    row = _run(fleet, tmp_path, range_m=50.0, relay="flood", acks="up", drain=200.0)
+    log = row["accepted_log"]
+    assert isinstance(log, list)
+    assert (2, 0) in {(a[1], a[2]) for a in log}  # robot 2 got robot 0's map through robot 1
+
+
+def test_runs_are_deterministic_for_a_seed(tmp_path: Path) -> None:
+    fleet = _fleet([(0.0, 0.0), (5.0, 0.0), (10.0, 0.0), (15.0, 0.0)])
+    a = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=3)
+    b = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=3)
+    c = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=4)
+    for row in (a, b, c):
+        row.pop("wall_s")
+    assert a == b
+    assert a != c
+    assert a["lost"] > 0
+
+
+def test_signed_frames_cost_airtime(tmp_path: Path) -> None:
+    fleet = _fleet([(0.0, 0.0), (5.0, 0.0)])
+    signed = _run(fleet, tmp_path, signed=True)
+    plain = _run(fleet, tmp_path, signed=False)
+    assert signed["accepted"] == plain["accepted"] == 6
+    assert signed["bps_per_robot"] > plain["bps_per_robot"]
+
+
+def test_config_is_plain_data() -> None:
+    assert dataclasses.asdict(SwarmConfig())["codec"] == "lossless"
+
+
+# --- the command and real streams ----------------------------------------------------------------
+
+
+def test_command_runs_a_small_sim_swarm(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["bench", "swarm", "--robots", "2", "3", "--duration", "60", "--drain", "60"]
+    assert main([*argv, "--cache", str(tmp_path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["robots"] for r in out["rows"]] == [2, 3]
+    for r in out["rows"]:
+        assert 2 * r["robots"] <= r["versions"] <= 3 * r["robots"]  # at 1, 30, 60 s after a random start
+        assert 0 < r["channel_use"] <= 1
+        assert r["converge_s"] != "inf"
+    assert any(tmp_path.glob("fleet-*.msgpack")) and (tmp_path / "sizes-lossless.json").exists()
+
+
+def test_log_slices_make_streams_with_poses(intel_log: Path, tmp_path: Path) -> None:
+    fleet = load_fleet(cache=tmp_path, n=3, period=30.0, duration=90.0, log=intel_log)
+    assert len(fleet.robots) == 3 and fleet.building is not None
+    for r in fleet.robots:
+        assert r.versions >= 3 and r.times[0] == 0.0 and r.times[-1] <= 90.0
+        assert int((r.grid(r.versions).data >= 0).sum()) > int((r.grid(1).data >= 0).sum())
+        assert len(r.poses) >= 80
+    starts = {tuple(np.round(r.poses[0], 2)) for r in fleet.robots}
+    assert len(starts) == 3  # each robot starts where its slice of the log does
+    again = load_fleet(cache=tmp_path, n=3, period=30.0, duration=90.0, log=intel_log)
+    assert again.robots[1].times == fleet.robots[1].times  # from the cache
