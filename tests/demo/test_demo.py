@@ -83,4 +83,4 @@ def test_global_map_picture_marks_each_robot_where_it_is() -> None:
     assert (out[59, 100:110].max(axis=1) < 60).any()  # the heading line points along +x (yaw 0)
     assert np.array_equal(out[10, 10], img[10, 10])  # the rest untouched
     changed = np.argwhere((out != img).any(axis=2))
-    assert 50 <= changed[:, 0].min() and changed[:, 0].max() <= 68  # one marker, around row 59
+    assert changed[:, 0].min() >= 50 and changed[:, 0].max() <= 68  # one marker, around row 59
