@@ -77,7 +77,9 @@ def test_poses_travel_signed_and_only_as_themselves(tmp_path: Path, dk: SimpleNa
             s0.now = StampedPose(Pose2D(1.0, 2.0, 0.5), time.time())
             s1.now = StampedPose(Pose2D(-3.0, 0.0, 0.0), time.time())
             both = {"robot0", "robot1"}
-            await dk.wait_for(lambda: set(d1.poses.book.poses) == both, 10, "robot0's pose at robot1, and its own")
+            await dk.wait_for(
+                lambda: set(d1.poses.book.poses) == both, 10, "robot0's pose at robot1, and its own"
+            )
             st = d1.snapshot()["poses"]
             assert st["robots"]["robot0"]["map"] == [1.0, 2.0, 0.5]
             assert st["robots"]["robot1"]["map"] == [-3.0, 0.0, 0.0]  # its own, too
