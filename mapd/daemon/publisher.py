@@ -10,7 +10,7 @@ The rules:
 
 * **P1 Code only what a link can take now.** A version is coded when some transport has not been
   offered it and is free: its previous offer is acked by every peer it was meant for, failed, or
-  older than ``inflight_timeout_s``. A peer that already acked a version (a late joiner's keyframe
+  older than ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if longer). A peer that already acked a version (a late joiner's keyframe
   query got it first) is not waited for when that version is offered: it drops it as stale. So a slow link never queues stale maps, and versions that would
   be replaced unsent are never coded.
 * **P2 Latest wins.** Only the newest own version is ever coded; older unsent ones are dropped.
@@ -37,6 +37,11 @@ KEEP_VERSIONS = 16
 #: A transport gets the next version only when the previous one is acked by every peer, failed,
 #: or older than this. Superseding a half-sent map with every new version starves a slow link.
 INFLIGHT_TIMEOUT_S = 30.0
+#: ... or this many seconds per peer the offer waits for, if longer: on a shared radio channel every
+#: peer answers in its own turn, so a broadcast offer to 31 peers legitimately takes several times
+#: longer than one to a single peer, and superseding it early turns every next version into a
+#: keyframe (the swarm bench, issue #22). Up to 6 peers it changes nothing.
+INFLIGHT_PER_PEER_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,7 @@ class InFlight:
     version: int
     since: float
     unsettled: set[str]
+    timeout: float = INFLIGHT_TIMEOUT_S
 
 
 @dataclass
@@ -163,7 +169,8 @@ class PublisherCore:
             self._offered[t] = envelope.version
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
             waiting = {p for p in peers.get(t, ()) if self._acked.get(p, 0) < envelope.version}
-            self._inflight[t] = InFlight(envelope.version, now, waiting)
+            timeout = max(self.inflight_timeout_s, INFLIGHT_PER_PEER_S * len(waiting))
+            self._inflight[t] = InFlight(envelope.version, now, waiting, timeout)
         return job.transports
 
     def next_deadline(self) -> float | None:
@@ -175,7 +182,7 @@ class PublisherCore:
         if latest is None:
             return None
         times = [
-            f.since + self.inflight_timeout_s
+            f.since + f.timeout
             for t, f in self._inflight.items()
             if f.unsettled and self._offered.get(t, 0) < latest.version
         ]
@@ -204,7 +211,7 @@ class PublisherCore:
     # ------------------------------------------------------------------ internals
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)
-        return busy is not None and bool(busy.unsettled) and now - busy.since < self.inflight_timeout_s
+        return busy is not None and bool(busy.unsettled) and now - busy.since < busy.timeout
 
     def _settle(self, transport: str, peer: str, version: int) -> bool:
         busy = self._inflight.get(transport)

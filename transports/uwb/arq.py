@@ -33,7 +33,8 @@ Sending
       that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
       failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
   R7. Chunks go in order within a window of ``window`` chunks past what the most advanced peer holds,
-      so a silent peer never stops the others. Queued resends go before new chunks.
+      so a silent peer never stops the others (no window in NACK mode, R16). Queued resends go
+      before new chunks.
   R8. Loss is detected two ways: a chunk a peer lacks is resent once the peer has acked a chunk sent
       ``reorder_tolerance`` transmissions after it (so reordering is harmless); and when a peer's
       retransmission timer expires, its oldest missing chunk is resent as a probe and the timer backs
@@ -53,10 +54,33 @@ Receiving
   R13. ACKs are selective (lowest missing index + a bitmap of 256 chunks after it). An ACK is owed
       ``ack_delay_s`` after new data, at once after ``ack_every`` new chunks, a gap, a duplicate, a
       completion or a refusal; owed ACKs coalesce, and each one describes the state when it is sent.
+      This is ``acks = "each"``, and what ``auto`` (the default) does for unicast messages.
+Scalable acks (NACK mode)
+  R16. With ``acks = "auto"`` a broadcast message (dst 255: more than one intended peer), with
+      ``"nack"`` every reliable message, is acked as reliable multicast does it (NORM, RFC 5740:
+      NACK-based repair, receiver backoff and suppression, sender flush probe; SRM's overheard
+      repair requests). Gap reports are ordinary ACKs; only COMPLETEs travel in a new frame.
+      A receiver stays silent while chunks arrive in order. It owes COMPLETE when the message
+      verifies (the sender learns delivery per peer), said in a DONE frame (``wire.py``) due
+      ``ack_delay_s`` later that carries every COMPLETE owed by then, to any sender (else N robots
+      would cost N (N - 1) ack frames a round of maps); and a gap report (an ordinary selective
+      ACK) only on new evidence of loss: a chunk past the next expected, a resend while a
+      hole is left below it, or a duplicate while it lacks chunks. The report waits a random backoff
+      (NORM's truncated exponential over ``nack_backoff_s``, skewed by the number of peers heard),
+      and is dropped if, meanwhile, another receiver's ACK for the same message (every radio hears
+      every frame of a shared channel) asked for every chunk this one lacks, or the holes filled.
+      It asks for the chunks missing below the highest one it holds. The sender resends each asked
+      chunk once for all (R7's queue); it does not hold new chunks to a window (receivers buffer a
+      whole message); and it runs a peer's retransmission timer only after its last chunk to send
+      (the flush): when it expires, the last chunk goes again as a probe (the lowest known-missing
+      one once the peer holds the last), which a receiver lacking anything answers with its gaps,
+      and one holding all with COMPLETE again (at most once per ``min_rto_s``: a burst of
+      repairs for others is not a probe). With TDMA the timer
+      is at least one cycle of slots (no receiver can answer sooner).
 Pacing and access
   R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
       resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
-      Priority: HELLO, then owed ACKs, then DATA round-robin over messages.
+      Priority: HELLO, then owed ACKs, then owed DONEs, then DATA round-robin over messages.
   R15. With a key, no frame is sent until the adapter has persisted the counter block it will use
       (:meth:`counter_reservation` / :meth:`confirm_counter`).
 """
@@ -86,7 +110,7 @@ from transports.uwb.arq_types import (
 )
 from transports.uwb.framing import MIN_FRAME, FrameReader, check_len, cobs_max_len, encode_frame, max_body
 from transports.uwb.pacing import MediumAccess, Pacer
-from transports.uwb.receiving import Partial, PeerState
+from transports.uwb.receiving import Partial, PeerState, asked_by
 from transports.uwb.sending import HASH_LEN, Outgoing
 from transports.uwb.signing import TRAILER_LEN, Signer, Verifier
 
@@ -107,6 +131,9 @@ __all__ = [
 ]
 
 MAX_CHUNKS = 0xFFFF
+#: COMPLETEs owed in DONE frames (R16), all peers together; past it the oldest goes unsaid (the
+#: sender's probe asks again).
+MAX_DONE_OWED = 64
 
 
 def _no_ack(msg: int, when: float) -> None:
@@ -154,7 +181,14 @@ class ArqEndpoint:
         self._rx_budget = config.rx_budget_bytes or 2 * self._max_total
         self._partial_ttl = config.partial_ttl_s or 2 * config.deadline_s
         self._ack_delay = config.ack_delay_s or 4 * 8 * config.max_frame / config.rate_bps
+        self._nack_backoff = config.nack_backoff_s or 8 * self._ack_delay
+        # With TDMA no receiver can answer a probe before its own slot comes round: the probe
+        # timer never runs shorter than one cycle (each probe would take a data frame's place).
+        self._cycle = config.slots * config.slot_s if config.mac == "tdma" else 0.0
         self._peers: dict[int, PeerState] = {}
+        # (peer, msg) -> (due, the peer's session then): COMPLETEs to go in the next DONE frame.
+        self._done_owed: OrderedDict[tuple[int, int], tuple[float, int]] = OrderedDict()
+        self._done_max = max(1, (body - self._trailer - wire.HEADER_LEN) // wire.DONE_ENTRY_LEN)
         self._rtt: dict[int, RttEstimator] = {}
         self._out: OrderedDict[int, Outgoing] = OrderedDict()
         self._next_msg = self._rng.getrandbits(23)
@@ -214,6 +248,7 @@ class ArqEndpoint:
         out = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
         out.background = background
         out.reliable = reliable
+        out.nack = reliable and self._nack_mode(dst)
         self._out[msg] = out
         for d in targets:
             self._rtt_of(d)
@@ -287,6 +322,17 @@ class ArqEndpoint:
                 if p.rto_at is None or now < p.rto_at:
                     continue
                 missing = m.outstanding(p)
+                if m.nack:
+                    # R16: probe with the last chunk (a receiver lacking it sees a gap, one holding
+                    # it a duplicate: either answers with its gaps, or COMPLETE); once the peer is
+                    # known to hold it, with the lowest chunk it is known to lack.
+                    last = m.count - 1
+                    m.queue_probe(missing[0] if p.acked[last] and missing else last)
+                    rtt = self._rtt_of(p.peer)
+                    rtt.backoff()
+                    self.counters.timeouts += 1
+                    p.rto_at = now + max(rtt.rto, self._cycle)
+                    continue
                 if missing:
                     m.queue_resend(missing[0])
                 elif p.n_acked == m.count:
@@ -378,6 +424,11 @@ class ArqEndpoint:
             self._on_data(peer, frame, now)
         elif isinstance(frame, wire.Ack):
             self._on_ack(peer, frame, now)
+        elif isinstance(frame, wire.Done):
+            for sender, target, msg, gen in frame.entries:
+                if sender == self.node:  # each entry is a COMPLETE ack (the others are for others)
+                    ack = wire.Ack(peer.id, sender, frame.session, target, msg, gen, wire.COMPLETE, 0, b"")
+                    self._on_ack(peer, ack, now)
 
     def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
         peer = self._peers.get(f.src)
@@ -415,10 +466,25 @@ class ArqEndpoint:
                 return True
         return False
 
+    def _nack_mode(self, dst: int) -> bool:
+        """Whether a reliable message to ``dst`` (a link id, or BROADCAST) is acked in NACK mode."""
+        return self.cfg.acks == "nack" or (self.cfg.acks == "auto" and dst == wire.BROADCAST)
+
+    def _nack_due(self, now: float) -> float:
+        """When a gap report is due: after a random backoff, skewed late the more receivers may
+        share the gap, so that the first report is usually alone and overheard by the others in time
+        (R16). The truncated exponential of NORM's RandomBackoff (RFC 5740; Nonnenmacher and Biersack):
+        over ``[0, T]`` with lambda = ln(group) + 1, the group estimated by the peers heard."""
+        t_max = self._nack_backoff
+        lam = math.log(max(2, sum(1 for p in self._peers.values() if p.up))) + 1
+        x = self._rng.uniform(0, lam / t_max) + lam / (t_max * (math.exp(lam) - 1))
+        return now + max(0.0, (t_max / lam) * math.log(x * (math.exp(lam) - 1) * (t_max / lam)))
+
     def _on_data(self, peer: PeerState, d: wire.Data, now: float) -> None:
         cfg = self.cfg
         # A DGRAM's sender waits for no ack: owe none (a lost one is replaced by the next).
         owe = peer.owe_ack if d.reliable else _no_ack
+        nack = d.reliable and self._nack_mode(d.dst)
         if d.dst not in (self.node, wire.BROADCAST):
             self.counters.not_for_me += 1
             return
@@ -430,6 +496,13 @@ class ArqEndpoint:
             return
         if d.msg in peer.completed or d.msg in peer.rejected:
             self.counters.duplicates += 1
+            if nack and d.msg in peer.completed:
+                last = peer.complete_sent.get(d.msg)
+                # Answered within the shortest probe interval: a burst of repairs for other peers,
+                # not a probe (every probe still gets an answer: it may be our COMPLETE it lacks).
+                if last is None or now - last >= cfg.min_rto_s:
+                    self._owe_done(peer, d.msg, now + cfg.ack_min_gap_s)
+                return
             owe(d.msg, now + cfg.ack_min_gap_s)
             return
         part = peer.partials.get(d.msg)
@@ -446,7 +519,7 @@ class ArqEndpoint:
                 if victim is not None:
                     self._rx_held -= peer.drop_partial(victim.msg)
                     self.counters.evicted += 1
-            part = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
+            part = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now, nack=nack)
             peer.partials[d.msg] = part
             peer.stream_top[d.stream] = d.msg
         elif part.count != d.count or part.total != d.total:
@@ -454,7 +527,10 @@ class ArqEndpoint:
             return
         if d.index in part.chunks:
             self.counters.duplicates += 1
-            owe(d.msg, now + cfg.ack_min_gap_s)
+            if not part.nack:
+                owe(d.msg, now + cfg.ack_min_gap_s)
+            elif part.gaps():
+                owe(d.msg, self._nack_due(now))  # a probe or a repair for others, and we lack some
             return
         if part.held + len(d.payload) > part.total:
             self.counters.bad_frames += 1
@@ -463,6 +539,7 @@ class ArqEndpoint:
             self.counters.evicted += 1
             return
         gap = d.index != part.top + 1
+        new_hole = d.index > part.top + 1
         part.add(d.index, d.payload, now)
         self._rx_held += len(d.payload)
         if part.complete():
@@ -470,12 +547,25 @@ class ArqEndpoint:
             data = part.verified()
             if data is None:
                 self.counters.hash_errors += 1
-                peer.partials[d.msg] = Partial(d.msg, d.stream, d.count, d.total, peer.next_gen(), now)
+                peer.partials[d.msg] = Partial(
+                    d.msg, d.stream, d.count, d.total, peer.next_gen(), now, nack=part.nack
+                )
             else:
                 peer.remember_completed(d.msg, part.gen)
                 self.counters.messages_rx += 1
                 self._events.append(MessageReceived(peer.id, d.stream, d.msg, data))
+                if part.nack:
+                    # R16: said in a DONE frame with the other COMPLETEs owed by then (a frame
+                    # each would cost N (N - 1) frames a round of broadcast maps)
+                    self._owe_done(peer, d.msg, now + self._ack_delay)
+                    return
             owe(d.msg, now)
+            return
+        if part.nack:
+            # R16: report only new evidence of loss: a chunk past the next expected (a new hole), or
+            # a resend arriving while a hole is left below it (that hole's repair was lost).
+            if new_hole or (gap and part.base < d.index):
+                owe(d.msg, self._nack_due(now))
             return
         urgent = gap or part.fresh >= cfg.ack_every
         owe(d.msg, now if urgent else now + self._ack_delay)
@@ -496,6 +586,7 @@ class ArqEndpoint:
         self.counters.acks_rx += 1
         if a.dst != self.node:
             self.counters.not_for_me += 1
+            self._overheard(a)
             return
         if a.target_session != self.session:
             self.counters.stale_acks += 1
@@ -525,17 +616,43 @@ class ArqEndpoint:
         rtt = self._rtt_of(peer.id)
         once = [i for i in newly if m.sends[i] == 1]
         if once:
-            rtt.sample(now - min(m.sent_at[i] for i in once))
+            # NACK mode acks whole runs of chunks at once, long after the first was sent: time the
+            # round trip from the newest (a sample that includes the receiver's backoff, as the
+            # probe timer should; RFC 5740's GRTT does the same).
+            sent = max if m.nack else min
+            rtt.sample(now - sent(m.sent_at[i] for i in once))
         if a.flags & wire.COMPLETE:
             prog.done = True
             prog.rto_at = None
             self._events.append(MessageDelivered(m.msg, peer.id))
             self._maybe_close(m, now)
             return
+        if m.nack:
+            # A gap report: every chunk it asks for is queued once, whoever else asked for it too;
+            # the probe timer restarts when the sender runs out of chunks to send (see _build).
+            for i in m.requested(prog, a.base, a.bitmap):
+                self.counters.repairs_queued += m.queue_resend(i)
+            return
         m.detect_losses(prog, self.cfg.reorder_tolerance)
         if newly:
             waiting = bool(m.outstanding(prog)) or prog.n_acked == m.count
             prog.rto_at = now + rtt.rto if waiting else None
+
+    def _overheard(self, a: wire.Ack) -> None:
+        """Another receiver's ACK to a data sender (a shared channel carries every frame to all): in
+        NACK mode, a gap report of ours that it makes redundant is dropped (R16, suppression)."""
+        if a.flags:
+            return  # COMPLETE and REJECT ask for nothing
+        sender = self._peers.get(a.dst)
+        if sender is None or a.target_session != sender.session or a.msg not in sender.acks_due:
+            return
+        part = sender.partials.get(a.msg)
+        if part is None or not part.nack:
+            return
+        mine = part.gaps()
+        if mine and set(mine) <= asked_by(a.base, a.bitmap):
+            del sender.acks_due[a.msg]
+            self.counters.nacks_suppressed += 1
 
     # --- sending --------------------------------------------------------------------------------
 
@@ -551,6 +668,20 @@ class ArqEndpoint:
     def _est(self, body_len: int) -> int:
         return cobs_max_len(body_len + self._trailer + check_len(self._crc)) + 1
 
+    def _owe_done(self, peer: PeerState, msg: int, due: float) -> None:
+        key = (peer.id, msg)
+        old = self._done_owed.get(key)
+        self._done_owed[key] = (min(due, old[0]) if old else due, peer.session)
+        while len(self._done_owed) > MAX_DONE_OWED:
+            self._done_owed.popitem(last=False)
+
+    def _done_due(self) -> float | None:
+        return min((due for due, _ in self._done_owed.values()), default=None)
+
+    def _done_est(self) -> int:
+        n = min(len(self._done_owed), self._done_max)
+        return self._est(wire.HEADER_LEN + n * wire.DONE_ENTRY_LEN)
+
     def _owed_ack(self) -> tuple[float, PeerState, int] | None:
         best: tuple[float, PeerState, int] | None = None
         for peer in self._peers.values():
@@ -565,6 +696,9 @@ class ArqEndpoint:
         owed = self._owed_ack()
         if owed is not None:
             dues.append((owed[0], self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)))
+        done = self._done_due()
+        if done is not None:
+            dues.append((done, self._done_est()))
         if any(m.has_work(self.cfg.window) for m in self._out.values()):
             dues.append((now, self._est(wire.DATA_HEADER_LEN + self.chunk_size)))
         return dues
@@ -575,6 +709,9 @@ class ArqEndpoint:
         owed = self._owed_ack()
         if owed is not None and owed[0] <= now:
             return "ack", (owed[1], owed[2]), self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)
+        done = self._done_due()
+        if done is not None and done <= now:
+            return "done", None, self._done_est()
         # Round-robin over messages, background ones (poses) only when no other has a chunk to go.
         for m in sorted(self._out.values(), key=lambda m: m.background):
             i = m.next_index(self.cfg.window)
@@ -589,6 +726,8 @@ class ArqEndpoint:
         if kind == "ack":
             peer, msg = ref
             return self._build_ack(peer, msg, now)
+        if kind == "done":
+            return self._build_done(now)
         m, i = ref
         resend = m.mark_sent(i, now)
         self._out.move_to_end(m.msg)  # round-robin between messages
@@ -602,6 +741,13 @@ class ArqEndpoint:
             if m.next_new >= m.count:  # every chunk went once: nothing more will
                 self._close(m, "sent")
             return frame
+        if m.nack:
+            # R16: receivers stay silent while chunks arrive in order, so the probe timer runs only
+            # once the sender has nothing left to send for this message (its flush point).
+            more = m.has_work(self.cfg.window)
+            for p in m.pending():
+                p.rto_at = None if more else now + max(self._rtt_of(p.peer).rto, self._cycle)
+            return frame
         for p in m.pending():
             if p.rto_at is None:
                 p.rto_at = now + self._rtt_of(p.peer).rto
@@ -612,16 +758,39 @@ class ArqEndpoint:
         base, bitmap, flags = 0, b"", 0
         part = peer.partials.get(msg)
         if part is not None:
+            if part.nack:
+                if not part.gaps():
+                    return None  # the holes were filled meanwhile: nothing to ask for
+                self.counters.nacks_tx += 1
             gen, base, bitmap = part.gen, min(part.base, MAX_CHUNKS), part.bitmap()
             part.fresh = 0
         elif msg in peer.completed:
             gen, flags = peer.completed[msg], wire.COMPLETE
+            peer.sent_complete(msg, now)
         elif msg in peer.rejected:
             gen, flags = 0, wire.REJECT
         else:
             return None  # forgotten since (evicted): nothing true to say
         self.counters.acks_tx += 1
         return wire.Ack(self.node, peer.id, self.session, peer.session, msg, gen, flags, base, bitmap)
+
+    def _build_done(self, now: float) -> wire.Done | None:
+        """One DONE frame with every COMPLETE owed, due or not (earliest first, as many as fit)."""
+        entries: list[tuple[int, int, int, int]] = []
+        for key in sorted(self._done_owed, key=lambda k: self._done_owed[k][0]):
+            if len(entries) >= self._done_max:
+                break
+            _, session = self._done_owed.pop(key)
+            peer = self._peers.get(key[0])
+            if peer is None or peer.session != session or key[1] not in peer.completed:
+                continue  # it restarted, or we forgot: nothing true to say
+            entries.append((peer.id, peer.session, key[1], peer.completed[key[1]]))
+            peer.sent_complete(key[1], now)
+        if not entries:
+            return None
+        self.counters.acks_tx += 1
+        self.counters.completes_tx += len(entries)
+        return wire.Done(self.node, wire.BROADCAST, self.session, tuple(entries))
 
     def _maybe_close(self, m: Outgoing, now: float) -> None:
         if not m.finished():

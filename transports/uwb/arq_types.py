@@ -7,9 +7,17 @@ here, so callers keep writing ``arq.ArqConfig`` and ``arq.MessageReceived``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from transports.uwb import wire
 from transports.uwb.pacing import MacMode
+
+#: How receivers acknowledge (R13, R16): ``each`` acks every message as it arrives (selective acks
+#: every ``ack_every`` chunks or ``ack_delay_s``); ``nack`` acks only gaps and completion, for every
+#: message; ``auto`` is ``nack`` for broadcast messages (more than one intended peer) and ``each``
+#: for unicast ones. Every node on a channel should use the same setting.
+AckMode = Literal["auto", "each", "nack"]
+ACK_MODES: tuple[AckMode, ...] = ("auto", "each", "nack")
 
 
 @dataclass(frozen=True)
@@ -32,6 +40,10 @@ class ArqConfig:
     ack_delay_s: float = 0.0  # 0: four max-size frame times at rate_bps
     ack_every: int = 8
     ack_min_gap_s: float = 0.05
+    acks: AckMode = "auto"
+    #: NACK mode: the longest random wait before a gap report (0: eight times ack_delay_s, 32
+    #: frame times: long enough that one report carries several gaps and others can overhear it).
+    nack_backoff_s: float = 0.0
     reorder_tolerance: int = 3
     beacon_s: float = 5.0
     peer_timeout_s: float = 20.0
@@ -59,6 +71,8 @@ class ArqConfig:
             raise ValueError(f"uwb: node id {self.node_id} is not in 1..254")
         if not 1 <= self.window <= 8 * wire.MAX_BITMAP:
             raise ValueError(f"uwb: window {self.window} is not in 1..{8 * wire.MAX_BITMAP}")
+        if self.acks not in ACK_MODES:
+            raise ValueError(f"uwb: acks {self.acks!r} is not one of {', '.join(ACK_MODES)}")
 
 
 # --- events -------------------------------------------------------------------------------------
@@ -140,6 +154,14 @@ class ArqCounters:
     resends: int = 0
     acks_tx: int = 0
     acks_rx: int = 0
+    #: NACK mode (R16): gap reports sent, and those dropped because another receiver's overheard
+    #: ACK had already asked for every chunk this node lacks.
+    nacks_tx: int = 0
+    nacks_suppressed: int = 0
+    #: COMPLETEs sent in DONE frames (each DONE frame also counts once in acks_tx).
+    completes_tx: int = 0
+    #: Chunks queued for resend at a NACK's request (one resend serves every receiver lacking it).
+    repairs_queued: int = 0
     hellos_tx: int = 0
     timeouts: int = 0
     # frames and chunks dropped, by cause

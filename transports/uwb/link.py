@@ -44,7 +44,7 @@ from transports.base import (
 from transports.uwb import arq
 from transports.uwb import keyframe_requests as control
 from transports.uwb.framing import MIN_FRAME
-from transports.uwb.pacing import ByteWindow
+from transports.uwb.pacing import SLOT_FRAMES, ByteWindow
 from transports.uwb.sending import HASH_LEN
 from transports.uwb.signing import CounterStore, clock_floor
 from transports.uwb.wire import MAX_TOTAL
@@ -83,13 +83,22 @@ class UwbOptions(TransportOptions):
         description="default: limits.max_message_bytes, at most 16 MiB (three hours at 12.5 kb/s)",
     )
     window: int = Field(default=128, ge=1, le=256, description="chunks in flight past the receiver's base")
+    acks: Literal["auto", "each", "nack"] = Field(
+        default="auto",
+        description="how receivers ack: auto (gap reports and one COMPLETE for broadcast maps, "
+        "selective acks for unicast), each (selective acks always), nack (gap reports always)",
+    )
     pose_period_s: float = Field(
         default=5.0, ge=0.0, description="seconds between pose messages; they yield to maps (0: send none)"
     )
     mac: Literal["none", "tdma", "backoff"] = Field(
         default="none", description="medium access on a shared channel"
     )
-    slot_ms: float = Field(default=250.0, gt=0, description="tdma: slot length")
+    slot_ms: float | None = Field(
+        default=None,
+        gt=0,
+        description=f"tdma: slot length; default {SLOT_FRAMES} max_frame frames at link_rate_bps plus guard_ms",
+    )
     slots: int | None = Field(
         default=None, ge=1, le=254, description="tdma: slots per cycle; default len(nodes)"
     )
@@ -121,10 +130,17 @@ class UwbOptions(TransportOptions):
             raise ValueError("backoff_max_ms is below backoff_min_ms")
         if (
             self.mac == "tdma"
-            and self.max_frame * 8 / self.link_rate_bps > (self.slot_ms - self.guard_ms) / 1000
+            and self.max_frame * 8 / self.link_rate_bps > (self.slot_length_ms - self.guard_ms) / 1000
         ):
             raise ValueError("tdma: a max_frame frame does not fit in slot_ms - guard_ms at link_rate_bps")
         return self
+
+    @property
+    def slot_length_ms(self) -> float:
+        """``slot_ms``, or by default a slot that carries :data:`SLOT_FRAMES` full frames."""
+        if self.slot_ms is not None:
+            return self.slot_ms
+        return SLOT_FRAMES * self.max_frame * 8000 / self.link_rate_bps + self.guard_ms
 
 
 def resolve_peer(spec: str, nodes: dict[str, int]) -> int:
@@ -429,11 +445,12 @@ class UwbTransport(Transport):
             # the wire describes messages up to 16 MiB; limits.max_message_bytes may allow more (zenoh)
             max_message_bytes=o.max_message_bytes or min(self.ctx.max_message_bytes, MAX_MESSAGE),
             window=o.window,
+            acks=o.acks,
             deadline_s=o.deadline_s,
             beacon_s=o.beacon_s,
             peer_timeout_s=o.peer_timeout_s,
             mac=o.mac,
-            slot_s=o.slot_ms / 1000,
+            slot_s=o.slot_length_ms / 1000,
             slots=o.slots or len(ids),
             slot_index=o.slot_index if o.slot_index is not None else ids.index(self.node_id),
             guard_s=o.guard_ms / 1000,

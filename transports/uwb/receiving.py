@@ -12,7 +12,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 from transports.uwb.sending import HASH_LEN, message_hash
-from transports.uwb.wire import MAX_BITMAP
+from transports.uwb.wire import MAX_BITMAP, bitmap_indices
 
 MAX_ACKS_OWED = 16
 REMEMBER_COMPLETED = 64
@@ -34,6 +34,7 @@ class Partial:
     base: int = 0  # lowest index not held
     top: int = -1  # highest index held
     fresh: int = 0  # chunks added since the last ack
+    nack: bool = False  # acked in NACK mode (R16): only gaps and completion
 
     def add(self, index: int, payload: bytes, now: float) -> bool:
         """Store a chunk; False when it was already held (a duplicate)."""
@@ -59,6 +60,12 @@ class Partial:
         data, digest = body[:-HASH_LEN], body[-HASH_LEN:]
         return data if message_hash(data) == digest else None
 
+    def gaps(self) -> list[int]:
+        """Chunks missing below the highest one held, as far as an ACK can describe them (NACK mode:
+        what a gap report asks for)."""
+        top = min(self.top, self.base + 8 * MAX_BITMAP)
+        return [i for i in range(self.base, top) if i not in self.chunks]
+
     def bitmap(self) -> bytes:
         out = bytearray(MAX_BITMAP)
         for i in range(self.base + 1, min(self.count, self.base + 1 + 8 * MAX_BITMAP)):
@@ -66,6 +73,14 @@ class Partial:
                 k = i - self.base - 1
                 out[k >> 3] |= 1 << (k & 7)
         return bytes(out.rstrip(b"\x00"))
+
+
+def asked_by(base: int, bitmap: bytes) -> set[int]:
+    """The chunks an ACK shows its sender lacking below the highest one it holds: in NACK mode, what
+    it asks the data sender to resend (see :meth:`Partial.gaps`)."""
+    held = set(bitmap_indices(base, bitmap))
+    top = max(held, default=base - 1)
+    return {i for i in range(base, top) if i not in held}
 
 
 class PeerState:
@@ -83,6 +98,9 @@ class PeerState:
         self.completed: OrderedDict[int, int] = OrderedDict()
         self.rejected: OrderedDict[int, None] = OrderedDict()
         self.acks_due: OrderedDict[int, float] = OrderedDict()
+        #: When a COMPLETE for a (broadcast) message was last sent: NACK mode answers a sender's
+        #: probes with it again at most every so often (the probe is for the peers still pending).
+        self.complete_sent: OrderedDict[int, float] = OrderedDict()
         self._gen = 0
 
     def next_gen(self) -> int:
@@ -102,6 +120,7 @@ class PeerState:
         self.completed.clear()
         self.rejected.clear()
         self.acks_due.clear()
+        self.complete_sent.clear()
         return released
 
     def owe_ack(self, msg: int, due: float) -> None:
@@ -117,6 +136,12 @@ class PeerState:
         self.completed[msg] = gen
         while len(self.completed) > REMEMBER_COMPLETED:
             self.completed.popitem(last=False)
+
+    def sent_complete(self, msg: int, now: float) -> None:
+        self.complete_sent[msg] = now
+        self.complete_sent.move_to_end(msg)
+        while len(self.complete_sent) > REMEMBER_COMPLETED:
+            self.complete_sent.popitem(last=False)
 
     def remember_rejected(self, msg: int) -> None:
         self.rejected[msg] = None

@@ -82,6 +82,11 @@ class Outgoing:
         self.xmit = 0
         self._resend: list[int] = []
         self._resend_set: set[int] = set()
+        #: Probes (NACK mode) go even when no pending peer is known to lack the chunk: the point is
+        #: to make a silent receiver answer.
+        self._probes: set[int] = set()
+        #: NACK mode (R16): receivers report only gaps, so the send window is not held to acks.
+        self.nack = False
         #: Sent only when no other message has a chunk to send (poses yield to maps).
         self.background = False
         #: False: each chunk goes once, as DGRAM frames, and nobody acks (poses).
@@ -105,16 +110,26 @@ class Outgoing:
         lows = [p.low for p in self.peers.values() if p.pending]
         return max(lows) if lows else self.count
 
-    def queue_resend(self, i: int) -> None:
-        if i not in self._resend_set:
-            self._resend_set.add(i)
-            heapq.heappush(self._resend, i)
+    def queue_resend(self, i: int) -> bool:
+        """Queue chunk ``i`` to go again; False when it already was."""
+        if i in self._resend_set:
+            return False
+        self._resend_set.add(i)
+        heapq.heappush(self._resend, i)
+        return True
+
+    def queue_probe(self, i: int) -> None:
+        """Queue chunk ``i`` to go again whether or not a peer is known to lack it (NACK mode)."""
+        self._probes.add(i)
+        self.queue_resend(i)
 
     def next_index(self, window: int) -> int | None:
         """The chunk to send next: the lowest queued resend still needed, else a new chunk in the window."""
+        if self.nack:
+            window = self.count  # no flow control by acks: the receivers buffer a whole message
         while self._resend:
             i = self._resend[0]
-            if self.needed(i):
+            if self.needed(i) or i in self._probes:
                 return i
             heapq.heappop(self._resend)
             self._resend_set.discard(i)
@@ -130,6 +145,7 @@ class Outgoing:
         if self._resend and self._resend[0] == i:
             heapq.heappop(self._resend)
             self._resend_set.discard(i)
+        self._probes.discard(i)
         if i == self.next_new:
             self.next_new += 1
         self.xmit += 1
@@ -155,6 +171,13 @@ class Outgoing:
         while p.low < self.count and p.acked[p.low]:
             p.low += 1
         return newly
+
+    def requested(self, p: PeerProgress, base: int, bitmap: bytes) -> list[int]:
+        """NACK mode: the chunks an ACK asks for, those it shows ``p`` lacking below the highest one
+        it holds (chunks past that may still be on their way; the sender's probe covers them)."""
+        held = bitmap_indices(base, bitmap)
+        top = min(max(held, default=base - 1), self.count)
+        return [i for i in range(p.low, min(top, self.next_new)) if not p.acked[i] and self.sends[i]]
 
     def mark_all_acked(self, p: PeerProgress) -> None:
         p.acked = bytearray(b"\x01" * self.count)

@@ -15,6 +15,8 @@ then, by type::
     DGRAM  as DATA, for a message that is sent once and never acknowledged (robot poses: the next
            one replaces a lost one, and an ack would cost a receiver a whole frame slot of its
            1 s pacing window)
+    DONE   1.. entries of (u8 sender, u24 target_session, u24 msg, u8 gen), dst 255: COMPLETE for
+           several messages, of several senders, in one frame (NACK mode, R16 in ``arq.py``)
 
 A signed body ends with a 12-byte trailer (u48 counter, 6-byte truncated HMAC; see
 :mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
@@ -25,6 +27,12 @@ is what keeps goodput above 0.85 of a 12.5 kb/s link. 24 bits are enough: a sess
 compared for equality (a restart draws a new one; one in 16 million repeats the old), message ids
 are compared in serial-number arithmetic (:func:`msg_before`, RFC 1982), and a message is at most
 :data:`MAX_TOTAL` bytes, three hours of the link.
+
+DONE was added to version 2 without a version bump (issue #22, scalable acks): each entry says what
+an ACK with the COMPLETE flag says, and a broadcast map would otherwise cost every receiver a frame
+of its own per map, N (N - 1) frames a round for N robots. Nodes from before it drop DONE frames as
+an unknown type (counted ``bad_frames``), so a fleet mixing them must run ``acks = "each"``, with
+which no DONE is ever sent and the frames are exactly those of before.
 
 A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
 message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which
@@ -44,8 +52,8 @@ VERSION = 2
 BROADCAST = 255
 SIGNED = 0x80
 
-DATA, ACK, HELLO, DGRAM = 1, 2, 3, 4
-KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM"}
+DATA, ACK, HELLO, DGRAM, DONE = 1, 2, 3, 4, 5
+KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM", DONE: "DONE"}
 
 # ACK flags
 COMPLETE = 0x01  # the whole message is held and its hash verified
@@ -64,7 +72,9 @@ MAX_TOTAL = MASK24
 _HDR = struct.Struct("<BBBHB")
 _DATA = struct.Struct("<HBBHHHB")
 _ACK = struct.Struct("<HBHBBBH")
+_DONE = struct.Struct("<BHBHBB")
 HEADER_LEN = _HDR.size
+DONE_ENTRY_LEN = _DONE.size
 DATA_HEADER_LEN = _HDR.size + _DATA.size
 ACK_HEADER_LEN = _HDR.size + _ACK.size
 
@@ -120,7 +130,18 @@ class Hello:
     session: int
 
 
-Frame = Data | Ack | Hello
+@dataclass(frozen=True, slots=True)
+class Done:
+    """COMPLETE for several messages: ``entries`` of (sender, target_session, msg, gen), each as an
+    ACK from ``src`` to ``sender`` with the COMPLETE flag would say it."""
+
+    src: int
+    dst: int
+    session: int
+    entries: tuple[tuple[int, int, int, int], ...]
+
+
+Frame = Data | Ack | Hello | Done
 
 
 def _kind(kind: int, signed: bool) -> int:
@@ -146,8 +167,17 @@ def pack_hello(h: Hello, *, signed: bool = False) -> bytes:
     return _head(HELLO, signed, h.src, h.dst, h.session)
 
 
+def pack_done(d: Done, *, signed: bool = False) -> bytes:
+    head = _head(DONE, signed, d.src, d.dst, d.session)
+    return head + b"".join(
+        _DONE.pack(sender, *_split(target), *_split(msg), gen) for sender, target, msg, gen in d.entries
+    )
+
+
 def pack(frame: Frame, *, signed: bool = False) -> bytes:
     """The body of ``frame`` (without a signing trailer)."""
+    if isinstance(frame, Done):
+        return pack_done(frame, signed=signed)
     if isinstance(frame, Data):
         return pack_data(frame, signed=signed)
     if isinstance(frame, Ack):
@@ -201,6 +231,19 @@ def parse(body: bytes) -> Frame:
         if dst == BROADCAST:
             raise ProtocolError("uwb: ACK sent to broadcast")
         return Ack(src, dst, session, target, msg, gen, flags, base, bitmap)
+    if kind == DONE:
+        rest = len(body) - HEADER_LEN
+        if rest <= 0 or rest % DONE_ENTRY_LEN:
+            raise ProtocolError(f"uwb: DONE frame of {len(body)} bytes is not whole entries")
+        if dst != BROADCAST:
+            raise ProtocolError("uwb: DONE frame not sent to broadcast")
+        entries = []
+        for off in range(HEADER_LEN, len(body), DONE_ENTRY_LEN):
+            sender, t_lo, t_hi, m_lo, m_hi, gen = _DONE.unpack_from(body, off)
+            if not 1 <= sender <= 254:
+                raise ProtocolError(f"uwb: DONE entry for sender id {sender} is out of range")
+            entries.append((sender, t_lo | t_hi << 16, m_lo | m_hi << 16, gen))
+        return Done(src, dst, session, tuple(entries))
     if kind == HELLO:
         if len(body) != HEADER_LEN:
             raise ProtocolError("uwb: HELLO frame has trailing bytes")

@@ -15,6 +15,7 @@ COLUMNS = [
     ("robots", "robots", ""),
     ("codec", "codec", ""),
     ("mac", "mac", ""),
+    ("ack_mode", "acks", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -113,13 +114,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="who must ack a map (default: every configured robot)",
     )
     p.add_argument(
-        "--slot-ms", type=float, default=250.0, help="tdma slot per robot (default 250, the daemon's)"
+        "--ack-mode",
+        nargs="+",
+        default=["auto"],
+        choices=["auto", "each", "nack"],
+        help="how receivers ack (transports.uwb acks; default auto: NACKs for broadcast maps)",
+    )
+    p.add_argument(
+        "--slot-ms",
+        type=float,
+        default=None,
+        help="tdma slot per robot (default the daemon's: 4 full frames + 10 ms guard, 583 ms at 12.5 kb/s)",
     )
     p.add_argument(
         "--inflight-s",
         type=float,
         default=30.0,
-        help="publisher's in-flight timeout (default 30, the daemon's)",
+        help="publisher's in-flight timeout (default 30, the daemon's; 5 s per peer if longer)",
     )
     p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
     p.add_argument(
@@ -156,28 +167,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"swarm: {n} robots: streams ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
-            for mac in args.mac:
+            for mac, ack_mode in [(m, a) for m in args.mac for a in dict.fromkeys(args.ack_mode)]:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
                     mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
-                    slot_s=args.slot_ms / 1000.0,
-                    inflight_s=args.inflight_s,
+                    slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
+                    inflight_s=args.inflight_s, ack_mode=ack_mode,
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
                 payloads.flush()
                 row = summarize(res)
                 row["coded_share"] = row["coded_bps_per_robot"] * n / args.rate
                 row["source"] = fleet.source
+                row["ack_mode"] = ack_mode
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
+                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-    base = {(r["codec"], r["mac"]): r for r in rows if r["robots"] == min(args.robots)}
+    base = {(r["codec"], r["mac"], r["ack_mode"]): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:
-        b = base.get((r["codec"], r["mac"]))
+        b = base.get((r["codec"], r["mac"], r["ack_mode"]))
         r["p95_x_smallest"] = r["stale_p95_s"] / b["stale_p95_s"] if b and b["stale_p95_s"] > 0 else math.nan
     info = {
         "source": rows[0]["source"] if rows else "",

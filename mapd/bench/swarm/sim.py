@@ -29,6 +29,13 @@ from mapd.bench.swarm.radio import Radio, Transmission
 from mapd.bench.swarm.streams import Fleet, Payloads
 from transports.uwb import arq
 from transports.uwb.framing import decode_frame
+from transports.uwb.pacing import SLOT_FRAMES
+
+
+def default_slot_s(rate_bps: float, max_frame: int = 224, guard_s: float = 0.01) -> float:
+    """The daemon's default TDMA slot (``transports.uwb.link.SLOT_FRAMES`` full frames plus guard)."""
+    return SLOT_FRAMES * max_frame * 8 / rate_bps + guard_s
+
 
 #: The fleet's link key when ``signed`` (any 32 bytes: the cost is the trailer, not the key).
 SIM_KEY = bytes(range(32))
@@ -52,8 +59,11 @@ class SwarmConfig:
     relay: str = "none"
     acks: str = "configured"
     links_dt: float = 2.0
-    slot_s: float = 0.25  # tdma slot (the daemon's slot_ms default)
-    inflight_s: float = 30.0  # the publisher's in-flight timeout (the daemon's INFLIGHT_TIMEOUT_S)
+    slot_s: float | None = None  # tdma slot; None: the daemon's default (SLOT_FRAMES frames + guard)
+    #: The publisher's in-flight timeout (the daemon's INFLIGHT_TIMEOUT_S), or INFLIGHT_PER_PEER_S
+    #: per peer waited for, if longer.
+    inflight_s: float = 30.0
+    ack_mode: str = "auto"  # the ARQ core's acks (ArqConfig.acks; the daemon's default)
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
     start_spread: float | None = None
@@ -137,10 +147,11 @@ class Swarm:
             rate_bps=c.rate_bps,
             mac="none" if mac == "none" else "tdma" if mac == "tdma" else "backoff",
             slots=self.n,
-            slot_s=c.slot_s,
+            slot_s=c.slot_s if c.slot_s is not None else default_slot_s(c.rate_bps),
             slot_index=i,
             key=SIM_KEY if c.signed else None,
             max_peers=max(64, self.n),
+            acks=c.ack_mode,  # type: ignore[arg-type]  # checked by ArqConfig
         )
 
     # --- the run --------------------------------------------------------------------------------
@@ -197,7 +208,8 @@ class Swarm:
         def emit(frame: bytes, kind: str) -> float:
             dst = None
             if kind == "ack":  # the body's header is kind, src, dst (link ids)
-                dst = decode_frame(frame[:-1], crc=not self.cfg.signed)[2] - 1
+                to = decode_frame(frame[:-1], crc=not self.cfg.signed)[2]
+                dst = None if to == 255 else to - 1  # a DONE frame (R16) is for every sender in it
             tx = self.radio.transmit(i, frame, now, kind, dst)
             self.loop.schedule(tx.end, ("end", tx))
             return tx.end
