@@ -13,6 +13,11 @@ example (the shipped model):
 
 The folder gets weights.npz, model.json (settings, split, metrics, sha256) and MODEL_CARD.md.
 Use it with [codec.paper] model = "NAME" (and model_dir = "DIR" when it is not under models/).
+
+maps in the making (snapshots every 100 scans of a log and of simulated buildings, cached):
+  mapd train --snapshots-log ../shared/data/logs/freiburg-079-corrected.log.gz --snapshots-sim 1 2 3 4 \\
+    --exclude-place intel --epochs 20 --tile 64 --tiles-per-epoch 3072 -o /tmp/both
+  (add --no-finished to train on the snapshots only; score with python -m mapd.train.heldout)
 """
 
 
@@ -53,6 +58,44 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0,
         help="torch CPU threads (default 0: torch's default); CPU weights are reproducible for one count",
     )
+    snap = p.add_argument_group("maps in the making (snapshots, as a Gmapping run saves them)")
+    snap.add_argument(
+        "--snapshots-log",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="LOG",
+        help="CARMEN logs (corrected poses) replayed through mapd's mapper; their snapshots train too",
+    )
+    snap.add_argument(
+        "--snapshots-sim",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="SEED",
+        help="simulated buildings (worldgen seeds) mapped by one robot; their snapshots train too",
+    )
+    snap.add_argument(
+        "--snapshot-every", type=int, default=100, metavar="N", help="scans between snapshots (default 100)"
+    )
+    snap.add_argument(
+        "--sim-scans", type=int, default=1500, metavar="N", help="scans per simulated run (default 1500)"
+    )
+    snap.add_argument(
+        "--no-finished",
+        action="store_true",
+        help="train on the snapshots only (finished maps still validate)",
+    )
+    snap.add_argument(
+        "--exclude-place",
+        nargs="+",
+        default=[],
+        metavar="PLACE",
+        help="places (split groups, e.g. intel) left out of training and validation, e.g. a held-out log's",
+    )
+    snap.add_argument(
+        "--cache", type=Path, default=None, help="snapshot cache (default $MAPD_CACHE or ~/.cache/mapd)"
+    )
     p.add_argument("--no-eval", action="store_true", help="skip the whole-map evaluation at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -67,14 +110,33 @@ def _command(args: argparse.Namespace, maps: Path) -> list[str]:
         *(["--edge-weight", str(args.edge_weight)] if args.edge_weight != 1.0 else []),
         "--val-fraction", str(args.val_fraction), "--val-tiles", str(args.val_tiles),
         "--device", args.device, *(["--threads", str(args.threads)] if args.threads else []),
+        *_snapshot_args(args),
         "-o", str(args.output),
     ]  # fmt: skip
+
+
+def _snapshot_args(args: argparse.Namespace) -> list[str]:
+    out: list[str] = []
+    if args.snapshots_log:
+        out += ["--snapshots-log", *map(str, args.snapshots_log)]
+    if args.snapshots_sim:
+        out += ["--snapshots-sim", *map(str, args.snapshots_sim)]
+    if args.snapshots_log or args.snapshots_sim:
+        out += ["--snapshot-every", str(args.snapshot_every)]
+        if args.snapshots_sim:
+            out += ["--sim-scans", str(args.sim_scans)]
+    if args.no_finished:
+        out.append("--no-finished")
+    if args.exclude_place:
+        out += ["--exclude-place", *args.exclude_place]
+    return out
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from mapd.data import data_dir
     from mapd.errors import ConfigError
     from mapd.train.loop import TrainConfig, main_train
+    from mapd.train.snapshots import SnapshotSpec
 
     maps = args.maps
     if maps is None:
@@ -101,6 +163,15 @@ def cmd_train(args: argparse.Namespace) -> int:
         threads=args.threads,
         progress=not args.quiet,
         evaluate=not args.no_eval,
+        snapshots=SnapshotSpec(
+            logs=tuple(args.snapshots_log),
+            sims=tuple(args.snapshots_sim),
+            every=args.snapshot_every,
+            sim_scans=args.sim_scans,
+            cache=args.cache,
+        ),
+        finished=not args.no_finished,
+        exclude_places=tuple(args.exclude_place),
         extra={"argv": _command(args, maps)},
     )
     meta = main_train(cfg)

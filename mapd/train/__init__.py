@@ -3,4 +3,6 @@
 * :mod:`~mapd.train.data` splits maps by place and cuts tiles with their surroundings;
 * :mod:`~mapd.train.loop` is the training loop and writes a model folder;
 * :mod:`~mapd.train.card` measures whole maps through the codec and writes ``MODEL_CARD.md``.
+* :mod:`~mapd.train.snapshots` replays logs and simulated runs into maps in the making (cached);
+* :mod:`~mapd.train.heldout` scores models on a held-out log's growing maps and held-out finished maps.
 """

@@ -10,21 +10,29 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from mapd.grid import load_map
+from mapd.grid import OccupancyGrid, load_map
 
 
 def evaluate_maps(model_dir: Path, paths: list[Path], root: Path) -> list[dict[str, Any]]:
     """Every map through the real codec API with the model in ``model_dir``: size and quality."""
+    labelled = (
+        (str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem, load_map(p)) for p in paths
+    )
+    return evaluate_grids(model_dir, labelled)
+
+
+def evaluate_grids(model_dir: Path, grids: Iterable[tuple[str, OccupancyGrid]]) -> list[dict[str, Any]]:
+    """Every (label, grid) through the real codec API with the model in ``model_dir``: size and quality."""
     from mapd.codec import api, metrics
     from mapd.codec.paper import PaperOptions
 
     opts = PaperOptions(model=model_dir.name, model_dir=model_dir.parent)
     rows = []
-    for p in paths:
-        grid = load_map(p)
+    for label, grid in grids:
         t0 = time.perf_counter()
         payload = api.encode(grid, "paper", options=opts)
         t1 = time.perf_counter()
@@ -33,7 +41,7 @@ def evaluate_maps(model_dir: Path, paths: list[Path], root: Path) -> list[dict[s
         q = metrics.quality(grid.data, back.data)
         rows.append(
             {
-                "map": str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem,
+                "map": label,
                 "cells": grid.cells,
                 "bytes": len(payload),
                 "ratio": grid.cells / len(payload),
@@ -164,6 +172,24 @@ def _loss_text(training: dict[str, Any]) -> str:
     )
 
 
+def _recipe_lines(tr: dict[str, Any], sp: dict[str, Any]) -> list[str]:
+    """What the model learned from besides the finished maps (snapshots), and which places were left out."""
+    from mapd.train.snapshots import describe
+
+    lines = []
+    if sp.get("excluded_places"):
+        lines.append(
+            f"- left out of training and validation (`--exclude-place`): places"
+            f" {', '.join(sp['excluded_places'])} (maps {', '.join(sp.get('excluded', []))})"
+        )
+    recipe = tr.get("recipe") or {}
+    snaps = recipe.get("snapshots")
+    if snaps:
+        kind = "beside the finished maps" if recipe.get("finished", True) else "only (`--no-finished`)"
+        lines.append(f"- maps in the making, {kind}: {describe(snaps)}; {snaps['cells']} cells in all")
+    return lines
+
+
 def model_card(meta: dict[str, Any]) -> str:
     """MODEL_CARD.md for a trained model folder, from its model.json content."""
     tr = meta["training"]
@@ -197,7 +223,8 @@ def model_card(meta: dict[str, Any]) -> str:
         f" {len(sp['validation'])} for validation",
         f"- split rule: {sp['rule']}",
         f"- validation maps: {', '.join(sp['validation']) or 'none'}",
-        f"- training maps: {', '.join(sp['train'])}",
+        f"- training maps: {', '.join(sp['train']) or 'none (`--no-finished`: maps in the making only)'}",
+        *_recipe_lines(tr, sp),
         "",
         "## Training",
         "",
@@ -267,4 +294,4 @@ def model_card(meta: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["CHOICES", "PAPER", "evaluate_maps", "model_card", "summarize"]
+__all__ = ["CHOICES", "PAPER", "evaluate_grids", "evaluate_maps", "model_card", "summarize"]

@@ -9,6 +9,8 @@ stage after it is lossless, so "through Cod(.)" is through the rounding).
   ``house_20xx`` runs) share a group, and whole groups go to one side (:func:`split_maps`). The
   split depends only on the map names, so every seed trains on the same maps.
   (:mod:`mapd.train.data` holds the split and the tile sampler.)
+  Snapshots of maps in the making (:mod:`mapd.train.snapshots`) can join the training maps or
+  replace them (``finished=False``); ``exclude_places`` drops whole places from both sides.
 * **Tiles.** A tile is a ``tile x tile`` output region with its real surroundings (the networks'
   receptive field, padded with unknown outside the map), so training sees exactly what whole-map
   inference sees, including the unknown symbol the decoder assumes beyond the map's edge. Nine in
@@ -53,6 +55,7 @@ from mapd.train.data import (
     sample_tiles,
     split_maps,
 )
+from mapd.train.snapshots import SnapshotSpec, snapshot_maps
 
 # --------------------------------------------------------------------------------------------
 # The loop
@@ -80,6 +83,11 @@ class TrainConfig:
     evaluate: bool = True
     edge_weight: float = 1.0
     threads: int = 0  # torch CPU threads; 0 leaves torch's default
+    #: Maps in the making to train on beside (or, with ``finished=False``, instead of) the finished maps.
+    snapshots: SnapshotSpec | None = None
+    finished: bool = True
+    #: Places (split groups) left out of training and validation, e.g. the place of a held-out log.
+    exclude_places: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -127,12 +135,12 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _label(p: Path, root: Path) -> str:
+    return str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem
+
+
 def _load_maps(paths: list[Path], root: Path, tile: int) -> list[PreparedMap]:
-    out = []
-    for p in paths:
-        label = str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem
-        out.append(prepare_map(label, load_map(p), tile))
-    return out
+    return [prepare_map(_label(p, root), load_map(p), tile) for p in paths]
 
 
 def train(cfg: TrainConfig) -> dict[str, Any]:
@@ -167,6 +175,14 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
         raise ConfigError(f"--maps {cfg.maps}: no map_server YAML files found")
     root = cfg.maps / "maps" if (cfg.maps / "maps").is_dir() else cfg.maps
     train_paths, val_paths, groups = split_maps(paths, cfg.val_fraction)
+    excluded = sorted(p for p in map(str, paths) if groups[p] in cfg.exclude_places)
+    unknown = set(cfg.exclude_places) - set(groups.values())
+    if unknown:
+        raise ConfigError(f"--exclude-place {', '.join(sorted(unknown))}: no such place among the maps")
+    train_paths = [p for p in train_paths if str(p) not in excluded]
+    val_paths = [p for p in val_paths if str(p) not in excluded]
+    if not cfg.finished:
+        train_paths = []
     device = pick_device(cfg.device)
     if device.type == "cuda":
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
@@ -176,6 +192,12 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
     started = time.time()
 
     train_maps = _load_maps(train_paths, root, cfg.tile)
+    recipe: dict[str, Any] = {"finished": cfg.finished, "finished_maps": len(train_paths)}
+    if cfg.snapshots:
+        snaps, recipe["snapshots"] = snapshot_maps(cfg.snapshots)
+        train_maps += [prepare_map(label, grid, cfg.tile) for label, grid in snaps]
+    if not train_maps:
+        raise ConfigError("nothing to train on: --no-finished needs --snapshots-log or --snapshots-sim")
     val_maps = _load_maps(val_paths, root, cfg.tile)
     val_batch = (
         sample_tiles(val_maps, cfg.val_tiles, cfg.tile, np.random.default_rng(cfg.seed + 1))
@@ -256,20 +278,16 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
             "seconds": round(train_seconds, 1),
             "command": " ".join(cfg.extra.get("argv", [])),
             "history": history,
+            "recipe": recipe,
         },
         "split": {
             "rule": "by place: folder name up to the first '_' (numeric folders take the parent's name); "
             "groups ordered by sha256 of the name, the first round(val_fraction * groups) validate",
-            "train": sorted(
-                str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem for p in train_paths
-            ),
-            "validation": sorted(
-                str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem for p in val_paths
-            ),
-            "groups": {
-                (str(Path(k).relative_to(root).parent) if Path(k).is_relative_to(root) else Path(k).stem): v
-                for k, v in sorted(groups.items())
-            },
+            "train": sorted(_label(p, root) for p in train_paths),
+            "excluded": sorted(_label(Path(p), root) for p in excluded),
+            "excluded_places": sorted(cfg.exclude_places),
+            "validation": sorted(_label(p, root) for p in val_paths),
+            "groups": {_label(Path(k), root): v for k, v in sorted(groups.items())},
         },
     }
     (cfg.out / pn.META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
