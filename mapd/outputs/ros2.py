@@ -138,13 +138,7 @@ class Ros2Output(Output):
         from mapd.ros2.node import Ros2Node
 
         o = self.opts
-        self._session = cdr.open_session(
-            mode=o.mode,
-            connect=o.connect,
-            listen=o.listen,
-            multicast_scouting=o.multicast_scouting,
-            config_file=o.zenoh_config,
-        )
+        self._session = cdr.open_session_for(o)
         try:
             rmw_format = o.format == "rmw_zenoh"
             self._node = Ros2Node(

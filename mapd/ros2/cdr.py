@@ -220,6 +220,18 @@ def session_config(
     return cfg
 
 
+def open_session_for(o: Any) -> Any:
+    """Open the session an ``[output.ros2]`` or ``[source.ros2]`` table describes (both have mode,
+    connect, listen, multicast_scouting and zenoh_config)."""
+    return open_session(
+        mode=o.mode,
+        connect=o.connect,
+        listen=o.listen,
+        multicast_scouting=o.multicast_scouting,
+        config_file=o.zenoh_config,
+    )
+
+
 def open_session(**options: Any) -> Any:
     """Open a zenoh session from :func:`session_config` options; TransportError when it cannot."""
     import zenoh

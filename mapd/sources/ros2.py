@@ -318,13 +318,7 @@ class Ros2Source(MapSource):
         from mapd.ros2.node import Ros2Node
 
         o = self.opts
-        self._session = ros2cdr.open_session(
-            mode=o.mode,
-            connect=o.connect,
-            listen=o.listen,
-            multicast_scouting=o.multicast_scouting,
-            config_file=o.zenoh_config,
-        )
+        self._session = ros2cdr.open_session_for(o)
         history = zext.HistoryConfig(detect_late_publishers=True) if o.history else None
         try:
             self._sub = zext.declare_advanced_subscriber(

@@ -133,13 +133,14 @@ def _tap(net: SimNet, node: int) -> list[bytes]:
     return frames
 
 
+def _data(frames: list[bytes]) -> list[wire.Data]:
+    """The DATA (and DGRAM) frames among ``frames`` (unsigned wire bytes, each with its delimiter)."""
+    parsed = [wire.parse(decode_frame(f[:-1])) for f in frames]
+    return [p for p in parsed if isinstance(p, wire.Data)]
+
+
 def _data_indices(frames: list[bytes]) -> list[int]:
-    out = []
-    for f in frames:
-        frame = wire.parse(decode_frame(f[:-1]))
-        if isinstance(frame, wire.Data):
-            out.append(frame.index)
-    return out
+    return [d.index for d in _data(frames)]
 
 
 def test_outage_resumes_from_what_the_receiver_holds() -> None:
@@ -163,12 +164,7 @@ def test_outage_resumes_from_what_the_receiver_holds() -> None:
 
 
 def _data_streams(frames: list[bytes]) -> list[int]:
-    out = []
-    for f in frames:
-        frame = wire.parse(decode_frame(f[:-1]))
-        if isinstance(frame, wire.Data):
-            out.append(frame.stream)
-    return out
+    return [d.stream for d in _data(frames)]
 
 
 def test_a_background_message_yields_to_maps() -> None:
