@@ -106,7 +106,8 @@ class ForwardingCore:
     #: How long a forwarded (O, v) is not forwarded again: a summary period or two.
     retry_s: float = 30.0
     _heard: dict[int, _Heard] = field(default_factory=dict)
-    _held: dict[int, tuple[int, bytes]] = field(default_factory=dict)
+    _kf: dict[int, tuple[int, bytes]] = field(default_factory=dict)  # origin -> newest keyframe
+    _last: dict[int, tuple[int, int, bytes]] = field(default_factory=dict)  # newest (version, base, data)
     _forwarded: dict[tuple[int, int], float] = field(default_factory=dict)
     _need_since: dict[tuple[int, int, int], float] = field(default_factory=dict)
     _in_flight: bool = False
@@ -120,13 +121,18 @@ class ForwardingCore:
         if src != self.me:
             self._heard[src] = _Heard(summary, now)
 
-    def on_held(self, origin: int, version: int, keyframe: bytes) -> None:
-        """This robot accepted ``origin``'s keyframe ``version`` (the envelope bytes as received)."""
+    def on_held(self, origin: int, version: int, base: int, envelope: bytes) -> None:
+        """This robot accepted ``origin``'s ``version`` (a delta on ``base``, or a keyframe when
+        ``base`` is 0; ``envelope``: the bytes as received, signed by the origin).
+
+        The newest keyframe is kept for neighbours far behind; the newest delta only helps one that
+        holds exactly its base (its summary says so), as a delta costs a fraction of a keyframe."""
         if origin == self.me:
             return  # own maps go out through the publisher, to everyone in range
-        held = self._held.get(origin)
-        if held is None or version > held[0]:
-            self._held[origin] = (version, keyframe)
+        if base == 0 and version > self._kf.get(origin, (0, b""))[0]:
+            self._kf[origin] = (version, envelope)
+        if version > self._last.get(origin, (0, 0, b""))[0]:
+            self._last[origin] = (version, base, envelope)
 
     def on_overheard(self, origin: int, version: int, now: float) -> None:
         """Another robot forwarded ``origin``'s ``version``: do not forward the same one for a while."""
@@ -138,8 +144,8 @@ class ForwardingCore:
 
     # --- outputs --------------------------------------------------------------------------------
     def holds(self) -> dict[int, int]:
-        """Origin -> newest keyframe version held (for this robot's own summary)."""
-        return {o: v for o, (v, _) in self._held.items()}
+        """Origin -> newest version held (for this robot's own summary)."""
+        return {o: v for o, (v, _, _) in self._last.items()}
 
     def next_forward(self, now: float) -> Relay | None:
         """The relay to start now, if any (then it counts as in flight until :meth:`relay_done`)."""
@@ -150,26 +156,23 @@ class ForwardingCore:
         if self._last_start is not None and now < self._last_start + self.relay_period_s:
             self._wake = self._last_start + self.relay_period_s
             return None
-        best: tuple[int, int, int] | None = None  # (-needing, origin, version)
-        best_dests: tuple[int, ...] = ()
-        for origin, (version, _) in self._held.items():
-            sent = self._forwarded.get((origin, version))
-            if sent is not None:
-                continue
-            dests = tuple(n for n in sorted(self._heard) if self._needs(n, origin, version, now))
-            if not dests:
-                continue
-            key = (-len(dests), origin, version)
-            if best is None or key < best:
-                best, best_dests = key, dests
-        if best is None:
+        best: tuple[int, int, int] | None = None  # (-needing, origin, -version)
+        best_relay: Relay | None = None
+        for origin in self._last:
+            for version, base, data in self._candidates(origin):
+                if (origin, version) in self._forwarded:
+                    continue
+                dests = tuple(n for n in sorted(self._heard) if self._needs(n, origin, version, base, now))
+                key = (-len(dests), origin, -version)
+                if dests and (best is None or key < best):
+                    best, best_relay = key, Relay(origin, version, data, dests)
+        if best_relay is None:
             return None
-        _, origin, version = best
         self._in_flight = True
         self._last_start = now
-        self._forwarded[(origin, version)] = now
+        self._forwarded[(best_relay.origin, best_relay.version)] = now
         self.relays_started += 1
-        return Relay(origin, version, self._held[origin][1], best_dests)
+        return best_relay
 
     def next_deadline(self) -> float | None:
         """When to call :meth:`next_forward` again if no input comes first (None: only on new input);
@@ -177,13 +180,23 @@ class ForwardingCore:
         return self._wake
 
     # --- internals ------------------------------------------------------------------------------
-    def _needs(self, n: int, origin: int, version: int, now: float) -> bool:
-        """Neighbour ``n`` lacks ``origin``'s ``version``, does not hear ``origin``, and this robot's
-        turn to serve it has come (lower link ids that could serve it go first)."""
+    def _candidates(self, origin: int) -> list[tuple[int, int, bytes]]:
+        """(version, base, envelope) this robot could forward of ``origin``: newest, newest keyframe."""
+        out = [self._last[origin]]
+        kf = self._kf.get(origin)
+        if kf is not None and kf[0] != out[0][0]:
+            out.append((kf[0], 0, kf[1]))
+        return out
+
+    def _needs(self, n: int, origin: int, version: int, base: int, now: float) -> bool:
+        """Neighbour ``n`` lacks ``origin``'s ``version``, does not hear ``origin``, can use it (a
+        keyframe, or a delta on the version it holds), and this robot's turn to serve it has come
+        (lower link ids that could serve it go first)."""
         if n == origin:
             return False
         s = self._heard[n].summary
-        if s.holds.get(origin, 0) >= version or origin in s.hears:
+        have = s.holds.get(origin, 0)
+        if have >= version or origin in s.hears or (base and have != base):
             return False
         # Neighbours of ours that n hears and that say they hold the version could serve n too; the
         # lowest link id goes first, the others hold off a relay period per rank, and normally hear
@@ -205,6 +218,10 @@ class ForwardingCore:
             del self._heard[src]
         for key in [k for k, t in self._forwarded.items() if now - t >= self.retry_s]:
             del self._forwarded[key]
-        stale = [k for k in self._need_since if k[0] not in self._heard or self._held[k[1]][0] != k[2]]
+        stale = [
+            k
+            for k in self._need_since
+            if k[0] not in self._heard or all(c[0] != k[2] for c in self._candidates(k[1]))
+        ]
         for need in stale:
             del self._need_since[need]  # the neighbour left, or a newer version superseded this one

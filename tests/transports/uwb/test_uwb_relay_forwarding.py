@@ -13,7 +13,7 @@ KF = b"signed keyframe of A v3"
 
 def _core(me: int = B) -> ForwardingCore:
     core = ForwardingCore(me, relay_period_s=10.0, retry_s=30.0)
-    core.on_held(A, 3, KF)
+    core.on_held(A, 3, 0, KF)
     return core
 
 
@@ -60,7 +60,7 @@ def test_lower_link_id_serves_first_the_other_backs_off() -> None:
 
 def test_rate_bound_one_in_flight_and_one_per_period() -> None:
     core = _core()
-    core.on_held(D, 5, b"kf D")
+    core.on_held(D, 5, 0, b"kf D")
     core.on_summary(C, Summary({}, frozenset({B})), 0.0)
     first = core.next_forward(0.0)
     assert first is not None and core.next_forward(0.0) is None  # one in flight
@@ -74,8 +74,8 @@ def test_rate_bound_one_in_flight_and_one_per_period() -> None:
 
 def test_prefers_the_map_missing_at_most_neighbours_and_only_keeps_the_newest() -> None:
     core = _core()
-    core.on_held(A, 2, b"older")  # not newer: ignored
-    core.on_held(D, 5, b"kf D")
+    core.on_held(A, 2, 0, b"older")  # not newer: ignored
+    core.on_held(D, 5, 0, b"kf D")
     core.on_summary(C, Summary({}, frozenset({B})), 0.0)
     core.on_summary(5, Summary({D: 5}, frozenset({B})), 0.0)
     core.on_summary(6, Summary({D: 5}, frozenset({B})), 0.0)
@@ -88,3 +88,64 @@ def test_stale_summaries_are_forgotten() -> None:
     core = _core()
     core.on_summary(C, Summary({}, frozenset({B})), 0.0)
     assert core.next_forward(100.0) is None  # C's summary is older than summary_timeout_s
+
+
+def test_a_delta_goes_only_to_neighbours_holding_its_base_the_keyframe_to_the_others() -> None:
+    core = _core()  # keyframe A v3
+    core.on_held(A, 4, 3, b"delta A v4 on v3")
+    core.on_summary(C, Summary({A: 3}, frozenset({B})), 0.0)
+    core.on_summary(D, Summary({A: 1}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and (r.version, r.data, r.dests) == (4, b"delta A v4 on v3", (C,))
+    core.relay_done()
+    r = core.next_forward(10.0)
+    assert r is not None and (r.version, r.data, r.dests) == (3, KF, (D,))
+
+
+# --- a relayed envelope at the far robot's receiver -----------------------------------------------
+
+
+def test_a_relayed_map_arrives_intact_still_signed_by_its_origin_and_tampering_is_refused() -> None:
+    """robotA and robotC are out of range; robotB holds A's signed keyframe and forwards it as
+    received. C's receiver accepts it from link peer robotB (the signature names A); flipped bits,
+    or a map of "robotA" signed with another key, are refused."""
+    from mapd.daemon.receiver import Decode, Drop, Receiver, open_envelope
+    from mapd.daemon.versions import EPOCH, incarnation_at, make
+    from mapd.envelope import Envelope
+    from mapd.errors import SignatureError
+    from mapd.grid import Pose2D
+    from mapd.identity import Identity, Roster
+
+    now = EPOCH + 1_000_000.0
+    a, b = Identity.generate("robotA"), Identity.generate("robotB")
+    roster = Roster({"robotA": a.public_key, "robotB": b.public_key})
+    version = make(incarnation_at(now - 60), 1)
+
+    def envelope(signer: Identity) -> bytes:
+        e = Envelope(
+            fleet="f", robot="robotA", version=version, base_version=0, codec="raw", width=2, height=1,
+            resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00\x64",
+        )  # fmt: skip
+        return e.signed(signer).pack()
+
+    relay = ForwardingCore(B)
+    relay.on_held(A, version, 0, envelope(a))
+    relay.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    r = relay.next_forward(0.0)
+    assert r is not None and r.dests == (C,)
+    env = open_envelope(r.data, max_bytes=1 << 20, roster=roster)
+    assert env.robot == "robotA" and env.payload == b"\x00\x64"
+    assert Receiver("robotC", "f", roster=roster).plan(env, "robotB", now) == Decode(None)
+
+    tampered = bytearray(r.data)
+    tampered[tampered.index(b"\x00\x64")] ^= 0xFF  # a relay changing a cell
+    with pytest.raises(SignatureError):
+        open_envelope(bytes(tampered), max_bytes=1 << 20, roster=roster)
+    with pytest.raises(SignatureError):  # a third radio's map of "robotA" under its own key
+        open_envelope(envelope(Identity.generate("robotA")), max_bytes=1 << 20, roster=roster)
+    unsigned = Receiver("robotC", "f", roster=Roster({}, allow_unsigned=True))
+    plain = Envelope(
+        fleet="f", robot="robotA", version=version, base_version=0, codec="raw", width=2, height=1,
+        resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00\x64",
+    )  # fmt: skip
+    assert isinstance(unsigned.plan(plain, "robotB", now), Drop)  # unsigned fleets: the link is all
