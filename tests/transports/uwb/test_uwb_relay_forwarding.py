@@ -3,6 +3,8 @@ and does not hear its origin, not when it hears it, suppression, backoff and the
 
 from __future__ import annotations
 
+import asyncio
+
 import pytest
 
 from transports.uwb.forwarding import ForwardingCore, Summary, pack_summary, unpack_summary
@@ -149,3 +151,55 @@ def test_a_relayed_map_arrives_intact_still_signed_by_its_origin_and_tampering_i
         resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00\x64",
     )  # fmt: skip
     assert isinstance(unsigned.plan(plain, "robotB", now), Drop)  # unsigned fleets: the link is all
+
+
+# --- the UwbTransport adapter (link.py + relaying.py) ----------------------------------------------
+
+
+def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_stream() -> None:
+    """Robot b (link id 2) hears a (1) and c (3); c's summary says it lacks a's map and does not hear
+    a: the map the daemon accepted goes to c unaltered, on a's map stream. Unsigned fleets: no relay."""
+    from types import SimpleNamespace
+    from typing import Any
+
+    from mapd.envelope import Envelope
+    from mapd.grid import Pose2D
+    from mapd.identity import Identity, Roster
+    from transports.base import TransportContext
+    from transports.uwb import arq
+    from transports.uwb.forwarding import SUMMARY_STREAM
+    from transports.uwb.link import POSE_STREAM, UwbOptions, UwbTransport
+
+    ida = Identity.generate("a")
+    roster = Roster({"a": ida.public_key})
+    opts = UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, summary_period_s=0.05, relay_period_s=0.01)
+    sent: list[tuple[bytes, list[int], int]] = []
+
+    def send(data: bytes, dests: list[int], *, stream: int, **kw: Any) -> int:
+        sent.append((data, dests, stream))
+        return len(sent)
+
+    async def scenario() -> UwbTransport:
+        t = UwbTransport(opts, TransportContext("b", "f", 1 << 20, lambda e: None, roster=roster))
+        t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [1, 3]), send=send, stats=dict)  # type: ignore[assignment]
+        assert t._relay is not None
+        t._relay.start(send, lambda: [1, 3], t._dests)
+        env = Envelope(
+            fleet="f", robot="a", version=7, base_version=0, codec="raw", width=1, height=1,
+            resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00",
+        ).signed(ida)  # fmt: skip
+        data = env.pack()
+        t.held(env, data)
+        t._on_event(arq.MessageReceived(3, SUMMARY_STREAM, 9, pack_summary(Summary({}, frozenset({2})))))
+        await asyncio.sleep(0.2)
+        assert (data, [3], t._stream("a")) in sent
+        summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
+        assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
+        await t._relay.close()
+        assert t.stats()["relays_tx"] == 1
+        return t
+
+    t = asyncio.run(scenario())
+    assert all(s < SUMMARY_STREAM for s in t._streams.values()) and SUMMARY_STREAM < POSE_STREAM
+    unsigned = TransportContext("b", "f", 1 << 20, lambda e: None, roster=Roster({}, allow_unsigned=True))
+    assert UwbTransport(opts, unsigned)._relay is None
