@@ -187,6 +187,11 @@ class Transport(ABC):
         this default, which does nothing.
         """
 
+    def held(self, envelope: Envelope, data: bytes) -> None:  # noqa: B027 - optional hook
+        """The daemon accepted ``envelope`` of another robot (``data``: its bytes as received, on
+        any transport). A link that relays maps (``uwb``) may forward them unaltered; the default
+        does nothing."""
+
     def peers(self) -> list[str]:
         """Peers this transport currently sees."""
         return []

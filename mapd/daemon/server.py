@@ -535,6 +535,8 @@ class Daemon:
         self.sinks.robot_map(grid)
         if transport is not None:
             transport.ack(env.robot, env.version)
+        for t in self.transports:
+            t.held(env, ev.data)  # a relaying link may forward it, still signed by its robot
 
     # ------------------------------------------------------------------ status
     def snapshot(self) -> dict[str, Any]:

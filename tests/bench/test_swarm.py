@@ -145,6 +145,21 @@ def test_relay_hook_carries_maps_over_two_hops(tmp_path: Path) -> None:
     assert (2, 0) in {(a[1], a[2]) for a in log}  # robot 2 got robot 0's map through robot 1
 
 
+@pytest.mark.parametrize("relay", ["none", "summary"])
+def test_summary_relay_carries_every_version_over_two_hops(tmp_path: Path, relay: str) -> None:
+    """Robots 0 and 2 are out of range, 1 hears both: with the relay core, 1 forwards their maps
+    (from the neighbours' summaries) until each holds the other's newest version; without, never."""
+    fleet = _fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
+    row = _run(fleet, tmp_path, range_m=50.0, relay=relay, acks="up", drain=200.0)
+    got = {(a[1], a[2]): a[3] for a in row["accepted_log"]}  # newest version accepted per pair
+    if relay == "none":
+        assert (2, 0) not in got and (0, 2) not in got
+        assert row["converge_s"] == math.inf
+    else:
+        assert got[(2, 0)] == got[(0, 2)] == 3  # the newest version, over two hops
+        assert math.isfinite(row["converge_s"])
+
+
 def test_runs_are_deterministic_for_a_seed(tmp_path: Path) -> None:
     fleet = _fleet([(0.0, 0.0), (5.0, 0.0), (10.0, 0.0), (15.0, 0.0)])
     a = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=3)

@@ -41,15 +41,16 @@ from transports.base import (
     TransportContext,
     TransportOptions,
 )
-from transports.uwb import arq
+from transports.uwb import arq, forwarding
 from transports.uwb import keyframe_requests as control
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.pacing import SLOT_FRAMES, ByteWindow
+from transports.uwb.relaying import RelayDriver
 from transports.uwb.sending import HASH_LEN
 from transports.uwb.signing import CounterStore, clock_floor
 from transports.uwb.wire import MAX_TOTAL
 
-#: The stream robot poses travel on (255 is control; maps use 0..253).
+#: The stream robot poses travel on (255 is control, 253 relay summaries; maps use 0..252).
 POSE_STREAM = 254
 #: The largest map a uwb link carries: what a DATA frame's 24-bit size field describes.
 MAX_MESSAGE = MAX_TOTAL - HASH_LEN
@@ -113,6 +114,15 @@ class UwbOptions(TransportOptions):
     keyframe_request_s: float = Field(
         default=5.0, gt=0, description="ask a robot for a whole map at most this often"
     )
+    relay: bool = Field(
+        default=True,
+        description="forward peers' signed maps to neighbours that lack them and do not hear their "
+        "robot (multi-hop; signed fleets only)",
+    )
+    summary_period_s: float = Field(
+        default=15.0, gt=0, description="relay: broadcast which versions this robot holds this often"
+    )
+    relay_period_s: float = Field(default=5.0, gt=0, description="relay: start at most one relay this often")
 
     @model_validator(mode="after")
     def _check(self) -> UwbOptions:
@@ -424,6 +434,15 @@ class UwbTransport(Transport):
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
         self._poses = PoseThrottle(opts.pose_period_s)
         self.control_counters = control.ControlCounters()
+        # Multi-hop relay: only in signed fleets, where a relayed map proves its robot by signature.
+        self._relay: RelayDriver | None = None
+        if opts.relay and not ctx.roster.allow_unsigned:
+            self._relay = RelayDriver(
+                node,
+                summary_period_s=opts.summary_period_s,
+                relay_period_s=opts.relay_period_s,
+                stream_of=lambda origin: self._stream(self._name(origin)),
+            )
 
     def _name(self, link_id: int) -> str:
         return self._names.get(link_id, f"uwb-{link_id}")
@@ -431,8 +450,10 @@ class UwbTransport(Transport):
     def _stream(self, robot: str) -> int:
         if robot not in self._streams:
             n = len(self._streams)
-            # Stream 255 carries control messages (keyframe requests), 254 poses, maps 0..253.
-            self._streams[robot] = n if n < POSE_STREAM else zlib.crc32(robot.encode()) % POSE_STREAM
+            # Stream 255 carries control messages (keyframe requests), 254 poses, 253 relay summaries,
+            # maps 0..252.
+            top = forwarding.SUMMARY_STREAM
+            self._streams[robot] = n if n < top else zlib.crc32(robot.encode()) % top
         return self._streams[robot]
 
     def _config(self, loop: asyncio.AbstractEventLoop) -> arq.ArqConfig:
@@ -475,10 +496,27 @@ class UwbTransport(Transport):
             reopen_s=self.opts.reopen_s,
         )
         await self._link.start()
+        if self._relay is not None:
+            link = self._link
+            self._relay.start(link.send, lambda: link.core.peers_up() if link.core else [], self._dests)
 
     async def close(self) -> None:
+        if self._relay is not None:
+            await self._relay.close()
         if self._link is not None:
             await self._link.close()
+
+    def _dests(self) -> list[int]:
+        link = self._link
+        if link is None or link.core is None:
+            return []
+        return self.peer_ids or link.core.peers_up()
+
+    def held(self, envelope: Envelope, data: bytes) -> None:
+        """The daemon accepted ``envelope`` (``data``: its bytes as received): a map to relay."""
+        origin = self.opts.nodes.get(envelope.robot)
+        if self._relay is not None and origin is not None and envelope.sig:
+            self._relay.held(origin, envelope.version, envelope.base_version, data)
 
     def offer(self, envelope: Envelope) -> None:
         link = self._link
@@ -549,6 +587,8 @@ class UwbTransport(Transport):
         out = self._link.stats() if self._link is not None else {}
         out["node_id"] = self.node_id
         out.update(dataclasses.asdict(self.control_counters))
+        if self._relay is not None:
+            out.update(self._relay.stats())
         return out
 
     def _on_event(self, e: arq.Event) -> None:
@@ -558,6 +598,9 @@ class UwbTransport(Transport):
                 self._on_control(e)
             elif e.stream == POSE_STREAM:
                 emit(PoseReceived("uwb", self._name(e.src), e.data))
+            elif e.stream == forwarding.SUMMARY_STREAM:
+                if self._relay is not None:
+                    self._relay.summary(e.src, e.data, time.monotonic())
             else:
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
@@ -570,6 +613,8 @@ class UwbTransport(Transport):
                 emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
         elif isinstance(e, arq.MessageClosed):
             self._msgs.pop(e.msg, None)
+            if self._relay is not None:
+                self._relay.closed(e.msg)
         elif isinstance(e, arq.PeerUp):
             emit(PeerUp("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerDown):

@@ -127,6 +127,8 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "lost": c.lost,
         "collided_share": (c.collided + c.deaf) / pairs if pairs else 0.0,
         "kf_requests": sum(rb.kf_requests for rb in res.robots),
+        "relayed": sum(rb.relayed for rb in res.robots),  # relays started (flood or summary)
+        "summaries": sum(rb.summaries for rb in res.robots),
         "resends": sum(rb.arq.counters.resends for rb in res.robots),
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
         "messages_delivered": sum(rb.arq.counters.messages_delivered for rb in res.robots),

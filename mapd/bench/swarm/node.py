@@ -24,18 +24,19 @@ real envelope, and the receiver learns what it got without decoding.
 
 from __future__ import annotations
 
+import random
 import struct
 from collections.abc import Callable
 
 import numpy as np
 
-from mapd.bench.swarm.policy import AckScope, RelayPolicy
+from mapd.bench.swarm.policy import AckScope, RelayPolicy, SummaryRelay
 from mapd.bench.swarm.streams import Payloads, RobotStream
 from mapd.daemon.publisher import INFLIGHT_TIMEOUT_S, PublisherCore
 from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D
-from transports.uwb import arq
+from transports.uwb import arq, forwarding
 from transports.uwb import keyframe_requests as control
 
 _TAG = struct.Struct("<HII")  # origin link id, version, base version (0: keyframe)
@@ -87,6 +88,18 @@ class SwarmRobot:
         self.deltas = 0
         self.kf_requests = 0
         self.relayed = 0
+        self.summaries = 0
+        # The summary relay: the real forwarding core, summaries on their own stream at a random phase.
+        self.fwd: forwarding.ForwardingCore | None = None
+        self._summary_period = 0.0
+        self._next_summary = 0.0
+        self._relay_msg: int | None = None
+        if isinstance(relay, SummaryRelay):
+            p = self._summary_period = relay.summary_period_s
+            self.fwd = forwarding.ForwardingCore(
+                self.id, relay_period_s=relay.relay_period_s, summary_timeout_s=3 * p, retry_s=2 * p
+            )
+            self._next_summary = random.Random(seed).uniform(0.0, p)
 
     # --- inputs ---------------------------------------------------------------------------------
     def new_version(self, version: int, now: float) -> None:
@@ -108,6 +121,8 @@ class SwarmRobot:
         if d is not None and d <= now:
             self._poll(now)
         self._events(now)
+        if self.fwd is not None:
+            self._forward(now)
         c = self.arq.counters
         while radio_free <= now:
             before = (c.acks_tx, c.hellos_tx)
@@ -121,6 +136,11 @@ class SwarmRobot:
 
     def next_wake(self) -> float | None:
         times = [t for t in (self.arq.get_timer(), self.pub.next_deadline()) if t is not None]
+        if self.fwd is not None:
+            times.append(self._next_summary)
+            d = self.fwd.next_deadline()
+            if d is not None:
+                times.append(d)
         return min(times) if times else None
 
     # --- internals ------------------------------------------------------------------------------
@@ -128,6 +148,22 @@ class SwarmRobot:
         upto = self.arq.counter_reservation()
         if upto is not None:
             self.arq.confirm_counter(upto)
+
+    def _forward(self, now: float) -> None:
+        """Send a due summary, then start the relay the forwarding core picks, if any."""
+        assert self.fwd is not None
+        if now >= self._next_summary:
+            self._next_summary = now + self._summary_period
+            s = forwarding.Summary(self.fwd.holds(), frozenset(self.arq.peers_up()))
+            self.arq.send(
+                forwarding.pack_summary(s), now, dests=self.configured, stream=forwarding.SUMMARY_STREAM,
+                deadline=now + self._summary_period, background=True, reliable=False,
+            )  # fmt: skip
+            self.summaries += 1
+        r = self.fwd.next_forward(now)
+        if r is not None:
+            self._relay_msg = self.arq.send(r.data, now, dests=list(r.dests), stream=r.origin)
+            self.relayed += 1
 
     def _peers(self) -> dict[str, list[str]]:
         return {"uwb": [str(p) for p in self.arq.peers_up()]}
@@ -166,7 +202,10 @@ class SwarmRobot:
     def _events(self, now: float) -> None:
         for e in self.arq.events():
             if isinstance(e, arq.MessageReceived):
-                if e.stream == control.CONTROL_STREAM:
+                if e.stream == forwarding.SUMMARY_STREAM:
+                    if self.fwd is not None:
+                        self.fwd.on_summary(e.src, forwarding.unpack_summary(e.data), now)
+                elif e.stream == control.CONTROL_STREAM:
                     if self.pub.keyframe_needed(str(e.src)):
                         self._poll(now)
                 else:
@@ -183,12 +222,17 @@ class SwarmRobot:
                     self._poll(now)
             elif isinstance(e, arq.MessageClosed):
                 self._own_msgs.pop(e.msg, None)
+                if e.msg == self._relay_msg and self.fwd is not None:
+                    self._relay_msg = None
+                    self.fwd.relay_done()
 
     def _on_map(self, src: int, data: bytes, now: float) -> None:
         origin_id, version, base = _TAG.unpack_from(data)
         origin = origin_id - 1
         if origin == self.index or not 0 <= origin < len(self.streams):
             return
+        if self.fwd is not None and src != origin_id:
+            self.fwd.on_overheard(origin_id, version, now)  # another robot forwarded it: do not repeat
         held = self.held.setdefault(origin, [])
         if held and version <= held[-1]:
             return  # old or duplicate
@@ -203,6 +247,8 @@ class SwarmRobot:
         held.append(version)
         del held[:-KEEP_PEER_VERSIONS]
         self.accepted.append((now, self.index, origin, version))
+        if self.fwd is not None:
+            self.fwd.on_held(origin_id, version, base, data)  # the bytes as received: still the origin's
         fwd = self.relay.on_accept(self.id, origin_id, version, src, now, self.arq.peers_up())
         if fwd is not None and fwd.dests:
             size = self.payloads.size(self.streams[origin], version, 0)

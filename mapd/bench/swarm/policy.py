@@ -67,6 +67,22 @@ class FloodRelay:
         return Forward(origin, version, dests) if dests else None
 
 
+class SummaryRelay:
+    """The UWB relay (:mod:`transports.uwb.forwarding`): robots broadcast summaries of who holds which
+    version every ``summary_period_s`` and forward held maps, unaltered, to neighbours that lack them
+    and do not hear their origin, at most one per ``relay_period_s``. The robot adapter drives the
+    real :class:`~transports.uwb.forwarding.ForwardingCore`; this hook only marks the choice."""
+
+    name = "summary"
+    summary_period_s = 10.0
+    relay_period_s = 2.0
+
+    def on_accept(
+        self, holder: int, origin: int, version: int, src: int, now: float, peers_up: list[int]
+    ) -> Forward | None:
+        return None  # the forwarding core decides, from summaries, not on each accept
+
+
 class AckScope(Protocol):
     name: str
 
@@ -93,5 +109,9 @@ class PeersUp:
         return peers_up
 
 
-RELAYS: dict[str, type[NoRelay] | type[FloodRelay]] = {"none": NoRelay, "flood": FloodRelay}
+RELAYS: dict[str, type[NoRelay] | type[FloodRelay] | type[SummaryRelay]] = {
+    "none": NoRelay,
+    "flood": FloodRelay,
+    "summary": SummaryRelay,
+}
 ACK_SCOPES: dict[str, type[ConfiguredPeers] | type[PeersUp]] = {"configured": ConfiguredPeers, "up": PeersUp}

@@ -104,7 +104,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--relay",
         default="none",
-        choices=["none", "flood"],
+        choices=["none", "flood", "summary"],
         help="relay policy hook (default none: today's daemon)",
     )
     p.add_argument(

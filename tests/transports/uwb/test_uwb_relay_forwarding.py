@@ -1,0 +1,205 @@
+"""The relay core's decisions (transports/uwb/forwarding.py): forward when a neighbour lacks a map
+and does not hear its origin, not when it hears it, suppression, backoff and the rate bound."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from transports.uwb.forwarding import ForwardingCore, Summary, pack_summary, unpack_summary
+
+A, B, C, D = 1, 2, 3, 4
+KF = b"signed keyframe of A v3"
+
+
+def _core(me: int = B) -> ForwardingCore:
+    core = ForwardingCore(me, relay_period_s=10.0, retry_s=30.0)
+    core.on_held(A, 3, 0, KF)
+    return core
+
+
+def test_summary_round_trip_and_malformed() -> None:
+    s = Summary({1: 7, 9: 2**32 - 1}, frozenset({2, 3}))
+    assert unpack_summary(pack_summary(s)) == s
+    with pytest.raises(ValueError):
+        unpack_summary(pack_summary(s)[:-1])
+    with pytest.raises(ValueError):
+        unpack_summary(pack_summary(s) + b"x")
+
+
+def test_forwards_to_a_neighbour_that_lacks_and_does_not_hear_the_origin() -> None:
+    core = _core()
+    core.on_summary(C, Summary({A: 1}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and (r.origin, r.version, r.data, r.dests) == (A, 3, KF, (C,))
+
+
+def test_no_forward_when_the_neighbour_hears_the_origin_or_holds_the_version() -> None:
+    core = _core()
+    core.on_summary(C, Summary({}, frozenset({A, B})), 0.0)  # A's own publisher serves C
+    core.on_summary(D, Summary({A: 3}, frozenset({B})), 0.0)  # D has it already
+    core.on_summary(A, Summary({}, frozenset({B})), 0.0)  # never back to the origin
+    assert core.next_forward(0.0) is None
+
+
+def test_overheard_forward_suppresses_and_expires() -> None:
+    core = _core()
+    core.on_summary(C, Summary({}, frozenset({B, D})), 0.0)
+    core.on_overheard(A, 3, 0.0)
+    assert core.next_forward(1.0) is None
+    core.on_summary(C, Summary({}, frozenset({B, D})), 30.0)  # still lacks it after retry_s
+    assert core.next_forward(30.0) is not None
+
+
+def test_lower_link_id_serves_first_the_other_backs_off() -> None:
+    core = _core(me=D)  # B (lower id) also holds A v3 and C hears B: D waits a relay period
+    core.on_summary(B, Summary({A: 3}, frozenset({C, D})), 0.0)
+    core.on_summary(C, Summary({}, frozenset({B, D})), 0.0)
+    assert core.next_forward(0.0) is None and core.next_deadline() == 10.0
+    assert core.next_forward(10.0) is not None  # B did not serve C in its turn: D does
+
+
+def test_rate_bound_one_in_flight_and_one_per_period() -> None:
+    core = _core()
+    core.on_held(D, 5, 0, b"kf D")
+    core.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    first = core.next_forward(0.0)
+    assert first is not None and core.next_forward(0.0) is None  # one in flight
+    core.relay_done()
+    assert core.next_forward(5.0) is None and core.next_deadline() == 10.0  # one per relay_period_s
+    second = core.next_forward(10.0)
+    assert second is not None and second.origin != first.origin
+    core.relay_done()
+    assert core.next_forward(25.0) is None  # both forwarded: nothing until retry_s or a new version
+
+
+def test_prefers_the_map_missing_at_most_neighbours_and_only_keeps_the_newest() -> None:
+    core = _core()
+    core.on_held(A, 2, 0, b"older")  # not newer: ignored
+    core.on_held(D, 5, 0, b"kf D")
+    core.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    core.on_summary(5, Summary({D: 5}, frozenset({B})), 0.0)
+    core.on_summary(6, Summary({D: 5}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and r.origin == A and r.data == KF and r.dests == (C, 5, 6)
+    assert core.holds() == {A: 3, D: 5}
+
+
+def test_stale_summaries_are_forgotten() -> None:
+    core = _core()
+    core.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    assert core.next_forward(100.0) is None  # C's summary is older than summary_timeout_s
+
+
+def test_a_delta_goes_only_to_neighbours_holding_its_base_the_keyframe_to_the_others() -> None:
+    core = _core()  # keyframe A v3
+    core.on_held(A, 4, 3, b"delta A v4 on v3")
+    core.on_summary(C, Summary({A: 3}, frozenset({B})), 0.0)
+    core.on_summary(D, Summary({A: 1}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and (r.version, r.data, r.dests) == (4, b"delta A v4 on v3", (C,))
+    core.relay_done()
+    r = core.next_forward(10.0)
+    assert r is not None and (r.version, r.data, r.dests) == (3, KF, (D,))
+
+
+# --- a relayed envelope at the far robot's receiver -----------------------------------------------
+
+
+def test_a_relayed_map_arrives_intact_still_signed_by_its_origin_and_tampering_is_refused() -> None:
+    """robotA and robotC are out of range; robotB holds A's signed keyframe and forwards it as
+    received. C's receiver accepts it from link peer robotB (the signature names A); flipped bits,
+    or a map of "robotA" signed with another key, are refused."""
+    from mapd.daemon.receiver import Decode, Drop, Receiver, open_envelope
+    from mapd.daemon.versions import EPOCH, incarnation_at, make
+    from mapd.envelope import Envelope
+    from mapd.errors import SignatureError
+    from mapd.grid import Pose2D
+    from mapd.identity import Identity, Roster
+
+    now = EPOCH + 1_000_000.0
+    a, b = Identity.generate("robotA"), Identity.generate("robotB")
+    roster = Roster({"robotA": a.public_key, "robotB": b.public_key})
+    version = make(incarnation_at(now - 60), 1)
+
+    def envelope(signer: Identity) -> bytes:
+        e = Envelope(
+            fleet="f", robot="robotA", version=version, base_version=0, codec="raw", width=2, height=1,
+            resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00\x64",
+        )  # fmt: skip
+        return e.signed(signer).pack()
+
+    relay = ForwardingCore(B)
+    relay.on_held(A, version, 0, envelope(a))
+    relay.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    r = relay.next_forward(0.0)
+    assert r is not None and r.dests == (C,)
+    env = open_envelope(r.data, max_bytes=1 << 20, roster=roster)
+    assert env.robot == "robotA" and env.payload == b"\x00\x64"
+    assert Receiver("robotC", "f", roster=roster).plan(env, "robotB", now) == Decode(None)
+
+    tampered = bytearray(r.data)
+    tampered[tampered.index(b"\x00\x64")] ^= 0xFF  # a relay changing a cell
+    with pytest.raises(SignatureError):
+        open_envelope(bytes(tampered), max_bytes=1 << 20, roster=roster)
+    with pytest.raises(SignatureError):  # a third radio's map of "robotA" under its own key
+        open_envelope(envelope(Identity.generate("robotA")), max_bytes=1 << 20, roster=roster)
+    unsigned = Receiver("robotC", "f", roster=Roster({}, allow_unsigned=True))
+    plain = Envelope(
+        fleet="f", robot="robotA", version=version, base_version=0, codec="raw", width=2, height=1,
+        resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00\x64",
+    )  # fmt: skip
+    assert isinstance(unsigned.plan(plain, "robotB", now), Drop)  # unsigned fleets: the link is all
+
+
+# --- the UwbTransport adapter (link.py + relaying.py) ----------------------------------------------
+
+
+def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_stream() -> None:
+    """Robot b (link id 2) hears a (1) and c (3); c's summary says it lacks a's map and does not hear
+    a: the map the daemon accepted goes to c unaltered, on a's map stream. Unsigned fleets: no relay."""
+    from types import SimpleNamespace
+    from typing import Any
+
+    from mapd.envelope import Envelope
+    from mapd.grid import Pose2D
+    from mapd.identity import Identity, Roster
+    from transports.base import TransportContext
+    from transports.uwb import arq
+    from transports.uwb.forwarding import SUMMARY_STREAM
+    from transports.uwb.link import POSE_STREAM, UwbOptions, UwbTransport
+
+    ida = Identity.generate("a")
+    roster = Roster({"a": ida.public_key})
+    opts = UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, summary_period_s=0.05, relay_period_s=0.01)
+    sent: list[tuple[bytes, list[int], int]] = []
+
+    def send(data: bytes, dests: list[int], *, stream: int, **kw: Any) -> int:
+        sent.append((data, dests, stream))
+        return len(sent)
+
+    async def scenario() -> UwbTransport:
+        t = UwbTransport(opts, TransportContext("b", "f", 1 << 20, lambda e: None, roster=roster))
+        t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [1, 3]), send=send, stats=dict)  # type: ignore[assignment]
+        assert t._relay is not None
+        t._relay.start(send, lambda: [1, 3], t._dests)
+        env = Envelope(
+            fleet="f", robot="a", version=7, base_version=0, codec="raw", width=1, height=1,
+            resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00",
+        ).signed(ida)  # fmt: skip
+        data = env.pack()
+        t.held(env, data)
+        t._on_event(arq.MessageReceived(3, SUMMARY_STREAM, 9, pack_summary(Summary({}, frozenset({2})))))
+        await asyncio.sleep(0.2)
+        assert (data, [3], t._stream("a")) in sent
+        summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
+        assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
+        await t._relay.close()
+        assert t.stats()["relays_tx"] == 1
+        return t
+
+    t = asyncio.run(scenario())
+    assert all(s < SUMMARY_STREAM for s in t._streams.values()) and SUMMARY_STREAM < POSE_STREAM
+    unsigned = TransportContext("b", "f", 1 << 20, lambda e: None, roster=Roster({}, allow_unsigned=True))
+    assert UwbTransport(opts, unsigned)._relay is None

@@ -1,0 +1,227 @@
+"""Sans-I/O multi-hop relay for the UWB channel: which held map to forward next, to whom, and when.
+
+No robot hears every other in a building, so a map reaches robots two or more hops from its origin
+only if a robot in between forwards it. This core decides that forwarding from cheap *summaries*:
+every robot broadcasts, now and then, the newest version it holds of each origin and the link ids it
+hears directly (:func:`pack_summary`). A robot forwards origin ``O``'s version ``v`` it holds when a
+neighbour ``N`` (a robot whose summary it heard lately) holds less than ``v`` of ``O`` and does not
+hear ``O`` itself: were ``N`` to hear ``O``, ``O``'s own publisher would serve it.
+
+What is forwarded is the origin's envelope exactly as received (keyframes only: a delta needs a base
+the far robot may lack), so it is still signed by its origin and a relay cannot alter it; the
+receiver checks the signature as for a direct map.
+
+Bounds, so relays never flood the channel:
+
+* at most one relay in flight per robot, and one started per ``relay_period_s``;
+* a forwarded (or overheard forwarded) ``(O, v)`` is not forwarded again for ``retry_s``, the time a
+  neighbour's next summary needs to show whether it arrived;
+* of several neighbours that could serve the same ``N``, the one with the lowest link id goes first;
+  the others hold off ``rank * relay_period_s`` and, hearing its forward, suppress their own.
+
+Summaries ride on frames HMAC'd with the fleet link key, so only a key holder can send one; a lying
+one can at worst cause bounded extra relays (claiming to lack a map) or a missed relay (claiming to
+hold one), never a forged map: the map itself carries its origin's Ed25519 signature.
+
+The core keeps no clock: every input takes ``now`` and :meth:`ForwardingCore.next_deadline` says
+when to call :meth:`ForwardingCore.next_forward` again.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+#: The stream summaries ride on (unreliable, background; maps use 0..252, 254 poses, 255 control).
+SUMMARY_STREAM = 253
+_COUNT = struct.Struct("<B")
+_HOLD = struct.Struct("<BI")  # origin link id, newest version held
+_HEAR = struct.Struct("<B")
+
+
+@dataclass(frozen=True)
+class Summary:
+    """What a robot says it holds (origin link id -> newest version) and whom it hears directly."""
+
+    holds: dict[int, int]
+    hears: frozenset[int]
+
+
+def pack_summary(summary: Summary) -> bytes:
+    """The wire form: count, (origin, version)*, count, link id* (at most 255 of each)."""
+    holds = sorted(summary.holds.items())[:255]
+    hears = sorted(summary.hears)[:255]
+    out = [_COUNT.pack(len(holds))]
+    out += [_HOLD.pack(o, v & 0xFFFFFFFF) for o, v in holds]
+    out.append(_COUNT.pack(len(hears)))
+    out += [_HEAR.pack(h) for h in hears]
+    return b"".join(out)
+
+
+def unpack_summary(data: bytes) -> Summary:
+    """Parse :func:`pack_summary`'s bytes; ValueError when they are malformed."""
+    try:
+        (n,) = _COUNT.unpack_from(data, 0)
+        off = _COUNT.size
+        holds: dict[int, int] = {}
+        for _ in range(n):
+            o, v = _HOLD.unpack_from(data, off)
+            holds[o] = v
+            off += _HOLD.size
+        (m,) = _COUNT.unpack_from(data, off)
+        off += _COUNT.size
+        hears = frozenset(_HEAR.unpack_from(data, off + i)[0] for i in range(m))
+        off += m * _HEAR.size
+    except struct.error as exc:
+        raise ValueError(f"truncated summary: {exc}") from None
+    if off != len(data):
+        raise ValueError("trailing bytes after a summary")
+    return Summary(holds, hears)
+
+
+@dataclass(frozen=True)
+class Relay:
+    """Forward ``data`` (origin ``origin``'s keyframe envelope of ``version``, as received) to ``dests``."""
+
+    origin: int
+    version: int
+    data: bytes
+    dests: tuple[int, ...]
+
+
+@dataclass
+class _Heard:
+    summary: Summary
+    at: float
+
+
+@dataclass
+class ForwardingCore:
+    """Robot ``me``'s relay decisions (link ids throughout)."""
+
+    me: int
+    relay_period_s: float = 10.0
+    #: A neighbour's summary older than this is forgotten (it moved away or went quiet).
+    summary_timeout_s: float = 45.0
+    #: How long a forwarded (O, v) is not forwarded again: a summary period or two.
+    retry_s: float = 30.0
+    _heard: dict[int, _Heard] = field(default_factory=dict)
+    _kf: dict[int, tuple[int, bytes]] = field(default_factory=dict)  # origin -> newest keyframe
+    _last: dict[int, tuple[int, int, bytes]] = field(default_factory=dict)  # newest (version, base, data)
+    _forwarded: dict[tuple[int, int], float] = field(default_factory=dict)
+    _need_since: dict[tuple[int, int, int], float] = field(default_factory=dict)
+    _in_flight: bool = False
+    _last_start: float | None = None
+    _wake: float | None = None
+    relays_started: int = 0
+
+    # --- inputs ---------------------------------------------------------------------------------
+    def on_summary(self, src: int, summary: Summary, now: float) -> None:
+        """A neighbour's summary arrived (``src`` is heard directly: it is a neighbour)."""
+        if src != self.me:
+            self._heard[src] = _Heard(summary, now)
+
+    def on_held(self, origin: int, version: int, base: int, envelope: bytes) -> None:
+        """This robot accepted ``origin``'s ``version`` (a delta on ``base``, or a keyframe when
+        ``base`` is 0; ``envelope``: the bytes as received, signed by the origin).
+
+        The newest keyframe is kept for neighbours far behind; the newest delta only helps one that
+        holds exactly its base (its summary says so), as a delta costs a fraction of a keyframe."""
+        if origin == self.me:
+            return  # own maps go out through the publisher, to everyone in range
+        if base == 0 and version > self._kf.get(origin, (0, b""))[0]:
+            self._kf[origin] = (version, envelope)
+        if version > self._last.get(origin, (0, 0, b""))[0]:
+            self._last[origin] = (version, base, envelope)
+
+    def on_overheard(self, origin: int, version: int, now: float) -> None:
+        """Another robot forwarded ``origin``'s ``version``: do not forward the same one for a while."""
+        self._forwarded[(origin, version)] = now
+
+    def relay_done(self) -> None:
+        """The relay in flight was delivered, failed or closed: another may start."""
+        self._in_flight = False
+
+    # --- outputs --------------------------------------------------------------------------------
+    def holds(self) -> dict[int, int]:
+        """Origin -> newest version held (for this robot's own summary)."""
+        return {o: v for o, (v, _, _) in self._last.items()}
+
+    def next_forward(self, now: float) -> Relay | None:
+        """The relay to start now, if any (then it counts as in flight until :meth:`relay_done`)."""
+        self._expire(now)
+        self._wake = None
+        if self._in_flight:
+            return None
+        if self._last_start is not None and now < self._last_start + self.relay_period_s:
+            self._wake = self._last_start + self.relay_period_s
+            return None
+        best: tuple[int, int, int] | None = None  # (-needing, origin, -version)
+        best_relay: Relay | None = None
+        for origin in self._last:
+            for version, base, data in self._candidates(origin):
+                if (origin, version) in self._forwarded:
+                    continue
+                dests = tuple(n for n in sorted(self._heard) if self._needs(n, origin, version, base, now))
+                key = (-len(dests), origin, -version)
+                if dests and (best is None or key < best):
+                    best, best_relay = key, Relay(origin, version, data, dests)
+        if best_relay is None:
+            return None
+        self._in_flight = True
+        self._last_start = now
+        self._forwarded[(best_relay.origin, best_relay.version)] = now
+        self.relays_started += 1
+        return best_relay
+
+    def next_deadline(self) -> float | None:
+        """When to call :meth:`next_forward` again if no input comes first (None: only on new input);
+        as of the last :meth:`next_forward` call."""
+        return self._wake
+
+    # --- internals ------------------------------------------------------------------------------
+    def _candidates(self, origin: int) -> list[tuple[int, int, bytes]]:
+        """(version, base, envelope) this robot could forward of ``origin``: newest, newest keyframe."""
+        out = [self._last[origin]]
+        kf = self._kf.get(origin)
+        if kf is not None and kf[0] != out[0][0]:
+            out.append((kf[0], 0, kf[1]))
+        return out
+
+    def _needs(self, n: int, origin: int, version: int, base: int, now: float) -> bool:
+        """Neighbour ``n`` lacks ``origin``'s ``version``, does not hear ``origin``, can use it (a
+        keyframe, or a delta on the version it holds), and this robot's turn to serve it has come
+        (lower link ids that could serve it go first)."""
+        if n == origin:
+            return False
+        s = self._heard[n].summary
+        have = s.holds.get(origin, 0)
+        if have >= version or origin in s.hears or (base and have != base):
+            return False
+        # Neighbours of ours that n hears and that say they hold the version could serve n too; the
+        # lowest link id goes first, the others hold off a relay period per rank, and normally hear
+        # its forward (on_overheard) or n's next summary before their turn.
+        rank = sum(
+            1
+            for r, h in self._heard.items()
+            if r < self.me and r in s.hears and h.summary.holds.get(origin, 0) >= version
+        )
+        since = self._need_since.setdefault((n, origin, version), now)
+        turn = since + rank * self.relay_period_s
+        if now >= turn:
+            return True
+        self._wake = turn if self._wake is None else min(self._wake, turn)
+        return False
+
+    def _expire(self, now: float) -> None:
+        for src in [s for s, h in self._heard.items() if now - h.at > self.summary_timeout_s]:
+            del self._heard[src]
+        for key in [k for k, t in self._forwarded.items() if now - t >= self.retry_s]:
+            del self._forwarded[key]
+        stale = [
+            k
+            for k in self._need_since
+            if k[0] not in self._heard or all(c[0] != k[2] for c in self._candidates(k[1]))
+        ]
+        for need in stale:
+            del self._need_since[need]  # the neighbour left, or a newer version superseded this one
