@@ -219,7 +219,7 @@ async def _send_poses(links: list[tuple[Any, int, str]], period: float) -> None:
 
 async def _idle_cost(a: Any, b: Any, idle_s: float, period: float) -> float:
     """Bits per second per robot the poses add on an idle link: the bytes both sides wrote over
-    ``idle_s``, less what HELLO beacons alone cost (a beacon goes after 5 s without sending).
+    ``idle_s``, less what HELLO beacons alone cost (a beacon goes after ``beacon_s`` without sending).
     Poses go as unacknowledged DGRAM frames, as the daemon sends them."""
     import asyncio
 
@@ -232,7 +232,8 @@ async def _idle_cost(a: Any, b: Any, idle_s: float, period: float) -> float:
     await asyncio.sleep(idle_s)
     spent = a.stats()["bytes_tx"] + b.stats()["bytes_tx"] - before
     hello = cobs_max_len(wire.HEADER_LEN + TRAILER_LEN) + 1
-    beacons = 2 * hello * idle_s / max(5.0, period)  # what the two robots send anyway
+    beacon_s = a.core.cfg.beacon_s
+    beacons = 2 * hello * idle_s / max(beacon_s, period)  # what the two robots send anyway
     return 8 * max(0.0, spent - beacons) / idle_s / 2
 
 

@@ -86,19 +86,16 @@ class Sinks:
 
     def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
         """New robot poses (each ``base_link`` in its robot's map frame) and the current placements."""
-        self.poses_now = poses
+        before, self.poses_now = self.poses_now, poses
         if self.outputs:
-            with self._out_lock:
-                idle = self._out_next is None and self._pose_next is None
-                self._pose_next = PoseUpdate(poses=poses, frames=frames)
-            if idle:
-                self._out_pool.submit(self._drain_outputs)
+            self._to_outputs(poses=PoseUpdate(poses=poses, frames=frames))
         if self.recorder is not None:
             wall = time.time()
-            for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link
-                self._record(
-                    self.recorder.transforms, "/tf", f"{robot}/map", {f"{robot}/base_link": sp.pose}, wall
-                )
+            for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link, when it moved
+                if before.get(robot) != sp:
+                    self._record(
+                        self.recorder.transforms, "/tf", f"{robot}/map", {f"{robot}/base_link": sp.pose}, wall
+                    )
 
     def links(self, links: dict[str, Any]) -> None:
         """The transports' counters, for the recording."""
@@ -109,10 +106,14 @@ class Sinks:
         return {o.name: o.stats() for o in self.outputs}
 
     # ------------------------------------------------------------------ worker side
-    def _to_outputs(self, update: GlobalUpdate) -> None:
+    def _to_outputs(self, update: GlobalUpdate | None = None, poses: PoseUpdate | None = None) -> None:
+        """Hand the output thread the newest global map and/or poses (latest wins, one drain queued)."""
         with self._out_lock:
             idle = self._out_next is None and self._pose_next is None
-            self._out_next = update
+            if update is not None:
+                self._out_next = update
+            if poses is not None:
+                self._pose_next = poses
         if idle:
             self._out_pool.submit(self._drain_outputs)
 

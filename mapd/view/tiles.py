@@ -74,7 +74,11 @@ def class_image(grid: OccupancyGrid) -> np.ndarray:
 
 def all_tiles(geometry: Geometry) -> list[tuple[int, int]]:
     """Every tile ``(tx, ty)`` of a map, row by row from the top."""
-    return [(tx, ty) for ty in range(geometry.rows) for tx in range(geometry.cols)]
+    return _every(geometry.rows, geometry.cols)
+
+
+def _every(rows: int, cols: int) -> list[tuple[int, int]]:
+    return [(tx, ty) for ty in range(rows) for tx in range(cols)]
 
 
 def changed_tiles(old: np.ndarray | None, new: np.ndarray) -> list[tuple[int, int]]:
@@ -86,7 +90,7 @@ def changed_tiles(old: np.ndarray | None, new: np.ndarray) -> list[tuple[int, in
     h, w = new.shape
     rows, cols = -(-h // TILE), -(-w // TILE)
     if old is None or old.shape != new.shape:
-        return [(tx, ty) for ty in range(rows) for tx in range(cols)]
+        return _every(rows, cols)
     diff = old != new
     padded = np.zeros((rows * TILE, cols * TILE), dtype=bool)
     padded[:h, :w] = diff

@@ -5,12 +5,15 @@ from __future__ import annotations
 import importlib.util
 import socket
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
+
+from mapd.demo.fleet import write_config
+from mapd.identity import Identity
 
 pytest.importorskip("zenoh")
 pytest.importorskip("rosbags")
@@ -53,3 +56,30 @@ def peers(rmw_peer: ModuleType) -> Iterator[list[Any]]:
     yield opened
     for p in opened:
         p.close()
+
+
+def write_base_config(root: Path, tables: dict[str, dict[str, Any]]) -> Path:
+    """A signed config for a base station named ``base`` in fleet ``lab`` (its key and state under
+    ``root``) with the ``ros2`` source, plus ``tables`` (``source.ros2``, ``fusion``, ``output``...)."""
+    root.mkdir(parents=True, exist_ok=True)
+    key = root / "base.key"
+    identity = Identity.generate("base")
+    identity.write(key)
+    path = root / "config.toml"
+    write_config(
+        path,
+        {
+            "robot": {"name": "base", "fleet": "lab", "key_file": str(key)},
+            "fleet": {"roster": {"base": identity.public_text}},
+            "state": {"dir": str(root / "state"), "runtime_dir": str(root / "run")},
+            "source": {"use": "ros2"},
+            **tables,
+        },
+    )
+    return path
+
+
+@pytest.fixture
+def base_config() -> Callable[[Path, dict[str, dict[str, Any]]], Path]:
+    """:func:`write_base_config`, for test modules (importlib mode keeps conftest out of their imports)."""
+    return write_base_config

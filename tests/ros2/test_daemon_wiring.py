@@ -4,37 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import numpy as np
 
 from mapd import config as configmod
 from mapd.daemon.server import Daemon
-from mapd.demo.fleet import write_config
 from mapd.grid import OccupancyGrid, Pose2D
-from mapd.identity import Identity
 from mapd.sources.base import MapSource, SourceContext
 
-
-def _config(tmp_path: Path, source: dict[str, object]) -> configmod.MapdConfig:
-    tmp_path.mkdir(parents=True, exist_ok=True)
-    key = tmp_path / "base.key"
-    identity = Identity.generate("base")
-    identity.write(key)
-    path = tmp_path / "config.toml"
-    write_config(
-        path,
-        {
-            "robot": {"name": "base", "fleet": "lab", "key_file": str(key)},
-            "fleet": {"roster": {"base": identity.public_text}},
-            "state": {"dir": str(tmp_path / "state"), "runtime_dir": str(tmp_path / "run")},
-            "source": {"use": "ros2"},
-            "source.ros2": source,
-            "fusion": {"debounce_s": 0.05},
-        },
-    )
-    return configmod.load(path)
+#: The ``base_config`` fixture (tests/ros2/conftest.py): writes a signed base-station config.
+BaseConfig = Callable[[Path, dict[str, dict[str, object]]], Path]
 
 
 class TwoRobots(MapSource):
@@ -56,15 +37,21 @@ class TwoRobots(MapSource):
         await asyncio.Event().wait()
 
 
-def test_a_discovering_source_leaves_the_fleet_frame_to_the_robots(tmp_path: Path) -> None:
-    own = Daemon(_config(tmp_path / "a", {"topic": "/map"}))
-    merge = Daemon(_config(tmp_path / "b", {"discover_robots": True}))
+def _config(base_config: BaseConfig, root: Path, source: dict[str, object]) -> configmod.MapdConfig:
+    return configmod.load(base_config(root, {"source.ros2": source, "fusion": {"debounce_s": 0.05}}))
+
+
+def test_a_discovering_source_leaves_the_fleet_frame_to_the_robots(
+    tmp_path: Path, base_config: BaseConfig
+) -> None:
+    own = Daemon(_config(base_config, tmp_path / "a", {"topic": "/map"}))
+    merge = Daemon(_config(base_config, tmp_path / "b", {"discover_robots": True}))
     assert own.fusion.placer.anchor == "base"  # a robot's own map frame is the fleet frame
     assert merge.fusion.placer.anchor is None  # as with source none: the first robot by name
 
 
-def test_other_robots_maps_are_fused_as_peers_and_never_sent(tmp_path: Path) -> None:
-    cfg = _config(tmp_path, {"discover_robots": True})
+def test_other_robots_maps_are_fused_as_peers_and_never_sent(tmp_path: Path, base_config: BaseConfig) -> None:
+    cfg = _config(base_config, tmp_path, {"discover_robots": True})
     daemon = Daemon(cfg, source=TwoRobots())
 
     async def go() -> dict[str, object]:

@@ -18,9 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapd.demo.fleet import Fleet, write_config
+from mapd.demo.fleet import Fleet
 from mapd.grid import load_map
-from mapd.identity import Identity
 
 pytestmark = pytest.mark.slow
 
@@ -112,21 +111,13 @@ def _room(h: int, w: int, seed: int) -> np.ndarray:
 
 
 def test_mapd_run_replaces_multirobot_map_merge(
-    tmp_path: Path, endpoint: str, rmw_peer: ModuleType, peers: list[Any]
+    tmp_path: Path, endpoint: str, rmw_peer: ModuleType, peers: list[Any], base_config: Any
 ) -> None:
     peer = rmw_peer.RmwPeer(endpoint, listen=True)  # the ROS 2 side (robots, RViz) behind one endpoint
     peers.append(peer)
-    key = tmp_path / "base.key"
-    identity = Identity.generate("base")
-    identity.write(key)
-    cfg = tmp_path / "config.toml"
-    write_config(
-        cfg,
+    cfg = base_config(
+        tmp_path,
         {
-            "robot": {"name": "base", "fleet": "lab", "key_file": str(key)},
-            "fleet": {"roster": {"base": identity.public_text}},
-            "state": {"dir": str(tmp_path / "state"), "runtime_dir": str(tmp_path / "run")},
-            "source": {"use": "ros2"},
             "source.ros2": {
                 "discover_robots": True,
                 "robot_map_topic": "map",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from mapd.errors import ProtocolError
 
-#: The ARQ stream reserved for control messages; map streams use 0..254.
+#: The ARQ stream reserved for control messages; maps use 0..252 (253 relay summaries, 254 poses).
 CONTROL_STREAM = 255
 MAGIC = b"MKFR"
 VERSION = 1

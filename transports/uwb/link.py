@@ -522,7 +522,7 @@ class UwbTransport(Transport):
         link = self._link
         if link is None or link.core is None:
             raise TransportError("uwb: offer() before start()")
-        dests = self.peer_ids or link.core.peers_up()
+        dests = self._dests()
         if not dests:
             log.debug("uwb: no peer to send %s v%d to", envelope.robot, envelope.version)
             return
@@ -539,7 +539,7 @@ class UwbTransport(Transport):
         link = self._link
         if link is None or link.core is None:
             return False
-        dests = self.peer_ids or link.core.peers_up()
+        dests = self._dests()
         if not dests or not self._poses.due(now):
             return False
         try:
@@ -568,7 +568,7 @@ class UwbTransport(Transport):
             return
         dests = sorted({self.opts.nodes[r] for r in wanted if r in self.opts.nodes} - {self.node_id})
         if not dests:  # a robot we know by no link id: ask every peer, the one that has it answers
-            dests = self.peer_ids or link.core.peers_up()
+            dests = self._dests()
         if not dests:
             return
         try:

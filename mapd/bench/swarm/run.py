@@ -99,7 +99,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--unsigned",
         action="store_true",
-        help="frames without the link key's 14-byte trailer (fleets sign by default)",
+        help="frames without the link key's 12-byte trailer (fleets sign by default)",
     )
     p.add_argument(
         "--relay",
