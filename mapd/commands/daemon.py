@@ -85,7 +85,27 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="START:SECONDS",
         help="radio silence from START s for SECONDS (repeatable)",
     )
+    faults.add_argument(
+        "--out-of-range",
+        action="append",
+        default=[],
+        type=_pair_arg,
+        metavar="A-B",
+        help="robots A and B (0-based) never hear each other: maps between them go through a relay "
+        "robot that hears both (repeatable; needs --robots 3 or more)",
+    )
     p.set_defaults(func=cmd_demo)
+
+
+def _pair_arg(text: str) -> str:
+    """``A-B`` for the relay's ``--out-of-range``, checked here so a typo is one clear line."""
+    try:
+        a, b = (int(x) for x in text.split("-"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not A-B (two robot indices)") from None
+    if a < 0 or b < 0 or a == b:
+        raise argparse.ArgumentTypeError(f"'{text}': A and B must be two different robot indices >= 0")
+    return text
 
 
 def _outage_arg(text: str) -> str:

@@ -10,13 +10,19 @@ The rules:
 
 * **P1 Code only what a link can take now.** A version is coded when some transport has not been
   offered it and is free: its previous offer is acked by every peer it was meant for, failed, or
-  older than ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if longer). A peer that already acked a version (a late joiner's keyframe
-  query got it first) is not waited for when that version is offered: it drops it as stale. So a slow link never queues stale maps, and versions that would
-  be replaced unsent are never coded.
+  older than ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if
+  longer). A peer that already acked a version (a late joiner's keyframe query got it first) is
+  not waited for when that version is offered: it drops it as stale. So a slow link never queues
+  stale maps, and versions that would be replaced unsent are never coded. (Freeing a broadcast
+  link as soon as its last byte is on the air, NORM-style, was measured and made 32 robots on one
+  channel staler, not fresher: the next delta then goes against an older base, so it is larger,
+  and under loss it supersedes repairs; see issue #22 in the README.)
 * **P2 Latest wins.** Only the newest own version is ever coded; older unsent ones are dropped.
 * **P3 Delta against what every peer holds.** The base is the newest own version that *every*
-  peer the transports see has acknowledged, and only while it is still kept; peers that hold
-  different versions, or none, get a keyframe.
+  peer the transports see has acknowledged and still keeps (among the
+  :data:`~mapd.daemon.receiver.KEEP_PEER_VERSIONS` newest it acknowledged), and that this robot
+  still keeps; so a peer that missed the last version or two does not turn the next one into a
+  keyframe for the whole fleet. Peers with no version in common, or none at all, get a keyframe.
 * **P4 Keyframes on schedule and on demand.** Every ``keyframe_every``-th coded version is whole; a
   peer that asks for a keyframe or restarts forgets its acks, and the newest version goes out whole
   on every transport, also those that had it already.
@@ -29,6 +35,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 
+from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid
 
@@ -87,6 +94,8 @@ class PublisherCore:
     _restored: OccupancyGrid | None = None
     _base_version: int | None = None
     _acked: dict[str, int] = field(default_factory=dict)
+    #: Per peer, the newest own versions it acknowledged (ascending), as many as it keeps (P3).
+    _held: dict[str, list[int]] = field(default_factory=dict)
     _inflight: dict[str, InFlight] = field(default_factory=dict)
     _offered: dict[str, int] = field(default_factory=dict)
     _since_keyframe: int = 0
@@ -103,6 +112,7 @@ class PublisherCore:
             self._sent[own.version] = own
             self._restored = own
         self._acked = dict(acked)
+        self._held = {p: [v] for p, v in acked.items()}
 
     def new_version(self, grid: OccupancyGrid) -> None:
         """A new own version is saved and is now the one to publish (P2)."""
@@ -122,6 +132,11 @@ class PublisherCore:
         newer = version > self._acked.get(peer, 0)
         if newer:
             self._acked[peer] = version
+        held = self._held.setdefault(peer, [])
+        if version not in held:
+            held.append(version)
+            held.sort()
+            del held[:-KEEP_PEER_VERSIONS]
         return free, newer
 
     def failed(self, transport: str, peer: str, version: int) -> bool:
@@ -132,6 +147,7 @@ class PublisherCore:
         """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""
         self._since_keyframe = self.keyframe_every
         self._acked.pop(peer, None)
+        self._held.pop(peer, None)
         if self._latest is None:
             self._latest = self._restored
         if self._latest is None:
@@ -226,7 +242,9 @@ class PublisherCore:
         everyone = set().union(*peers.values()) if peers else set()
         if not everyone:
             return None
-        acked = {self._acked.get(p, 0) for p in everyone}
-        if len(acked) != 1:
-            return None  # peers hold different versions: only a keyframe suits them all
-        return self._sent.get(acked.pop())
+        common = set(self._sent)
+        for p in everyone:
+            common.intersection_update(self._held.get(p, ()))
+            if not common:
+                return None  # no version every peer still holds: only a keyframe suits them all
+        return self._sent[max(common)]

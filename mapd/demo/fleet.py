@@ -196,6 +196,8 @@ class Fleet:
         ]
         for outage in getattr(self.args, "outage", []):
             cmd += ["--outage", outage]
+        for pair in getattr(self.args, "out_of_range", []):
+            cmd += ["--out-of-range", pair]
         self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert self.relay.stdout is not None
         deadline = time.monotonic() + 15

@@ -370,3 +370,36 @@ def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path, f
         relay.terminate()
         relay.wait(10)
     assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
+
+
+def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
+    """Three daemons on one emulated UWB channel where robot0 and robot2 never hear each other:
+    robot1, which hears both, forwards each one's signed maps to the other (multi-hop relay), so
+    both hold each other's maps although no frame of either ever reaches the other."""
+    args = argparse.Namespace(
+        robots=3, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=40.0,
+        out_of_range=["0-2"],
+    )  # fmt: skip
+    f = Fleet(args, sim_options={"duration": 40.0})
+    f.prepare()
+    f.start()
+
+    def relayed(s: dict[str, dict[str, Any]]) -> bool:
+        return len(s) == 3 and all(
+            num(s[a].get("peers", {}).get(b, {}).get("version", 0)) >= 2
+            for a, b in (("robot0", "robot2"), ("robot2", "robot0"))
+        )
+
+    try:
+        snaps = fk.wait_for(relayed, 150, f)
+        hop = snaps["robot1"]["links"]["uwb"]
+        assert hop["relays_tx"] >= 2 and hop["relay_summaries_rx"] > 0
+        for a, b in (("robot0", "robot2"), ("robot2", "robot0")):
+            heard = snaps[a]["links"]["uwb"]["peers"]
+            assert "robot1" in heard and b not in heard  # b's map came, but b was never heard directly
+    finally:
+        f.stop()
+    stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
+    assert stats["unheard"] > 0  # the emulated radio did keep robot0's and robot2's frames apart

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapd.daemon.publisher import EncodeJob, PublisherCore
+from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -73,14 +74,11 @@ def test_busy_link_codes_nothing_until_every_peer_acked_then_the_newest_as_a_del
     assert c.counters.deltas_sent == 1
 
 
-def test_peers_holding_different_versions_get_a_keyframe() -> None:
+def test_peers_holding_different_versions_get_a_delta_on_the_newest_they_all_hold() -> None:
     c = core()
     c.new_version(grid(1))
     code(c, 0.0)
-    c.acked("uwb", "robot1", 1)
-    c.acked("uwb", "robot2", 1)
-    c.acked("zenoh", "robot1", 1)
-    c.acked("zenoh", "robot2", 1)
+    ack_all(c, 1)
     c.new_version(grid(2))
     code(c, 1.0)
     c.acked("uwb", "robot1", 2)  # robot2 still holds v1 only
@@ -89,6 +87,32 @@ def test_peers_holding_different_versions_get_a_keyframe() -> None:
     c.failed("zenoh", "robot2", 2)
     c.new_version(grid(3))
     job, _ = code(c, 2.0)
+    assert job.base is not None and job.base.version == 1  # P3: both hold v1; v2 only robot1
+
+
+def test_a_peer_without_a_version_in_common_gets_a_keyframe() -> None:
+    c = core()
+    peers = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, peers)
+    c.acked("uwb", "robot1", 1)
+    c.new_version(grid(2))
+    job, _ = code(c, 1.0, {"uwb": ["robot1", "robot2"]})  # robot2 is new: it holds nothing
+    assert job.base is None
+
+
+def test_a_base_the_peer_no_longer_keeps_is_not_used() -> None:
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0)
+    ack_all(c, 1)
+    # robot1 acks versions 2..KEEP_PEER_VERSIONS + 1 and keeps only that many: v1 dropped out
+    for v in range(2, KEEP_PEER_VERSIONS + 2):
+        c.new_version(grid(v))
+        code(c, float(v), {"uwb": ["robot1"]})
+        c.acked("uwb", "robot1", v)
+    c.new_version(grid(50))
+    job, _ = code(c, 100.0)  # robot2 holds only v1, robot1 no longer keeps it
     assert job.base is None
 
 

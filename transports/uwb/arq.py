@@ -27,8 +27,10 @@ Sending
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
       harmless. Message ids rise within a session (24-bit, compared modulo 2^24).
   R5. Latest wins: sending on a stream that already has a message in flight drops that message at
-      once (MessageClosed "superseded"); no radio time is spent on a stale map. A background
-      message (a pose) is sent only when no other message has a chunk to send.
+      once (MessageClosed "superseded"); no radio time is spent on a stale map. A receiver that
+      already holds every chunk of it still says COMPLETE, and that still counts (MessageDelivered,
+      for the last ``MAX_LATE`` superseded messages): the sender learns which delta bases its peers
+      hold. A background message (a pose) is sent only when no other message has a chunk to send.
   R6. A message goes to one peer (unicast) or to several (broadcast); it is delivered to a peer when
       that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
       failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
@@ -131,6 +133,8 @@ __all__ = [
 ]
 
 MAX_CHUNKS = 0xFFFF
+#: Superseded messages whose late COMPLETEs still count as deliveries (R5): a few versions back.
+MAX_LATE = 16
 #: COMPLETEs owed in DONE frames (R16), all peers together; past it the oldest goes unsaid (the
 #: sender's probe asks again).
 MAX_DONE_OWED = 64
@@ -191,6 +195,7 @@ class ArqEndpoint:
         self._done_max = max(1, (body - self._trailer - wire.HEADER_LEN) // wire.DONE_ENTRY_LEN)
         self._rtt: dict[int, RttEstimator] = {}
         self._out: OrderedDict[int, Outgoing] = OrderedDict()
+        self._late: OrderedDict[int, set[int]] = OrderedDict()  # superseded msg -> peers not yet COMPLETE
         self._next_msg = self._rng.getrandbits(23)
         self._events: deque[Event] = deque()
         self._now = -math.inf
@@ -240,6 +245,11 @@ class ArqEndpoint:
         for old in [m for m in self._out.values() if m.stream == stream]:
             del self._out[old.msg]
             self.counters.superseded += 1
+            if old.flushed and old.pending():
+                # Receivers that got every chunk still say COMPLETE (R5): keep hearing them.
+                self._late[old.msg] = {p.peer for p in old.pending()}
+                while len(self._late) > MAX_LATE:
+                    self._late.popitem(last=False)
             self._events.append(MessageClosed(old.msg, "superseded"))
         msg = self._next_msg
         self._next_msg = (self._next_msg + 1) & wire.MASK24
@@ -425,10 +435,28 @@ class ArqEndpoint:
         elif isinstance(frame, wire.Ack):
             self._on_ack(peer, frame, now)
         elif isinstance(frame, wire.Done):
-            for sender, target, msg, gen in frame.entries:
+            for sender, target, low in frame.entries:
                 if sender == self.node:  # each entry is a COMPLETE ack (the others are for others)
-                    ack = wire.Ack(peer.id, sender, frame.session, target, msg, gen, wire.COMPLETE, 0, b"")
-                    self._on_ack(peer, ack, now)
+                    self._on_done_entry(peer, target, low, now)
+
+    def _on_done_entry(self, peer: PeerState, target: int, low: int, now: float) -> None:
+        """A DONE entry for us: the COMPLETE ack it stands for, with the message's full id and the
+        peer's buffer generation filled in from what we track (wire.py: entries carry low bits)."""
+        if target != self.session & 0xFF:
+            self.counters.stale_acks += 1
+            return
+        msg = next((m for m in (*self._out, *self._late) if m & 0xFFFF == low), None)
+        if msg is None:
+            self.counters.unknown_acks += 1
+            return
+        out = self._out.get(msg)
+        prog = out.peers.get(peer.id) if out is not None else None
+        gen = prog.gen if prog is not None and prog.gen is not None else 0
+        self._on_ack(
+            peer,
+            wire.Ack(peer.id, self.node, peer.session, self.session, msg, gen, wire.COMPLETE, 0, b""),
+            now,
+        )
 
     def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
         peer = self._peers.get(f.src)
@@ -593,6 +621,11 @@ class ArqEndpoint:
             return
         m = self._out.get(a.msg)
         prog = m.peers.get(peer.id) if m is not None else None
+        if m is None and a.flags & wire.COMPLETE and peer.id in self._late.get(a.msg, ()):
+            self._late[a.msg].discard(peer.id)
+            self.counters.late_completes += 1
+            self._events.append(MessageDelivered(a.msg, peer.id))
+            return
         if m is None or prog is None or not prog.pending:
             self.counters.unknown_acks += 1
             return
@@ -741,6 +774,8 @@ class ArqEndpoint:
             if m.next_new >= m.count:  # every chunk went once: nothing more will
                 self._close(m, "sent")
             return frame
+        if m.next_new >= m.count:
+            m.flushed = True  # a receiver may now complete it even if it is superseded (R5)
         if m.nack:
             # R16: receivers stay silent while chunks arrive in order, so the probe timer runs only
             # once the sender has nothing left to send for this message (its flush point).
@@ -776,7 +811,7 @@ class ArqEndpoint:
 
     def _build_done(self, now: float) -> wire.Done | None:
         """One DONE frame with every COMPLETE owed, due or not (earliest first, as many as fit)."""
-        entries: list[tuple[int, int, int, int]] = []
+        entries: list[tuple[int, int, int]] = []
         for key in sorted(self._done_owed, key=lambda k: self._done_owed[k][0]):
             if len(entries) >= self._done_max:
                 break
@@ -784,7 +819,7 @@ class ArqEndpoint:
             peer = self._peers.get(key[0])
             if peer is None or peer.session != session or key[1] not in peer.completed:
                 continue  # it restarted, or we forgot: nothing true to say
-            entries.append((peer.id, peer.session, key[1], peer.completed[key[1]]))
+            entries.append((peer.id, peer.session, key[1]))
             peer.sent_complete(key[1], now)
         if not entries:
             return None

@@ -177,6 +177,8 @@ class ArqCounters:
     hash_errors: int = 0
     evicted: int = 0
     superseded: int = 0
+    #: COMPLETEs heard for a message after a newer one on its stream superseded it (still delivered).
+    late_completes: int = 0
     superseded_rx: int = 0
     unknown_acks: int = 0
     stale_acks: int = 0

@@ -7,9 +7,11 @@ hears directly (:func:`pack_summary`). A robot forwards origin ``O``'s version `
 neighbour ``N`` (a robot whose summary it heard lately) holds less than ``v`` of ``O`` and does not
 hear ``O`` itself: were ``N`` to hear ``O``, ``O``'s own publisher would serve it.
 
-What is forwarded is the origin's envelope exactly as received (keyframes only: a delta needs a base
-the far robot may lack), so it is still signed by its origin and a relay cannot alter it; the
-receiver checks the signature as for a direct map.
+What is forwarded is the origin's envelope exactly as received, so it is still signed by its origin
+and a relay cannot alter it; the receiver checks the signature as for a direct map. A delta is
+forwarded only to a neighbour whose summary says it holds the delta's base, so the core keeps the
+last :data:`CHAIN` envelopes of each origin (a far robot catches up one delta a relay, each on the
+one before, as the origin made them), and the newest keyframe for neighbours further behind.
 
 Bounds, so relays never flood the channel:
 
@@ -32,10 +34,17 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
+#: Envelopes kept per origin (the newest ones, oldest first): a neighbour a few versions behind gets
+#: the next delta in the chain rather than waiting for the origin's next keyframe.
+CHAIN = 8
+#: Bytes of envelopes kept, all origins together; past it the oldest of the longest chain goes.
+MAX_HELD_BYTES = 8 << 20
 #: The stream summaries ride on (unreliable, background; maps use 0..252, 254 poses, 255 control).
 SUMMARY_STREAM = 253
 _COUNT = struct.Struct("<B")
-_HOLD = struct.Struct("<BI")  # origin link id, newest version held
+# origin link id, newest version held: all 64 bits (a daemon's versions carry its incarnation in the
+# high bits, so low bits alone would never equal a delta's base and no delta would ever be relayed)
+_HOLD = struct.Struct("<BQ")
 _HEAR = struct.Struct("<B")
 
 
@@ -52,7 +61,7 @@ def pack_summary(summary: Summary) -> bytes:
     holds = sorted(summary.holds.items())[:255]
     hears = sorted(summary.hears)[:255]
     out = [_COUNT.pack(len(holds))]
-    out += [_HOLD.pack(o, v & 0xFFFFFFFF) for o, v in holds]
+    out += [_HOLD.pack(o, v & 0xFFFFFFFFFFFFFFFF) for o, v in holds]
     out.append(_COUNT.pack(len(hears)))
     out += [_HEAR.pack(h) for h in hears]
     return b"".join(out)
@@ -107,7 +116,9 @@ class ForwardingCore:
     retry_s: float = 30.0
     _heard: dict[int, _Heard] = field(default_factory=dict)
     _kf: dict[int, tuple[int, bytes]] = field(default_factory=dict)  # origin -> newest keyframe
-    _last: dict[int, tuple[int, int, bytes]] = field(default_factory=dict)  # newest (version, base, data)
+    #: origin -> its newest (version, base, envelope), oldest first, at most CHAIN
+    _chain: dict[int, list[tuple[int, int, bytes]]] = field(default_factory=dict)
+    _held_bytes: int = 0
     _forwarded: dict[tuple[int, int], float] = field(default_factory=dict)
     _need_since: dict[tuple[int, int, int], float] = field(default_factory=dict)
     _in_flight: bool = False
@@ -125,14 +136,26 @@ class ForwardingCore:
         """This robot accepted ``origin``'s ``version`` (a delta on ``base``, or a keyframe when
         ``base`` is 0; ``envelope``: the bytes as received, signed by the origin).
 
-        The newest keyframe is kept for neighbours far behind; the newest delta only helps one that
-        holds exactly its base (its summary says so), as a delta costs a fraction of a keyframe."""
+        The newest keyframe is kept for neighbours far behind; each delta of the chain only helps one
+        that holds exactly its base (its summary says so), as a delta costs a fraction of a keyframe."""
         if origin == self.me:
             return  # own maps go out through the publisher, to everyone in range
         if base == 0 and version > self._kf.get(origin, (0, b""))[0]:
+            old = self._kf.get(origin)
             self._kf[origin] = (version, envelope)
-        if version > self._last.get(origin, (0, 0, b""))[0]:
-            self._last[origin] = (version, base, envelope)
+            self._held_bytes += len(envelope) - (len(old[1]) if old else 0)
+        chain = self._chain.setdefault(origin, [])
+        if chain and version <= chain[-1][0]:
+            return  # not newer than what this robot holds (the receiver accepts only newer ones)
+        chain.append((version, base, envelope))
+        self._held_bytes += len(envelope)
+        while len(chain) > CHAIN:
+            self._held_bytes -= len(chain.pop(0)[2])
+        while self._held_bytes > MAX_HELD_BYTES:
+            longest = max(self._chain.values(), key=len)
+            if len(longest) <= 1:
+                break
+            self._held_bytes -= len(longest.pop(0)[2])
 
     def on_overheard(self, origin: int, version: int, now: float) -> None:
         """Another robot forwarded ``origin``'s ``version``: do not forward the same one for a while."""
@@ -145,7 +168,7 @@ class ForwardingCore:
     # --- outputs --------------------------------------------------------------------------------
     def holds(self) -> dict[int, int]:
         """Origin -> newest version held (for this robot's own summary)."""
-        return {o: v for o, (v, _, _) in self._last.items()}
+        return {o: chain[-1][0] for o, chain in self._chain.items() if chain}
 
     def next_forward(self, now: float) -> Relay | None:
         """The relay to start now, if any (then it counts as in flight until :meth:`relay_done`)."""
@@ -158,7 +181,7 @@ class ForwardingCore:
             return None
         best: tuple[int, int, int] | None = None  # (-needing, origin, -version)
         best_relay: Relay | None = None
-        for origin in self._last:
+        for origin in self._chain:
             for version, base, data in self._candidates(origin):
                 if (origin, version) in self._forwarded:
                     continue
@@ -181,10 +204,11 @@ class ForwardingCore:
 
     # --- internals ------------------------------------------------------------------------------
     def _candidates(self, origin: int) -> list[tuple[int, int, bytes]]:
-        """(version, base, envelope) this robot could forward of ``origin``: newest, newest keyframe."""
-        out = [self._last[origin]]
+        """(version, base, envelope) this robot could forward of ``origin``: the chain, newest first,
+        and the newest keyframe."""
+        out = self._chain.get(origin, [])[::-1]
         kf = self._kf.get(origin)
-        if kf is not None and kf[0] != out[0][0]:
+        if kf is not None and all(kf[0] != v for v, _, _ in out):
             out.append((kf[0], 0, kf[1]))
         return out
 

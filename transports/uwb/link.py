@@ -19,6 +19,7 @@ import logging
 import os
 import time
 import zlib
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
@@ -430,6 +431,7 @@ class UwbTransport(Transport):
             raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
+        self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
         self._poses = PoseThrottle(opts.pose_period_s)
@@ -604,15 +606,20 @@ class UwbTransport(Transport):
             else:
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
-            if e.msg in self._msgs:
-                robot, version = self._msgs[e.msg]
-                emit(Delivered("uwb", self._name(e.peer), robot, version))
+            meta = self._msgs.get(e.msg) or self._late.get(e.msg)
+            if meta is not None:
+                emit(Delivered("uwb", self._name(e.peer), *meta))
+
         elif isinstance(e, arq.MessageFailed):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]
                 emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
         elif isinstance(e, arq.MessageClosed):
-            self._msgs.pop(e.msg, None)
+            meta = self._msgs.pop(e.msg, None)
+            if meta is not None and e.outcome == "superseded":
+                self._late[e.msg] = meta  # its late COMPLETEs still say who holds that version
+                while len(self._late) > arq.MAX_LATE:
+                    self._late.popitem(last=False)
             if self._relay is not None:
                 self._relay.closed(e.msg)
         elif isinstance(e, arq.PeerUp):

@@ -12,7 +12,9 @@ act on whole frames; bit flips act per byte; an outage cuts whatever is on the l
 With two robots each direction is its own lane (a full-duplex serial link). With three or more (or
 ``shared=True``) it is a broadcast medium: every frame reaches every other robot, and all robots share
 one lane's airtime. With ``collisions=True`` frames are not queued for the medium: two that overlap
-in the air are both garbled, as on a half-duplex radio without a MAC.
+in the air are both garbled, as on a half-duplex radio without a MAC. ``out_of_range`` pairs of
+robots never hear each other (a building's walls, distance): what one sends never reaches the other,
+so maps between them can only go through a robot that hears both (the daemon's multi-hop relay).
 
 Use it from code::
 
@@ -37,6 +39,7 @@ import signal
 import sys
 import tempfile
 import tty
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import TracebackType
@@ -133,9 +136,14 @@ class FaultRelay:
         shared: bool | None = None,
         collisions: bool = False,
         workdir: str | os.PathLike[str] | None = None,
+        out_of_range: Iterable[tuple[int, int]] = (),
     ) -> None:
         if robots < 2:
             raise ValueError("a relay needs at least two robots")
+        self.deaf = {(a, b) for a, b in out_of_range} | {(b, a) for a, b in out_of_range}
+        if any(not (0 <= a < robots and 0 <= b < robots) or a == b for a, b in self.deaf):
+            raise ValueError(f"out-of-range pairs must name two different robots of 0..{robots - 1}")
+        self.unheard = 0
         self.robots = robots
         self.rate_bps = float(rate_bps)
         self.faults = faults or Faults()
@@ -247,6 +255,7 @@ class FaultRelay:
             "elapsed_s": round((self._loop.time() if self._loop else 0.0) - self._t0, 3),
             "ports": [{"port": p.robot_path.name, **asdict(p.stats)} for p in self._ports],
             "collided": self.collided,
+            "unheard": self.unheard,
             **totals,
         }
 
@@ -315,6 +324,9 @@ class FaultRelay:
         for dst in range(self.robots):
             if dst == src:
                 continue
+            if (src, dst) in self.deaf:
+                self.unheard += 1
+                continue
             for delay, data in self._inj[(src, dst)].apply(frame, start, end):
                 self._loop.call_at(end + delay, self._deliver, dst, data, flag)
 
@@ -363,6 +375,15 @@ def _outage(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(f"outage '{text}' is not START:SECONDS") from None
 
 
+def _pair(text: str) -> tuple[int, int]:
+    """``A-B``: two robot indices."""
+    try:
+        a, b = (int(x) for x in text.split("-"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not A-B (two robot indices)") from None
+    return a, b
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m transports.uwb.relay``: run a relay until interrupted, then print its stats."""
     p = argparse.ArgumentParser(prog="python -m transports.uwb.relay", description=__doc__.split("\n\n")[0])
@@ -376,6 +397,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--outage", type=_outage, action="append", default=[], help="START:SECONDS (repeatable)")
     p.add_argument("--shared", action="store_true", help="one shared lane even for two robots")
     p.add_argument("--collisions", action="store_true", help="overlapping frames garble each other")
+    p.add_argument(
+        "--out-of-range",
+        type=_pair,
+        action="append",
+        default=[],
+        metavar="A-B",
+        help="robots A and B (0-based) never hear each other (repeatable)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dir", type=Path, help="where to put the robots' pty links (default: a temp dir)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
@@ -389,6 +418,9 @@ def main(argv: list[str] | None = None) -> int:
         outages=tuple(args.outage),
     )
 
+    if any(not (0 <= a < args.robots and 0 <= b < args.robots) or a == b for a, b in args.out_of_range):
+        p.error(f"--out-of-range: each pair must name two different robots of 0..{args.robots - 1}")
+
     async def run() -> dict[str, Any]:
         relay = FaultRelay(
             robots=args.robots,
@@ -398,6 +430,7 @@ def main(argv: list[str] | None = None) -> int:
             shared=args.shared or None,
             collisions=args.collisions,
             workdir=args.dir,
+            out_of_range=args.out_of_range,
         )
         await relay.start()
         for i, port in enumerate(relay.ports):

@@ -91,6 +91,8 @@ class Outgoing:
         self.background = False
         #: False: each chunk goes once, as DGRAM frames, and nobody acks (poses).
         self.reliable = True
+        #: Every chunk went once: receivers may complete it, even after it is superseded.
+        self.flushed = False
 
     def chunk(self, i: int) -> bytes:
         return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]

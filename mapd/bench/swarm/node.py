@@ -82,6 +82,7 @@ class SwarmRobot:
         self.configured = [j + 1 for j in range(n) if j != index]
         self.held: dict[int, list[int]] = {}  # origin index -> newest versions held, oldest first
         self._own_msgs: dict[int, int] = {}  # ARQ message id -> own version
+        self._late: dict[int, int] = {}  # superseded ARQ message id -> own version
         self._asked: dict[int, float] = {}  # origin index -> when a keyframe was last asked of it
         self.coded_bytes = 0
         self.keyframes = 0
@@ -211,17 +212,22 @@ class SwarmRobot:
                 else:
                     self._on_map(e.src, e.data, now)
             elif isinstance(e, arq.MessageDelivered):
-                v = self._own_msgs.get(e.msg)
+                v = self._own_msgs.get(e.msg) or self._late.get(e.msg)
                 if v is not None:
                     free, _ = self.pub.acked("uwb", str(e.peer), v)
                     if free:
                         self._poll(now)
+
             elif isinstance(e, arq.MessageFailed):
                 v = self._own_msgs.get(e.msg)
                 if v is not None and self.pub.failed("uwb", str(e.peer), v):
                     self._poll(now)
             elif isinstance(e, arq.MessageClosed):
-                self._own_msgs.pop(e.msg, None)
+                v = self._own_msgs.pop(e.msg, None)
+                if v is not None and e.outcome == "superseded":
+                    self._late[e.msg] = v  # as link.py: its late COMPLETEs still count
+                    while len(self._late) > arq.MAX_LATE:
+                        del self._late[next(iter(self._late))]
                 if e.msg == self._relay_msg and self.fwd is not None:
                     self._relay_msg = None
                     self.fwd.relay_done()

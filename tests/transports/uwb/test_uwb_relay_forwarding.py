@@ -20,7 +20,12 @@ def _core(me: int = B) -> ForwardingCore:
 
 
 def test_summary_round_trip_and_malformed() -> None:
-    s = Summary({1: 7, 9: 2**32 - 1}, frozenset({2, 3}))
+    # a daemon's versions carry its incarnation in the high bits: all 64 of them must survive
+    from mapd.daemon.versions import split
+
+    daemon_version = 395725895672791049
+    assert split(daemon_version)[0] > 0 and daemon_version >= 2**32
+    s = Summary({1: 7, 9: 2**32 - 1, 4: daemon_version}, frozenset({2, 3}))
     assert unpack_summary(pack_summary(s)) == s
     with pytest.raises(ValueError):
         unpack_summary(pack_summary(s)[:-1])
@@ -102,6 +107,37 @@ def test_a_delta_goes_only_to_neighbours_holding_its_base_the_keyframe_to_the_ot
     core.relay_done()
     r = core.next_forward(10.0)
     assert r is not None and (r.version, r.data, r.dests) == (3, KF, (D,))
+
+
+def test_a_neighbour_behind_catches_up_along_the_chain_of_deltas() -> None:
+    """The origin's deltas each go on the one before (its only neighbour acked it): a far robot
+    holding v3 gets v4, then, its summary saying v4, v5, one relay each, never a dead end."""
+    core = _core()  # keyframe A v3
+    for v in (4, 5, 6):
+        core.on_held(A, v, v - 1, f"delta A v{v}".encode())
+    core.on_summary(C, Summary({A: 3}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and (r.version, r.data) == (4, b"delta A v4")
+    core.relay_done()
+    core.on_summary(C, Summary({A: 4}, frozenset({B})), 1.0)
+    r = core.next_forward(10.0)
+    assert r is not None and (r.version, r.data) == (5, b"delta A v5")
+    assert core.holds() == {A: 6}
+
+
+def test_the_chain_is_bounded_in_length_and_bytes() -> None:
+    from transports.uwb import forwarding
+
+    core = _core()
+    for v in range(4, 4 + 3 * forwarding.CHAIN):
+        core.on_held(A, v, v - 1, bytes(100))
+    assert len(core._chain[A]) == forwarding.CHAIN
+    big = ForwardingCore(B)
+    for o in (10, 11, 12):
+        for v in range(1, 5):
+            big.on_held(o, v, v - 1, bytes(forwarding.MAX_HELD_BYTES // 8))
+    assert big._held_bytes <= forwarding.MAX_HELD_BYTES
+    assert big.holds() == {10: 4, 11: 4, 12: 4}  # the newest of each origin is always kept
 
 
 # --- a relayed envelope at the far robot's receiver -----------------------------------------------

@@ -221,14 +221,18 @@ def test_broadcast_is_delivered_intact_once_or_fails_by_deadline(seed: int, drop
 
 
 def test_done_frames_round_trip_and_absurd_ones_are_refused() -> None:
-    done = wire.Done(3, wire.BROADCAST, 77, ((1, 5, 6, 7), (254, wire.MASK24, wire.MASK24, 255)))
+    done = wire.Done(3, wire.BROADCAST, 77, ((1, 5, 6), (254, 0xFF, 0xFFFF)))
     assert wire.parse(wire.pack(done)) == done
+    # entries carry the low bits of session and message id (4 bytes each, not 7)
+    full = wire.Done(3, wire.BROADCAST, 77, ((1, 0xABCD05, 0x123406),))
+    assert wire.parse(wire.pack(full)).entries == ((1, 0x05, 0x3406),)
+    assert len(wire.pack(full)) == wire.HEADER_LEN + 4 == wire.HEADER_LEN + wire.DONE_ENTRY_LEN
     body = wire.pack(done)
     for bad in (body[: wire.HEADER_LEN], body[:-1], body[:2] + b"\x01" + body[3:]):  # empty, torn, unicast
         with pytest.raises(MapdError):
             wire.parse(bad)
     with pytest.raises(MapdError):
-        wire.parse(wire.pack(wire.Done(3, wire.BROADCAST, 77, ((255, 1, 1, 1),))))  # sender id
+        wire.parse(wire.pack(wire.Done(3, wire.BROADCAST, 77, ((255, 1, 1),))))  # sender id
 
 
 def test_completes_of_several_senders_share_a_done_frame() -> None:
