@@ -123,7 +123,12 @@ class SourceSection(PluginSection):
 
 class CodecSection(PluginSection):
     use: str = Field(default="lossless", description="codec plugin (mapd.codecs)")
-    keyframe_every: int = Field(default=10, ge=1, description="send a whole map at least every K updates")
+    keyframe_every: int = Field(
+        default=100,
+        ge=1,
+        description="send a whole map at least every K coded updates (a backstop: a peer lacking a base "
+        "asks for a whole map, and a new or restarted one gets it unasked)",
+    )
     measure_quality: bool = Field(
         default=False, description="lossy codecs: decode each update locally and log its PSNR/SSIM"
     )

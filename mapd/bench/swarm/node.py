@@ -32,6 +32,7 @@ import numpy as np
 
 from mapd.bench.swarm.policy import AckScope, RelayPolicy, SummaryRelay
 from mapd.bench.swarm.streams import Payloads, RobotStream
+from mapd.config import CodecSection
 from mapd.daemon.publisher import INFLIGHT_TIMEOUT_S, PublisherCore
 from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
@@ -42,7 +43,8 @@ from transports.uwb import keyframe_requests as control
 _TAG = struct.Struct("<HII")  # origin link id, version, base version (0: keyframe)
 MAP_STREAM = 0
 KEYFRAME_REQUEST_S = 5.0
-KEYFRAME_EVERY = 10
+#: The daemon's default (``[codec] keyframe_every``).
+KEYFRAME_EVERY: int = CodecSection.model_fields["keyframe_every"].default
 _TINY = np.zeros((1, 1), dtype=np.int8)
 
 #: (time, holder index, origin index, version) of every accepted map.
@@ -66,6 +68,7 @@ class SwarmRobot:
         session: int,
         seed: int,
         inflight_s: float = INFLIGHT_TIMEOUT_S,
+        keyframe_every: int = KEYFRAME_EVERY,
     ) -> None:
         self.index = index
         self.id = index + 1
@@ -74,7 +77,7 @@ class SwarmRobot:
         self.arq = arq.ArqEndpoint(config, session=session, seed=seed)
         self._confirm()
         self.pub = PublisherCore(
-            uses_base=payloads.uses_base, keyframe_every=KEYFRAME_EVERY, inflight_timeout_s=inflight_s
+            uses_base=payloads.uses_base, keyframe_every=keyframe_every, inflight_timeout_s=inflight_s
         )
         self.relay = relay
         self.acks = acks

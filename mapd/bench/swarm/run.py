@@ -132,6 +132,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=30.0,
         help="publisher's in-flight timeout (default 30, the daemon's; 5 s per peer if longer)",
     )
+    p.add_argument(
+        "--keyframe-every",
+        type=int,
+        default=None,
+        metavar="K",
+        help="a keyframe every K coded versions at least (default: the daemon's [codec] keyframe_every)",
+    )
     p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
     p.add_argument(
         "--cache",
@@ -150,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.log is not None and not args.log.exists():
         raise SourceError(f"{args.log}: no such log file")
+    if args.keyframe_every is not None and args.keyframe_every < 1:
+        raise SourceError(f"--keyframe-every {args.keyframe_every}: must be 1 or more")
     seed = 7 if args.sim is None and args.log is None else args.sim
     rows: list[dict[str, Any]] = []
     t_all = time.perf_counter()
@@ -174,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
                     mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode,
+                    **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
                 payloads.flush()
@@ -205,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
         "acks": args.acks,
         "slot_ms": args.slot_ms,
         "inflight_s": args.inflight_s,
+        "keyframe_every": args.keyframe_every or SwarmConfig().keyframe_every,
         "wall_s": time.perf_counter() - t_all,
     }
     emit({**info, "rows": rows}, args.json, lambda: _text(info, rows))
@@ -220,7 +231,8 @@ def _text(info: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     head = (
         f"{info['source']}: a version every {info['period_s']:g} s for {info['duration_s']:g} s, "
         f"{info['rate_bps']:g} bit/s shared, {rng}, frame loss {info['loss']:g}, "
-        f"{'signed' if info['signed'] else 'unsigned'}, relay {info['relay']}, acks from {info['acks']} peers; "
+        f"{'signed' if info['signed'] else 'unsigned'}, relay {info['relay']}, acks from {info['acks']} peers, "
+        f"a keyframe every {info['keyframe_every']} versions at least; "
         f"{info['wall_s']:.0f} s wall"
     )
     return f"{head}\n{table(rows, COLUMNS)}"

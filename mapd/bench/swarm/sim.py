@@ -23,7 +23,7 @@ import numpy as np
 
 from mapd.bench.swarm.des import Event, EventLoop
 from mapd.bench.swarm.links import link_matrices
-from mapd.bench.swarm.node import AcceptLog, SwarmRobot
+from mapd.bench.swarm.node import KEYFRAME_EVERY, AcceptLog, SwarmRobot
 from mapd.bench.swarm.policy import ACK_SCOPES, RELAYS
 from mapd.bench.swarm.radio import Radio, Transmission
 from mapd.bench.swarm.streams import Fleet, Payloads
@@ -63,6 +63,7 @@ class SwarmConfig:
     #: The publisher's in-flight timeout (the daemon's INFLIGHT_TIMEOUT_S), or INFLIGHT_PER_PEER_S
     #: per peer waited for, if longer.
     inflight_s: float = 30.0
+    keyframe_every: int = KEYFRAME_EVERY  # the publisher's schedule (the daemon's default)
     ack_mode: str = "auto"  # the ARQ core's acks (ArqConfig.acks; the daemon's default)
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
@@ -119,6 +120,7 @@ class Swarm:
                 session=rng.getrandbits(32),
                 seed=rng.getrandbits(32),
                 inflight_s=config.inflight_s,
+                keyframe_every=config.keyframe_every,
             )
             for i in range(n)
         ]
