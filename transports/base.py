@@ -192,6 +192,11 @@ class Transport(ABC):
         any transport). A link that relays maps (``uwb``) may forward them unaltered; the default
         does nothing."""
 
+    def relayed(self, envelope: Envelope) -> None:  # noqa: B027 - optional hook
+        """``envelope`` of another robot came on this transport from a third robot (a relay), held
+        already or not: a relaying link need not forward the same version for a while; the default
+        does nothing."""
+
     def peers(self) -> list[str]:
         """Peers this transport currently sees."""
         return []

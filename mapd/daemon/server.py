@@ -504,6 +504,8 @@ class Daemon:
             return
         plan = rx.plan(env, ev.peer, time.time())
         transport = self._transport(ev.transport)
+        if transport is not None and env.robot != ev.peer and env.sig:
+            transport.relayed(env)  # another robot forwarded it: ours would repeat it
         if isinstance(plan, AskKeyframe):
             if transport is not None:
                 await transport.request_keyframe(plan.robot)

@@ -520,6 +520,12 @@ class UwbTransport(Transport):
         if self._relay is not None and origin is not None and envelope.sig:
             self._relay.held(origin, envelope.version, envelope.base_version, data)
 
+    def relayed(self, envelope: Envelope) -> None:
+        """Another robot forwarded ``envelope``: do not forward the same version for a while."""
+        origin = self.opts.nodes.get(envelope.robot)
+        if self._relay is not None and origin is not None:
+            self._relay.overheard(origin, envelope.version, time.monotonic())
+
     def offer(self, envelope: Envelope) -> None:
         link = self._link
         if link is None or link.core is None:

@@ -51,12 +51,18 @@ class RelayDriver:
         self.summaries_rx = 0
         self.bad_summaries = 0
         self.relays_tx = 0
+        self.overheard_rx = 0
 
     # --- inputs from the transport ----------------------------------------------------------------
     def held(self, origin: int, version: int, base: int, data: bytes) -> None:
         """The daemon accepted ``origin``'s map (``data``: the envelope bytes, still origin-signed)."""
         self.core.on_held(origin, version, base, data)
         self._wake.set()
+
+    def overheard(self, origin: int, version: int, now: float) -> None:
+        """Another robot forwarded ``origin``'s ``version`` (the daemon saw it come from a third)."""
+        self.core.on_overheard(origin, version, now)
+        self.overheard_rx += 1
 
     def summary(self, src: int, data: bytes, now: float) -> None:
         """A summary arrived on :data:`~transports.uwb.forwarding.SUMMARY_STREAM`."""
@@ -136,4 +142,5 @@ class RelayDriver:
             "relay_summaries_rx": self.summaries_rx,
             "relay_bad_summaries": self.bad_summaries,
             "relays_tx": self.relays_tx,
+            "relays_overheard": self.overheard_rx,
         }

@@ -215,7 +215,11 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
         sent.append((data, dests, stream))
         return len(sent)
 
-    async def scenario() -> UwbTransport:
+    async def scenario(
+        opts: UwbOptions, *, already_relayed: bool, wait_s: float
+    ) -> tuple[UwbTransport, bytes]:
+        """b holds a's v7 and c says it lacks it; ``already_relayed``: the daemon saw another robot
+        forward v7 first (Transport.relayed)."""
         t = UwbTransport(opts, TransportContext("b", "f", 1 << 20, lambda e: None, roster=roster))
         t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [1, 3]), send=send, stats=dict)  # type: ignore[assignment]
         assert t._relay is not None
@@ -224,18 +228,27 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
             fleet="f", robot="a", version=7, base_version=0, codec="raw", width=1, height=1,
             resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"\x00",
         ).signed(ida)  # fmt: skip
-        data = env.pack()
-        t.held(env, data)
+        if already_relayed:
+            t.relayed(env)
+        t.held(env, env.pack())
         t._on_event(arq.MessageReceived(3, SUMMARY_STREAM, 9, pack_summary(Summary({}, frozenset({2})))))
-        await asyncio.sleep(0.2)
-        assert (data, [3], t._stream("a")) in sent
-        summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
-        assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
+        await asyncio.sleep(wait_s)
         await t._relay.close()
-        assert t.stats()["relays_tx"] == 1
-        return t
+        return t, env.pack()
 
-    t = asyncio.run(scenario())
+    t, data = asyncio.run(scenario(opts, already_relayed=False, wait_s=0.2))
+    assert (data, [3], t._stream("a")) in sent  # the envelope's bytes, unaltered
+    summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
+    assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
+    assert t.stats()["relays_tx"] == 1
     assert all(s < SUMMARY_STREAM for s in t._streams.values()) and SUMMARY_STREAM < POSE_STREAM
+
+    # The same, but another robot forwarded v7 first: b does not repeat it (for two summary
+    # periods: 1 s ones here, so the suppression outlasts the wait).
+    sent.clear()
+    slow = UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, summary_period_s=1.0, relay_period_s=0.01)
+    t, _ = asyncio.run(scenario(slow, already_relayed=True, wait_s=0.3))
+    assert sent and all(s == SUMMARY_STREAM for _, _, s in sent)  # summaries only, no relay
+    assert t.stats()["relays_tx"] == 0 and t.stats()["relays_overheard"] == 1
     unsigned = TransportContext("b", "f", 1 << 20, lambda e: None, roster=Roster({}, allow_unsigned=True))
     assert UwbTransport(opts, unsigned)._relay is None
