@@ -31,6 +31,11 @@ COLUMNS = [
     ("collided", "collided", ""),
     ("lost", "lost", ""),
     ("degree", "hears", ".1f"),
+    ("versions", "versions", ""),
+    ("keyframes", "keyframes", ""),
+    ("deltas", "deltas", ""),
+    ("accepted", "maps accepted", ""),
+    ("relayed", "relays", ""),
     ("wall_s", "wall s", ".1f"),
 ]
 
