@@ -356,6 +356,11 @@ def run_demo(args: argparse.Namespace) -> int:
         raise MapdError("the demo needs at least 2 robots")
     if args.transport == "uwb" and shutil.which("socat") is None:
         raise MapdError("the UWB demo needs socat: sudo apt-get install -y socat")
+    for pair in getattr(args, "out_of_range", []):
+        if args.transport != "uwb":
+            raise MapdError("--out-of-range is a fault of the emulated UWB radio: add --transport uwb")
+        if any(int(i) >= args.robots for i in pair.split("-")):
+            raise MapdError(f"--out-of-range {pair}: robots are numbered 0..{args.robots - 1}")
     fleet = Fleet(args)
     print(
         f"mapd demo: {args.robots} robots, {args.transport} link, codec {args.codec}, "

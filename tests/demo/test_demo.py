@@ -84,3 +84,25 @@ def test_global_map_picture_marks_each_robot_where_it_is() -> None:
     assert np.array_equal(out[10, 10], img[10, 10])  # the rest untouched
     changed = np.argwhere((out != img).any(axis=2))
     assert changed[:, 0].min() >= 50 and changed[:, 0].max() <= 68  # one marker, around row 59
+
+
+@pytest.mark.parametrize(
+    ("extra", "says"),
+    [
+        (["--transport", "zenoh", "--out-of-range", "0-1"], "add --transport uwb"),
+        (["--transport", "uwb", "--robots", "3", "--out-of-range", "0-3"], "numbered 0..2"),
+        (["--transport", "uwb", "--out-of-range", "1-1"], "two different robot indices"),
+    ],
+)
+def test_demo_refuses_a_bad_out_of_range_pair_in_one_line(
+    tmp_path: Path, extra: list[str], says: str
+) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "mapd", "demo", "--out", str(tmp_path), *extra],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    # one clear line, last (argparse's own errors print the usage above it)
+    assert r.returncode != 0 and says in r.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in r.stderr
