@@ -77,6 +77,12 @@ class UwbOptions(TransportOptions):
     peers: list[str] = Field(
         default_factory=list, description="robots that must ack each map; default: every other robot in nodes"
     )
+    send_to: Literal["configured", "heard"] = Field(
+        default="configured",
+        description="whom each map goes to: every robot in peers (kept trying until deadline_s, also "
+        "out of range), or those of them heard within peer_timeout_s (fleets spread over a building: "
+        "the others get it by relay; mapd bench swarm --acks up)",
+    )
     deadline_s: float = Field(default=120.0, gt=0, description="give up on a map after this long")
     max_message_bytes: int | None = Field(
         default=None,
@@ -512,6 +518,9 @@ class UwbTransport(Transport):
         link = self._link
         if link is None or link.core is None:
             return []
+        if self.opts.send_to == "heard":
+            up = set(link.core.peers_up())
+            return [p for p in self.peer_ids if p in up]
         return self.peer_ids or link.core.peers_up()
 
     def held(self, envelope: Envelope, data: bytes) -> None:

@@ -64,6 +64,21 @@ def test_transport_needs_a_link_id() -> None:
         UwbTransport(UwbOptions(nodes={"zed": 4}, peers=["nobody"]), ctx)
 
 
+def test_send_to_heard_sends_each_map_only_to_configured_robots_heard_lately() -> None:
+    from types import SimpleNamespace
+
+    ctx = TransportContext(robot="zed", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
+    nodes = {"a": 1, "b": 2, "c": 3, "zed": 4}
+    link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [3, 1, 9]))  # 9: heard, not configured
+    every = UwbTransport(UwbOptions(nodes=nodes), ctx)
+    heard = UwbTransport(UwbOptions(nodes=nodes, send_to="heard"), ctx)
+    every._link = heard._link = link  # type: ignore[assignment]
+    assert every._dests() == [1, 2, 3]  # the default: b too, though out of range
+    assert heard._dests() == [1, 3]
+    with pytest.raises(ConfigError, match="send_to"):
+        validate(UwbOptions, {"send_to": "everyone"}, "config.toml", "transports.uwb")
+
+
 @pytest.mark.parametrize(("node", "window", "max_frame"), [(1, 1, MIN_FRAME), (254, 256, 4096)])
 def test_options_in_range_build_a_core_config(node: int, window: int, max_frame: int) -> None:
     # The core raises ValueError (a bug, not a user's error) for what the options must refuse first.
