@@ -33,7 +33,7 @@ from transports.uwb.pacing import SLOT_FRAMES
 
 
 def default_slot_s(rate_bps: float, max_frame: int = 224, guard_s: float = 0.01) -> float:
-    """The daemon's default TDMA slot (``transports.uwb.link.SLOT_FRAMES`` full frames plus guard)."""
+    """The daemon's default TDMA slot (``transports.uwb.pacing.SLOT_FRAMES`` full frames plus guard)."""
     return SLOT_FRAMES * max_frame * 8 / rate_bps + guard_s
 
 

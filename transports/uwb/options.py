@@ -1,0 +1,129 @@
+"""The ``[transports.uwb]`` options: the link, medium access, peers, limits and the relay, checked
+when the config loads (one :class:`~mapd.errors.ConfigError` line for a bad value)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from mapd.errors import ConfigError
+from transports.base import TransportOptions
+from transports.uwb.framing import MIN_FRAME
+from transports.uwb.pacing import SLOT_FRAMES
+from transports.uwb.sending import HASH_LEN
+from transports.uwb.wire import MAX_TOTAL
+
+#: The largest map a uwb link carries: what a DATA frame's 24-bit size field describes.
+MAX_MESSAGE = MAX_TOTAL - HASH_LEN
+
+
+class UwbOptions(TransportOptions):
+    """The ``[transports.uwb]`` table."""
+
+    port: str = Field(default="/dev/ttyUSB0", description="serial device of the UWB radio")
+    baud: int = Field(default=115200, ge=1200, le=4_000_000, description="serial baud rate")
+    link_rate_bps: int = Field(
+        default=12500, ge=2000, le=10_000_000, description="bits/s this node may write (any 1 s window)"
+    )
+    max_frame: int = Field(default=224, ge=MIN_FRAME, le=4096, description="largest frame on the wire, bytes")
+    node_id: int | None = Field(
+        default=None, ge=1, le=254, description="this robot's link id; default nodes[robot]"
+    )
+    nodes: dict[str, int] = Field(
+        default_factory=dict, description="robot name -> link id (1..254) on this channel"
+    )
+    peers: list[str] = Field(
+        default_factory=list, description="robots that must ack each map; default: every other robot in nodes"
+    )
+    send_to: Literal["configured", "heard"] = Field(
+        default="configured",
+        description="whom each map goes to: every robot in peers (kept trying until deadline_s, also "
+        "out of range), or those of them heard within peer_timeout_s (fleets spread over a building: "
+        "the others get it by relay; mapd bench swarm --acks up)",
+    )
+    deadline_s: float = Field(default=120.0, gt=0, description="give up on a map after this long")
+    max_message_bytes: int | None = Field(
+        default=None,
+        ge=1024,
+        le=MAX_MESSAGE,
+        description="default: limits.max_message_bytes, at most 16 MiB (three hours at 12.5 kb/s)",
+    )
+    window: int = Field(default=128, ge=1, le=256, description="chunks in flight past the receiver's base")
+    acks: Literal["auto", "each", "nack"] = Field(
+        default="auto",
+        description="how receivers ack: auto (gap reports and one COMPLETE for broadcast maps, "
+        "selective acks for unicast), each (selective acks always), nack (gap reports always)",
+    )
+    pose_period_s: float = Field(
+        default=5.0, ge=0.0, description="seconds between pose messages; they yield to maps (0: send none)"
+    )
+    mac: Literal["none", "tdma", "backoff"] = Field(
+        default="none", description="medium access on a shared channel"
+    )
+    slot_ms: float | None = Field(
+        default=None,
+        gt=0,
+        description=f"tdma: slot length; default {SLOT_FRAMES} max_frame frames at link_rate_bps plus guard_ms",
+    )
+    slots: int | None = Field(
+        default=None, ge=1, le=254, description="tdma: slots per cycle; default len(nodes)"
+    )
+    slot_index: int | None = Field(default=None, ge=0, description="tdma: own slot; default rank of node_id")
+    guard_ms: float = Field(default=10.0, ge=0, description="tdma: quiet time at the end of a slot")
+    sense_ms: float = Field(default=20.0, ge=0, description="backoff: channel idle time before a backoff")
+    backoff_min_ms: float = Field(default=0.0, ge=0, description="backoff: shortest random wait")
+    backoff_max_ms: float = Field(default=100.0, ge=0, description="backoff: longest random wait")
+    beacon_s: float = Field(default=5.0, gt=0, description="HELLO after this long without sending")
+    peer_timeout_s: float = Field(default=20.0, gt=0, description="a peer silent this long is down")
+    reopen_s: float = Field(default=1.0, gt=0, description="retry a vanished serial port this often")
+    keyframe_request_s: float = Field(
+        default=5.0, gt=0, description="ask a robot for a whole map at most this often"
+    )
+    relay: bool = Field(
+        default=True,
+        description="forward peers' signed maps to neighbours that lack them and do not hear their "
+        "robot (multi-hop; signed fleets only)",
+    )
+    summary_period_s: float = Field(
+        default=15.0, gt=0, description="relay: broadcast which versions this robot holds this often"
+    )
+    relay_period_s: float = Field(default=5.0, gt=0, description="relay: start at most one relay this often")
+
+    @model_validator(mode="after")
+    def _check(self) -> UwbOptions:
+        for name, i in self.nodes.items():
+            if not 1 <= i <= 254:
+                raise ValueError(f"nodes.{name}: link id {i} is not in 1..254")
+        if len(set(self.nodes.values())) != len(self.nodes):
+            raise ValueError("nodes: two robots share a link id")
+        if self.link_rate_bps / 8 < 2 * self.max_frame:
+            # the pacer's burst is two frames (a data frame and an ack back to back)
+            raise ValueError(
+                f"link_rate_bps {self.link_rate_bps} cannot carry two {self.max_frame}-byte frames a second"
+            )
+        if self.backoff_max_ms < self.backoff_min_ms:
+            raise ValueError("backoff_max_ms is below backoff_min_ms")
+        if (
+            self.mac == "tdma"
+            and self.max_frame * 8 / self.link_rate_bps > (self.slot_length_ms - self.guard_ms) / 1000
+        ):
+            raise ValueError("tdma: a max_frame frame does not fit in slot_ms - guard_ms at link_rate_bps")
+        return self
+
+    @property
+    def slot_length_ms(self) -> float:
+        """``slot_ms``, or by default a slot that carries :data:`SLOT_FRAMES` full frames."""
+        if self.slot_ms is not None:
+            return self.slot_ms
+        return SLOT_FRAMES * self.max_frame * 8000 / self.link_rate_bps + self.guard_ms
+
+
+def resolve_peer(spec: str, nodes: dict[str, int]) -> int:
+    """A peer given as a robot name in ``nodes``, a number, or ``uwb-N``; ConfigError otherwise."""
+    if spec in nodes:
+        return nodes[spec]
+    text = spec.removeprefix("uwb-")
+    if text.isdigit() and 1 <= int(text) <= 254:
+        return int(text)
+    raise ConfigError(f"transports.uwb.peers: '{spec}' is not in transports.uwb.nodes nor a link id 1..254")
