@@ -13,6 +13,12 @@ forwarded only to a neighbour whose summary says it holds the delta's base, so t
 last :data:`CHAIN` envelopes of each origin (a far robot catches up one delta a relay, each on the
 one before, as the origin made them), and the newest keyframe for neighbours further behind.
 
+A neighbour further behind than the chain reaches, when no newer keyframe is held either, cannot be
+served from what this robot holds; if this robot hears the origin it asks it for a whole map on the
+neighbour's behalf (:meth:`ForwardingCore.keyframes_wanted`, at most once per ``retry_s`` per origin),
+and forwards that keyframe when it comes. Without this, a far robot that missed more than
+:data:`CHAIN` versions would wait for the origin's next scheduled keyframe.
+
 Bounds, so relays never flood the channel:
 
 * at most one relay in flight per robot, and one started per ``relay_period_s``;
@@ -121,10 +127,12 @@ class ForwardingCore:
     _held_bytes: int = 0
     _forwarded: dict[tuple[int, int], float] = field(default_factory=dict)
     _need_since: dict[tuple[int, int, int], float] = field(default_factory=dict)
+    _asked: dict[int, float] = field(default_factory=dict)  # origin -> when a keyframe was asked for
     _in_flight: bool = False
     _last_start: float | None = None
     _wake: float | None = None
     relays_started: int = 0
+    keyframes_asked: int = 0
 
     # --- inputs ---------------------------------------------------------------------------------
     def on_summary(self, src: int, summary: Summary, now: float) -> None:
@@ -196,6 +204,32 @@ class ForwardingCore:
         self._forwarded[(best_relay.origin, best_relay.version)] = now
         self.relays_started += 1
         return best_relay
+
+    def keyframes_wanted(self, now: float, hears: frozenset[int] | set[int]) -> list[int]:
+        """Origins (among ``hears``, the link ids this robot hears) to ask for a whole map now: a
+        neighbour lacks their newest version and nothing held fits it (no delta on what it holds,
+        no newer keyframe). Each origin at most once per ``retry_s``."""
+        self._expire(now)
+        out = []
+        for origin, chain in self._chain.items():
+            if origin not in hears or not chain:
+                continue
+            asked = self._asked.get(origin)
+            if asked is not None and now - asked < self.retry_s:
+                continue
+            newest = chain[-1][0]
+            for n, h in self._heard.items():
+                s = h.summary
+                have = s.holds.get(origin, 0)
+                if n == origin or origin in s.hears or have >= newest:
+                    continue
+                if any(v > have and (base == 0 or base == have) for v, base, _ in self._candidates(origin)):
+                    continue  # next_forward serves it
+                out.append(origin)
+                self._asked[origin] = now
+                self.keyframes_asked += 1
+                break
+        return out
 
     def next_deadline(self) -> float | None:
         """When to call :meth:`next_forward` again if no input comes first (None: only on new input);

@@ -389,7 +389,12 @@ class UwbTransport(Transport):
         await self._link.start()
         if self._relay is not None:
             link = self._link
-            self._relay.start(link.send, lambda: link.core.peers_up() if link.core else [], self._dests)
+            self._relay.start(
+                link.send,
+                lambda: link.core.peers_up() if link.core else [],
+                self._dests,
+                ask=lambda origin: self.request_keyframe(self._name(origin)),
+            )
 
     async def close(self) -> None:
         if self._relay is not None:

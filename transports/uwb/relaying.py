@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 from mapd.errors import MapdError
 from transports.uwb import forwarding
@@ -84,9 +84,16 @@ class RelayDriver:
             self._wake.set()
 
     # --- the task ---------------------------------------------------------------------------------
-    def start(self, send: SendFn, peers: Callable[[], list[int]], dests: Callable[[], list[int]]) -> None:
-        """Run the task: ``peers()`` are the link ids heard lately, ``dests()`` whom summaries go to."""
-        self._task = asyncio.get_running_loop().create_task(self._run(send, peers, dests))
+    def start(
+        self,
+        send: SendFn,
+        peers: Callable[[], list[int]],
+        dests: Callable[[], list[int]],
+        ask: Callable[[int], Awaitable[None]] | None = None,
+    ) -> None:
+        """Run the task: ``peers()`` are the link ids heard lately, ``dests()`` whom summaries go
+        to, ``ask(origin)`` asks a robot for a whole map (for a neighbour the chain cannot serve)."""
+        self._task = asyncio.get_running_loop().create_task(self._run(send, peers, dests, ask))
 
     async def close(self) -> None:
         if self._task is not None:
@@ -95,7 +102,11 @@ class RelayDriver:
                 await self._task
 
     async def _run(
-        self, send: SendFn, peers: Callable[[], list[int]], dests: Callable[[], list[int]]
+        self,
+        send: SendFn,
+        peers: Callable[[], list[int]],
+        dests: Callable[[], list[int]],
+        ask: Callable[[int], Awaitable[None]] | None,
     ) -> None:
         loop = asyncio.get_running_loop()
         next_summary = loop.time()
@@ -113,6 +124,9 @@ class RelayDriver:
                 except (MapdError, ValueError) as exc:
                     log.info("uwb: relay of link id %d v%d not sent: %s", r.origin, r.version, exc)
                     self.core.relay_done()
+            if ask is not None:
+                for origin in self.core.keyframes_wanted(now, set(peers())):
+                    await ask(origin)
             deadline = self.core.next_deadline()
             wake_at = next_summary if deadline is None else min(next_summary, deadline)
             with contextlib.suppress(TimeoutError):
@@ -143,4 +157,5 @@ class RelayDriver:
             "relay_bad_summaries": self.bad_summaries,
             "relays_tx": self.relays_tx,
             "relays_overheard": self.overheard_rx,
+            "relay_keyframes_asked": self.core.keyframes_asked,
         }

@@ -168,6 +168,18 @@ class SwarmRobot:
         if r is not None:
             self._relay_msg = self.arq.send(r.data, now, dests=list(r.dests), stream=r.origin)
             self.relayed += 1
+        for origin_id in self.fwd.keyframes_wanted(now, set(self.arq.peers_up())):
+            self._ask_keyframe(origin_id - 1, now)  # for a neighbour the chain cannot serve
+
+    def _ask_keyframe(self, origin: int, now: float) -> None:
+        """Ask robot ``origin`` (an index) for a whole map, at most once per ``KEYFRAME_REQUEST_S``,
+        as the daemon's uwb transport does (``keyframe_requests``)."""
+        last = self._asked.get(origin)
+        if last is None or now - last >= KEYFRAME_REQUEST_S:
+            self._asked[origin] = now
+            self.kf_requests += 1
+            req = control.pack_request([self.streams[origin].name])
+            self.arq.send(req, now, dests=[origin + 1], stream=control.CONTROL_STREAM)
 
     def _peers(self) -> dict[str, list[str]]:
         return {"uwb": [str(p) for p in self.arq.peers_up()]}
@@ -246,12 +258,7 @@ class SwarmRobot:
         if held and version <= held[-1]:
             return  # old or duplicate
         if base and base not in held:
-            last = self._asked.get(origin)
-            if last is None or now - last >= KEYFRAME_REQUEST_S:
-                self._asked[origin] = now
-                self.kf_requests += 1
-                req = control.pack_request([self.streams[origin].name])
-                self.arq.send(req, now, dests=[origin_id], stream=control.CONTROL_STREAM)
+            self._ask_keyframe(origin, now)
             return
         held.append(version)
         del held[:-KEEP_PEER_VERSIONS]

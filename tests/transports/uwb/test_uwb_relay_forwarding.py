@@ -125,6 +125,26 @@ def test_a_neighbour_behind_catches_up_along_the_chain_of_deltas() -> None:
     assert core.holds() == {A: 6}
 
 
+def test_a_neighbour_beyond_the_chain_makes_the_relay_ask_the_origin_for_a_keyframe() -> None:
+    """C holds A's v5; B holds A's keyframe v3 and deltas v12..v19 only (v6..v11 went by): nothing B
+    holds fits C, so B, which hears A, asks A for a whole map, once per retry_s, and forwards it."""
+    core = _core()  # keyframe A v3
+    for v in range(12, 20):
+        core.on_held(A, v, v - 1, f"delta A v{v}".encode())
+    core.on_summary(C, Summary({A: 5}, frozenset({B})), 0.0)
+    assert core.next_forward(0.0) is None  # neither the keyframe (older) nor a delta fits
+    assert core.keyframes_wanted(0.0, hears=set()) == []  # B does not hear A: nobody to ask
+    assert core.keyframes_wanted(0.0, hears={A, C}) == [A]
+    assert core.keyframes_wanted(10.0, hears={A, C}) == []  # asked within retry_s
+    core.on_summary(C, Summary({A: 5}, frozenset({B})), 31.0)
+    assert core.keyframes_wanted(31.0, hears={A, C}) == [A] and core.keyframes_asked == 2
+    core.on_held(A, 20, 0, b"keyframe A v20")  # A answered with a whole map
+    assert core.keyframes_wanted(70.0, hears={A, C}) == []  # now it fits C
+    core.on_summary(C, Summary({A: 5}, frozenset({B})), 70.0)
+    r = core.next_forward(70.0)
+    assert r is not None and (r.version, r.data, r.dests) == (20, b"keyframe A v20", (C,))
+
+
 def test_the_chain_is_bounded_in_length_and_bytes() -> None:
     from transports.uwb import forwarding
 
