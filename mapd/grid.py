@@ -72,6 +72,24 @@ class Pose2D(NamedTuple):
 ZERO_POSE = Pose2D()
 
 
+def wrap_angle(a: float) -> float:
+    """The angle in (-pi, pi]."""
+    w = math.remainder(a, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+def compose(a: Pose2D, b: Pose2D) -> Pose2D:
+    """``a`` then ``b``: with ``a`` = frame B in A and ``b`` = C in B, returns C in A (SE(2))."""
+    c, s = math.cos(a.yaw), math.sin(a.yaw)
+    return Pose2D(a.x + c * b.x - s * b.y, a.y + s * b.x + c * b.y, wrap_angle(a.yaw + b.yaw))
+
+
+def inverse(t: Pose2D) -> Pose2D:
+    """A in B, given B in A: the pose that undoes ``t``."""
+    c, s = math.cos(t.yaw), math.sin(t.yaw)
+    return Pose2D(-(c * t.x + s * t.y), -(-s * t.x + c * t.y), wrap_angle(-t.yaw))
+
+
 class StampedPose(NamedTuple):
     """Where a robot's ``base_link`` was, in its own map frame, at ``stamp`` (wall-clock seconds)."""
 

@@ -15,13 +15,12 @@ import numpy as np
 
 from mapd.grid import OccupancyGrid, Pose2D
 
+# The SE(2) basics live in mapd.grid (mapping uses them too); fusion's modules reach them here.
+from mapd.grid import compose as compose
+from mapd.grid import inverse as inverse
+from mapd.grid import wrap_angle as wrap_angle
+
 IDENTITY = Pose2D(0.0, 0.0, 0.0)
-
-
-def wrap_angle(a: float) -> float:
-    """The angle in (-pi, pi]."""
-    w = math.remainder(a, 2.0 * math.pi)
-    return math.pi if w == -math.pi else w
 
 
 def to_matrix(t: Pose2D) -> np.ndarray:
@@ -33,18 +32,6 @@ def to_matrix(t: Pose2D) -> np.ndarray:
 def from_matrix(m: np.ndarray) -> Pose2D:
     """The rigid transform of a 3x3 (or 2x3) matrix; the rotation part is read with atan2."""
     return Pose2D(float(m[0, 2]), float(m[1, 2]), wrap_angle(math.atan2(m[1, 0], m[0, 0])))
-
-
-def compose(a: Pose2D, b: Pose2D) -> Pose2D:
-    """``a`` then ``b``: with ``a`` = B in A and ``b`` = C in B, returns C in A."""
-    c, s = math.cos(a.yaw), math.sin(a.yaw)
-    return Pose2D(a.x + c * b.x - s * b.y, a.y + s * b.x + c * b.y, wrap_angle(a.yaw + b.yaw))
-
-
-def inverse(t: Pose2D) -> Pose2D:
-    """A in B, given B in A."""
-    c, s = math.cos(t.yaw), math.sin(t.yaw)
-    return Pose2D(-(c * t.x + s * t.y), -(-s * t.x + c * t.y), wrap_angle(-t.yaw))
 
 
 def apply(t: Pose2D, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:

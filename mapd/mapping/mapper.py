@@ -31,7 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mapd.errors import LimitError, SourceError
-from mapd.grid import DEFAULT_MAX_CELLS, FREE, OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D
+from mapd.grid import DEFAULT_MAX_CELLS, FREE, OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D, compose, inverse
 from mapd.mapping import carmen
 
 #: Cells added on each side when the buffer must grow (so growth is rare, not once per scan).
@@ -91,19 +91,6 @@ class MapperOptions(BaseModel):
         if self.clear_no_return and self.max_range is None:
             raise ValueError("clear_no_return needs a finite max_range")
         return self
-
-
-def compose(a: Pose2D, b: Pose2D) -> Pose2D:
-    """``a ∘ b``: pose ``b`` (given in frame ``a``) expressed in ``a``'s parent frame."""
-    c, s = math.cos(a.yaw), math.sin(a.yaw)
-    yaw = math.atan2(math.sin(a.yaw + b.yaw), math.cos(a.yaw + b.yaw))
-    return Pose2D(a.x + c * b.x - s * b.y, a.y + s * b.x + c * b.y, yaw)
-
-
-def inverse(a: Pose2D) -> Pose2D:
-    """The pose that undoes ``a``."""
-    c, s = math.cos(a.yaw), math.sin(a.yaw)
-    return Pose2D(-c * a.x - s * a.y, s * a.x - c * a.y, -a.yaw)
 
 
 def relative(frame: Pose2D, pose: Pose2D) -> Pose2D:
