@@ -267,9 +267,10 @@ class Fleet:
             poses[name] = (round(pose.x, 6), round(pose.y, 6), round(pose.yaw, 6))
         return poses
 
-    def start(self) -> None:
+    def start(self, only: list[str] | None = None) -> None:
+        """Start every robot's daemon (or only those named, e.g. to start the others later)."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        for name in self.members:
+        for name in self.members if only is None else only:
             d = self.run_dir / name
             log = open(d / "daemon.log", "wb")  # noqa: SIM115 - lives as long as the process
             self.procs[name] = subprocess.Popen(

@@ -403,3 +403,31 @@ def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
         f.stop()
     stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
     assert stats["unheard"] > 0  # the emulated radio did keep robot0's and robot2's frames apart
+
+
+def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
+    """robot0 maps, finishes, and its last map's send gives up (deadline_s 5 s) before robot1 even
+    starts: robot1 asks for it when it first hears robot0, as a zenoh peer queries a late joiner."""
+    args = argparse.Namespace(
+        robots=2, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=15.0
+    )
+    f = Fleet(args, sim_options={"duration": 15.0})
+    f.prepare()
+    cfg = f.run_dir / "robot0" / "config.toml"
+    cfg.write_text(cfg.read_text().replace("[transports.uwb]\n", "[transports.uwb]\ndeadline_s = 5.0\n", 1))
+    f.start(only=["robot0"])
+    try:
+        snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("source", {}).get("finished"), 60, f)
+        final = snaps["robot0"]["source"]["version"]
+        time.sleep(8.0)  # its last send has given up on robot1 by now
+        assert f.status()["robot0"]["links"]["uwb"]["messages_failed"] > 0
+        f.start(only=["robot1"])
+        snaps = fk.wait_for(
+            lambda s: s.get("robot1", {}).get("peers", {}).get("robot0", {}).get("version") == final, 60, f
+        )
+        assert snaps["robot1"]["links"]["uwb"]["keyframe_requests_tx"] >= 1
+        assert snaps["robot0"]["source"]["version"] == final  # robot0 made nothing new meanwhile
+    finally:
+        f.stop()

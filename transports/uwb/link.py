@@ -321,6 +321,7 @@ class UwbTransport(Transport):
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
         self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
+        self._heard_maps: set[int] = set()  # link ids a map came from on this link (late join)
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
         self._poses = PoseThrottle(opts.pose_period_s)
@@ -465,6 +466,9 @@ class UwbTransport(Transport):
 
     async def request_keyframe(self, robot: str) -> None:
         """Ask ``robot`` (over this link) for a whole map: a control message, throttled per robot."""
+        self._ask_keyframe(robot)
+
+    def _ask_keyframe(self, robot: str) -> None:
         link = self._link
         if link is None or link.core is None:
             return
@@ -507,6 +511,7 @@ class UwbTransport(Transport):
                 if self._relay is not None:
                     self._relay.summary(e.src, e.data, time.monotonic())
             else:
+                self._heard_maps.add(e.src)
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
             meta = self._msgs.get(e.msg) or self._late.get(e.msg)
@@ -527,6 +532,10 @@ class UwbTransport(Transport):
                 self._relay.closed(e.msg)
         elif isinstance(e, arq.PeerUp):
             emit(PeerUp("uwb", self._name(e.peer)))
+            if e.peer not in self._heard_maps and e.peer in self.opts.nodes.values():
+                # A late joiner, as zenoh queries one: its last map may be long sent (and failed to
+                # reach us), and a robot whose map no longer changes would never send it again.
+                self._ask_keyframe(self._name(e.peer))
         elif isinstance(e, arq.PeerDown):
             emit(PeerDown("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerRestarted):

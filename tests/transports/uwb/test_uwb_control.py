@@ -51,6 +51,24 @@ def test_transport_drops_a_request_too_large_to_build() -> None:
     assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 0
 
 
+def test_a_robot_heard_before_any_map_of_it_came_is_asked_for_one_once() -> None:
+    """A late joiner, as the zenoh transport queries one: a robot whose map no longer changes would
+    never send it again. A robot whose maps did come (it was only out of range) is not asked."""
+    from transports.uwb import arq
+
+    sent: list[bytes] = []
+    t = _transport_with_stub_link(sent)
+    t._requests = control.KeyframeRequests(1e-9)  # (almost) no throttle: what counts is whom it asks
+    t._on_event(arq.PeerUp(2))
+    assert [control.parse_request(d) for d in sent] == [["b"]]
+    t._on_event(arq.PeerUp(9))  # a link id of no robot in nodes: not asked
+    assert len(sent) == 1
+    t._on_event(arq.MessageReceived(2, 0, 7, b"an envelope of b"))
+    t._on_event(arq.PeerDown(2))
+    t._on_event(arq.PeerUp(2))  # back in range: its maps came before, deltas resume
+    assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 1
+
+
 @pytest.mark.parametrize(
     "data",
     [
