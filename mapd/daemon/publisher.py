@@ -93,8 +93,8 @@ class PublisherCore:
     _latest: OccupancyGrid | None = None
     _restored: OccupancyGrid | None = None
     _base_version: int | None = None
-    _acked: dict[str, int] = field(default_factory=dict)
-    #: Per peer, the newest own versions it acknowledged (ascending), as many as it keeps (P3).
+    #: Per peer, the newest own versions it acknowledged (ascending), as many as it keeps (P3); the
+    #: last is the newest it holds.
     _held: dict[str, list[int]] = field(default_factory=dict)
     _inflight: dict[str, InFlight] = field(default_factory=dict)
     _offered: dict[str, int] = field(default_factory=dict)
@@ -111,7 +111,6 @@ class PublisherCore:
         if own is not None:
             self._sent[own.version] = own
             self._restored = own
-        self._acked = dict(acked)
         self._held = {p: [v] for p, v in acked.items()}
 
     def new_version(self, grid: OccupancyGrid) -> None:
@@ -129,9 +128,7 @@ class PublisherCore:
         peer's acked version moved forward (the base may change: see :meth:`base_to_save`).
         """
         free = self._settle(transport, peer, version)
-        newer = version > self._acked.get(peer, 0)
-        if newer:
-            self._acked[peer] = version
+        newer = version > self._newest(peer)
         held = self._held.setdefault(peer, [])
         if version not in held:
             held.append(version)
@@ -146,7 +143,6 @@ class PublisherCore:
     def keyframe_needed(self, peer: str) -> bool:
         """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""
         self._since_keyframe = self.keyframe_every
-        self._acked.pop(peer, None)
         self._held.pop(peer, None)
         if self._latest is None:
             self._latest = self._restored
@@ -184,7 +180,7 @@ class PublisherCore:
         for t in job.transports:
             self._offered[t] = envelope.version
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
-            waiting = {p for p in peers.get(t, ()) if self._acked.get(p, 0) < envelope.version}
+            waiting = {p for p in peers.get(t, ()) if self._newest(p) < envelope.version}
             timeout = max(self.inflight_timeout_s, INFLIGHT_PER_PEER_S * len(waiting))
             self._inflight[t] = InFlight(envelope.version, now, waiting, timeout)
         return job.transports
@@ -206,7 +202,7 @@ class PublisherCore:
 
     def base_to_save(self, peers: Collection[str]) -> OccupancyGrid | None:
         """The version to persist as the delta base, when every peer acked the same one (P5)."""
-        versions = {self._acked.get(p, 0) for p in (peers or self._acked)}
+        versions = {self._newest(p) for p in (peers or self._held)}
         if len(versions) != 1:
             return None
         v = versions.pop()
@@ -225,6 +221,11 @@ class PublisherCore:
         return kf if kf is not None and kf.version == version else None
 
     # ------------------------------------------------------------------ internals
+    def _newest(self, peer: str) -> int:
+        """The newest own version ``peer`` acknowledged (0: none)."""
+        held = self._held.get(peer)
+        return held[-1] if held else 0
+
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)
         return busy is not None and bool(busy.unsettled) and now - busy.since < busy.timeout

@@ -394,7 +394,7 @@ class UwbTransport(Transport):
                 link.send,
                 lambda: link.core.peers_up() if link.core else [],
                 self._dests,
-                ask=lambda origin: self.request_keyframe(self._name(origin)),
+                ask=lambda origin: self._ask_keyframe(self._name(origin)),
             )
 
     async def close(self) -> None:

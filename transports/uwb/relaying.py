@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 
 from mapd.errors import MapdError
 from transports.uwb import forwarding
@@ -89,7 +89,7 @@ class RelayDriver:
         send: SendFn,
         peers: Callable[[], list[int]],
         dests: Callable[[], list[int]],
-        ask: Callable[[int], Awaitable[None]] | None = None,
+        ask: Callable[[int], None] | None = None,
     ) -> None:
         """Run the task: ``peers()`` are the link ids heard lately, ``dests()`` whom summaries go
         to, ``ask(origin)`` asks a robot for a whole map (for a neighbour the chain cannot serve)."""
@@ -106,7 +106,7 @@ class RelayDriver:
         send: SendFn,
         peers: Callable[[], list[int]],
         dests: Callable[[], list[int]],
-        ask: Callable[[int], Awaitable[None]] | None,
+        ask: Callable[[int], None] | None,
     ) -> None:
         loop = asyncio.get_running_loop()
         next_summary = loop.time()
@@ -126,7 +126,7 @@ class RelayDriver:
                     self.core.relay_done()
             if ask is not None:
                 for origin in self.core.keyframes_wanted(now, set(peers())):
-                    await ask(origin)
+                    ask(origin)
             deadline = self.core.next_deadline()
             wake_at = next_summary if deadline is None else min(next_summary, deadline)
             with contextlib.suppress(TimeoutError):

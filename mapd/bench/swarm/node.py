@@ -232,7 +232,6 @@ class SwarmRobot:
                     free, _ = self.pub.acked("uwb", str(e.peer), v)
                     if free:
                         self._poll(now)
-
             elif isinstance(e, arq.MessageFailed):
                 v = self._own_msgs.get(e.msg)
                 if v is not None and self.pub.failed("uwb", str(e.peer), v):
