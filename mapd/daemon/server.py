@@ -8,7 +8,7 @@ One update's way through the robot::
         --> Receiver.accept --> save (worker), fusion worker, ack
 
 The decisions live in sans-I/O cores (:mod:`~mapd.daemon.publisher`, :mod:`~mapd.daemon.receiver`);
-this module is the asyncio adapter around them. The event loop only moves bytes and decisions:
+this module is the asyncio adapter around them, with :mod:`~mapd.daemon.inbound` for events in. The event loop only moves bytes and decisions:
 encode, decode, verify, merge and file writes run in worker threads, so a large map never stalls
 the links, timers or ``mapd status``. Every queue is bounded and latest-wins where order does not
 matter.
@@ -34,33 +34,25 @@ from mapd.codec.api import encode_problem
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
+from mapd.daemon.inbound import Inbound
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
-from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
+from mapd.daemon.receiver import Receiver
 from mapd.daemon.sinks import Sinks, placed_frames
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
 from mapd.envelope import Envelope
-from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
+from mapd.errors import MapdError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
 from mapd.record.writer import Recorder
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from transports.base import (
-    Delivered,
-    Failed,
-    KeyframeNeeded,
-    PeerDown,
-    PeerRestarted,
-    PeerUp,
-    PoseReceived,
-    Received,
     Transport,
     TransportContext,
-    TransportEvent,
 )
 
 if TYPE_CHECKING:
@@ -147,6 +139,21 @@ class Daemon:
             max_robots=cfg.limits.max_peers + 1,
             frames=lambda: placed_frames(self.fusion.placements),
             publish=self.sinks.poses,
+        )
+        self.inbound = Inbound(
+            me=self.me,
+            events=self._events,
+            transports=self.transports,  # the same list: filled once the transports start
+            publisher=self.publisher,
+            receiver=self.receiver,
+            store=self.store,
+            fusion=self.fusion,
+            sinks=self.sinks,
+            poses=self.poses,
+            roster=self.keys.roster,
+            max_message_bytes=lim.max_message_bytes,
+            max_cells=lim.max_cells,
+            wake=self._wake.set,
         )
         # The live web view ([view] listen): an output like the others, plus the status dict.
         self.view: LiveView | None = None
@@ -244,7 +251,7 @@ class Daemon:
             tasks = [
                 tg.create_task(self._source_loop(), name="source"),
                 tg.create_task(self._publish_loop(), name="publisher"),
-                tg.create_task(self._event_loop(), name="events"),
+                tg.create_task(self.inbound.run(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
                 tg.create_task(self._record_links(), name="record"),
@@ -410,7 +417,7 @@ class Daemon:
                 log.error("cannot code v%d: %s", job.grid.version, exc)
                 continue
             for name in core.encoded(job, env, time.monotonic(), self._peers_by_transport()):
-                transport = self._transport(name)
+                transport = self.inbound.transport(name)
                 if transport is not None:
                     transport.offer(env)
             if self._pending is not None:
@@ -444,101 +451,6 @@ class Daemon:
         while True:
             await asyncio.sleep(self.cfg.record.stats_every_s)
             self.sinks.links({t.name: {**t.stats(), "peers": t.peers()} for t in self.transports})
-
-    # ------------------------------------------------------------------ events in
-    async def _event_loop(self) -> None:
-        while True:
-            ev = await self._events.get()
-            try:
-                await self._handle(ev)
-            except MapdError as exc:
-                log.warning("event from %s dropped: %s", ev.peer, exc)
-
-    def _transport(self, name: str) -> Transport | None:
-        return next((t for t in self.transports if t.name == name), None)
-
-    async def _handle(self, ev: TransportEvent) -> None:
-        core = self.publisher
-        if isinstance(ev, Received):
-            await self._on_received(ev)
-        elif isinstance(ev, PoseReceived):
-            await self.poses.received(ev)
-        elif isinstance(ev, Delivered):
-            if ev.robot != self.me:
-                return
-            free, newer = core.acked(ev.transport, ev.peer, ev.version)
-            if free:
-                self._wake.set()  # the link is free: the publisher sends it the newest version
-            if newer and self.store.set_acked(ev.peer, ev.version):
-                await self._save_base()
-        elif isinstance(ev, KeyframeNeeded | PeerRestarted):
-            # The peer may not hold our base any more: the next update goes out whole.
-            self.store.forget_acked(ev.peer)
-            if core.keyframe_needed(ev.peer):
-                self._wake.set()
-        elif isinstance(ev, PeerUp | PeerDown):
-            self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
-        elif isinstance(ev, Failed):
-            if core.failed(ev.transport, ev.peer, ev.version):
-                self._wake.set()
-            log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
-
-    async def _save_base(self) -> None:
-        peers = {p for t in self.transports for p in t.peers()}
-        grid = self.publisher.base_to_save(peers)
-        if grid is None:
-            await asyncio.to_thread(self.store.flush)
-            return
-        await asyncio.to_thread(self.store.save_base, grid)
-        self.publisher.set_base(grid.version)
-
-    async def _on_received(self, ev: Received) -> None:
-        rx = self.receiver
-        try:
-            env = await asyncio.to_thread(
-                open_envelope, ev.data, max_bytes=self.cfg.limits.max_message_bytes, roster=self.keys.roster
-            )
-        except EnvelopeError as exc:
-            rx.refused(exc)
-            log.info("dropped envelope from %s: %s", ev.peer, exc)
-            return
-        plan = rx.plan(env, ev.peer, time.time())
-        transport = self._transport(ev.transport)
-        if transport is not None and env.robot != ev.peer and env.sig:
-            transport.relayed(env)  # another robot forwarded it: ours would repeat it
-        if isinstance(plan, AskKeyframe):
-            if transport is not None:
-                await transport.request_keyframe(plan.robot)
-            return
-        if not isinstance(plan, Decode):
-            if not plan.routine:  # duplicates and echoes are; refusals are worth a line
-                log.info("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
-            if plan.forget and transport is not None:
-                await transport.request_keyframe(env.robot)
-            return
-        try:
-            grid = await asyncio.to_thread(
-                decode_envelope, env, plan.base, max_cells=self.cfg.limits.max_cells
-            )
-        except CodecError as exc:
-            log.info("cannot decode v%d from %s: %s", env.version, env.robot, exc)
-            ask = rx.undecodable(env, plan.base)
-            if ask is not None and transport is not None:
-                await transport.request_keyframe(ask.robot)
-            return
-        rx.accept(grid, env, ev.transport, len(ev.data), time.time())
-        if env.frame_pose is not None:
-            self.fusion.known_pose(env.robot, env.frame_pose)
-        try:
-            await asyncio.to_thread(self.store.save_peer, grid)
-        except StateError as exc:
-            log.error("%s", exc)
-        self.fusion.submit(grid)
-        self.sinks.robot_map(grid)
-        if transport is not None:
-            transport.ack(env.robot, env.version)
-        for t in self.transports:
-            t.held(env, ev.data)  # a relaying link may forward it, still signed by its robot
 
     # ------------------------------------------------------------------ status
     def snapshot(self) -> dict[str, Any]:

@@ -129,7 +129,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--slot-ms",
         type=float,
         default=None,
-        help="tdma slot per robot (default the daemon's: 4 full frames + 10 ms guard, 583 ms at 12.5 kb/s)",
+        help="tdma slot per robot (default the daemon's: 5 full frames + 10 ms guard, 727 ms at 12.5 kb/s)",
     )
     p.add_argument(
         "--inflight-s",

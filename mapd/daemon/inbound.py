@@ -1,0 +1,154 @@
+"""Transport events in: peers' maps verified, planned, decoded and kept; acks and presence to the publisher.
+
+:class:`Inbound` is the daemon's receiving half, an asyncio adapter like :mod:`mapd.daemon.server`
+around the sans-I/O cores it feeds: :class:`~mapd.daemon.receiver.Receiver` decides what to do with
+a peer's map, :class:`~mapd.daemon.publisher.PublisherCore` learns what each peer acknowledged. For a
+:class:`~transports.base.Received` map, in order: verify (worker thread), plan (loop), decode
+(worker), accept (loop), then save (worker), fusion, outputs, ack, and each transport may relay
+it. Nothing CPU-heavy runs on the loop, and one bad event costs one log line, never the daemon.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from mapd.daemon.events import EventQueue
+from mapd.daemon.poses import PoseRelay
+from mapd.daemon.publisher import PublisherCore
+from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
+from mapd.daemon.sinks import Sinks
+from mapd.daemon.state import StateStore
+from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
+from mapd.fusion.worker import FusionWorker
+from mapd.identity import Roster
+from transports.base import (
+    Delivered,
+    Failed,
+    KeyframeNeeded,
+    PeerDown,
+    PeerRestarted,
+    PeerUp,
+    PoseReceived,
+    Received,
+    Transport,
+    TransportEvent,
+)
+
+log = logging.getLogger("mapd.daemon")
+
+
+@dataclass
+class Inbound:
+    """Handles every event the transports put on the daemon's queue (see the module docstring)."""
+
+    me: str
+    events: EventQueue
+    transports: Sequence[Transport]
+    publisher: PublisherCore
+    receiver: Receiver
+    store: StateStore
+    fusion: FusionWorker
+    sinks: Sinks
+    poses: PoseRelay
+    roster: Roster
+    max_message_bytes: int
+    max_cells: int
+    #: Called when a link became free or a peer needs a keyframe: the publisher has work.
+    wake: Callable[[], None]
+
+    async def run(self) -> None:
+        """Take events off the queue until cancelled."""
+        while True:
+            ev = await self.events.get()
+            try:
+                await self.handle(ev)
+            except MapdError as exc:
+                log.warning("event from %s dropped: %s", ev.peer, exc)
+
+    def transport(self, name: str) -> Transport | None:
+        return next((t for t in self.transports if t.name == name), None)
+
+    async def handle(self, ev: TransportEvent) -> None:
+        core = self.publisher
+        if isinstance(ev, Received):
+            await self._on_received(ev)
+        elif isinstance(ev, PoseReceived):
+            await self.poses.received(ev)
+        elif isinstance(ev, Delivered):
+            if ev.robot != self.me:
+                return
+            free, newer = core.acked(ev.transport, ev.peer, ev.version)
+            if free:
+                self.wake()  # the link is free: the publisher sends it the newest version
+            if newer and self.store.set_acked(ev.peer, ev.version):
+                await self._save_base()
+        elif isinstance(ev, KeyframeNeeded | PeerRestarted):
+            # The peer may not hold our base any more: the next update goes out whole.
+            self.store.forget_acked(ev.peer)
+            if core.keyframe_needed(ev.peer):
+                self.wake()
+        elif isinstance(ev, PeerUp | PeerDown):
+            self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
+        elif isinstance(ev, Failed):
+            if core.failed(ev.transport, ev.peer, ev.version):
+                self.wake()
+            log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
+
+    async def _save_base(self) -> None:
+        peers = {p for t in self.transports for p in t.peers()}
+        grid = self.publisher.base_to_save(peers)
+        if grid is None:
+            await asyncio.to_thread(self.store.flush)
+            return
+        await asyncio.to_thread(self.store.save_base, grid)
+        self.publisher.set_base(grid.version)
+
+    async def _on_received(self, ev: Received) -> None:
+        rx = self.receiver
+        try:
+            env = await asyncio.to_thread(
+                open_envelope, ev.data, max_bytes=self.max_message_bytes, roster=self.roster
+            )
+        except EnvelopeError as exc:
+            rx.refused(exc)
+            log.info("dropped envelope from %s: %s", ev.peer, exc)
+            return
+        plan = rx.plan(env, ev.peer, time.time())
+        transport = self.transport(ev.transport)
+        if transport is not None and env.robot != ev.peer and env.sig:
+            transport.relayed(env)  # another robot forwarded it: ours would repeat it
+        if isinstance(plan, AskKeyframe):
+            if transport is not None:
+                await transport.request_keyframe(plan.robot)
+            return
+        if not isinstance(plan, Decode):
+            if not plan.routine:  # duplicates and echoes are; refusals are worth a line
+                log.info("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
+            if plan.forget and transport is not None:
+                await transport.request_keyframe(env.robot)
+            return
+        try:
+            grid = await asyncio.to_thread(decode_envelope, env, plan.base, max_cells=self.max_cells)
+        except CodecError as exc:
+            log.info("cannot decode v%d from %s: %s", env.version, env.robot, exc)
+            ask = rx.undecodable(env, plan.base)
+            if ask is not None and transport is not None:
+                await transport.request_keyframe(ask.robot)
+            return
+        rx.accept(grid, env, ev.transport, len(ev.data), time.time())
+        if env.frame_pose is not None:
+            self.fusion.known_pose(env.robot, env.frame_pose)
+        try:
+            await asyncio.to_thread(self.store.save_peer, grid)
+        except StateError as exc:
+            log.error("%s", exc)
+        self.fusion.submit(grid)
+        self.sinks.robot_map(grid)
+        if transport is not None:
+            transport.ack(env.robot, env.version)
+        for t in self.transports:
+            t.held(env, ev.data)  # a relaying link may forward it, still signed by its robot
