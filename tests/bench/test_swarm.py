@@ -42,6 +42,7 @@ def _run(fleet: Fleet, tmp_path: Path, **kw: Any) -> dict[str, Any]:
     res = Swarm(fleet, Payloads(tmp_path, "lossless"), cfg).run()
     row = summarize(res)
     row["accepted_log"] = res.accepted
+    row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
     return row
 
 
@@ -178,6 +179,31 @@ def test_signed_frames_cost_airtime(tmp_path: Path) -> None:
     plain = _run(fleet, tmp_path, signed=False)
     assert signed["accepted"] == plain["accepted"] == 6
     assert signed["bps_per_robot"] > plain["bps_per_robot"]
+
+
+def _heavy_stream(i: int, xy: tuple[float, float], versions: int = 3, period: float = 30.0) -> RobotStream:
+    """A robot whose every version is a map of noise: some twenty chunks each, where the others need one."""
+    rng = np.random.default_rng(i)
+    kfs = [
+        encode(OccupancyGrid(rng.choice(np.array([-1, 0, 100], dtype=np.int8), (120, 120)), 0.05), "lossless")
+        for _ in range(versions)
+    ]
+    poses = np.tile(np.asarray(xy, dtype=np.float64), (10, 1))
+    return RobotStream(f"r{i}", f"heavy-{i}", [v * period for v in range(versions)], kfs, poses)
+
+
+def test_turn_lending_gives_idle_turns_to_the_robot_with_a_large_map(tmp_path: Path) -> None:
+    robots = [_heavy_stream(0, (0.0, 0.0))] + [_stream(i, (2.0 * i, 0.0)) for i in range(1, 6)]
+    fleet = Fleet(robots, None, "test")
+    lent = _run(fleet, tmp_path, mac="tdma", lend=True)
+    fixed = _run(fleet, tmp_path, mac="tdma", lend=False)
+    for row in (lent, fixed):
+        assert row["collided"] == 0  # one sender per slot, lending or not
+        assert row["accepted"] == 3 * 5 * 6  # every version of every robot reached every other
+    assert lent["borrowed"] > 0
+    assert fixed["borrowed"] == 0
+    # the heavy robot's maps reach the others sooner
+    assert lent["stale_p95_s"] < 0.7 * fixed["stale_p95_s"], (lent["stale_p95_s"], fixed["stale_p95_s"])
 
 
 def test_config_is_plain_data() -> None:

@@ -396,6 +396,9 @@ def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
         snaps = fk.wait_for(relayed, 150, f)
         hop = snaps["robot1"]["links"]["uwb"]
         assert hop["relays_tx"] >= 2 and hop["relay_summaries_rx"] > 0
+        # TDMA with lending (the default): idle slots' rests went to robots with chunks left
+        links = [snaps[r]["links"]["uwb"] for r in ("robot0", "robot1", "robot2")]
+        assert sum(u["lends_tx"] for u in links) > 0 and sum(u["borrowed"] for u in links) > 0
         for a, b in (("robot0", "robot2"), ("robot2", "robot0")):
             heard = snaps[a]["links"]["uwb"]["peers"]
             assert "robot1" in heard and b not in heard  # b's map came, but b was never heard directly

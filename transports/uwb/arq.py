@@ -85,6 +85,11 @@ Pacing and access
       Priority: HELLO, then owed ACKs, then owed DONEs, then DATA round-robin over messages.
   R15. With a key, no frame is sent until the adapter has persisted the counter block it will use
       (:meth:`counter_reservation` / :meth:`confirm_counter`).
+  R17. With ``lend`` and TDMA, a node in its own slot with nothing to send and nothing owed, and
+      room left for a LEND and a full frame, names in a LEND the peer it last heard with the most
+      chunks still to send (``lending.py``), and sends nothing more in that slot; the peer it named
+      may send until the slot's end, if the LEND names the slot it arrived in. So one robot still
+      sends per slot, and one with a large map is not held to 1/N of the channel while others idle.
 """
 
 from __future__ import annotations
@@ -112,6 +117,7 @@ from transports.uwb.arq_types import (
     PeerUp,
 )
 from transports.uwb.framing import MIN_FRAME, FrameReader, encode_frame, max_body
+from transports.uwb.lending import Backlogs
 from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.receiving import PeerState, asked_by
 from transports.uwb.sending import HASH_LEN, Outgoing
@@ -184,6 +190,11 @@ class ArqEndpoint(ReceiverSide):
         # timer never runs shorter than one cycle (each probe would take a data frame's place).
         self._cycle = config.slots * config.slot_s if config.mac == "tdma" else 0.0
         self._peers: dict[int, PeerState] = {}
+        # R17: lending the rest of an own slot, for which a LEND and one full frame must still fit.
+        self._lending = config.lend and config.mac == "tdma"
+        self._backlogs = Backlogs(2 * self._cycle, config.max_peers)
+        full = self._est(wire.DATA_HEADER_LEN + self.chunk_size)
+        self._lend_need = 8 * (full + self._est(wire.LEND_LEN)) / config.rate_bps
         # (peer, msg) -> (due, the peer's session then): COMPLETEs to go in the next DONE frame.
         self._done_owed: OrderedDict[tuple[int, int], tuple[float, int]] = OrderedDict()
         self._done_max = max(1, (body - self._trailer - wire.HEADER_LEN) // wire.DONE_ENTRY_LEN)
@@ -276,6 +287,8 @@ class ArqEndpoint(ReceiverSide):
         while True:
             pick = self._choose(now)
             if pick is None:
+                pick = self._lend_pick(now)
+            if pick is None:
                 return b""
             kind, ref, est = pick
             if max(self._pacer.ready_at(est, now), self._mac.ready_at(est, now)) > now:
@@ -303,6 +316,10 @@ class ArqEndpoint(ReceiverSide):
             for due, est in self._send_dues(now):
                 t = max(due, now)
                 times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
+            lend = self._lend_at(now)
+            if lend is not None:
+                est = self._est(wire.LEND_LEN)
+                times.append(max(lend, self._pacer.ready_at(est, lend), self._mac.ready_at(est, lend)))
         for m in self._out.values():
             times.append(m.deadline)
             times.extend(p.rto_at for p in m.peers.values() if p.pending and p.rto_at is not None)
@@ -425,7 +442,11 @@ class ArqEndpoint(ReceiverSide):
         if peer is None:
             return
         if isinstance(frame, wire.Data):
+            if frame.reliable:  # how much it still has to send (R17)
+                self._backlogs.heard(peer.id, frame.msg, frame.index, frame.count, now)
             self._on_data(peer, frame, now)
+        elif isinstance(frame, wire.Lend):
+            self._on_lend(frame, now)
         elif isinstance(frame, wire.Ack):
             self._on_ack(peer, frame, now)
         elif isinstance(frame, wire.Done):
@@ -451,6 +472,33 @@ class ArqEndpoint(ReceiverSide):
             wire.Ack(peer.id, self.node, peer.session, self.session, msg, gen, wire.COMPLETE, 0, b""),
             now,
         )
+
+    def _on_lend(self, f: wire.Lend, now: float) -> None:
+        """R17: the rest of the sender's slot is ours, if it names the slot we are in (a LEND that
+        arrived late names one already over) and that slot is not ours."""
+        if f.dst != self.node or not self._lending:
+            return
+        k = self._mac.slot_number(now)
+        if f.slot == k % wire.SLOT_MOD and self._mac.own_slot_left(now) == 0.0:
+            self._mac.borrow(now)
+            self.counters.borrowed += 1
+
+    def _lend_at(self, now: float) -> float | None:
+        """When this node could lend the rest of an own slot (R17); None while it has anything to
+        send or owes anything, or no peer is known to have chunks left."""
+        if not self._lending or self._hello_due <= now or self._done_owed or self._owed_ack() is not None:
+            return None
+        if any(m.has_work(self.cfg.window) for m in self._out.values()):
+            return None
+        if self._backlogs.pick(now, self.peers_up()) is None:
+            return None
+        return now if self._mac.own_slot_left(now) >= self._lend_need else self._mac.next_own_slot(now)
+
+    def _lend_pick(self, now: float) -> tuple[str, Any, int] | None:
+        if self._lend_at(now) != now:
+            return None
+        peer = self._backlogs.pick(now, self.peers_up())
+        return ("lend", peer, self._est(wire.LEND_LEN)) if peer is not None else None
 
     def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
         peer = self._peers.get(f.src)
@@ -614,6 +662,11 @@ class ArqEndpoint(ReceiverSide):
             return self._build_ack(peer, msg, now)
         if kind == "done":
             return self._build_done(now)
+        if kind == "lend":
+            self._mac.lend(now)  # nothing more of ours in this slot: it is the peer's
+            self._backlogs.lent(ref, now)
+            self.counters.lends_tx += 1
+            return wire.Lend(self.node, ref, self.session, self._mac.slot_number(now) % wire.SLOT_MOD)
         m, i = ref
         resend = m.mark_sent(i, now)
         self._out.move_to_end(m.msg)  # round-robin between messages

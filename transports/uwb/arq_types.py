@@ -60,6 +60,9 @@ class ArqConfig:
     sense_s: float = 0.02
     backoff_min_s: float = 0.0
     backoff_max_s: float = 0.1
+    #: TDMA: lend the rest of an own slot with nothing left in it to the peer heard with the most
+    #: chunks still to send (R17).
+    lend: bool = False
     key: bytes | None = field(default=None, repr=False)
     counter_start: int = 0
     #: Refuse signed frames whose counter runs ahead of this node's wall clock (``now`` plus
@@ -163,6 +166,9 @@ class ArqCounters:
     #: Chunks queued for resend at a NACK's request (one resend serves every receiver lacking it).
     repairs_queued: int = 0
     hellos_tx: int = 0
+    #: LEND frames sent (own slots' rests lent), and slots' rests borrowed on a peer's LEND (R17).
+    lends_tx: int = 0
+    borrowed: int = 0
     timeouts: int = 0
     # frames and chunks dropped, by cause
     bad_frames: int = 0

@@ -366,6 +366,7 @@ class UwbTransport(Transport):
             slot_s=o.slot_length_ms / 1000,
             slots=o.slots or len(ids),
             slot_index=o.slot_index if o.slot_index is not None else ids.index(self.node_id),
+            lend=o.lend,
             guard_s=o.guard_ms / 1000,
             clock_offset=time.time() - loop.time(),
             check_counter_clock=True,

@@ -66,6 +66,11 @@ class UwbOptions(TransportOptions):
         gt=0,
         description=f"tdma: slot length; default {SLOT_FRAMES} max_frame frames at link_rate_bps plus guard_ms",
     )
+    lend: bool = Field(
+        default=True,
+        description="tdma: lend the rest of an own slot with nothing left in it to the robot heard "
+        "with the most chunks still to send (one sender per slot still)",
+    )
     slots: int | None = Field(
         default=None, ge=1, le=254, description="tdma: slots per cycle; default len(nodes)"
     )

@@ -10,7 +10,9 @@ makes the bound exact, where a token bucket alone would allow ``rate + burst`` i
 * ``none``: send whenever the pacer allows (a point-to-point link, or a radio with its own MAC);
 * ``tdma``: time is cut into ``slots`` slots of ``slot_s`` seconds on a clock all robots share (the
   adapter passes the offset from its loop clock to wall time); a robot sends only in its own slot, and
-  only a frame that ends ``guard_s`` before the slot does;
+  only a frame that ends ``guard_s`` before the slot does. An owner that has nothing more to send
+  may lend the rest of its slot (:meth:`~MediumAccess.lend`): it sends nothing more in it, and the
+  robot it named, told by a LEND frame, may send until the slot's end (:meth:`~MediumAccess.borrow`);
 * ``backoff``: listen before talk: after hearing the channel busy, wait until it was quiet for
   ``sense_s`` plus a random backoff drawn from ``[backoff_min_s, backoff_max_s]`` (new after every
   frame), so two robots waiting for the same frame to end rarely start together. A robot that heard
@@ -21,18 +23,19 @@ makes the bound exact, where a token bucket alone would allow ``rate + burst`` i
 
 from __future__ import annotations
 
+import math
 import random
 from collections import deque
 from typing import Literal
 
 MacMode = Literal["none", "tdma", "backoff"]
-#: Frames a default TDMA slot carries (727 ms at 12.5 kb/s and 224-byte frames, with the guard).
+#: Frames a default TDMA slot carries (583 ms at 12.5 kb/s and 224-byte frames, with the guard).
 #: A 250 ms slot carried one, so a robot's own answers (gap reports, COMPLETEs, HELLO) took its
 #: map's place, and 32 robots could use at most 57 % of the channel (the swarm bench, issue #22).
-#: Four left a turn that opens with a DONE frame room for only three chunks, so a median delta
-#: needed two turns; five carry it in one (32 robots: p95 staleness 2.50 -> 2.33 periods, and no
-#: fleet of 2-28 robots staler).
-SLOT_FRAMES = 5
+#: Five (727 ms) carry a median delta in one turn even after a DONE, but without turn lending
+#: (R17 in ``arq.py``) whole maps (zstd) got staler, and with it four are as good at 32 robots
+#: and better below (24 robots: p95 staleness 0.47 periods against 0.91).
+SLOT_FRAMES = 4
 _EPS = 1e-9
 
 
@@ -143,6 +146,8 @@ class MediumAccess:
         self._rng = rng or random.Random(0)
         self._heard = -1e18
         self._backoff = self._draw()
+        self._lent = -1  # the own slot (its number) whose rest was lent
+        self._borrowed = -1  # the other's slot (its number) whose rest is ours
 
     def _draw(self) -> float:
         return self._rng.uniform(self.backoff_min_s, self.backoff_max_s)
@@ -160,14 +165,50 @@ class MediumAccess:
             return max(now, self._heard + self.sense_s + self._backoff)
         return now
 
+    def slot_number(self, now: float) -> int:
+        """The number of the TDMA slot ``now`` falls in, on the shared clock (slots since its epoch;
+        -1 before the first ``now``, which an endpoint holds as minus infinity)."""
+        t = now + self.clock_offset
+        return math.floor(t / self.slot_s) if math.isfinite(t) else -1
+
+    def own_slot_left(self, now: float) -> float:
+        """Seconds this robot may still send in its own slot at ``now`` (0: not its slot, or lent)."""
+        if self.mode != "tdma" or not math.isfinite(now):
+            return 0.0
+        k = self.slot_number(now)
+        if k % self.slots != self.slot_index or k == self._lent:
+            return 0.0
+        return max(0.0, (k + 1) * self.slot_s - self.guard_s - (now + self.clock_offset))
+
+    def lend(self, now: float) -> None:
+        """The rest of the own slot at ``now`` is lent: send nothing more in it."""
+        self._lent = self.slot_number(now)
+
+    def borrow(self, now: float) -> None:
+        """The rest of the (other robot's) slot at ``now`` is ours."""
+        self._borrowed = self.slot_number(now)
+
     def _tdma(self, airtime: float, now: float) -> float:
+        cycle = self.slots * self.slot_s
+        t = now + self.clock_offset
+        if not math.isfinite(t):
+            return now  # no time yet: nothing is due before the first real one
+        k = self.slot_number(now)
+        if k == self._borrowed and t + airtime <= (k + 1) * self.slot_s - self.guard_s:
+            return now
+        phase = t % cycle
+        start = self.slot_index * self.slot_s
+        end = start + self.slot_s - self.guard_s
+        if start <= phase and phase + airtime <= end and k != self._lent:
+            return now
+        return self.next_own_slot(now)
+
+    def next_own_slot(self, now: float) -> float:
+        """When this robot's next own slot starts (the one after the current, if in it)."""
         cycle = self.slots * self.slot_s
         t = now + self.clock_offset
         phase = t % cycle
         start = self.slot_index * self.slot_s
-        end = start + self.slot_s - self.guard_s
-        if start <= phase and phase + airtime <= end:
-            return now
         nxt = t - phase + (start if phase < start else cycle + start)
         return nxt - self.clock_offset + _EPS
 

@@ -17,6 +17,8 @@ then, by type::
            1 s pacing window)
     DONE   1.. entries of (u8 sender, u8 target_session & 0xFF, u16 msg & 0xFFFF), dst 255: COMPLETE
            for several messages, of several senders, in one frame (NACK mode, R16 in ``arq.py``)
+    LEND   u16 slot: the rest of TDMA slot number ``slot`` (mod 2^16 on the shared clock), which is
+           the sender's own, goes to ``dst`` (R17 in ``arq.py``)
 
 A signed body ends with a 12-byte trailer (u48 counter, 6-byte truncated HMAC; see
 :mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
@@ -39,6 +41,12 @@ resolves the low 16 bits of ``msg`` against the few messages it still tracks (id
 message in a session, so those are unique), and a restarted sender, with a new session, takes a
 stale entry only if the session's low byte matches too (1 in 2^24 a stale entry).
 
+LEND was added the same way (issue #22: a TDMA turn its owner leaves half empty goes to a robot
+with chunks still to send). A node from before it drops a LEND as an unknown type and so never
+borrows; lending to it only wastes the rest of that one slot, so no setting is needed to mix them.
+The slot number makes a LEND that arrives late (a radio's buffer) useless rather than harmful: a
+receiver borrows only the slot it names, never the next one, whose owner will be sending.
+
 A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
 message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which
 chunks the receiver holds: all below ``base``, and bit ``k`` of ``bitmap`` is chunk ``base + 1 + k``.
@@ -57,8 +65,8 @@ VERSION = 2
 BROADCAST = 255
 SIGNED = 0x80
 
-DATA, ACK, HELLO, DGRAM, DONE = 1, 2, 3, 4, 5
-KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM", DONE: "DONE"}
+DATA, ACK, HELLO, DGRAM, DONE, LEND = 1, 2, 3, 4, 5, 6
+KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM", DONE: "DONE", LEND: "LEND"}
 
 # ACK flags
 COMPLETE = 0x01  # the whole message is held and its hash verified
@@ -78,10 +86,14 @@ _HDR = struct.Struct("<BBBHB")
 _DATA = struct.Struct("<HBBHHHB")
 _ACK = struct.Struct("<HBHBBBH")
 _DONE = struct.Struct("<BBH")
+_LEND = struct.Struct("<H")
 HEADER_LEN = _HDR.size
 DONE_ENTRY_LEN = _DONE.size
 DATA_HEADER_LEN = _HDR.size + _DATA.size
 ACK_HEADER_LEN = _HDR.size + _ACK.size
+LEND_LEN = _HDR.size + _LEND.size
+#: LEND names slots modulo this.
+SLOT_MOD = 1 << 16
 
 
 def _split(v: int) -> tuple[int, int]:
@@ -146,7 +158,17 @@ class Done:
     entries: tuple[tuple[int, int, int], ...]
 
 
-Frame = Data | Ack | Hello | Done
+@dataclass(frozen=True, slots=True)
+class Lend:
+    """The rest of TDMA slot ``slot`` (``floor(t / slot_s) % SLOT_MOD``), the sender's own, is ``dst``'s."""
+
+    src: int
+    dst: int
+    session: int
+    slot: int
+
+
+Frame = Data | Ack | Hello | Done | Lend
 
 
 def _kind(kind: int, signed: bool) -> int:
@@ -179,8 +201,14 @@ def pack_done(d: Done, *, signed: bool = False) -> bytes:
     )
 
 
+def pack_lend(f: Lend, *, signed: bool = False) -> bytes:
+    return _head(LEND, signed, f.src, f.dst, f.session) + _LEND.pack(f.slot % SLOT_MOD)
+
+
 def pack(frame: Frame, *, signed: bool = False) -> bytes:
     """The body of ``frame`` (without a signing trailer)."""
+    if isinstance(frame, Lend):
+        return pack_lend(frame, signed=signed)
     if isinstance(frame, Done):
         return pack_done(frame, signed=signed)
     if isinstance(frame, Data):
@@ -249,6 +277,12 @@ def parse(body: bytes) -> Frame:
                 raise ProtocolError(f"uwb: DONE entry for sender id {sender} is out of range")
             entries.append((sender, target, msg))
         return Done(src, dst, session, tuple(entries))
+    if kind == LEND:
+        if len(body) != LEND_LEN:
+            raise ProtocolError(f"uwb: LEND frame of {len(body)} bytes is not {LEND_LEN}")
+        if dst == BROADCAST:
+            raise ProtocolError("uwb: LEND sent to broadcast")
+        return Lend(src, dst, session, _LEND.unpack_from(body, HEADER_LEN)[0])
     if kind == HELLO:
         if len(body) != HEADER_LEN:
             raise ProtocolError("uwb: HELLO frame has trailing bytes")

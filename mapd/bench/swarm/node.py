@@ -129,11 +129,16 @@ class SwarmRobot:
             self._forward(now)
         c = self.arq.counters
         while radio_free <= now:
-            before = (c.acks_tx, c.hellos_tx)
+            before = (c.acks_tx, c.hellos_tx, c.lends_tx)
             frame = self.arq.data_to_send(now)
             if not frame:
                 break
-            kind = "ack" if c.acks_tx > before[0] else "hello" if c.hellos_tx > before[1] else "data"
+            kind = (
+                "ack" if c.acks_tx > before[0]
+                else "hello" if c.hellos_tx > before[1]
+                else "control" if c.lends_tx > before[2]
+                else "data"
+            )  # fmt: skip
             self._confirm()
             radio_free = emit(frame, kind)
             self._events(now)

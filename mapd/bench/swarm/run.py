@@ -16,6 +16,7 @@ COLUMNS = [
     ("codec", "codec", ""),
     ("mac", "mac", ""),
     ("ack_mode", "acks", ""),
+    ("lend", "lend", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -36,6 +37,7 @@ COLUMNS = [
     ("deltas", "deltas", ""),
     ("accepted", "maps accepted", ""),
     ("relayed", "relays", ""),
+    ("borrowed", "slots lent", ""),
     ("wall_s", "wall s", ".1f"),
 ]
 
@@ -126,10 +128,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="how receivers ack (transports.uwb acks; default auto: NACKs for broadcast maps)",
     )
     p.add_argument(
+        "--lend",
+        nargs="+",
+        default=["on"],
+        choices=["on", "off"],
+        help="tdma: an owner lends the rest of an idle slot to a robot with chunks left "
+        "(transports.uwb lend, R17; default on, the daemon's)",
+    )
+    p.add_argument(
         "--slot-ms",
         type=float,
         default=None,
-        help="tdma slot per robot (default the daemon's: 5 full frames + 10 ms guard, 727 ms at 12.5 kb/s)",
+        help="tdma slot per robot (default the daemon's: 4 full frames + 10 ms guard, 583 ms at 12.5 kb/s)",
     )
     p.add_argument(
         "--inflight-s",
@@ -181,13 +191,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"swarm: {n} robots: streams ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
-            for mac, ack_mode in [(m, a) for m in args.mac for a in dict.fromkeys(args.ack_mode)]:
+            combos = [(m, a, le) for m in args.mac for a in dict.fromkeys(args.ack_mode) for le in args.lend]
+            for mac, ack_mode, lend in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
                     mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
-                    inflight_s=args.inflight_s, ack_mode=ack_mode,
+                    inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on",
                     **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
@@ -196,15 +207,21 @@ def run(args: argparse.Namespace) -> int:
                 row["coded_share"] = row["coded_bps_per_robot"] * n / args.rate
                 row["source"] = fleet.source
                 row["ack_mode"] = ack_mode
+                row["lend"] = lend
+                row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
+                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-    base = {(r["codec"], r["mac"], r["ack_mode"]): r for r in rows if r["robots"] == min(args.robots)}
+
+    def key(r: dict[str, Any]) -> tuple[str, ...]:
+        return r["codec"], r["mac"], r["ack_mode"], r["lend"]
+
+    base = {key(r): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:
-        b = base.get((r["codec"], r["mac"], r["ack_mode"]))
+        b = base.get(key(r))
         r["p95_x_smallest"] = r["stale_p95_s"] / b["stale_p95_s"] if b and b["stale_p95_s"] > 0 else math.nan
     info = {
         "source": rows[0]["source"] if rows else "",

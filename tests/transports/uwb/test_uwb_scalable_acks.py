@@ -258,9 +258,10 @@ def test_mapd_run_uses_the_acks_option_and_a_slot_for_several_frames() -> None:
     try:
         cfg = UwbTransport(UwbOptions(nodes={"zed": 1, "b": 2}, mac="tdma"), ctx)._config(loop)
         assert cfg.acks == "auto"  # the default: NACK mode for broadcast maps
-        assert 0.72 < cfg.slot_s < 0.73  # five 224-byte frames at 12.5 kb/s, plus the guard
-        opts = UwbOptions(nodes={"zed": 1, "b": 2}, acks="each", mac="tdma", slot_ms=250)
+        assert 0.58 < cfg.slot_s < 0.59  # four 224-byte frames at 12.5 kb/s, plus the guard
+        assert cfg.lend  # an idle slot's rest goes to a robot with chunks left (R17)
+        opts = UwbOptions(nodes={"zed": 1, "b": 2}, acks="each", mac="tdma", slot_ms=250, lend=False)
         cfg = UwbTransport(opts, ctx)._config(loop)
-        assert (cfg.acks, cfg.slot_s) == ("each", 0.25)
+        assert (cfg.acks, cfg.slot_s, cfg.lend) == ("each", 0.25, False)
     finally:
         loop.close()
