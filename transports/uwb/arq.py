@@ -515,6 +515,7 @@ class ArqEndpoint(ReceiverSide):
                 return None
             self._rx_held -= peer.restart(f.session)
             self._events.append(PeerRestarted(f.src))
+            self._backlogs.forget(f.src)  # its message ids start afresh
             for m in self._out.values():
                 prog = m.peers.get(f.src)
                 if prog is not None and prog.pending:

@@ -40,7 +40,8 @@ class Backlogs:
         s = self._seen.get(peer)
         if s is not None and s.msg == msg:
             s.top, s.when = max(s.top, index), now
-        elif s is None or not msg_before(msg, s.msg):  # an older message's resend says nothing new
+        elif s is None or now - s.when > self.horizon or not msg_before(msg, s.msg):
+            # (an older message's resend says nothing new)
             if s is None and len(self._seen) >= self.max_peers:
                 return
             self._seen[peer] = _Seen(msg, index, count, now)
@@ -68,5 +69,6 @@ class Backlogs:
         self._lent_at[peer] = now
 
     def forget(self, peer: int) -> None:
+        """``peer`` restarted: its message ids start afresh."""
         self._seen.pop(peer, None)
         self._lent_at.pop(peer, None)

@@ -146,6 +146,11 @@ def test_backlogs_pick_the_most_chunks_left_of_what_was_heard_lately() -> None:
     assert b.pick(20.5, [6, 7]) == 7  # equal backlogs: the one lent to longest ago
     b.heard(7, msg=1, index=17, count=18, now=21.0)  # its last chunk: nothing left
     assert b.pick(21.0, [7]) is None
+    b.heard(7, msg=0, index=0, count=9, now=40.0)  # an id "before" the last, but long after it
+    assert b.left(7, 40.0) == 8
+    b.forget(7)  # it restarted: ids from its new session say what it has left, whatever their value
+    b.heard(7, msg=0xFFFFF0, index=0, count=5, now=40.5)
+    assert b.left(7, 40.5) == 4
 
 
 def test_lend_frames_round_trip_and_malformed_ones_are_refused() -> None:
