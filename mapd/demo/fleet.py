@@ -198,6 +198,8 @@ class Fleet:
             cmd += ["--outage", outage]
         for pair in getattr(self.args, "out_of_range", []):
             cmd += ["--out-of-range", pair]
+        if getattr(self.args, "collisions", False):
+            cmd.append("--collisions")  # frames that overlap in the air garble each other
         self.relay = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert self.relay.stdout is not None
         deadline = time.monotonic() + 15

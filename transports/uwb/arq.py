@@ -82,6 +82,8 @@ Scalable acks (NACK mode)
 Pacing and access
   R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
       resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
+      With TDMA a frame must end a guard time before the slot does, counted from when the radio
+      is done with the frames handed to it before (a write drains into its buffer long before).
       Priority: HELLO, then owed ACKs, then owed DONEs, then DATA round-robin over messages.
   R15. With a key, no frame is sent until the adapter has persisted the counter block it will use
       (:meth:`counter_reservation` / :meth:`confirm_counter`).
@@ -531,9 +533,20 @@ class ArqEndpoint(ReceiverSide, AckSide):
         done = self._done_due()
         if done is not None:
             dues.append((done, self._done_est()))
-        if any(m.has_work(self.cfg.window) for m in self._out.values()):
-            dues.append((now, self._est(wire.DATA_HEADER_LEN + self.chunk_size)))
+        data = self._next_data()
+        if data is not None:
+            # the frame _choose would build, at its size: a short last chunk may still fit a slot
+            dues.append((now, self._est(wire.DATA_HEADER_LEN + len(data[0].chunk(data[1])))))
         return dues
+
+    def _next_data(self) -> tuple[Outgoing, int] | None:
+        """The chunk to send next: round-robin over messages, background ones (poses) only when no
+        other has a chunk to go."""
+        for m in sorted(self._out.values(), key=lambda m: m.background):
+            i = m.next_index(self.cfg.window)
+            if i is not None:
+                return m, i
+        return None
 
     def _choose(self, now: float) -> tuple[str, Any, int] | None:
         if self._hello_due <= now:
@@ -544,11 +557,10 @@ class ArqEndpoint(ReceiverSide, AckSide):
         done = self._done_due()
         if done is not None and done <= now:
             return "done", None, self._done_est()
-        # Round-robin over messages, background ones (poses) only when no other has a chunk to go.
-        for m in sorted(self._out.values(), key=lambda m: m.background):
-            i = m.next_index(self.cfg.window)
-            if i is not None:
-                return "data", (m, i), self._est(wire.DATA_HEADER_LEN + len(m.chunk(i)))
+        data = self._next_data()
+        if data is not None:
+            m, i = data
+            return "data", (m, i), self._est(wire.DATA_HEADER_LEN + len(m.chunk(i)))
         return None
 
     def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:

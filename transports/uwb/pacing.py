@@ -34,7 +34,7 @@ MacMode = Literal["none", "tdma", "backoff"]
 #: map's place, and 32 robots could use at most 57 % of the channel (the swarm bench, issue #22).
 #: Five (727 ms) carry a median delta in one turn even after a DONE, but without turn lending
 #: (R17 in ``arq.py``) whole maps (zstd) got staler, and with it four are as good at 32 robots
-#: and better below (24 robots: p95 staleness 0.47 periods against 0.91).
+#: and better below (24 robots: p95 staleness 0.47 periods against 0.90).
 SLOT_FRAMES = 4
 _EPS = 1e-9
 
@@ -135,6 +135,7 @@ class MediumAccess:
     ) -> None:
         self.mode = mode
         self.byte_time = 8.0 / rate_bps
+        self.rate_bps = rate_bps
         self.slot_s = slot_s
         self.slots = max(1, slots)
         self.slot_index = slot_index % self.slots
@@ -146,6 +147,9 @@ class MediumAccess:
         self._rng = rng or random.Random(0)
         self._heard = -1e18
         self._backoff = self._draw()
+        # When the own radio is done with the frames handed to it: a link drains a write into the
+        # radio's buffer long before the frame is on the air, and TDMA must count from the end.
+        self._tx_end = -math.inf
         self._lent = -1  # the own slot (its number) whose rest was lent
         self._borrowed = -1  # the other's slot (its number) whose rest is ours
 
@@ -160,7 +164,7 @@ class MediumAccess:
         """The earliest time (>= now) at which an ``n``-byte frame may start."""
         airtime = n * self.byte_time
         if self.mode == "tdma":
-            return self._tdma(airtime, now)
+            return self._tdma(airtime, max(now, self._tx_end))
         if self.mode == "backoff":
             return max(now, self._heard + self.sense_s + self._backoff)
         return now
@@ -175,6 +179,7 @@ class MediumAccess:
         """Seconds this robot may still send in its own slot at ``now`` (0: not its slot, or lent)."""
         if self.mode != "tdma" or not math.isfinite(now):
             return 0.0
+        now = max(now, self._tx_end)  # the next frame starts once the radio is done
         k = self.slot_number(now)
         if k % self.slots != self.slot_index or k == self._lent:
             return 0.0
@@ -213,5 +218,7 @@ class MediumAccess:
         return nxt - self.clock_offset + _EPS
 
     def sent(self, n: int, now: float) -> None:
-        """A frame of ``n`` bytes started at ``now``: draw the next backoff."""
+        """A frame of ``n`` bytes was handed to the radio at ``now``: it is on the air from then, or
+        from the end of the one before; draw the next backoff."""
+        self._tx_end = max(now, self._tx_end) + 8.0 * n / self.rate_bps  # as a radio times it
         self._backoff = self._draw()

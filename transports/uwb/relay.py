@@ -11,8 +11,9 @@ The relay cuts the byte stream at 0x00 (the COBS delimiter) so that loss, duplic
 act on whole frames; bit flips act per byte; an outage cuts whatever is on the line, mid-frame too.
 With two robots each direction is its own lane (a full-duplex serial link). With three or more (or
 ``shared=True``) it is a broadcast medium: every frame reaches every other robot, and all robots share
-one lane's airtime. With ``collisions=True`` frames are not queued for the medium: two that overlap
-in the air are both garbled, as on a half-duplex radio without a MAC. ``out_of_range`` pairs of
+one lane's airtime. With ``collisions=True`` frames are not queued for the medium: two of different
+robots that overlap in the air are both garbled, as on a half-duplex radio without a MAC (each
+robot's radio still sends its own frames one after another). ``out_of_range`` pairs of
 robots never hear each other (a building's walls, distance): what one sends never reaches the other,
 so maps between them can only go through a robot that hears both (the daemon's multi-hop relay).
 
@@ -156,6 +157,7 @@ class FaultRelay:
         self._ports: list[_Port] = []
         self._inj: dict[tuple[int, int], FaultInjector] = {}
         self._busy: dict[int, float] = {}
+        self._sending: dict[int, float] = {}  # collisions mode: when each robot's radio is free
         self._on_air: list[tuple[float, float, int, list[bool]]] = []
         self.collided = 0
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -305,7 +307,10 @@ class FaultRelay:
         airtime = len(frame) * 8 / self.rate_bps
         lane = 0 if self.shared else src
         if self.collisions and self.shared:
-            start = now
+            # A radio sends one frame at a time: a frame written while its own previous one is
+            # still on the air starts when that one ends (only other robots' frames collide).
+            start = max(now, self._sending.get(src, now))
+            self._sending[src] = start + airtime
             flag = [False]
             for s0, e0, other, other_flag in self._on_air:
                 if other != src and s0 < start + airtime and start < e0:

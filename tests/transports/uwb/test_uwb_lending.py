@@ -178,3 +178,17 @@ def test_a_fresh_tdma_endpoint_on_the_wall_clock_asks_for_a_wake_up_and_sends_it
         assert t is not None
         now = max(now, t)
     assert e.stats()["hellos_tx"] == 1
+
+
+def test_tdma_counts_a_slot_from_the_end_of_the_robots_own_last_frame() -> None:
+    # A link's write drains into the radio's buffer at once; the frame is on the air only after the
+    # one before it. Counting from the write let a frame run past the slot into the next robot's.
+    mac = MediumAccess("tdma", RATE, slot_s=SLOT, slots=SLOTS, slot_index=0, guard_s=0.01)
+    frame = 224  # 143 ms at 12.5 kb/s
+    assert mac.ready_at(frame, 0.0) == 0.0
+    mac.sent(frame, 0.0)
+    assert mac.ready_at(frame, 0.01) == pytest.approx(8 * frame / RATE)  # after the first is on the air
+    mac.sent(frame, 8 * frame / RATE)
+    # a third full frame would end at 430 ms, past the slot's 290 ms: the next cycle's slot
+    assert mac.ready_at(frame, 0.15) == pytest.approx(SLOTS * SLOT)
+    assert mac.ready_at(4, 0.15) == pytest.approx(2 * 8 * frame / RATE)  # a tiny one still fits
