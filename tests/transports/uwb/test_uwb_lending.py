@@ -6,6 +6,8 @@ import os
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mapd.errors import ProtocolError
 from transports.uwb import arq, wire
@@ -192,3 +194,28 @@ def test_tdma_counts_a_slot_from_the_end_of_the_robots_own_last_frame() -> None:
     # a third full frame would end at 430 ms, past the slot's 290 ms: the next cycle's slot
     assert mac.ready_at(frame, 0.15) == pytest.approx(SLOTS * SLOT)
     assert mac.ready_at(4, 0.15) == pytest.approx(2 * 8 * frame / RATE)  # a tiny one still fits
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(0.0, 2 * SLOTS * SLOT), st.integers(0, 0xFFFF), st.integers(1, 4)), max_size=12
+    )
+)
+def test_hostile_lends_never_open_a_slot_that_is_neither_own_nor_the_one_named(
+    lends: list[tuple[float, int, int]],
+) -> None:
+    b = ep(2, lend=True)  # slot index 1
+    b.send(b"x" * 5000, 0.0, dests=[1])
+    granted: set[int] = set()  # slot numbers a LEND for b named while they ran
+    events = sorted(
+        [(t, "lend", slot, dst) for t, slot, dst in lends] + [(i * 0.01, "probe", 0, 0) for i in range(180)]
+    )
+    for t, what, slot, dst in events:
+        k = int(t // SLOT)
+        if what == "lend":
+            b.receive_data(encode_frame(wire.pack(wire.Lend(1, dst, 1001, slot))), t)
+            if dst == 2 and slot == k % wire.SLOT_MOD and k % SLOTS != 1:
+                granted.add(k)
+        elif b.data_to_send(t):
+            assert k % SLOTS == 1 or k in granted, (t, k, granted)

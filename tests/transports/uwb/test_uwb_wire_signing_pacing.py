@@ -24,6 +24,7 @@ def test_frames_round_trip() -> None:
         wire.Ack(2, 1, 5, 0xADBEEF, 0x7, 9, wire.COMPLETE, 3, b"\x01\x80"),
         wire.Hello(3, wire.BROADCAST, 42),
         wire.Data(1, wire.BROADCAST, 5, 6, 254, 0, 1, 4, b"pose", False),  # a DGRAM
+        wire.Lend(4, 7, 0x123456, 0xFFFF),  # the rest of slot 65535 (mod 2^16) goes to node 7
     ]
     for f in frames:
         assert wire.parse(wire.pack(f)) == f
@@ -50,6 +51,7 @@ def test_msg_ids_compare_across_the_wrap() -> None:
         (wire.Ack(1, 255, 1, 1, 7, 0, 0, 0, b""), "broadcast"),
         (wire.Ack(1, 2, 1, 1, 7, 0, 0x80, 0, b""), "flags"),
         (wire.Ack(1, 2, 1, 1, 7, 0, 0, 0, b"\x01" * 33), "bitmap"),
+        (wire.Lend(1, 255, 1, 3), "broadcast"),
     ],
 )
 def test_absurd_fields_are_protocol_errors(frame: wire.Frame, why: str) -> None:
