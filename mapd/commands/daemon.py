@@ -99,12 +99,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _pair_arg(text: str) -> str:
     """``A-B`` for the relay's ``--out-of-range``, checked here so a typo is one clear line."""
-    try:
-        a, b = (int(x) for x in text.split("-"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not A-B (two robot indices)") from None
-    if a < 0 or b < 0 or a == b:
-        raise argparse.ArgumentTypeError(f"'{text}': A and B must be two different robot indices >= 0")
+    from transports.uwb.relay import parse_pair  # the relay parses it the same way
+
+    parse_pair(text)
     return text
 
 

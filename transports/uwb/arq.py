@@ -320,10 +320,10 @@ class ArqEndpoint(ReceiverSide, AckSide):
             for due, est in self._send_dues(now):
                 t = max(due, now)
                 times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
-            lend = self._lend_at(now)
+            lend = self._lend_to(now)
             if lend is not None:
-                est = self._est(wire.LEND_LEN)
-                times.append(max(lend, self._pacer.ready_at(est, lend), self._mac.ready_at(est, lend)))
+                t, est = lend[0], self._est(wire.LEND_LEN)
+                times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
         for m in self._out.values():
             times.append(m.deadline)
             times.extend(p.rto_at for p in m.peers.values() if p.pending and p.rto_at is not None)
@@ -468,22 +468,24 @@ class ArqEndpoint(ReceiverSide, AckSide):
             self._mac.borrow(now)
             self.counters.borrowed += 1
 
-    def _lend_at(self, now: float) -> float | None:
-        """When this node could lend the rest of an own slot (R17); None while it has anything to
-        send or owes anything, or no peer is known to have chunks left."""
+    def _lend_to(self, now: float) -> tuple[float, int] | None:
+        """When this node could lend the rest of an own slot, and to whom (R17); None while it has
+        anything to send or owes anything, or no peer is known to have chunks left."""
         if not self._lending or self._hello_due <= now or self._done_owed or self._owed_ack() is not None:
             return None
-        if any(m.has_work(self.cfg.window) for m in self._out.values()):
-            return None
-        if self._backlogs.pick(now, self.peers_up()) is None:
-            return None
-        return now if self._mac.own_slot_left(now) >= self._lend_need else self._mac.next_own_slot(now)
-
-    def _lend_pick(self, now: float) -> tuple[str, Any, int] | None:
-        if self._lend_at(now) != now:
+        if self._next_data() is not None:
             return None
         peer = self._backlogs.pick(now, self.peers_up())
-        return ("lend", peer, self._est(wire.LEND_LEN)) if peer is not None else None
+        if peer is None:
+            return None
+        room = self._mac.own_slot_left(now) >= self._lend_need
+        return (now if room else self._mac.next_own_slot(now)), peer
+
+    def _lend_pick(self, now: float) -> tuple[str, Any, int] | None:
+        lend = self._lend_to(now)
+        if lend is None or lend[0] != now:
+            return None
+        return "lend", lend[1], self._est(wire.LEND_LEN)
 
     def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
         peer = self._peers.get(f.src)

@@ -518,7 +518,6 @@ class UwbTransport(Transport):
             meta = self._msgs.get(e.msg) or self._late.get(e.msg)
             if meta is not None:
                 emit(Delivered("uwb", self._name(e.peer), *meta))
-
         elif isinstance(e, arq.MessageFailed):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]

@@ -135,7 +135,6 @@ class MediumAccess:
     ) -> None:
         self.mode = mode
         self.byte_time = 8.0 / rate_bps
-        self.rate_bps = rate_bps
         self.slot_s = slot_s
         self.slots = max(1, slots)
         self.slot_index = slot_index % self.slots
@@ -220,5 +219,5 @@ class MediumAccess:
     def sent(self, n: int, now: float) -> None:
         """A frame of ``n`` bytes was handed to the radio at ``now``: it is on the air from then, or
         from the end of the one before; draw the next backoff."""
-        self._tx_end = max(now, self._tx_end) + 8.0 * n / self.rate_bps  # as a radio times it
+        self._tx_end = max(now, self._tx_end) + n * self.byte_time
         self._backoff = self._draw()

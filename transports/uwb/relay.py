@@ -380,12 +380,14 @@ def _outage(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(f"outage '{text}' is not START:SECONDS") from None
 
 
-def _pair(text: str) -> tuple[int, int]:
-    """``A-B``: two robot indices."""
+def parse_pair(text: str) -> tuple[int, int]:
+    """``A-B`` for ``--out-of-range`` (here and in ``mapd demo``): two different robot indices >= 0."""
     try:
         a, b = (int(x) for x in text.split("-"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not A-B (two robot indices)") from None
+    if a < 0 or b < 0 or a == b:
+        raise argparse.ArgumentTypeError(f"'{text}': A and B must be two different robot indices >= 0")
     return a, b
 
 
@@ -404,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--collisions", action="store_true", help="overlapping frames garble each other")
     p.add_argument(
         "--out-of-range",
-        type=_pair,
+        type=parse_pair,
         action="append",
         default=[],
         metavar="A-B",
@@ -423,8 +425,8 @@ def main(argv: list[str] | None = None) -> int:
         outages=tuple(args.outage),
     )
 
-    if any(not (0 <= a < args.robots and 0 <= b < args.robots) or a == b for a, b in args.out_of_range):
-        p.error(f"--out-of-range: each pair must name two different robots of 0..{args.robots - 1}")
+    if any(max(pair) >= args.robots for pair in args.out_of_range):
+        p.error(f"--out-of-range: robots are numbered 0..{args.robots - 1}")
 
     async def run() -> dict[str, Any]:
         relay = FaultRelay(
