@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -19,22 +20,6 @@ from mapd.bench.swarm.streams import Building, Fleet, Payloads, RobotStream, loa
 from mapd.cli import main
 from mapd.codec import encode
 from mapd.grid import OccupancyGrid
-
-
-def _stream(i: int, xy: tuple[float, float], versions: int = 3, period: float = 30.0) -> RobotStream:
-    """A robot standing at ``xy`` whose map grows by a row of cells every ``period`` seconds."""
-    data = np.full((8, 16), -1, dtype=np.int8)
-    kfs = []
-    for v in range(versions):
-        data[v % 8, :] = 0
-        data[v % 8, (i + v) % 16] = 100
-        kfs.append(encode(OccupancyGrid(data.copy(), 0.05), "lossless"))
-    poses = np.tile(np.asarray(xy, dtype=np.float64), (10, 1))
-    return RobotStream(f"r{i}", f"test-{i}", [v * period for v in range(versions)], kfs, poses)
-
-
-def _fleet(positions: list[tuple[float, float]], building: Building | None = None) -> Fleet:
-    return Fleet([_stream(i, xy) for i, xy in enumerate(positions)], building, "test")
 
 
 def _run(fleet: Fleet, tmp_path: Path, **kw: Any) -> dict[str, Any]:
@@ -116,8 +101,8 @@ def test_staleness_on_a_hand_made_scenario() -> None:
 # --- small swarms of the real cores --------------------------------------------------------------
 
 
-def test_two_robots_in_range_exchange_every_version(tmp_path: Path) -> None:
-    row = _run(_fleet([(0.0, 0.0), (5.0, 0.0)]), tmp_path, mac="tdma")
+def test_two_robots_in_range_exchange_every_version(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    row = _run(swarm.fleet([(0.0, 0.0), (5.0, 0.0)]), tmp_path, mac="tdma")
     assert row["accepted"] == 6  # 3 versions each way
     assert math.isfinite(row["converge_s"])
     assert 0.0 < row["channel_use"] <= 1.0
@@ -126,8 +111,8 @@ def test_two_robots_in_range_exchange_every_version(tmp_path: Path) -> None:
     assert row["collided"] == 0  # TDMA: one robot per slot
 
 
-def test_a_robot_out_of_range_never_receives_without_relay(tmp_path: Path) -> None:
-    row = _run(_fleet([(0.0, 0.0), (5.0, 0.0), (500.0, 0.0)]), tmp_path, range_m=50.0, mac="backoff")
+def test_a_robot_out_of_range_never_receives_without_relay(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    row = _run(swarm.fleet([(0.0, 0.0), (5.0, 0.0), (500.0, 0.0)]), tmp_path, range_m=50.0, mac="backoff")
     log = row["accepted_log"]
     assert isinstance(log, list)
     assert not [a for a in log if a[1] == 2 or a[2] == 2]  # robot 2 neither gets nor gives a map
@@ -138,8 +123,8 @@ def test_a_robot_out_of_range_never_receives_without_relay(tmp_path: Path) -> No
     assert row["stale_p95_reach_s"] < 30.0  # the two robots in range keep up with each other
 
 
-def test_relay_hook_carries_maps_over_two_hops(tmp_path: Path) -> None:
-    fleet = _fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
+def test_relay_hook_carries_maps_over_two_hops(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    fleet = swarm.fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
     row = _run(fleet, tmp_path, range_m=50.0, relay="flood", acks="up", drain=200.0)
     log = row["accepted_log"]
     assert isinstance(log, list)
@@ -147,10 +132,12 @@ def test_relay_hook_carries_maps_over_two_hops(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("relay", ["none", "summary"])
-def test_summary_relay_carries_every_version_over_two_hops(tmp_path: Path, relay: str) -> None:
+def test_summary_relay_carries_every_version_over_two_hops(
+    swarm: SimpleNamespace, tmp_path: Path, relay: str
+) -> None:
     """Robots 0 and 2 are out of range, 1 hears both: with the relay core, 1 forwards their maps
     (from the neighbours' summaries) until each holds the other's newest version; without, never."""
-    fleet = _fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
+    fleet = swarm.fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
     row = _run(fleet, tmp_path, range_m=50.0, relay=relay, acks="up", drain=200.0)
     got = {(a[1], a[2]): a[3] for a in row["accepted_log"]}  # newest version accepted per pair
     if relay == "none":
@@ -161,8 +148,8 @@ def test_summary_relay_carries_every_version_over_two_hops(tmp_path: Path, relay
         assert math.isfinite(row["converge_s"])
 
 
-def test_runs_are_deterministic_for_a_seed(tmp_path: Path) -> None:
-    fleet = _fleet([(0.0, 0.0), (5.0, 0.0), (10.0, 0.0), (15.0, 0.0)])
+def test_runs_are_deterministic_for_a_seed(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    fleet = swarm.fleet([(0.0, 0.0), (5.0, 0.0), (10.0, 0.0), (15.0, 0.0)])
     a = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=3)
     b = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=3)
     c = _run(fleet, tmp_path, mac="backoff", loss=0.05, seed=4)
@@ -173,8 +160,8 @@ def test_runs_are_deterministic_for_a_seed(tmp_path: Path) -> None:
     assert a["lost"] > 0
 
 
-def test_signed_frames_cost_airtime(tmp_path: Path) -> None:
-    fleet = _fleet([(0.0, 0.0), (5.0, 0.0)])
+def test_signed_frames_cost_airtime(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    fleet = swarm.fleet([(0.0, 0.0), (5.0, 0.0)])
     signed = _run(fleet, tmp_path, signed=True)
     plain = _run(fleet, tmp_path, signed=False)
     assert signed["accepted"] == plain["accepted"] == 6
@@ -192,8 +179,10 @@ def _heavy_stream(i: int, xy: tuple[float, float], versions: int = 3, period: fl
     return RobotStream(f"r{i}", f"heavy-{i}", [v * period for v in range(versions)], kfs, poses)
 
 
-def test_turn_lending_gives_idle_turns_to_the_robot_with_a_large_map(tmp_path: Path) -> None:
-    robots = [_heavy_stream(0, (0.0, 0.0))] + [_stream(i, (2.0 * i, 0.0)) for i in range(1, 6)]
+def test_turn_lending_gives_idle_turns_to_the_robot_with_a_large_map(
+    swarm: SimpleNamespace, tmp_path: Path
+) -> None:
+    robots = [_heavy_stream(0, (0.0, 0.0))] + [swarm.stream(i, (2.0 * i, 0.0)) for i in range(1, 6)]
     fleet = Fleet(robots, None, "test")
     lent = _run(fleet, tmp_path, mac="tdma", lend=True)
     fixed = _run(fleet, tmp_path, mac="tdma", lend=False)

@@ -11,7 +11,8 @@ frames lost to collisions and to loss.
 
 Modules: ``streams`` (versions and paths, cached; payload sizes by the real codecs), ``radio`` (the
 medium), ``links`` (range and walls), ``des`` (the event loop), ``node`` (one robot: ARQ + publisher),
-``policy`` (hooks for relay and for who acks), ``sim`` (one run), ``metrics``, ``run`` (the command).
+``policy`` (hooks for relay and for who acks), ``sim`` (one run), ``metrics``, ``bound`` (``--bound``:
+what one scheduler that knows everything would do on the same channel), ``run`` (the command).
 """
 
 from mapd.bench.swarm.run import COLUMNS, add_arguments, run

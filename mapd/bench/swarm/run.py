@@ -7,9 +7,13 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mapd.tables import emit, table
+
+if TYPE_CHECKING:
+    from mapd.bench.swarm.sim import SwarmConfig
+    from mapd.bench.swarm.streams import Fleet, Payloads
 
 COLUMNS = [
     ("robots", "robots", ""),
@@ -38,6 +42,22 @@ COLUMNS = [
     ("accepted", "maps accepted", ""),
     ("relayed", "relays", ""),
     ("borrowed", "slots lent", ""),
+    ("wall_s", "wall s", ".1f"),
+]
+#: The bound's table (``--bound``): the same staleness figures, and how the scheduler used the slots.
+BOUND_COLUMNS = [
+    ("robots", "robots", ""),
+    ("codec", "codec", ""),
+    ("senders", "senders", ""),
+    ("stale_p50_s", "stale p50 s", ".1f"),
+    ("stale_p95_s", "p95 s", ".1f"),
+    ("stale_max_s", "max s", ".0f"),
+    ("stale_p95_periods", "p95 periods", ".2f"),
+    ("converge_s", "converge s", ".0f"),
+    ("busy_share", "slots used", ".2f"),
+    ("senders_per_slot", "senders/slot", ".2f"),
+    ("sends", "sends", ""),
+    ("accepted", "maps accepted", ""),
     ("wall_s", "wall s", ".1f"),
 ]
 
@@ -154,6 +174,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="a keyframe every K coded versions at least (default: the daemon's [codec] keyframe_every)",
     )
+    p.add_argument(
+        "--bound",
+        action="store_true",
+        help="also run the optimistic bound (one scheduler that knows everything; one sender at a "
+        "time, and with spatial reuse) on the same fleet and channel: a second table",
+    )
     p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
     p.add_argument(
         "--cache",
@@ -176,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         raise SourceError(f"--keyframe-every {args.keyframe_every}: must be 1 or more")
     seed = 7 if args.sim is None and args.log is None else args.sim
     rows: list[dict[str, Any]] = []
+    bounds: list[dict[str, Any]] = []
     t_all = time.perf_counter()
     for name in dict.fromkeys(args.codec):
         warm_up(name)
@@ -215,6 +242,8 @@ def run(args: argparse.Namespace) -> int:
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
+            if args.bound:
+                bounds += _bounds(fleet, payloads, cfg)
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
         return r["codec"], r["mac"], r["ack_mode"], r["lend"]
@@ -240,11 +269,23 @@ def run(args: argparse.Namespace) -> int:
         "keyframe_every": args.keyframe_every or SwarmConfig().keyframe_every,
         "wall_s": time.perf_counter() - t_all,
     }
-    emit({**info, "rows": rows}, args.json, lambda: _text(info, rows))
+    emit({**info, "rows": rows, "bound": bounds}, args.json, lambda: _text(info, rows, bounds))
     return 0
 
 
-def _text(info: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str, Any]]:
+    """The bound's rows (one sender at a time, then with spatial reuse) for one fleet and codec."""
+    from mapd.bench.swarm.bound import MODES, Bound, summarize_bound
+
+    out = []
+    for mode in MODES:
+        res = Bound(fleet, payloads, cfg, mode).run()
+        out.append(summarize_bound(res, cfg))
+        print(f"swarm: bound, {res.n} robots, {cfg.codec}, {mode}: {res.wall_s:.1f} s", file=sys.stderr)
+    return out
+
+
+def _text(info: dict[str, Any], rows: list[dict[str, Any]], bounds: list[dict[str, Any]]) -> str:
     rng = (
         "all in range"
         if math.isinf(info["range_m"])
@@ -257,4 +298,10 @@ def _text(info: dict[str, Any], rows: list[dict[str, Any]]) -> str:
         f"a keyframe every {info['keyframe_every']} versions at least; "
         f"{info['wall_s']:.0f} s wall"
     )
-    return f"{head}\n{table(rows, COLUMNS)}"
+    text = f"{head}\n{table(rows, COLUMNS)}"
+    if bounds:
+        text += (
+            "\n\nBound: one scheduler that knows every position and holding, no acks or control frames "
+            "(mapd.bench.swarm.bound)\n" + table(bounds, BOUND_COLUMNS)
+        )
+    return text
