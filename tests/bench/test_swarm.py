@@ -28,6 +28,7 @@ def _run(fleet: Fleet, tmp_path: Path, **kw: Any) -> dict[str, Any]:
     row = summarize(res)
     row["accepted_log"] = res.accepted
     row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
+    row["robot_tx"] = [r.arq.counters.data_tx for r in res.robots]
     return row
 
 
@@ -193,6 +194,17 @@ def test_turn_lending_gives_idle_turns_to_the_robot_with_a_large_map(
     assert fixed["borrowed"] == 0
     # the heavy robot's maps reach the others sooner
     assert lent["stale_p95_s"] < 0.7 * fixed["stale_p95_s"], (lent["stale_p95_s"], fixed["stale_p95_s"])
+
+
+def test_parity_repairs_a_lossy_broadcast_in_fewer_frames(swarm: SimpleNamespace, tmp_path: Path) -> None:
+    robots = [_heavy_stream(0, (0.0, 0.0))] + [swarm.stream(i, (2.0 * i, 0.0)) for i in range(1, 6)]
+    fleet = Fleet(robots, None, "test")
+    rows = {f: _run(fleet, tmp_path, mac="tdma", loss=0.25, fec=f, drain=200.0) for f in (True, False)}
+    for row in rows.values():
+        assert math.isfinite(row["converge_s"])  # every robot got every other's last version
+    heavy = {f: row["robot_tx"][0] for f, row in rows.items()}
+    assert heavy[True] < 0.9 * heavy[False], heavy  # the heavy robot's repairs: parity, not the union
+    assert rows[True]["stale_p95_s"] <= rows[False]["stale_p95_s"]
 
 
 def test_config_is_plain_data() -> None:

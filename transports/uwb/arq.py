@@ -79,6 +79,12 @@ Scalable acks (NACK mode)
       and one holding all with COMPLETE again (at most once per ``min_rto_s``: a burst of
       repairs for others is not a probe). With TDMA the timer
       is at least one cycle of slots (no receiver can answer sooner).
+      With ``fec`` the repairs are parity chunks (``fec.py``): a gap report counts, of each block,
+      the missing chunks less the parity it already holds, and the sender queues fresh parity
+      until as many of that block are queued and unsent, so one parity chunk serves every
+      receiver lacking any chunk of its block and a round costs what the worst receiver lacks,
+      not the union of all their losses. A receiver rebuilds a block once it holds as many
+      chunks and parity as the block has chunks; the message hash still decides delivery.
 Pacing and access
   R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
       resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
@@ -268,6 +274,7 @@ class ArqEndpoint(ReceiverSide, AckSide):
         out.background = background
         out.reliable = reliable
         out.nack = reliable and self._nack_mode(dst)
+        out.fec = out.nack and self.cfg.fec
         self._out[msg] = out
         for d in targets:
             self._rtt_of(d)
@@ -583,7 +590,9 @@ class ArqEndpoint(ReceiverSide, AckSide):
         resend = m.mark_sent(i, now)
         self._out.move_to_end(m.msg)  # round-robin between messages
         self.counters.data_tx += 1
-        if resend:
+        if i >= m.count:
+            self.counters.parity_tx += 1
+        elif resend:
             self.counters.resends += 1
         frame = wire.Data(
             self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i), m.reliable

@@ -114,6 +114,12 @@ class AckSide:
         if m.nack:
             # A gap report: every chunk it asks for is queued once, whoever else asked for it too;
             # the probe timer restarts when the sender runs out of chunks to send (see _build).
+            # With parity, a report asks for so many chunks of each block, and the parity queued
+            # for the others' reports serves it too (the report leaves out what parity it holds).
+            if m.fec:
+                asked = [i for i in asked_by(a.base, a.bitmap) if i < m.next_new and m.sends[i]]
+                self.counters.repairs_queued += m.queue_parity(asked)
+                return
             for i in m.requested(prog, a.base, a.bitmap):
                 self.counters.repairs_queued += m.queue_resend(i)
             return

@@ -11,8 +11,9 @@ from __future__ import annotations
 import math
 import random
 from collections import OrderedDict, deque
+from collections.abc import Callable
 
-from transports.uwb import wire
+from transports.uwb import fec, wire
 from transports.uwb.arq_types import ArqConfig, ArqCounters, Event, MessageReceived
 from transports.uwb.framing import check_len, cobs_max_len
 from transports.uwb.receiving import Partial, PeerState
@@ -109,6 +110,9 @@ class ReceiverSide:
         elif part.count != d.count or part.total != d.total:
             self.counters.bad_frames += 1
             return
+        if d.index >= d.count:
+            self._on_parity(peer, part, d, now)
+            return
         if d.index in part.chunks:
             self.counters.duplicates += 1
             if not part.nack:
@@ -116,7 +120,7 @@ class ReceiverSide:
             elif part.gaps():
                 owe(d.msg, self._nack_due(now))  # a probe or a repair for others, and we lack some
             return
-        if part.held + len(d.payload) > part.total:
+        if part.held - part.parity_held + len(d.payload) > part.total:
             self.counters.bad_frames += 1
             return
         if not self._make_room(len(d.payload), keep=part):
@@ -126,24 +130,10 @@ class ReceiverSide:
         new_hole = d.index > part.top + 1
         part.add(d.index, d.payload, now)
         self._rx_held += len(d.payload)
+        if part.parity:  # a chunk that arrives late may be the one a block's parity lacked
+            self._recover(part, fec.block_of(part.count, d.index))
         if part.complete():
-            self._rx_held -= peer.drop_partial(d.msg)
-            data = part.verified()
-            if data is None:
-                self.counters.hash_errors += 1
-                peer.partials[d.msg] = Partial(
-                    d.msg, d.stream, d.count, d.total, peer.next_gen(), now, nack=part.nack
-                )
-            else:
-                peer.remember_completed(d.msg, part.gen)
-                self.counters.messages_rx += 1
-                self._events.append(MessageReceived(peer.id, d.stream, d.msg, data))
-                if part.nack:
-                    # R16: said in a DONE frame with the other COMPLETEs owed by then (a frame
-                    # each would cost N (N - 1) frames a round of broadcast maps)
-                    self._owe_done(peer, d.msg, now + self._ack_delay)
-                    return
-            owe(d.msg, now)
+            self._complete(peer, part, now, owe)
             return
         if part.nack:
             # R16: report only new evidence of loss: a chunk past the next expected (a new hole), or
@@ -153,6 +143,61 @@ class ReceiverSide:
             return
         urgent = gap or part.fresh >= cfg.ack_every
         owe(d.msg, now if urgent else now + self._ack_delay)
+
+    def _on_parity(self, peer: PeerState, part: Partial, d: wire.Data, now: float) -> None:
+        """A parity chunk (fec.py; only broadcast maps in NACK mode have them): held until its block
+        can be rebuilt, and a gap report owed while chunks are still missing after it."""
+        if not part.nack:
+            self.counters.bad_frames += 1  # a unicast message is repaired chunk by chunk
+            return
+        if len(d.payload) > part.total or not part.wants_parity(d.index):
+            self.counters.duplicates += 1
+            if part.gaps():
+                peer.owe_ack(d.msg, self._nack_due(now))
+            return
+        if not self._make_room(len(d.payload), keep=part):
+            self.counters.evicted += 1
+            return
+        part.add_parity(d.index, d.payload, now)
+        self.counters.parity_rx += 1
+        self._rx_held += len(d.payload)
+        self._recover(part, fec.parity_of(part.count, d.index)[0])
+        if part.complete():
+            self._complete(peer, part, now, peer.owe_ack)
+        elif part.gaps():
+            peer.owe_ack(d.msg, self._nack_due(now))
+
+    def _recover(self, part: Partial, block: int) -> None:
+        try:
+            added, rebuilt = part.recover(block)
+        except ValueError:
+            self.counters.bad_frames += 1  # parity of the wrong length: dropped with its block's
+            self._rx_held = sum(p.held for peer in self._peers.values() for p in peer.partials.values())
+            return
+        self._rx_held += added
+        self.counters.recovered += rebuilt
+
+    def _complete(
+        self, peer: PeerState, part: Partial, now: float, owe: Callable[[int, float], None]
+    ) -> None:
+        """Every chunk of ``part`` is held: deliver it if its hash holds, else start it again."""
+        self._rx_held -= peer.drop_partial(part.msg)
+        data = part.verified()
+        if data is None:
+            self.counters.hash_errors += 1
+            peer.partials[part.msg] = Partial(
+                part.msg, part.stream, part.count, part.total, peer.next_gen(), now, nack=part.nack
+            )
+        else:
+            peer.remember_completed(part.msg, part.gen)
+            self.counters.messages_rx += 1
+            self._events.append(MessageReceived(peer.id, part.stream, part.msg, data))
+            if part.nack:
+                # R16: said in a DONE frame with the other COMPLETEs owed by then (a frame
+                # each would cost N (N - 1) frames a round of broadcast maps)
+                self._owe_done(peer, part.msg, now + self._ack_delay)
+                return
+        owe(part.msg, now)
 
     def _make_room(self, n: int, keep: Partial) -> bool:
         """Drop the least recently active partials (not ``keep``) until ``n`` more bytes fit."""
@@ -200,7 +245,8 @@ class ReceiverSide:
                 if not part.gaps():
                     return None  # the holes were filled meanwhile: nothing to ask for
                 self.counters.nacks_tx += 1
-            gen, base, bitmap = part.gen, min(part.base, MAX_CHUNKS), part.bitmap()
+            base, bitmap = part.report()
+            gen, base = part.gen, min(base, MAX_CHUNKS)
             part.fresh = 0
         elif msg in peer.completed:
             gen, flags = peer.completed[msg], wire.COMPLETE

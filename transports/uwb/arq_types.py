@@ -63,6 +63,10 @@ class ArqConfig:
     #: TDMA: lend the rest of an own slot with nothing left in it to the peer heard with the most
     #: chunks still to send (R17).
     lend: bool = False
+    #: NACK mode: repair with parity chunks (``fec.py``), each of use to every receiver lacking any
+    #: chunk of its block, instead of resending the chunks asked for (R16). Every node on the
+    #: channel must understand parity (wire.py).
+    fec: bool = False
     key: bytes | None = field(default=None, repr=False)
     counter_start: int = 0
     #: Refuse signed frames whose counter runs ahead of this node's wall clock (``now`` plus
@@ -169,6 +173,10 @@ class ArqCounters:
     #: LEND frames sent (own slots' rests lent), and slots' rests borrowed on a peer's LEND (R17).
     lends_tx: int = 0
     borrowed: int = 0
+    #: Parity chunks sent and received (held), and chunks rebuilt from parity (fec.py).
+    parity_tx: int = 0
+    parity_rx: int = 0
+    recovered: int = 0
     timeouts: int = 0
     # frames and chunks dropped, by cause
     bad_frames: int = 0

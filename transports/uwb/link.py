@@ -359,6 +359,7 @@ class UwbTransport(Transport):
             max_message_bytes=o.max_message_bytes or min(self.ctx.max_message_bytes, MAX_MESSAGE),
             window=o.window,
             acks=o.acks,
+            fec=o.fec,
             deadline_s=o.deadline_s,
             beacon_s=o.beacon_s,
             peer_timeout_s=o.peer_timeout_s,

@@ -58,6 +58,12 @@ class UwbOptions(TransportOptions):
     pose_period_s: float = Field(
         default=5.0, ge=0.0, description="seconds between pose messages; they yield to maps (0: send none)"
     )
+    fec: bool = Field(
+        default=True,
+        description="broadcast maps (acks auto/nack) are repaired with parity chunks, each of use to "
+        "every robot lacking any chunk of its block; every node on the channel must run a mapd "
+        "that knows them (false: repairs resend the chunks asked for, as before)",
+    )
     mac: Literal["none", "tdma", "backoff"] = Field(
         default="none", description="medium access on a shared channel"
     )

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
+from transports.uwb import fec
 from transports.uwb.sending import HASH_LEN, message_hash
 from transports.uwb.wire import MAX_BITMAP, bitmap_indices
 
@@ -35,6 +36,9 @@ class Partial:
     top: int = -1  # highest index held
     fresh: int = 0  # chunks added since the last ack
     nack: bool = False  # acked in NACK mode (R16): only gaps and completion
+    #: block -> zfec share number -> parity chunk held (fec.py), until the block is whole
+    parity: dict[int, dict[int, bytes]] = field(default_factory=dict)
+    parity_held: int = 0  # bytes of it (in ``held`` too)
 
     def add(self, index: int, payload: bytes, now: float) -> bool:
         """Store a chunk; False when it was already held (a duplicate)."""
@@ -60,19 +64,87 @@ class Partial:
         data, digest = body[:-HASH_LEN], body[-HASH_LEN:]
         return data if message_hash(data) == digest else None
 
+    def wants_parity(self, index: int) -> bool:
+        """Whether parity chunk ``index`` is of use: not held yet, and its block lacks more chunks
+        than parity is held for it (more would be of no use, which bounds what parity may take)."""
+        b, share = fec.parity_of(self.count, index)
+        shares = self.parity.get(b, {})
+        return share not in shares and len(shares) < self._missing(b)
+
+    def add_parity(self, index: int, payload: bytes, now: float) -> None:
+        """Store parity chunk ``index`` (one :meth:`wants_parity` said is of use)."""
+        b, share = fec.parity_of(self.count, index)
+        self.parity.setdefault(b, {})[share] = payload
+        self.held += len(payload)
+        self.parity_held += len(payload)
+        self.fresh += 1
+        self.last = now
+        self.top = self.count - 1  # parity follows the chunks it repairs: what is missing is lost
+
+    def recover(self, b: int) -> tuple[int, int]:
+        """Rebuild block ``b``'s missing chunks when enough parity is held: (bytes held added,
+        chunks rebuilt). ValueError when the parity cannot be this message's (its block's parity is
+        then dropped)."""
+        nb = fec.blocks(self.count)
+        have = {i: self.chunks[i] for i in range(b, self.count, nb) if i in self.chunks}
+        try:
+            got = fec.recover(self.count, b, have, self.parity.get(b, {}))
+        except ValueError:
+            self._drop_parity(b)
+            raise
+        if not got:
+            return 0, 0
+        before = self.held
+        width = len(next(iter(self.parity[b].values())))
+        self._drop_parity(b)
+        for i, data in got.items():
+            if i == self.count - 1:  # the message's last chunk is the only short one
+                data = data[: self.total - (self.count - 1) * width] if self.count > 1 else data[: self.total]
+            self.chunks[i] = data
+            self.held += len(data)
+            self.top = max(self.top, i)
+        while self.base in self.chunks:
+            self.base += 1
+        return self.held - before, len(got)
+
+    def _drop_parity(self, b: int) -> None:
+        n = sum(len(p) for p in self.parity.pop(b, {}).values())
+        self.held -= n
+        self.parity_held -= n
+
+    def _missing(self, b: int) -> int:
+        return sum(1 for i in range(b, self.count, fec.blocks(self.count)) if i not in self.chunks)
+
+    def _covered(self) -> set[int]:
+        """Missing chunks the parity held stands for: of each block, as many as parity chunks held,
+        the highest first (those a report would otherwise ask for while they may still be coming)."""
+        out: set[int] = set()
+        nb = fec.blocks(self.count)
+        for b, shares in self.parity.items():
+            missing = [i for i in range(b, self.count, nb) if i not in self.chunks]
+            out.update(missing[len(missing) - min(len(shares), len(missing)) :])
+        return out
+
+    def report(self) -> tuple[int, bytes]:
+        """(base, bitmap) of an ACK: chunks held, with those the parity held stands for counted as
+        held, so a gap report asks, block by block, for just what this receiver still needs."""
+        covered = self._covered()
+        base = self.base
+        while base in self.chunks or base in covered:
+            base += 1
+        out = bytearray(MAX_BITMAP)
+        for i in range(base + 1, min(self.count, base + 1 + 8 * MAX_BITMAP)):
+            if i in self.chunks or i in covered:
+                k = i - base - 1
+                out[k >> 3] |= 1 << (k & 7)
+        return base, bytes(out.rstrip(b"\x00"))
+
     def gaps(self) -> list[int]:
         """Chunks missing below the highest one held, as far as an ACK can describe them (NACK mode:
-        what a gap report asks for)."""
+        what a gap report asks for), less those the parity held stands for."""
+        covered = self._covered()
         top = min(self.top, self.base + 8 * MAX_BITMAP)
-        return [i for i in range(self.base, top) if i not in self.chunks]
-
-    def bitmap(self) -> bytes:
-        out = bytearray(MAX_BITMAP)
-        for i in range(self.base + 1, min(self.count, self.base + 1 + 8 * MAX_BITMAP)):
-            if i in self.chunks:
-                k = i - self.base - 1
-                out[k >> 3] |= 1 << (k & 7)
-        return bytes(out.rstrip(b"\x00"))
+        return [i for i in range(self.base, top) if i not in self.chunks and i not in covered]
 
 
 def asked_by(base: int, bitmap: bytes) -> set[int]:

@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import hashlib
 import heapq
+from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+from transports.uwb import fec
 from transports.uwb.wire import bitmap_indices
 
 HASH_LEN = 16
@@ -93,9 +96,46 @@ class Outgoing:
         self.reliable = True
         #: Every chunk went once: receivers may complete it, even after it is superseded.
         self.flushed = False
+        #: NACK mode: repairs go as parity chunks (fec.py), each of which any receiver missing any
+        #: chunk of its block can use, rather than as the chunks asked for.
+        self.fec = False
+        self.parity_sent = 0
+        self._parity_next: dict[int, int] = {}  # block -> next parity share (j) not yet queued
+        self._parity_unsent: dict[int, int] = {}  # block -> parity chunks queued, not yet sent
+        self._parity: OrderedDict[int, bytes] = OrderedDict()  # a few made, by chunk index
 
     def chunk(self, i: int) -> bytes:
-        return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]
+        """Chunk ``i``'s bytes: data below ``count``, parity (made when first asked for) past it."""
+        if i < self.count:
+            return self.body[i * self.chunk_size : (i + 1) * self.chunk_size]
+        made = self._parity.get(i)
+        if made is None:
+            b, share = fec.parity_of(self.count, i)
+            data = [self.body[c * self.chunk_size : (c + 1) * self.chunk_size] for c in range(self.count)]
+            made = self._parity[i] = fec.encode_parity(data, self.count, b, [share])[0]
+            while len(self._parity) > 4:  # a parity chunk goes once: keep only what is about to
+                self._parity.popitem(last=False)
+        return made
+
+    def queue_parity(self, asked: Iterable[int]) -> int:
+        """A gap report (NACK mode) asks for ``asked`` (data chunks): queue fresh parity chunks until
+        as many of each block are queued and unsent as it asks of that block. Another receiver's
+        report may have queued them already, as one parity chunk serves every receiver that lacks
+        any chunk of its block. Past the code's parity, the chunks asked go again themselves.
+        Returns how many were queued."""
+        queued = 0
+        limit = fec.max_parity(self.count)
+        for b, need in fec.per_block(self.count, asked).items():
+            while self._parity_unsent.get(b, 0) < need:
+                j = self._parity_next.get(b, 0)
+                if j >= limit:
+                    nb = fec.blocks(self.count)
+                    queued += sum(self.queue_resend(i) for i in asked if i % nb == b)
+                    break
+                self._parity_next[b] = j + 1
+                self._parity_unsent[b] = self._parity_unsent.get(b, 0) + 1
+                queued += self.queue_resend(fec.parity_index(self.count, b, j))
+        return queued
 
     def pending(self) -> list[PeerProgress]:
         return [p for p in self.peers.values() if p.pending]
@@ -104,6 +144,8 @@ class Outgoing:
         return not any(p.pending for p in self.peers.values())
 
     def needed(self, i: int) -> bool:
+        if i >= self.count:  # parity: asked for by a gap report, of use to whoever still lacks some
+            return any(p.pending for p in self.peers.values())
         return any(p.pending and not p.acked[i] for p in self.peers.values())
 
     def window_base(self) -> int:
@@ -147,6 +189,12 @@ class Outgoing:
         if self._resend and self._resend[0] == i:
             heapq.heappop(self._resend)
             self._resend_set.discard(i)
+        if i >= self.count:  # parity: each goes once, and is a repair
+            b, _ = fec.parity_of(self.count, i)
+            self._parity_unsent[b] = max(0, self._parity_unsent.get(b, 0) - 1)
+            self.parity_sent += 1
+            self.xmit += 1
+            return True
         self._probes.discard(i)
         if i == self.next_new:
             self.next_new += 1

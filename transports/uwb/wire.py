@@ -47,6 +47,13 @@ borrows; lending to it only wastes the rest of that one slot, so no setting is n
 The slot number makes a LEND that arrives late (a radio's buffer) useless rather than harmful: a
 receiver borrows only the slot it names, never the next one, whose owner will be sending.
 
+Parity chunks were added the same way (issue #22: a broadcast map's repair round costs what the
+worst receiver lacks, not the union of everyone's losses; :mod:`transports.uwb.fec`). A parity
+chunk is a DATA frame whose ``index`` is at or past ``count`` (below :func:`~transports.uwb.fec.
+index_limit`), which says its block and share. A node from before it refuses such a frame as
+malformed and so never completes a map whose repairs came as parity: a fleet mixing them must run
+``fec = false``, with which no parity is sent and the frames are exactly those of before.
+
 A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
 message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which
 chunks the receiver holds: all below ``base``, and bit ``k`` of ``bitmap`` is chunk ``base + 1 + k``.
@@ -60,6 +67,7 @@ import struct
 from dataclasses import dataclass
 
 from mapd.errors import ProtocolError
+from transports.uwb import fec
 
 VERSION = 2
 BROADCAST = 255
@@ -246,8 +254,8 @@ def parse(body: bytes) -> Frame:
         m_lo, m_hi, stream, index, count, t_lo, t_hi = _DATA.unpack_from(body, HEADER_LEN)
         msg, total = m_lo | m_hi << 16, t_lo | t_hi << 16
         payload = body[DATA_HEADER_LEN:]
-        if count == 0 or index >= count:
-            raise ProtocolError(f"uwb: DATA chunk index {index} is not below its count {count}")
+        if count == 0 or index >= (fec.index_limit(count) if kind == DATA else count):
+            raise ProtocolError(f"uwb: DATA chunk index {index} is past what {count} chunks may have")
         if count > total or len(payload) > total:
             raise ProtocolError(f"uwb: DATA sizes are inconsistent ({count} chunks, {total} bytes)")
         return Data(src, dst, session, msg, stream, index, count, total, payload, kind == DATA)

@@ -21,6 +21,7 @@ COLUMNS = [
     ("mac", "mac", ""),
     ("ack_mode", "acks", ""),
     ("lend", "lend", ""),
+    ("fec", "fec", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -68,6 +69,11 @@ def _size(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not WxH in metres (e.g. 60x40)") from None
     return w, h
+
+
+def _on_off(p: argparse.ArgumentParser, flag: str, text: str) -> None:
+    """A daemon setting the bench can run both ways (``on``, ``off`` or both; default on)."""
+    p.add_argument(flag, nargs="+", default=["on"], choices=["on", "off"], help=text)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -147,13 +153,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=["auto", "each", "nack"],
         help="how receivers ack (transports.uwb acks; default auto: NACKs for broadcast maps)",
     )
-    p.add_argument(
+    _on_off(
+        p,
         "--lend",
-        nargs="+",
-        default=["on"],
-        choices=["on", "off"],
-        help="tdma: an owner lends the rest of an idle slot to a robot with chunks left "
+        "tdma: an owner lends the rest of an idle slot to a robot with chunks left "
         "(transports.uwb lend, R17; default on, the daemon's)",
+    )
+    _on_off(
+        p,
+        "--fec",
+        "broadcast maps repaired with parity chunks, each of use to every receiver lacking "
+        "any chunk of its block (transports.uwb fec; default on, the daemon's)",
     )
     p.add_argument(
         "--slot-ms",
@@ -218,14 +228,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"swarm: {n} robots: streams ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
-            combos = [(m, a, le) for m in args.mac for a in dict.fromkeys(args.ack_mode) for le in args.lend]
-            for mac, ack_mode, lend in combos:
+            combos = [
+                (m, a, le, f)
+                for m in args.mac
+                for a in dict.fromkeys(args.ack_mode)
+                for le in args.lend
+                for f in args.fec
+            ]
+            for mac, ack_mode, lend, fec in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
                     mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
-                    inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on",
+                    inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
                     **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
@@ -235,10 +251,11 @@ def run(args: argparse.Namespace) -> int:
                 row["source"] = fleet.source
                 row["ack_mode"] = ack_mode
                 row["lend"] = lend
+                row["fec"] = fec
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
+                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
@@ -246,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
                 bounds += _bounds(fleet, payloads, cfg)
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
-        return r["codec"], r["mac"], r["ack_mode"], r["lend"]
+        return r["codec"], r["mac"], r["ack_mode"], r["lend"], r["fec"]
 
     base = {key(r): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:

@@ -66,6 +66,7 @@ class SwarmConfig:
     keyframe_every: int = KEYFRAME_EVERY  # the publisher's schedule (the daemon's default)
     ack_mode: str = "auto"  # the ARQ core's acks (ArqConfig.acks; the daemon's default)
     lend: bool = True  # TDMA: lend the rest of an idle own slot (ArqConfig.lend; the daemon's default)
+    fec: bool = True  # NACK mode: repair with parity chunks (ArqConfig.fec; the daemon's default)
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
     start_spread: float | None = None
@@ -156,6 +157,7 @@ class Swarm:
             max_peers=max(64, self.n),
             acks=c.ack_mode,  # type: ignore[arg-type]  # checked by ArqConfig
             lend=c.lend,
+            fec=c.fec,
         )
 
     # --- the run --------------------------------------------------------------------------------

@@ -196,14 +196,18 @@ def test_acks_option_reaches_the_core_and_is_checked() -> None:
     assert ArqConfig(node_id=1).acks == "auto"
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=25, deadline=None)
 @given(
     seed=st.integers(min_value=0, max_value=10_000),
     drop=st.floats(min_value=0.0, max_value=0.25),
-    size=st.integers(min_value=1, max_value=12_000),
+    size=st.integers(min_value=1, max_value=30_000),
+    use_fec=st.booleans(),
 )
-def test_broadcast_is_delivered_intact_once_or_fails_by_deadline(seed: int, drop: float, size: int) -> None:
-    cfgs = [ArqConfig(node_id=i, rate_bps=RATE, deadline_s=20.0) for i in range(1, 6)]
+def test_broadcast_is_delivered_intact_once_or_fails_by_deadline(
+    seed: int, drop: float, size: int, use_fec: bool
+) -> None:
+    """With chunks resent or parity chunks (fec.py) as repairs."""
+    cfgs = [ArqConfig(node_id=i, rate_bps=RATE, deadline_s=20.0, fec=use_fec) for i in range(1, 6)]
     nodes = [ArqEndpoint(c, session=seed + c.node_id, seed=seed + c.node_id) for c in cfgs]
     net = SimNet(nodes, faults=Faults(drop=drop), seed=seed, shared=True)
     data = os.urandom(size)

@@ -41,7 +41,8 @@ def test_msg_ids_compare_across_the_wrap() -> None:
 @pytest.mark.parametrize(
     ("frame", "why"),
     [
-        (wire.Data(1, 2, 1, 7, 0, 10, 10, 1000, b"x"), "index"),
+        (wire.Data(1, 2, 1, 7, 0, 256, 10, 1000, b"x"), "index"),  # past a 10-chunk message's parity
+        (wire.Data(1, 2, 1, 7, 0, 10, 10, 1000, b"x", reliable=False), "index"),  # DGRAMs have none
         (wire.Data(1, 2, 1, 7, 0, 0, 0, 1000, b"x"), "index"),
         (wire.Data(1, 2, 1, 7, 0, 0, 500, 100, b"x"), "inconsistent"),
         (wire.Data(1, 2, 1, 7, 0, 0, 1, 2, b"xyz"), "inconsistent"),
