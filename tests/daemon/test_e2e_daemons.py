@@ -408,6 +408,28 @@ def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
     assert stats["unheard"] > 0  # the emulated radio did keep robot0's and robot2's frames apart
 
 
+THREE = ("robot0", "robot1", "robot2")
+
+
+def _three_whole_map_daemons(args: argparse.Namespace) -> Fleet:
+    """Three daemons started on the emulated radio ``args`` asks for, every version a whole map
+    (several turns of a slot each)."""
+    f = Fleet(args, sim_options={"duration": 40.0})
+    f.prepare()
+    for r in THREE:
+        cfg = f.run_dir / r / "config.toml"
+        cfg.write_text(cfg.read_text().replace("keyframe_every = 10", "keyframe_every = 1"))
+    f.start()
+    return f
+
+
+def _all_hold_three(s: dict[str, dict[str, Any]]) -> bool:
+    """Each of the three holds at least the third map of each other."""
+    return len(s) == 3 and all(
+        num(s[a].get("peers", {}).get(b, {}).get("version", 0)) >= 3 for a in THREE for b in THREE if a != b
+    )
+
+
 def test_three_daemons_share_one_tdma_channel_where_overlapping_frames_garble(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:
@@ -422,28 +444,36 @@ def test_three_daemons_share_one_tdma_channel_where_overlapping_frames_garble(
         robots=3, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=40.0,
         collisions=True,
     )  # fmt: skip
-    f = Fleet(args, sim_options={"duration": 40.0})
-    f.prepare()
-    for r in ("robot0", "robot1", "robot2"):
-        cfg = f.run_dir / r / "config.toml"
-        cfg.write_text(cfg.read_text().replace("keyframe_every = 10", "keyframe_every = 1"))
-    f.start()
-    pairs = [(a, b) for a in ("robot0", "robot1", "robot2") for b in ("robot0", "robot1", "robot2") if a != b]
+    f = _three_whole_map_daemons(args)
     try:
-        fk.wait_for(
-            lambda s: (
-                len(s) == 3
-                and all(num(s[a].get("peers", {}).get(b, {}).get("version", 0)) >= 3 for a, b in pairs)
-            ),
-            150,
-            f,
-        )
+        fk.wait_for(_all_hold_three, 150, f)
     finally:
         f.stop()
     stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
     sent = sum(p["frames_in"] for p in stats["ports"])  # frames the robots wrote
     assert sent > 100
     assert stats["collided"] <= sent // 50, stats
+
+
+def test_three_daemons_repair_lossy_broadcasts_with_parity(tmp_path: Path, fk: SimpleNamespace) -> None:
+    """An emulated radio that loses 15 % of frames: each robot's maps go to the two others at once (a
+    broadcast, gap reports and COMPLETEs: R16), and with ``fec`` on (the default) the repairs are
+    parity chunks, each of use to both receivers. Every robot gets the others' maps, some chunks are
+    rebuilt from parity, and no rebuilt map fails its hash."""
+    args = argparse.Namespace(
+        robots=3, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=40.0, drop=0.15
+    )
+    f = _three_whole_map_daemons(args)
+    try:
+        snaps = fk.wait_for(_all_hold_three, 150, f)
+    finally:
+        f.stop()
+    links = [snaps[r]["links"]["uwb"] for r in THREE]
+    assert sum(link["parity_tx"] for link in links) > 0
+    assert sum(link["recovered"] for link in links) > 0
+    assert sum(link["hash_errors"] for link in links) == 0
+    stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
+    assert stats["dropped"] > 0
 
 
 def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
