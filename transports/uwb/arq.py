@@ -85,6 +85,10 @@ Scalable acks (NACK mode)
       receiver lacking any chunk of its block and a round costs what the worst receiver lacks,
       not the union of all their losses. A receiver rebuilds a block once it holds as many
       chunks and parity as the block has chunks; the message hash still decides delivery.
+      Behind a broadcast's first pass the sender queues parity unasked, a share of each block
+      (at most ``PROACTIVE_MAX``) that a gap report after the pass raises by what its round sent
+      and a message without one lowers by ``PROACTIVE_DOWN``: the round trip a repair costs is
+      mostly skipped on a lossy channel, and a clean one never carries parity.
 Pacing and access
   R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
       resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
@@ -218,6 +222,7 @@ class ArqEndpoint(ReceiverSide, AckSide):
         self._housekeeping_at = -math.inf
         self._rx_held = 0
         self._goodput_bps = 0.0
+        self._proactive = 0.0  # parity sent with a broadcast's first pass, as a share (R16, fec)
         self.counters = ArqCounters()
 
     # --- the API an adapter drives --------------------------------------------------------------
@@ -275,6 +280,7 @@ class ArqEndpoint(ReceiverSide, AckSide):
         out.reliable = reliable
         out.nack = reliable and self._nack_mode(dst)
         out.fec = out.nack and self.cfg.fec
+        out.proactive = self._proactive if out.fec else 0.0
         self._out[msg] = out
         for d in targets:
             self._rtt_of(d)
@@ -418,6 +424,7 @@ class ArqEndpoint(ReceiverSide, AckSide):
         out["rtt_ms"] = round(1000 * sum(srtts) / len(srtts), 1) if srtts else None
         out["rto_ms"] = round(1000 * max((e.rto for e in self._rtt.values()), default=0.0), 1)
         out["goodput_bps"] = round(self._goodput_bps, 1)
+        out["fec_proactive"] = round(self._proactive, 3)  # parity sent with a first pass, per chunk
         out["peak_bps_1s"] = round(8 * self._pacer.peak_window_bytes / self._pacer.window, 1)
         out["link_rate_bps"] = self.cfg.rate_bps
         out["in_flight"] = len(self._out)

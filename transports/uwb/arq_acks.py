@@ -25,6 +25,11 @@ from transports.uwb.arq_types import (
 from transports.uwb.receiving import PeerState, asked_by
 from transports.uwb.sending import Outgoing
 
+#: Proactive parity (R16, fec): its share of each block's chunks at most, and its steps.
+PROACTIVE_MAX = 0.5
+PROACTIVE_UP = 0.05
+PROACTIVE_DOWN = 0.01
+
 
 class AckSide:
     """The sender's ack rules (a mixin: :class:`~transports.uwb.arq.ArqEndpoint` owns the state
@@ -41,6 +46,7 @@ class AckSide:
     _rtt: dict[int, RttEstimator]
     _events: deque[Event]
     _goodput_bps: float
+    _proactive: float
 
     def _on_done_entry(self, peer: PeerState, target: int, low: int, now: float) -> None:
         """A DONE entry for us: the COMPLETE ack it stands for, with the message's full id and the
@@ -163,6 +169,15 @@ class AckSide:
         self._close(m)
 
     def _close(self, m: Outgoing, outcome: str | None = None) -> None:
+        if m.fec and m.flushed:
+            # R16 with fec: parity sent behind the first pass follows the worst receiver's loss. A
+            # gap report after the pass (a repair round: a TDMA cycle or two of waiting) raises it
+            # by what the round sent, a message without one lowers it a little, so about one message in six still needs a round and
+            # a clean channel sends no parity at all. A message whose receivers all completed
+            # before its pass ended (parity asked for during it went instead of the rest) says
+            # nothing either way.
+            step = max(PROACTIVE_UP, m.late_parity / m.count) if m.repaired else -PROACTIVE_DOWN
+            self._proactive = min(PROACTIVE_MAX, max(0.0, self._proactive + step))
         self._out.pop(m.msg, None)
         if outcome is None:
             outcome = "delivered" if all(p.done for p in m.peers.values()) else "failed"

@@ -8,7 +8,7 @@ from __future__ import annotations
 import hashlib
 import heapq
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from transports.uwb import fec
@@ -99,6 +99,12 @@ class Outgoing:
         #: NACK mode: repairs go as parity chunks (fec.py), each of which any receiver missing any
         #: chunk of its block can use, rather than as the chunks asked for.
         self.fec = False
+        #: Parity to send with the first pass, as a share of each block (the sender's running guess
+        #: of the worst receiver's loss), so most receivers need no repair round at all.
+        self.proactive = 0.0
+        #: A gap report asked for parity after the first pass (the guess was short), and how much.
+        self.repaired = False
+        self.late_parity = 0
         self.parity_sent = 0
         self._parity_next: dict[int, int] = {}  # block -> next parity share (j) not yet queued
         self._parity_unsent: dict[int, int] = {}  # block -> parity chunks queued, not yet sent
@@ -123,19 +129,35 @@ class Outgoing:
         report may have queued them already, as one parity chunk serves every receiver that lacks
         any chunk of its block. Past the code's parity, the chunks asked go again themselves.
         Returns how many were queued."""
+        asked = list(asked)
+        nb = fec.blocks(self.count)
+        queued = self._queue_parity(
+            fec.per_block(self.count, asked), lambda b: [i for i in asked if i % nb == b]
+        )
+        if self.flushed:
+            self.repaired = True
+            self.late_parity += queued
+        return queued
+
+    def _queue_parity(self, need: dict[int, int], fallback: Callable[[int], list[int]]) -> int:
         queued = 0
         limit = fec.max_parity(self.count)
-        for b, need in fec.per_block(self.count, asked).items():
-            while self._parity_unsent.get(b, 0) < need:
+        for b, n in need.items():
+            while self._parity_unsent.get(b, 0) < n:
                 j = self._parity_next.get(b, 0)
                 if j >= limit:
-                    nb = fec.blocks(self.count)
-                    queued += sum(self.queue_resend(i) for i in asked if i % nb == b)
+                    queued += sum(self.queue_resend(i) for i in fallback(b))
                     break
                 self._parity_next[b] = j + 1
                 self._parity_unsent[b] = self._parity_unsent.get(b, 0) + 1
                 queued += self.queue_resend(fec.parity_index(self.count, b, j))
         return queued
+
+    def _queue_proactive(self) -> None:
+        """The first pass is out: send ``proactive`` of each block as parity behind it."""
+        nb = fec.blocks(self.count)
+        need = {b: int(fec.block_size(self.count, b) * self.proactive + 0.5) for b in range(nb)}
+        self._queue_parity({b: n for b, n in need.items() if n}, lambda b: [])
 
     def pending(self) -> list[PeerProgress]:
         return [p for p in self.peers.values() if p.pending]
@@ -198,6 +220,8 @@ class Outgoing:
         self._probes.discard(i)
         if i == self.next_new:
             self.next_new += 1
+            if self.next_new == self.count and self.fec and self.proactive > 0:
+                self._queue_proactive()
         self.xmit += 1
         self.seq[i] = self.xmit
         self.sent_at[i] = now

@@ -114,6 +114,39 @@ def test_a_lossy_broadcast_is_repaired_with_parity_in_fewer_frames(drop: float) 
         assert s["data_tx"] < 0.8 * plain["data_tx"], (s["data_tx"], plain["data_tx"])
 
 
+@pytest.mark.parametrize("drop", [0.0, 0.2])
+def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_clean_channel(
+    drop: float,
+) -> None:
+    """Receivers report gaps late here (a long backoff, as a TDMA turn would make them), after each
+    message's first pass: on a lossy channel the sender learns to send parity behind the pass, so
+    later messages need fewer gap reports; on a clean one it sends none."""
+    nodes = [
+        ArqEndpoint(
+            ArqConfig(node_id=i, rate_bps=RATE, deadline_s=60.0, fec=True, nack_backoff_s=1.5),
+            session=900 + i,
+            seed=i,
+        )
+        for i in range(1, 10)
+    ]
+    net = SimNet(nodes, faults=Faults(drop=drop), seed=5, shared=True)
+    net.run(6.0)
+    nacks: list[int] = []
+    for k in range(12):
+        before = sum(n.stats()["nacks_tx"] for n in nodes[1:])
+        data = os.urandom(8_000)
+        msg = nodes[0].send(data, net.now, dests=RECEIVERS, stream=k % 3)
+        assert net.run(net.now + 60, stop=lambda m=msg: _closed(net, 1, m))
+        assert arq.MessageClosed(msg, "delivered") in net.events[1]
+        nacks.append(sum(n.stats()["nacks_tx"] for n in nodes[1:]) - before)
+    s = nodes[0].stats()
+    if drop == 0.0:
+        assert s["parity_tx"] == 0 and s["fec_proactive"] == 0.0 and sum(nacks) == 0
+    else:
+        assert s["fec_proactive"] > 0
+        assert sum(nacks[-4:]) < sum(nacks[:4]), nacks
+
+
 def _frame(d: wire.Data) -> bytes:
     return encode_frame(wire.pack(d))
 
