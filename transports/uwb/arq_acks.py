@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 
 from transports.rtt import RttEstimator
-from transports.uwb import wire
+from transports.uwb import fec, wire
 from transports.uwb.arq_types import (
     ArqConfig,
     ArqCounters,
@@ -136,7 +136,9 @@ class AckSide:
 
     def _overheard(self, a: wire.Ack) -> None:
         """Another receiver's ACK to a data sender (a shared channel carries every frame to all): in
-        NACK mode, a gap report of ours that it makes redundant is dropped (R16, suppression)."""
+        NACK mode, a gap report of ours that it makes redundant is dropped (R16, suppression): one
+        that asks for every chunk we lack or, once the sender is known to repair with parity, for
+        as many chunks of each block."""
         if a.flags:
             return  # COMPLETE and REJECT ask for nothing
         sender = self._peers.get(a.dst)
@@ -146,7 +148,15 @@ class AckSide:
         if part is None or not part.nack:
             return
         mine = part.gaps()
-        if mine and set(mine) <= asked_by(a.base, a.bitmap):
+        theirs = asked_by(a.base, a.bitmap)
+        if part.parity:
+            # The sender repairs with parity (we hold some): its answer to their report is so many
+            # parity chunks of each block, which serve us as well as them if we need no more.
+            want, asked = fec.per_block(part.count, mine), fec.per_block(part.count, theirs)
+            covered = all(n <= asked.get(b, 0) for b, n in want.items())
+        else:
+            covered = set(mine) <= theirs
+        if mine and covered:
             del sender.acks_due[a.msg]
             self.counters.nacks_suppressed += 1
 
@@ -172,10 +182,9 @@ class AckSide:
         if m.fec and m.flushed:
             # R16 with fec: parity sent behind the first pass follows the worst receiver's loss. A
             # gap report after the pass (a repair round: a TDMA cycle or two of waiting) raises it
-            # by what the round sent, a message without one lowers it a little, so about one message in six still needs a round and
-            # a clean channel sends no parity at all. A message whose receivers all completed
-            # before its pass ended (parity asked for during it went instead of the rest) says
-            # nothing either way.
+            # by what that round sent, a message without one lowers it a little, and a clean
+            # channel never carries parity. A message whose receivers all completed before its
+            # pass ended (parity asked for during it went instead of the rest) says nothing.
             step = max(PROACTIVE_UP, m.late_parity / m.count) if m.repaired else -PROACTIVE_DOWN
             self._proactive = min(PROACTIVE_MAX, max(0.0, self._proactive + step))
         self._out.pop(m.msg, None)

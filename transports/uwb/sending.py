@@ -99,8 +99,8 @@ class Outgoing:
         #: NACK mode: repairs go as parity chunks (fec.py), each of which any receiver missing any
         #: chunk of its block can use, rather than as the chunks asked for.
         self.fec = False
-        #: Parity to send with the first pass, as a share of each block (the sender's running guess
-        #: of the worst receiver's loss), so most receivers need no repair round at all.
+        #: Parity to send behind the first pass unasked, as a share of each block (the sender's
+        #: running guess of the worst receiver's loss), so most messages need no repair round.
         self.proactive = 0.0
         #: A gap report asked for parity after the first pass (the guess was short), and how much.
         self.repaired = False
@@ -119,7 +119,7 @@ class Outgoing:
             b, share = fec.parity_of(self.count, i)
             data = [self.body[c * self.chunk_size : (c + 1) * self.chunk_size] for c in range(self.count)]
             made = self._parity[i] = fec.encode_parity(data, self.count, b, [share])[0]
-            while len(self._parity) > 4:  # a parity chunk goes once: keep only what is about to
+            while len(self._parity) > 4:  # a parity chunk goes once: keep the few about to go
                 self._parity.popitem(last=False)
         return made
 

@@ -147,6 +147,32 @@ def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_c
         assert sum(nacks[-4:]) < sum(nacks[:4]), nacks
 
 
+def test_once_parity_is_seen_a_report_asking_for_as_many_chunks_suppresses_ours() -> None:
+    """Our gaps are chunks 1 and 2 (3 is covered by the parity we hold); another receiver's report
+    asks for 3 and 4, other chunks but as many of the block: the sender's parity answer serves us
+    too, so our report is dropped. Without parity held, only a report asking for our very chunks
+    would do (R16's rule before parity)."""
+    count, size = 6, 100
+    total = count * size
+
+    def data(i: int) -> bytes:
+        return _frame(wire.Data(1, wire.BROADCAST, 1001, 7, 0, i, count, total, bytes(size)))
+
+    parity = _frame(
+        wire.Data(1, wire.BROADCAST, 1001, 7, 0, fec.parity_index(count, 0, 0), count, total, bytes(size))
+    )
+    # holds 0, 1, 2 and 5: asks for 3 and 4
+    other = encode_frame(wire.pack(wire.Ack(3, 1, 1003, 1001, 7, 1, 0, 3, b"\x02")))
+    for with_parity in (True, False):
+        rx = ArqEndpoint(ArqConfig(node_id=2, rate_bps=RATE), session=2, seed=2)
+        rx.receive_data(data(0) + data(4) + data(5), 0.0)
+        if with_parity:
+            rx.receive_data(parity, 0.0)
+            assert rx._peers[1].partials[7].gaps() == [1, 2]
+        rx.receive_data(other, 0.01)
+        assert rx.stats()["nacks_suppressed"] == (1 if with_parity else 0)
+
+
 def _frame(d: wire.Data) -> bytes:
     return encode_frame(wire.pack(d))
 
