@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -11,6 +12,13 @@ from typing import ClassVar
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, StampedPose
+
+
+def check_start_pose(v: list[float] | None) -> list[float] | None:
+    """A ``start_pose`` option: None, or ``[x, y, yaw]`` (m, m, rad), all finite."""
+    if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
+        raise ValueError("start_pose must be [x, y, yaw] (m, m, rad)")
+    return v
 
 
 class SourceOptions(BaseModel):

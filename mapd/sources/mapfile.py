@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import os
 import time
 from collections.abc import AsyncIterator
@@ -35,7 +34,7 @@ from pydantic import Field, field_validator
 
 from mapd.errors import MapdError, MapFileError
 from mapd.grid import MAX_GRID_SIDE, OccupancyGrid, Pose2D, load_map, read_map_yaml
-from mapd.sources.base import MapSource, SourceContext, SourceOptions
+from mapd.sources.base import MapSource, SourceContext, SourceOptions, check_start_pose
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +56,7 @@ class MapFileOptions(SourceOptions):
     @field_validator("start_pose")
     @classmethod
     def _check_pose(cls, v: list[float] | None) -> list[float] | None:
-        if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
-            raise ValueError("start_pose must be [x, y, yaw] (m, m, rad)")
-        return v
+        return check_start_pose(v)
 
 
 def _stat(p: Path) -> tuple[int, int, int]:

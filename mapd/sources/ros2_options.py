@@ -15,7 +15,7 @@ from pydantic import Field, field_validator, model_validator
 
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
-from mapd.sources.base import SourceOptions
+from mapd.sources.base import SourceOptions, check_start_pose
 from mapd.sources.ros2_pose import PoseType
 
 #: A robot name mapd takes from a discovered topic (as ``[robot] name`` in config.py).
@@ -102,6 +102,4 @@ class Ros2Options(SourceOptions):
     @field_validator("start_pose")
     @classmethod
     def _check_pose(cls, v: list[float] | None) -> list[float] | None:
-        if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
-            raise ValueError("start_pose must be [x, y, yaw] (m, m, rad)")
-        return v
+        return check_start_pose(v)
