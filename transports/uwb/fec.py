@@ -83,14 +83,17 @@ def per_block(count: int, indices: Iterable[int]) -> dict[int, int]:
     return out
 
 
-def encode_parity(chunks: list[bytes], count: int, b: int, shares: list[int]) -> list[bytes]:
-    """Parity ``shares`` (zfec share numbers, each ``>= k``) of block ``b`` of ``chunks`` (all the
-    message's data chunks)."""
-    nb = blocks(count)
-    mine = chunks[b::nb]
+def pad_block(chunks: list[bytes], count: int, b: int) -> tuple[bytes, ...]:
+    """Block ``b`` of ``chunks`` (all the message's data chunks), each zero-padded to the longest:
+    what :func:`encode_parity` takes (a sender makes it once per block)."""
+    mine = chunks[b :: blocks(count)]
     width = max(len(c) for c in mine)
-    padded = tuple(c.ljust(width, b"\x00") for c in mine)
-    return list(zfec.Encoder(len(mine), SHARES).encode(padded, tuple(shares)))
+    return tuple(c.ljust(width, b"\x00") for c in mine)
+
+
+def encode_parity(block: tuple[bytes, ...], shares: list[int]) -> list[bytes]:
+    """Parity ``shares`` (zfec share numbers, each ``>= k``) of a padded block (:func:`pad_block`)."""
+    return list(zfec.Encoder(len(block), SHARES).encode(block, tuple(shares)))
 
 
 def recover(count: int, b: int, have: dict[int, bytes], parity: dict[int, bytes]) -> dict[int, bytes]:

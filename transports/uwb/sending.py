@@ -109,6 +109,7 @@ class Outgoing:
         self._parity_next: dict[int, int] = {}  # block -> next parity share (j) not yet queued
         self._parity_unsent: dict[int, int] = {}  # block -> parity chunks queued, not yet sent
         self._parity: OrderedDict[int, bytes] = OrderedDict()  # a few made, by chunk index
+        self._blocks: dict[int, tuple[bytes, ...]] = {}  # block -> its padded chunks, once parity goes
 
     def chunk(self, i: int) -> bytes:
         """Chunk ``i``'s bytes: data below ``count``, parity (made when first asked for) past it."""
@@ -117,8 +118,11 @@ class Outgoing:
         made = self._parity.get(i)
         if made is None:
             b, share = fec.parity_of(self.count, i)
-            data = [self.body[c * self.chunk_size : (c + 1) * self.chunk_size] for c in range(self.count)]
-            made = self._parity[i] = fec.encode_parity(data, self.count, b, [share])[0]
+            block = self._blocks.get(b)
+            if block is None:
+                data = [self.body[c * self.chunk_size : (c + 1) * self.chunk_size] for c in range(self.count)]
+                block = self._blocks[b] = fec.pad_block(data, self.count, b)
+            made = self._parity[i] = fec.encode_parity(block, [share])[0]
             while len(self._parity) > 4:  # a parity chunk goes once: keep the few about to go
                 self._parity.popitem(last=False)
         return made

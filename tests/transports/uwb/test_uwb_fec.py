@@ -63,7 +63,7 @@ def test_any_chunks_lost_come_back_from_as_many_parity_chunks(count: int, seed: 
         lost = set(rng.sample(members, rng.randint(1, k)))
         have = {i: chunks[i] for i in members if i not in lost}
         shares = rng.sample(range(k, fec.SHARES), len(lost))  # any parity shares will do
-        parity = dict(zip(shares, fec.encode_parity(chunks, count, b, shares), strict=True))
+        parity = dict(zip(shares, fec.encode_parity(fec.pad_block(chunks, count, b), shares), strict=True))
         got = fec.recover(count, b, have, parity)
         assert set(got) == lost
         for i in lost:
