@@ -208,6 +208,34 @@ def test_forged_parity_never_yields_a_wrong_map_and_useless_parity_is_not_held()
     assert got == [body]
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    frames=st.lists(
+        st.tuples(
+            st.integers(0, 2),  # which message: 3, 6 or 130 chunks of 40 bytes
+            st.integers(0, 600),  # index: data, parity, or past both
+            st.sampled_from([40, 40, 40, 13, 60]),  # payload length: mostly a whole chunk
+            st.integers(0, 255),  # payload byte
+        ),
+        max_size=150,
+    )
+)
+def test_hostile_data_and_parity_never_raise_deliver_or_grow_memory(
+    frames: list[tuple[int, int, int, int]],
+) -> None:
+    """A forger with a valid CRC sends DATA and parity chunks of three messages, at any index and
+    of any length: the receiver never raises, delivers nothing (no hash can match), and holds no
+    more than its budget, with its tally equal to what its partial messages hold."""
+    rx = ArqEndpoint(ArqConfig(node_id=2, rate_bps=RATE, max_message_bytes=20_000), session=2, seed=2)
+    for msg, index, length, byte in frames:
+        count = (3, 6, 130)[msg]
+        d = wire.Data(1, wire.BROADCAST, 1001, msg, 0, index, count, 40 * count, bytes([byte]) * length)
+        rx.receive_data(_frame(d), 0.0)  # an index past the parity is refused as malformed
+    assert not [e for e in rx.events() if isinstance(e, arq.MessageReceived)]
+    held = sum(p.held for peer in rx._peers.values() for p in peer.partials.values())
+    assert rx._rx_held == held <= rx._rx_budget
+
+
 def test_parity_for_a_unicast_message_is_refused() -> None:
     rx = ArqEndpoint(ArqConfig(node_id=2, rate_bps=RATE), session=2, seed=2)
     uni = wire.Data(1, 2, 1001, 7, 0, 0, 4, 400, bytes(100))
