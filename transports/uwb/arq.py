@@ -89,6 +89,8 @@ Scalable acks (NACK mode)
       (at most ``PROACTIVE_MAX``) that a gap report after the pass raises by what its round sent
       and a message without one lowers by ``PROACTIVE_DOWN``: the round trip a repair costs is
       mostly skipped on a lossy channel, and a clean one never carries parity.
+      A receiver holding parity drops its report for another's that asks for as many chunks of
+      each block, whichever they are: the parity answering it serves both.
 Pacing and access
   R14. Every frame waits for the pacer (``pacing.Pacer``: never over ``rate_bps`` in any 1 s window,
       resends and acks included) and for medium access (``pacing.MediumAccess``: none, tdma, backoff).
