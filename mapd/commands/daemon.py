@@ -202,6 +202,8 @@ def render_status(s: dict[str, Any]) -> str:
             "bytes_tx",
             "bytes_rx",
             "resends",
+            "parity_tx",
+            "recovered",
             "crc_errors",
             "bad_signature",
             "rtt_ms",

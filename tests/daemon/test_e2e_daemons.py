@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 
+from mapd.commands.daemon import render_status
 from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
 from mapd.identity import Identity
@@ -470,6 +471,10 @@ def test_three_daemons_repair_lossy_broadcasts_with_parity(tmp_path: Path, fk: S
         f.stop()
     links = [snaps[r]["links"]["uwb"] for r in THREE]
     assert sum(link["parity_tx"] for link in links) > 0
+    # `mapd status` shows them among the first figures of the link's line
+    sender = max(THREE, key=lambda r: snaps[r]["links"]["uwb"]["parity_tx"])
+    line = next(x for x in render_status(snaps[sender]).splitlines() if x.strip().startswith("uwb"))
+    assert f"parity_tx={snaps[sender]['links']['uwb']['parity_tx']}" in line and "recovered=" in line
     assert sum(link["recovered"] for link in links) > 0
     assert sum(link["hash_errors"] for link in links) == 0
     stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())
