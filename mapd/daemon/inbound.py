@@ -93,6 +93,8 @@ class Inbound:
                 self.wake()
         elif isinstance(ev, PeerUp | PeerDown):
             self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
+            if isinstance(ev, PeerDown) and core.peer_gone(ev.transport, ev.peer):
+                self.wake()  # the offer waited only for a robot that left: the link is free
         elif isinstance(ev, Failed):
             if core.failed(ev.transport, ev.peer, ev.version):
                 self.wake()

@@ -9,7 +9,8 @@ do, then runs the encode in a worker and reports the result with :meth:`encoded`
 The rules:
 
 * **P1 Code only what a link can take now.** A version is coded when some transport has not been
-  offered it and is free: its previous offer is acked by every peer it was meant for, failed, or
+  offered it and is free: its previous offer is acked by every peer it was meant for (or still in
+  reach: one whose presence timed out is not waited for), failed, or
   older than ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if
   longer). A peer that already acked a version (a late joiner's keyframe query got it first) is
   not waited for when that version is offered: it drops it as stale. So a slow link never queues
@@ -139,6 +140,15 @@ class PublisherCore:
     def failed(self, transport: str, peer: str, version: int) -> bool:
         """An offer could not reach ``peer``; True when the transport became free (poll again)."""
         return self._settle(transport, peer, version)
+
+    def peer_gone(self, transport: str, peer: str) -> bool:
+        """``peer`` went out of reach on ``transport`` (its presence timed out): the offer in flight
+        stops waiting for it (P1). True when the transport became free (poll again)."""
+        busy = self._inflight.get(transport)
+        if busy is None or peer not in busy.unsettled:
+            return False
+        busy.unsettled.discard(peer)
+        return not busy.unsettled
 
     def keyframe_needed(self, peer: str) -> bool:
         """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""

@@ -129,6 +129,21 @@ def test_an_offer_that_never_settles_frees_its_link_at_the_deadline() -> None:
     assert c.next_deadline() is None
 
 
+def test_a_peer_that_goes_out_of_reach_is_not_waited_for() -> None:
+    c = core(inflight_timeout_s=30.0)
+    c.new_version(grid(1))
+    code(c, 100.0)
+    c.new_version(grid(2))
+    c.acked("uwb", "robot1", 1)
+    assert c.poll(101.0, PEERS) is None  # uwb waits for robot2, zenoh for both
+    assert not c.peer_gone("uwb", "robot1")  # it already acked: nothing changes
+    assert c.peer_gone("uwb", "robot2")  # the last one uwb waited for left: uwb is free
+    gone = {"uwb": ["robot1"], "zenoh": PEERS["zenoh"]}
+    job = c.poll(101.0, gone)
+    assert job is not None and job.transports == ("uwb",) and job.grid.version == 2
+    assert not c.peer_gone("zenoh", "robot3")  # never waited for
+
+
 def test_keyframe_schedule() -> None:
     c = PublisherCore(uses_base=True, keyframe_every=3)
     peers = {"zenoh": ["robot1"]}

@@ -241,6 +241,9 @@ class SwarmRobot:
                 v = self._own_msgs.get(e.msg)
                 if v is not None and self.pub.failed("uwb", str(e.peer), v):
                     self._poll(now)
+            elif isinstance(e, arq.PeerDown):
+                if self.pub.peer_gone("uwb", str(e.peer)):  # as the daemon: not waited for any more
+                    self._poll(now)
             elif isinstance(e, arq.MessageClosed):
                 v = self._own_msgs.pop(e.msg, None)
                 if v is not None and e.outcome == "superseded":
