@@ -9,9 +9,9 @@ do, then runs the encode in a worker and reports the result with :meth:`encoded`
 The rules:
 
 * **P1 Code only what a link can take now.** A version is coded when some transport has not been
-  offered it and is free: its previous offer is acked by every peer it was meant for (or still in
-  reach: one whose presence timed out is not waited for), failed, or
-  older than ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if
+  offered it and is free: its previous offer is acked by every peer it was meant for and still in
+  reach (one whose presence timed out is not waited for), failed, or older than
+  ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if
   longer). A peer that already acked a version (a late joiner's keyframe query got it first) is
   not waited for when that version is offered: it drops it as stale. So a slow link never queues
   stale maps, and versions that would be replaced unsent are never coded. (Freeing a broadcast

@@ -87,8 +87,8 @@ Scalable acks (NACK mode)
       chunks and parity as the block has chunks; the message hash still decides delivery.
       Behind a broadcast's first pass the sender queues parity unasked, a share of each block
       (at most ``PROACTIVE_MAX``) that a gap report after the pass raises by what its round sent
-      and a message without one lowers by ``PROACTIVE_DOWN``: the round trip a repair costs is
-      mostly skipped on a lossy channel, and a clean one never carries parity.
+      and a message without one lowers by ``PROACTIVE_DOWN``: on a lossy channel the round trip a
+      repair costs is skipped more often, and a clean one never carries parity.
       A receiver holding parity drops its report for another's that asks for as many chunks of
       each block, whichever they are: the parity answering it serves both.
 Pacing and access

@@ -149,10 +149,7 @@ class Bound:
             if not on_air and now > last and self._converged():
                 res.slots = k + 1
                 break
-        self.pay.flush()
-        res.accepted.sort()
-        res.wall_s = time.perf_counter() - t0
-        return res
+        return self._finish(res, t0)
 
     def _run_turns(self, res: BoundResult, links_every: int, last: float, t0: float) -> BoundResult:
         """The daemon's TDMA turns: slot ``k`` is robot ``k % n``'s, its item advances one slot per
@@ -185,10 +182,7 @@ class Bound:
                 current[s] = None
                 self._deliver(item[2], item[3], now + self.slot_s, res.accepted)
                 res.schedule.append((item[1], k + 1, s, item[2], item[3]))
-        self.pay.flush()
-        res.accepted.sort()
-        res.wall_s = time.perf_counter() - t0
-        return res
+        return self._finish(res, t0)
 
     def _run_reach(self, res: BoundResult, links_every: int, last: float, t0: float) -> BoundResult:
         """An unlimited channel: every slot, each robot gets the newest of every map that anyone
@@ -213,10 +207,15 @@ class Bound:
                 res.slots = k + 1
                 break
         res.sender_slots = res.busy_slots
+        return self._finish(res, t0)
+
+    # --- internals ------------------------------------------------------------------------------
+    def _finish(self, res: BoundResult, t0: float) -> BoundResult:
+        self.pay.flush()  # payload sizes encoded for the first time, kept for the next run
+        res.accepted.sort()
         res.wall_s = time.perf_counter() - t0
         return res
 
-    # --- internals ------------------------------------------------------------------------------
     def _links(self, now: float) -> None:
         pos = np.array([s.position(now - ph) for s, ph in zip(self.fleet.robots, self.phase, strict=True)])
         building = self.fleet.building if self.cfg.wall_loss > 0 else None

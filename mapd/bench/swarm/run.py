@@ -187,8 +187,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--bound",
         action="store_true",
-        help="also run the optimistic bound (one scheduler that knows everything; one sender at a "
-        "time, and with spatial reuse) on the same fleet and channel: a second table",
+        help="also run the optimistic bound (one scheduler that knows everything: the daemon's TDMA "
+        "turns, one sender at a time, spatial reuse, no channel limit) on the same fleet and "
+        "channel: a second table",
     )
     p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
     p.add_argument(
@@ -291,7 +292,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str, Any]]:
-    """The bound's rows (one sender at a time, then with spatial reuse) for one fleet and codec."""
+    """The bound's rows, one per schedule (:data:`~mapd.bench.swarm.bound.MODES`), for one fleet and codec."""
     from mapd.bench.swarm.bound import MODES, Bound, summarize_bound
 
     out = []

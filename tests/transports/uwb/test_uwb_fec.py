@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import os
 import random
-from typing import Any
 
 import pytest
 from hypothesis import given, settings
@@ -245,7 +244,7 @@ def test_parity_for_a_unicast_message_is_refused() -> None:
     assert rx.stats()["bad_frames"] == 1 and rx.stats()["parity_rx"] == 0
 
 
-def test_fec_option_reaches_the_core(**_: Any) -> None:
+def test_fec_option_reaches_the_core() -> None:
     ctx = TransportContext(robot="zed", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
     loop = asyncio.new_event_loop()
     try:
