@@ -57,6 +57,16 @@ class Failed:
 
 
 @dataclass(frozen=True)
+class OnAir:
+    """Every byte of ``robot``'s map ``version`` has been on the air once, so what is left is repair
+    (sent only by links that pace: see :attr:`Transport.paced`)."""
+
+    transport: str
+    robot: str
+    version: int
+
+
+@dataclass(frozen=True)
 class PeerUp:
     """A peer appeared (liveliness token, first valid frame)."""
 
@@ -99,7 +109,7 @@ class PoseReceived:
 
 
 TransportEvent = (
-    Received | Delivered | Failed | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded | PoseReceived
+    Received | Delivered | Failed | OnAir | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded | PoseReceived
 )
 
 
@@ -151,6 +161,9 @@ class Transport(ABC):
 
     name: ClassVar[str]
     Options: ClassVar[type[TransportOptions]] = TransportOptions
+    #: The link puts an offer on the air at a share of a slow channel, and says when it is wholly
+    #: there (:class:`OnAir`): the publisher then never replaces an offer half sent (P1).
+    paced: ClassVar[bool] = False
 
     def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
         self.options = options if options is not None else self.Options()

@@ -29,6 +29,7 @@ from transports.base import (
     Delivered,
     Failed,
     KeyframeNeeded,
+    OnAir,
     PeerDown,
     PeerRestarted,
     PeerUp,
@@ -67,7 +68,8 @@ class Inbound:
             try:
                 await self.handle(ev)
             except MapdError as exc:
-                log.warning("event from %s dropped: %s", ev.peer, exc)
+                src = ev.transport if isinstance(ev, OnAir) else ev.peer  # OnAir is about own maps
+                log.warning("event from %s dropped: %s", src, exc)
 
     def transport(self, name: str) -> Transport | None:
         return next((t for t in self.transports if t.name == name), None)
@@ -86,6 +88,9 @@ class Inbound:
                 self.wake()  # the link is free: the publisher sends it the newest version
             if newer and self.store.set_acked(ev.peer, ev.version):
                 await self._save_base()
+        elif isinstance(ev, OnAir):
+            if ev.robot == self.me and core.on_air(ev.transport, ev.version, time.monotonic()):
+                self.wake()  # the offer now times out: the publisher waits for that, not for ever
         elif isinstance(ev, KeyframeNeeded | PeerRestarted):
             # The peer may not hold our base any more: the next update goes out whole.
             self.store.forget_acked(ev.peer)

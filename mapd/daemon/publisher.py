@@ -14,7 +14,14 @@ The rules:
   ``inflight_timeout_s`` (or :data:`INFLIGHT_PER_PEER_S` per peer waited for, if
   longer). A peer that already acked a version (a late joiner's keyframe query got it first) is
   not waited for when that version is offered: it drops it as stale. So a slow link never queues
-  stale maps, and versions that would be replaced unsent are never coded. (Freeing a broadcast
+  stale maps, and versions that would be replaced unsent are never coded. On a *paced* link
+  (:attr:`~transports.base.Transport.paced`: uwb, a share of one slow channel) an offer times out
+  no sooner than it is wholly on the air (:meth:`on_air`), or ``PACED_HOLD`` timeouts after it
+  went out if the link never says so. Superseding a map half sent starts the next one over from
+  nothing: in a building where each of 16 robots gets a sixteenth of 12.5 kb/s, keyframes took
+  longer than the timeout to go out, so hardly a map reached anyone while versions were made
+  (issue #22 in the README). Holding the link a TDMA cycle longer for repairs was measured too,
+  and delivered fewer maps than moving on at once. (Freeing a broadcast
   link as soon as its last byte is on the air, NORM-style, was measured and made 32 robots on one
   channel staler, not fresher: the next delta then goes against an older base, so it is larger,
   and under loss it supersedes repairs; see issue #22 in the README.)
@@ -50,6 +57,9 @@ INFLIGHT_TIMEOUT_S = 30.0
 #: longer than one to a single peer, and superseding it early turns every next version into a
 #: keyframe (the swarm bench, issue #22). Up to 6 peers it changes nothing.
 INFLIGHT_PER_PEER_S = 5.0
+#: A paced link's offer not yet wholly on the air times out after this many timeouts all the same
+#: (its link may have lost it without a word; the uwb ARQ fails it at its 120 s deadline anyway).
+PACED_HOLD = 4.0
 
 
 @dataclass(frozen=True)
@@ -69,6 +79,17 @@ class InFlight:
     since: float
     unsettled: set[str]
     timeout: float = INFLIGHT_TIMEOUT_S
+    #: On a paced link: when the offer was wholly on the air (None: not yet).
+    on_air: float | None = None
+    paced: bool = False
+
+    def expires(self) -> float:
+        """When the offer stops holding its link though peers have not settled it (P1)."""
+        if not self.paced:
+            return self.since + self.timeout
+        if self.on_air is None:
+            return self.since + PACED_HOLD * self.timeout
+        return max(self.since + self.timeout, self.on_air)
 
 
 @dataclass
@@ -87,6 +108,8 @@ class PublisherCore:
     keyframe_every: int
     inflight_timeout_s: float = INFLIGHT_TIMEOUT_S
     keep_versions: int = KEEP_VERSIONS
+    #: Transports whose offers are held until wholly on the air (P1; the adapter fills it in).
+    paced: set[str] = field(default_factory=set)
     counters: PublisherCounters = field(default_factory=PublisherCounters)
     #: The newest own keyframe coded, for late joiners.
     keyframe: Envelope | None = None
@@ -150,6 +173,15 @@ class PublisherCore:
         busy.unsettled.discard(peer)
         return not busy.unsettled
 
+    def on_air(self, transport: str, version: int, now: float) -> bool:
+        """Own ``version`` is wholly on the air on ``transport`` at ``now`` (P1). True when the
+        offer's timeout moved: the adapter waits anew (the link may be free at once)."""
+        busy = self._inflight.get(transport)
+        if busy is None or busy.version != version or not busy.paced or busy.on_air is not None:
+            return False
+        busy.on_air = now
+        return True
+
     def keyframe_needed(self, peer: str) -> bool:
         """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""
         self._since_keyframe = self.keyframe_every
@@ -192,7 +224,7 @@ class PublisherCore:
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
             waiting = {p for p in peers.get(t, ()) if self._newest(p) < envelope.version}
             timeout = max(self.inflight_timeout_s, INFLIGHT_PER_PEER_S * len(waiting))
-            self._inflight[t] = InFlight(envelope.version, now, waiting, timeout)
+            self._inflight[t] = InFlight(envelope.version, now, waiting, timeout, paced=t in self.paced)
         return job.transports
 
     def next_deadline(self) -> float | None:
@@ -204,7 +236,7 @@ class PublisherCore:
         if latest is None:
             return None
         times = [
-            f.since + f.timeout
+            f.expires()
             for t, f in self._inflight.items()
             if f.unsettled and self._offered.get(t, 0) < latest.version
         ]
@@ -238,7 +270,7 @@ class PublisherCore:
 
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)
-        return busy is not None and bool(busy.unsettled) and now - busy.since < busy.timeout
+        return busy is not None and bool(busy.unsettled) and now < busy.expires()
 
     def _settle(self, transport: str, peer: str, version: int) -> bool:
         busy = self._inflight.get(transport)

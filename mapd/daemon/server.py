@@ -207,6 +207,8 @@ class Daemon:
                 latest_keyframe=self.latest_keyframe,
             )
             self.transports.append(cls(self._options("transports", name, cls.Options), ctx))
+            if cls.paced:
+                self.publisher.paced.add(name)  # its offers are held until wholly on the air (P1)
         out_ctx = OutputContext(
             robot=self.me,
             fleet=self.cfg.robot.fleet,

@@ -169,15 +169,20 @@ def test_signed_frames_cost_airtime(swarm: SimpleNamespace, tmp_path: Path) -> N
     assert signed["bps_per_robot"] > plain["bps_per_robot"]
 
 
-def _heavy_stream(i: int, xy: tuple[float, float], versions: int = 3, period: float = 30.0) -> RobotStream:
-    """A robot whose every version is a map of noise: some twenty chunks each, where the others need one."""
+def _heavy_stream(
+    i: int, xy: tuple[float, float], versions: int = 3, period: float = 30.0, side: int = 120
+) -> RobotStream:
+    """A robot whose every version is a map of noise: some twenty chunks each (``side`` 120), where
+    the others need one."""
     rng = np.random.default_rng(i)
     kfs = [
-        encode(OccupancyGrid(rng.choice(np.array([-1, 0, 100], dtype=np.int8), (120, 120)), 0.05), "lossless")
+        encode(
+            OccupancyGrid(rng.choice(np.array([-1, 0, 100], dtype=np.int8), (side, side)), 0.05), "lossless"
+        )
         for _ in range(versions)
     ]
     poses = np.tile(np.asarray(xy, dtype=np.float64), (10, 1))
-    return RobotStream(f"r{i}", f"heavy-{i}", [v * period for v in range(versions)], kfs, poses)
+    return RobotStream(f"r{i}", f"heavy-{i}-{side}", [v * period for v in range(versions)], kfs, poses)
 
 
 def test_turn_lending_gives_idle_turns_to_the_robot_with_a_large_map(
@@ -205,6 +210,23 @@ def test_parity_repairs_a_lossy_broadcast_in_fewer_frames(swarm: SimpleNamespace
     heavy = {f: row["robot_tx"][0] for f, row in rows.items()}
     assert heavy[True] < 0.9 * heavy[False], heavy  # the heavy robot's repairs: parity, not the union
     assert rows[True]["stale_p95_s"] <= rows[False]["stale_p95_s"]
+
+
+def test_a_map_is_held_until_it_is_on_the_air(tmp_path: Path) -> None:
+    """Three robots, each map some 55 chunks (about 24 s of its turns), a version every 10 s and an
+    in-flight timeout of 10 s: superseding at the timeout (hold off) restarts every map before its
+    last chunk goes, so none arrives while versions are made; holding it until it is wholly on the
+    air (the daemon's publisher on uwb, P1) gets maps through all along."""
+    fleet = Fleet([_heavy_stream(i, (2.0 * i, 0.0), 6, 10.0, side=200) for i in range(3)], None, "test")
+    rows = {
+        h: _run(fleet, tmp_path, mac="tdma", duration=60.0, inflight_s=5.0, hold=h) for h in (True, False)
+    }
+    during = {h: [a for a in row["accepted_log"] if a[0] <= 60.0] for h, row in rows.items()}
+    assert not during[False]  # every map restarted before it was whole
+    assert len(during[True]) >= 6, during[True]
+    assert rows[True]["accepted"] > 2 * rows[False]["accepted"]
+    assert rows[True]["keyframes"] < rows[False]["keyframes"]  # fewer maps coded only to be dropped
+    assert rows[True]["stale_p95_s"] < rows[False]["stale_p95_s"]
 
 
 def test_config_is_plain_data() -> None:

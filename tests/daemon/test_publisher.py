@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import asyncio
 import csv
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
+
 from mapd.codec import read_header
+from mapd.daemon import publisher
 from mapd.daemon.server import Daemon
 from mapd.daemon.versions import split
-from transports.base import Received, TransportContext, TransportEvent
+from transports.base import OnAir, Received, TransportContext, TransportEvent
 from transports.virtual import VirtualOptions, VirtualTransport
 
 
@@ -30,6 +35,30 @@ async def settle() -> None:
         await asyncio.sleep(0.01)
 
 
+@asynccontextmanager
+async def one_peer(
+    d: Daemon, channel: str, dk: SimpleNamespace, heard: list[TransportEvent]
+) -> AsyncIterator[tuple[VirtualTransport, VirtualTransport]]:
+    """Run daemon ``d`` on the virtual ``channel`` with one peer, robot1 (its events go to ``heard``),
+    until both see each other; yields the daemon's link and the peer."""
+    peer = VirtualTransport(
+        VirtualOptions(channel=channel),
+        TransportContext(robot="robot1", fleet="default", max_message_bytes=1 << 20, emit=heard.append),
+    )
+    task = asyncio.create_task(d.run())
+    try:
+        await dk.wait_for(lambda: bool(d.transports) and d.transports[0].peers() == [], what="daemon up")
+        await peer.start()
+        await dk.wait_for(lambda: d.transports[0].peers() == ["robot1"], what="peer seen")
+        link = d.transports[0]
+        assert isinstance(link, VirtualTransport)
+        yield link, peer
+    finally:
+        d.request_stop()
+        await task
+        await peer.close()
+
+
 def test_busy_link_codes_only_the_newest_version_against_the_base_acked_by_then(
     tmp_path: Path, dk: SimpleNamespace
 ) -> None:
@@ -37,17 +66,7 @@ def test_busy_link_codes_only_the_newest_version_against_the_base_acked_by_then(
         channel = dk.channel()
         d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
         heard: list[TransportEvent] = []
-        peer = VirtualTransport(
-            VirtualOptions(channel=channel),
-            TransportContext(robot="robot1", fleet="default", max_message_bytes=1 << 20, emit=heard.append),
-        )
-        task = asyncio.create_task(d.run())
-        try:
-            await dk.wait_for(lambda: bool(d.transports) and d.transports[0].peers() == [], what="daemon up")
-            await peer.start()
-            await dk.wait_for(lambda: d.transports[0].peers() == ["robot1"], what="peer seen")
-            link = d.transports[0]
-            assert isinstance(link, VirtualTransport)
+        async with one_peer(d, channel, dk, heard) as (link, peer):
             await source.queue.put(dk.growing_map(1))
             await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
             assert [num(e.version) for e in link.offers] == [1] and link.offers[0].is_keyframe
@@ -71,9 +90,30 @@ def test_busy_link_codes_only_the_newest_version_against_the_base_acked_by_then(
             await settle()
             assert len(link.offers) == 2
             assert d.store.acked() == {"robot1": v4}
-        finally:
-            d.request_stop()
-            await task
-            await peer.close()
+
+    asyncio.run(main())
+
+
+def test_a_paced_link_keeps_its_offer_until_it_says_the_map_is_on_the_air(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # P1 on a paced link (uwb): a map half sent is never replaced by a newer one, whatever the
+    # timeout says; the link's OnAir event reaches the publisher through the daemon's inbox.
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        assert d.publisher.paced == set()  # the virtual link does not pace: plain timeouts
+        d.publisher.paced.add("virtual")
+        d.publisher.inflight_timeout_s = 0.2
+        monkeypatch.setattr(publisher, "PACED_HOLD", 1e6)  # only OnAir can free the link here
+        async with one_peer(d, channel, dk, []) as (link, _):
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            await source.queue.put(dk.growing_map(2))
+            await asyncio.sleep(0.6)  # three timeouts: the peer never acks, yet v1 is not on the air
+            assert len(link.offers) == 1
+            link.ctx.emit(OnAir("virtual", "robot0", link.offers[0].version))
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v2 offered once v1 is on the air")
+            assert num(link.offers[1].version) == 2
 
     asyncio.run(main())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapd.daemon.publisher import EncodeJob, PublisherCore
+from mapd.daemon.publisher import PACED_HOLD, EncodeJob, PublisherCore
 from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D
@@ -227,3 +227,54 @@ def test_a_peer_that_already_holds_the_version_is_not_waited_for() -> None:
     job, _ = code(c, 1.0)
     assert job.grid.version == 3
     assert c.acked("zenoh", "robot2", 3)[0]  # robot2 alone was waited for on zenoh
+
+
+def test_a_paced_offer_is_not_superseded_before_it_is_wholly_on_the_air() -> None:
+    # uwb gives each robot a share of one slow channel: a keyframe can take longer than the timeout
+    # to go out, and superseding it then would start the next one over from nothing (P1).
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    c.new_version(grid(1))
+    code(c, 100.0)
+    c.new_version(grid(2))
+    assert c.next_deadline() == 130.0  # zenoh's offer times out as before
+    job, _ = code(c, 130.0)
+    assert job.transports == ("zenoh",)  # uwb still holds v1: it is not wholly on the air yet
+    assert c.poll(200.0, PEERS) is None
+    assert not c.on_air("uwb", 2, 210.0)  # a version uwb was never offered changes nothing
+    assert c.on_air("uwb", 1, 210.0)
+    assert not c.on_air("uwb", 1, 215.0)  # said once, kept
+    job, _ = code(c, 210.0)  # past its timeout once on the air: free at once
+    assert job.transports == ("uwb",) and job.grid.version == 2
+
+
+def test_a_paced_offer_on_the_air_early_keeps_its_timeout() -> None:
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    c.new_version(grid(1))
+    code(c, 100.0, {"uwb": ["robot1"]})
+    c.new_version(grid(2))
+    assert c.on_air("uwb", 1, 105.0)
+    assert c.next_deadline() == 130.0
+    assert c.poll(129.9, {"uwb": ["robot1"]}) is None  # repairs may still reach robot1
+    assert code(c, 130.0, {"uwb": ["robot1"]})[0].grid.version == 2
+
+
+def test_a_paced_offer_never_said_on_the_air_times_out_after_the_hold() -> None:
+    # A link that lost the message without a word cannot hold the publisher for ever.
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    c.new_version(grid(1))
+    code(c, 100.0, {"uwb": ["robot1"]})
+    c.new_version(grid(2))
+    assert c.next_deadline() == 100.0 + PACED_HOLD * 30.0
+    assert c.poll(100.0 + PACED_HOLD * 30.0 - 0.1, {"uwb": ["robot1"]}) is None
+    assert code(c, 100.0 + PACED_HOLD * 30.0, {"uwb": ["robot1"]})[0].grid.version == 2
+
+
+def test_a_paced_offer_settled_by_every_peer_frees_its_link_before_it_is_on_the_air() -> None:
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    c.new_version(grid(1))
+    code(c, 100.0, {"uwb": ["robot1"]})
+    c.new_version(grid(2))
+    free, _ = c.acked("uwb", "robot1", 1)
+    assert free
+    job, _ = code(c, 101.0, {"uwb": ["robot1"]})
+    assert job.grid.version == 2 and job.base is not None and job.base.version == 1

@@ -30,7 +30,10 @@ Sending
       once (MessageClosed "superseded"); no radio time is spent on a stale map. A receiver that
       already holds every chunk of it still says COMPLETE, and that still counts (MessageDelivered,
       for the last ``MAX_LATE`` superseded messages): the sender learns which delta bases its peers
-      hold. A background message (a pose) is sent only when no other message has a chunk to send.
+      hold. So a reliable message says when every chunk has been on the air once (MessageFlushed):
+      an adapter that supersedes before then starts the next message over from nothing (P1 in
+      ``mapd/daemon/publisher.py``). A background message (a pose) is sent only when no other
+      message has a chunk to send.
   R6. A message goes to one peer (unicast) or to several (broadcast); it is delivered to a peer when
       that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
       failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
@@ -126,6 +129,7 @@ from transports.uwb.arq_types import (
     MessageClosed,
     MessageDelivered,
     MessageFailed,
+    MessageFlushed,
     MessageReceived,
     PeerDown,
     PeerRestarted,
@@ -148,6 +152,7 @@ __all__ = [
     "MessageClosed",
     "MessageDelivered",
     "MessageFailed",
+    "MessageFlushed",
     "MessageReceived",
     "PeerDown",
     "PeerRestarted",
@@ -610,8 +615,9 @@ class ArqEndpoint(ReceiverSide, AckSide):
             if m.next_new >= m.count:  # every chunk went once: nothing more will
                 self._close(m, "sent")
             return frame
-        if m.next_new >= m.count:
+        if m.next_new >= m.count and not m.flushed:
             m.flushed = True  # a receiver may now complete it even if it is superseded (R5)
+            self._events.append(MessageFlushed(m.msg))
         if m.nack:
             # R16: receivers stay silent while chunks arrive in order, so the probe timer runs only
             # once the sender has nothing left to send for this message (its flush point).

@@ -113,6 +113,14 @@ class MessageFailed:
 
 
 @dataclass(frozen=True)
+class MessageFlushed:
+    """Every chunk of our reliable message ``msg`` has been on the air once (R5): receivers may now
+    complete it, and what is left is repair."""
+
+    msg: int
+
+
+@dataclass(frozen=True)
 class MessageClosed:
     """A message left the send queue: ``delivered`` (to all), ``failed`` (some) or ``superseded``."""
 
@@ -141,7 +149,16 @@ class PeerRestarted:
     peer: int
 
 
-Event = MessageReceived | MessageDelivered | MessageFailed | MessageClosed | PeerUp | PeerDown | PeerRestarted
+Event = (
+    MessageReceived
+    | MessageDelivered
+    | MessageFailed
+    | MessageFlushed
+    | MessageClosed
+    | PeerUp
+    | PeerDown
+    | PeerRestarted
+)
 
 
 # --- counters -----------------------------------------------------------------------------------

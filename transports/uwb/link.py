@@ -30,6 +30,7 @@ from transports.base import (
     Delivered,
     Failed,
     KeyframeNeeded,
+    OnAir,
     PeerDown,
     PeerRestarted,
     PeerUp,
@@ -299,6 +300,7 @@ class UwbTransport(Transport):
 
     name = "uwb"
     Options = UwbOptions
+    paced = True  # each robot has a share of one 12.5 kb/s channel: maps take many seconds to go out
 
     def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
         super().__init__(options, ctx)
@@ -523,6 +525,10 @@ class UwbTransport(Transport):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]
                 emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
+        elif isinstance(e, arq.MessageFlushed):
+            meta = self._msgs.get(e.msg)
+            if meta is not None:
+                emit(OnAir("uwb", *meta))
         elif isinstance(e, arq.MessageClosed):
             meta = self._msgs.pop(e.msg, None)
             if meta is not None and e.outcome == "superseded":

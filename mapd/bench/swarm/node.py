@@ -10,7 +10,7 @@ and :mod:`mapd.daemon.server` do between them:
   signed envelope of the real codec's output (:class:`~mapd.bench.swarm.streams.Payloads`), sent on
   stream 0 to the :class:`~mapd.bench.swarm.policy.AckScope`'s dests (the daemon's default: every
   other robot configured); ``MessageDelivered`` / ``MessageFailed`` go back to the publisher as acks
-  and failures; coding takes no virtual time;
+  and failures, ``MessageFlushed`` as the offer wholly on the air; coding takes no virtual time;
 * a received map is accepted as the daemon's receiver accepts it (newer than the newest held, and a
   delta only when its base is among the :data:`~mapd.daemon.receiver.KEEP_PEER_VERSIONS` newest
   held); a delta whose base is gone asks the origin for a keyframe on the control stream, at most once
@@ -69,6 +69,7 @@ class SwarmRobot:
         seed: int,
         inflight_s: float = INFLIGHT_TIMEOUT_S,
         keyframe_every: int = KEYFRAME_EVERY,
+        hold: bool = True,
     ) -> None:
         self.index = index
         self.id = index + 1
@@ -77,7 +78,10 @@ class SwarmRobot:
         self.arq = arq.ArqEndpoint(config, session=session, seed=seed)
         self._confirm()
         self.pub = PublisherCore(
-            uses_base=payloads.uses_base, keyframe_every=keyframe_every, inflight_timeout_s=inflight_s
+            uses_base=payloads.uses_base,
+            keyframe_every=keyframe_every,
+            inflight_timeout_s=inflight_s,
+            paced={"uwb"} if hold else set(),  # as the daemon's uwb transport (P1)
         )
         self.relay = relay
         self.acks = acks
@@ -241,6 +245,10 @@ class SwarmRobot:
                 v = self._own_msgs.get(e.msg)
                 if v is not None and self.pub.failed("uwb", str(e.peer), v):
                     self._poll(now)
+            elif isinstance(e, arq.MessageFlushed):
+                v = self._own_msgs.get(e.msg)
+                if v is not None and self.pub.on_air("uwb", v, now):
+                    self._poll(now)  # as the daemon: the offer's timeout may have passed already
             elif isinstance(e, arq.PeerDown):
                 if self.pub.peer_gone("uwb", str(e.peer)):  # as the daemon: not waited for any more
                     self._poll(now)

@@ -22,6 +22,7 @@ COLUMNS = [
     ("ack_mode", "acks", ""),
     ("lend", "lend", ""),
     ("fec", "fec", ""),
+    ("hold", "hold", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -165,6 +166,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "broadcast maps repaired with parity chunks, each of use to every receiver lacking "
         "any chunk of its block (transports.uwb fec; default on, the daemon's)",
     )
+    _on_off(
+        p,
+        "--hold",
+        "the publisher supersedes a map only once it is wholly on the air "
+        "(P1 on a paced link, as the daemon's uwb; default on)",
+    )
     p.add_argument(
         "--slot-ms",
         type=float,
@@ -230,20 +237,21 @@ def run(args: argparse.Namespace) -> int:
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
             combos = [
-                (m, a, le, f)
+                (m, a, le, f, h)
                 for m in args.mac
                 for a in dict.fromkeys(args.ack_mode)
                 for le in args.lend
                 for f in args.fec
+                for h in args.hold
             ]
-            for mac, ack_mode, lend, fec in combos:
+            for mac, ack_mode, lend, fec, hold in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
                     mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
-                    **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
+                    hold=hold == "on", **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
                 payloads.flush()
@@ -253,10 +261,12 @@ def run(args: argparse.Namespace) -> int:
                 row["ack_mode"] = ack_mode
                 row["lend"] = lend
                 row["fec"] = fec
+                row["hold"] = hold
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}: {res.end:.0f} s simulated in {res.wall_s:.1f} s "
+                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}, hold {hold}: "
+                    f"{res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
@@ -264,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
                 bounds += _bounds(fleet, payloads, cfg)
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
-        return r["codec"], r["mac"], r["ack_mode"], r["lend"], r["fec"]
+        return r["codec"], r["mac"], r["ack_mode"], r["lend"], r["fec"], r["hold"]
 
     base = {key(r): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:

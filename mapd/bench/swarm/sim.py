@@ -67,6 +67,9 @@ class SwarmConfig:
     ack_mode: str = "auto"  # the ARQ core's acks (ArqConfig.acks; the daemon's default)
     lend: bool = True  # TDMA: lend the rest of an idle own slot (ArqConfig.lend; the daemon's default)
     fec: bool = True  # NACK mode: repair with parity chunks (ArqConfig.fec; the daemon's default)
+    #: The publisher supersedes a map only once it is wholly on the air (P1 on a paced link: the
+    #: daemon's uwb transport).
+    hold: bool = True
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
     start_spread: float | None = None
@@ -123,6 +126,7 @@ class Swarm:
                 seed=rng.getrandbits(32),
                 inflight_s=config.inflight_s,
                 keyframe_every=config.keyframe_every,
+                hold=config.hold,
             )
             for i in range(n)
         ]

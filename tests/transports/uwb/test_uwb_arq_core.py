@@ -184,6 +184,26 @@ def test_a_background_message_yields_to_maps() -> None:
     assert closed(net, 1, pose1)
 
 
+def test_a_reliable_message_says_once_when_every_chunk_has_been_on_the_air() -> None:
+    # The publisher holds an offer on a paced link until then (P1): MessageFlushed comes once, when
+    # the last new chunk went, before any delivery, however many repairs follow; never for DGRAMs.
+    a, b, c = ep(1), ep(2), ep(3)
+    net = SimNet([a, b, c], shared=True, faults=Faults(drop=0.2), seed=3)
+    net.run(6.0)
+    frames = _tap(net, 1)
+    msg = a.send(os.urandom(3_000), net.now, dests=[2, 3])
+    assert net.run(net.now + 30, stop=lambda: closed(net, 1, msg))
+    order = [type(e) for e in net.events[1] if getattr(e, "msg", None) == msg]
+    assert order.count(arq.MessageFlushed) == 1
+    assert order.index(arq.MessageFlushed) < order.index(arq.MessageDelivered)
+    data = [wire.parse(decode_frame(f[:-1])) for f in frames]
+    chunks = [d for d in data if isinstance(d, wire.Data) and d.msg == msg]
+    assert len(chunks) > chunks[0].count  # repairs went after the flush and said nothing more
+    dgram = a.send(os.urandom(500), net.now, dests=[2, 3], stream=254, reliable=False)
+    assert net.run(net.now + 5, stop=lambda: closed(net, 1, dgram))
+    assert not [e for e in net.events[1] if isinstance(e, arq.MessageFlushed) and e.msg == dgram]
+
+
 def test_an_unreliable_message_goes_once_and_costs_the_receiver_no_ack() -> None:
     a, b, c = ep(1), ep(2), ep(3)
     net = SimNet([a, b, c], shared=True)

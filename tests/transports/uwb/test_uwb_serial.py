@@ -21,6 +21,7 @@ from transports.base import (
     Delivered,
     Failed,
     KeyframeNeeded,
+    OnAir,
     PeerRestarted,
     PeerUp,
     Received,
@@ -116,6 +117,9 @@ def test_envelope_crosses_a_faulty_link_intact() -> None:
                 assert [r.data for r in b.of(Received)] == [env.pack()]
                 assert b.of(Received)[0].peer == "alpha"
                 assert a.of(Delivered) == [Delivered("uwb", "beta", "alpha", 3)]
+                # wholly on the air once, before beta acked it (the publisher's P1 on a paced link)
+                assert a.of(OnAir) == [OnAir("uwb", "alpha", 3)]
+                assert a.events.index(OnAir("uwb", "alpha", 3)) < a.events.index(a.of(Delivered)[0])
                 assert PeerUp("uwb", "beta") in a.events and PeerUp("uwb", "alpha") in b.events
                 assert a.t.peers() == ["beta"]
                 sa, sb = a.t.stats(), b.t.stats()
