@@ -120,8 +120,8 @@ from typing import Any
 from mapd.errors import LimitError, ProtocolError
 from transports.rtt import RttEstimator
 from transports.uwb import wire
-from transports.uwb.arq_acks import AckSide
-from transports.uwb.arq_rx import MAX_CHUNKS, ReceiverSide
+from transports.uwb.arq_rx import MAX_CHUNKS
+from transports.uwb.arq_tx import SenderSide
 from transports.uwb.arq_types import (
     ArqConfig,
     ArqCounters,
@@ -163,10 +163,11 @@ __all__ = [
 MAX_LATE = 16
 
 
-class ArqEndpoint(ReceiverSide, AckSide):
+class ArqEndpoint(SenderSide):
     """One node's protocol state: many peers, many messages, one byte stream (the receiving rules
     are in :class:`~transports.uwb.arq_rx.ReceiverSide`, what a sender does with acks in
-    :class:`~transports.uwb.arq_acks.AckSide`)."""
+    :class:`~transports.uwb.arq_acks.AckSide`, what it sends next in
+    :class:`~transports.uwb.arq_tx.SenderSide`)."""
 
     def __init__(self, config: ArqConfig, *, session: int, seed: int = 0) -> None:
         self.cfg = config
@@ -479,35 +480,6 @@ class ArqEndpoint(ReceiverSide, AckSide):
                 if sender == self.node:  # each entry is a COMPLETE ack (the others are for others)
                     self._on_done_entry(peer, target, low, now)
 
-    def _on_lend(self, f: wire.Lend, now: float) -> None:
-        """R17: the rest of the sender's slot is ours, if it names the slot we are in (a LEND that
-        arrived late names one already over) and that slot is not ours."""
-        if f.dst != self.node or not self._lending:
-            return
-        k = self._mac.slot_number(now)
-        if f.slot == k % wire.SLOT_MOD and self._mac.own_slot_left(now) == 0.0:
-            self._mac.borrow(now)
-            self.counters.borrowed += 1
-
-    def _lend_to(self, now: float) -> tuple[float, int] | None:
-        """When this node could lend the rest of an own slot, and to whom (R17); None while it has
-        anything to send or owes anything, or no peer is known to have chunks left."""
-        if not self._lending or self._hello_due <= now or self._done_owed or self._owed_ack() is not None:
-            return None
-        if self._next_data() is not None:
-            return None
-        peer = self._backlogs.pick(now, self.peers_up())
-        if peer is None:
-            return None
-        room = self._mac.own_slot_left(now) >= self._lend_need
-        return (now if room else self._mac.next_own_slot(now)), peer
-
-    def _lend_pick(self, now: float) -> tuple[str, Any, int] | None:
-        lend = self._lend_to(now)
-        if lend is None or lend[0] != now:
-            return None
-        return "lend", lend[1], self._est(wire.LEND_LEN)
-
     def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
         peer = self._peers.get(f.src)
         if peer is None:
@@ -544,88 +516,3 @@ class ArqEndpoint(ReceiverSide, AckSide):
                 del self._peers[pid]
                 return True
         return False
-
-    # --- sending --------------------------------------------------------------------------------
-
-    def _send_dues(self, now: float) -> list[tuple[float, int]]:
-        """(due time, size estimate) of each kind of frame waiting to go."""
-        dues = [(self._hello_due, self._est(wire.HEADER_LEN))]
-        owed = self._owed_ack()
-        if owed is not None:
-            dues.append((owed[0], self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)))
-        done = self._done_due()
-        if done is not None:
-            dues.append((done, self._done_est()))
-        data = self._next_data()
-        if data is not None:
-            # the frame _choose would build, at its size: a short last chunk may still fit a slot
-            dues.append((now, self._est(wire.DATA_HEADER_LEN + len(data[0].chunk(data[1])))))
-        return dues
-
-    def _next_data(self) -> tuple[Outgoing, int] | None:
-        """The chunk to send next: round-robin over messages, background ones (poses) only when no
-        other has a chunk to go."""
-        for m in sorted(self._out.values(), key=lambda m: m.background):
-            i = m.next_index(self.cfg.window)
-            if i is not None:
-                return m, i
-        return None
-
-    def _choose(self, now: float) -> tuple[str, Any, int] | None:
-        if self._hello_due <= now:
-            return "hello", None, self._est(wire.HEADER_LEN)
-        owed = self._owed_ack()
-        if owed is not None and owed[0] <= now:
-            return "ack", (owed[1], owed[2]), self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)
-        done = self._done_due()
-        if done is not None and done <= now:
-            return "done", None, self._done_est()
-        data = self._next_data()
-        if data is not None:
-            m, i = data
-            return "data", (m, i), self._est(wire.DATA_HEADER_LEN + len(m.chunk(i)))
-        return None
-
-    def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
-        if kind == "hello":
-            self.counters.hellos_tx += 1
-            return wire.Hello(self.node, wire.BROADCAST, self.session)
-        if kind == "ack":
-            peer, msg = ref
-            return self._build_ack(peer, msg, now)
-        if kind == "done":
-            return self._build_done(now)
-        if kind == "lend":
-            self._mac.lend(now)  # nothing more of ours in this slot: it is the peer's
-            self._backlogs.lent(ref, now)
-            self.counters.lends_tx += 1
-            return wire.Lend(self.node, ref, self.session, self._mac.slot_number(now) % wire.SLOT_MOD)
-        m, i = ref
-        resend = m.mark_sent(i, now)
-        self._out.move_to_end(m.msg)  # round-robin between messages
-        self.counters.data_tx += 1
-        if i >= m.count:
-            self.counters.parity_tx += 1
-        elif resend:
-            self.counters.resends += 1
-        frame = wire.Data(
-            self.node, m.dst, self.session, m.msg, m.stream, i, m.count, m.total, m.chunk(i), m.reliable
-        )
-        if not m.reliable:
-            if m.next_new >= m.count:  # every chunk went once: nothing more will
-                self._close(m, "sent")
-            return frame
-        if m.next_new >= m.count and not m.flushed:
-            m.flushed = True  # a receiver may now complete it even if it is superseded (R5)
-            self._events.append(MessageFlushed(m.msg))
-        if m.nack:
-            # R16: receivers stay silent while chunks arrive in order, so the probe timer runs only
-            # once the sender has nothing left to send for this message (its flush point).
-            more = m.has_work(self.cfg.window)
-            for p in m.pending():
-                p.rto_at = None if more else now + max(self._rtt_of(p.peer).rto, self._cycle)
-            return frame
-        for p in m.pending():
-            if p.rto_at is None:
-                p.rto_at = now + self._rtt_of(p.peer).rto
-        return frame
