@@ -3,7 +3,7 @@
 :class:`SwarmRobot` is a virtual-time adapter, like ``transports/uwb/link.py`` and the daemon's
 publish loop are real-time ones. It owns a real :class:`~transports.uwb.arq.ArqEndpoint` (pacing,
 medium access, signing when a key is given) and a real :class:`~mapd.daemon.publisher.PublisherCore`
-(what to code, against which base, when), and does what :class:`~transports.uwb.link.UwbTransport`
+(what to code, against which base, when), and does what :class:`~transports.uwb.transport.UwbTransport`
 and :mod:`mapd.daemon.server` do between them:
 
 * a new own version goes to the publisher; when it says code, the payload is the size of the real
@@ -255,7 +255,7 @@ class SwarmRobot:
             elif isinstance(e, arq.MessageClosed):
                 v = self._own_msgs.pop(e.msg, None)
                 if v is not None and e.outcome == "superseded":
-                    self._late[e.msg] = v  # as link.py: its late COMPLETEs still count
+                    self._late[e.msg] = v  # as transport.py: its late COMPLETEs still count
                     while len(self._late) > arq.MAX_LATE:
                         del self._late[next(iter(self._late))]
                 if e.msg == self._relay_msg and self.fwd is not None:

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from mapd.errors import ProtocolError
 from transports.base import TransportContext
 from transports.uwb import keyframe_requests as control
-from transports.uwb.link import UwbOptions, UwbTransport
+from transports.uwb.transport import UwbOptions, UwbTransport
 
 
 def test_request_round_trips_sorted_and_deduplicated() -> None:

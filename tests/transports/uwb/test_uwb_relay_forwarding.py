@@ -209,7 +209,7 @@ def test_a_relayed_map_arrives_intact_still_signed_by_its_origin_and_tampering_i
     assert isinstance(unsigned.plan(plain, "robotB", now), Drop)  # unsigned fleets: the link is all
 
 
-# --- the UwbTransport adapter (link.py + relaying.py) ----------------------------------------------
+# --- the UwbTransport adapter (transport.py + relaying.py) -----------------------------------------
 
 
 def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_stream() -> None:
@@ -224,7 +224,8 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
     from transports.base import TransportContext
     from transports.uwb import arq
     from transports.uwb.forwarding import SUMMARY_STREAM
-    from transports.uwb.link import POSE_STREAM, UwbOptions, UwbTransport
+    from transports.uwb.link import POSE_STREAM
+    from transports.uwb.transport import UwbOptions, UwbTransport
 
     ida = Identity.generate("a")
     roster = Roster({"a": ida.public_key})

@@ -22,8 +22,8 @@ from transports.uwb import wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import FaultInjector, Faults
 from transports.uwb.framing import MIN_FRAME, encode_frame
-from transports.uwb.link import UwbOptions, UwbTransport
 from transports.uwb.relay import FaultRelay
+from transports.uwb.transport import UwbOptions, UwbTransport
 
 needs_socat = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed")
 

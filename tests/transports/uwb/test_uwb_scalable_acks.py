@@ -17,9 +17,9 @@ from transports.uwb import arq, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import Faults
 from transports.uwb.framing import encode_frame
-from transports.uwb.link import UwbOptions, UwbTransport
 from transports.uwb.receiving import REMEMBER_COMPLETED
 from transports.uwb.sim import SimNet
+from transports.uwb.transport import UwbOptions, UwbTransport
 
 RATE = 100_000.0  # fast emulated line: the rules do not depend on the rate
 RECEIVERS = list(range(2, 10))  # eight receivers of node 1's broadcasts

@@ -29,8 +29,8 @@ from transports.base import (
     TransportEvent,
 )
 from transports.uwb.faults import Faults
-from transports.uwb.link import UwbOptions, UwbTransport
 from transports.uwb.relay import FaultRelay, MediumRelay
+from transports.uwb.transport import UwbOptions, UwbTransport
 
 pytestmark = [
     pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed"),

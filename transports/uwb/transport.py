@@ -1,0 +1,310 @@
+"""The daemon's ``uwb`` transport: envelopes in, :mod:`transports.base` events out, over one
+:class:`~transports.uwb.link.UwbLink`.
+
+It gives each robot's maps a stream of their own (latest wins per robot), sends to the peers the
+options name (or those heard lately), turns the core's events into the daemon's (``Delivered``,
+``OnAir``, ``PeerUp`` ...), asks for whole maps on the control stream, carries poses in the gaps
+maps leave, and drives the multi-hop relay (``relaying.py``) in signed fleets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import time
+import zlib
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+from mapd.envelope import Envelope
+from mapd.errors import ConfigError, LimitError, MapdError, TransportError
+from transports.base import (
+    Delivered,
+    Failed,
+    KeyframeNeeded,
+    OnAir,
+    PeerDown,
+    PeerRestarted,
+    PeerUp,
+    PoseReceived,
+    PoseThrottle,
+    Received,
+    Transport,
+    TransportContext,
+    TransportOptions,
+)
+from transports.uwb import arq, forwarding
+from transports.uwb import keyframe_requests as control
+from transports.uwb.link import POSE_STREAM, UwbLink
+from transports.uwb.options import MAX_MESSAGE, UwbOptions, resolve_peer
+from transports.uwb.relaying import RelayDriver
+from transports.uwb.signing import CounterStore
+
+log = logging.getLogger("mapd.uwb")
+
+
+class UwbTransport(Transport):
+    """The daemon's ``uwb`` transport: maps over a UWB serial radio, latest wins per robot."""
+
+    name = "uwb"
+    Options = UwbOptions
+    paced = True  # each robot has a share of one 12.5 kb/s channel: maps take many seconds to go out
+
+    def __init__(self, options: TransportOptions | None, ctx: TransportContext) -> None:
+        super().__init__(options, ctx)
+        opts = self.options
+        assert isinstance(opts, UwbOptions)
+        self.opts = opts
+        node = opts.node_id if opts.node_id is not None else opts.nodes.get(ctx.robot)
+        if node is None:
+            raise ConfigError(
+                f"transports.uwb: no link id for robot '{ctx.robot}': set node_id or add it to nodes"
+            )
+        self.node_id = node
+        self._names = {i: name for name, i in opts.nodes.items()}
+        if opts.peers:
+            self.peer_ids = [resolve_peer(p, opts.nodes) for p in opts.peers]
+        else:
+            self.peer_ids = sorted(i for i in opts.nodes.values() if i != node)
+        if node in self.peer_ids:
+            raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
+        self._streams: dict[str, int] = {}
+        self._msgs: dict[int, tuple[str, int]] = {}
+        self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
+        self._heard_maps: set[int] = set()  # link ids a map came from on this link (late join)
+        self._link: UwbLink | None = None
+        self._requests = control.KeyframeRequests(opts.keyframe_request_s)
+        self._poses = PoseThrottle(opts.pose_period_s)
+        self.control_counters = control.ControlCounters()
+        # Multi-hop relay: only in signed fleets, where a relayed map proves its robot by signature.
+        self._relay: RelayDriver | None = None
+        if opts.relay and not ctx.roster.allow_unsigned:
+            self._relay = RelayDriver(
+                node,
+                summary_period_s=opts.summary_period_s,
+                relay_period_s=opts.relay_period_s,
+                stream_of=lambda origin: self._stream(self._name(origin)),
+            )
+
+    def _name(self, link_id: int) -> str:
+        return self._names.get(link_id, f"uwb-{link_id}")
+
+    def _stream(self, robot: str) -> int:
+        if robot not in self._streams:
+            n = len(self._streams)
+            # Stream 255 carries control messages (keyframe requests), 254 poses, 253 relay summaries,
+            # maps 0..252.
+            top = forwarding.SUMMARY_STREAM
+            self._streams[robot] = n if n < top else zlib.crc32(robot.encode()) % top
+        return self._streams[robot]
+
+    def _config(self, loop: asyncio.AbstractEventLoop) -> arq.ArqConfig:
+        o = self.opts
+        ids = sorted({*self.opts.nodes.values(), self.node_id})
+        return arq.ArqConfig(
+            node_id=self.node_id,
+            max_frame=o.max_frame,
+            rate_bps=float(o.link_rate_bps),
+            # the wire describes messages up to 16 MiB; limits.max_message_bytes may allow more (zenoh)
+            max_message_bytes=o.max_message_bytes or min(self.ctx.max_message_bytes, MAX_MESSAGE),
+            window=o.window,
+            acks=o.acks,
+            fec=o.fec,
+            deadline_s=o.deadline_s,
+            beacon_s=o.beacon_s,
+            peer_timeout_s=o.peer_timeout_s,
+            mac=o.mac,
+            slot_s=o.slot_length_ms / 1000,
+            slots=o.slots or len(ids),
+            slot_index=o.slot_index if o.slot_index is not None else ids.index(self.node_id),
+            lend=o.lend,
+            guard_s=o.guard_ms / 1000,
+            clock_offset=time.time() - loop.time(),
+            check_counter_clock=True,
+            sense_s=o.sense_ms / 1000,
+            backoff_min_s=o.backoff_min_ms / 1000,
+            backoff_max_s=o.backoff_max_ms / 1000,
+            key=self.ctx.link_key,
+        )
+
+    async def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        state = self.ctx.state_dir
+        store = CounterStore(Path(state) / f"uwb-{self.node_id}.counter" if state is not None else None)
+        self._link = UwbLink(
+            self._config(loop),
+            self.opts.port,
+            baud=self.opts.baud,
+            on_event=self._on_event,
+            counter_store=store,
+            reopen_s=self.opts.reopen_s,
+        )
+        await self._link.start()
+        if self._relay is not None:
+            link = self._link
+            self._relay.start(
+                link.send,
+                lambda: link.core.peers_up() if link.core else [],
+                self._dests,
+                ask=lambda origin: self._ask_keyframe(self._name(origin)),
+            )
+
+    async def close(self) -> None:
+        if self._relay is not None:
+            await self._relay.close()
+        if self._link is not None:
+            await self._link.close()
+
+    def _dests(self) -> list[int]:
+        link = self._link
+        if link is None or link.core is None:
+            return []
+        if self.opts.send_to == "heard":
+            up = set(link.core.peers_up())
+            return [p for p in self.peer_ids if p in up]
+        return self.peer_ids or link.core.peers_up()
+
+    def held(self, envelope: Envelope, data: bytes) -> None:
+        """The daemon accepted ``envelope`` (``data``: its bytes as received): a map to relay."""
+        origin = self.opts.nodes.get(envelope.robot)
+        if self._relay is not None and origin is not None and envelope.sig:
+            self._relay.held(origin, envelope.version, envelope.base_version, data)
+
+    def relayed(self, envelope: Envelope) -> None:
+        """Another robot forwarded ``envelope``: do not forward the same version for a while."""
+        origin = self.opts.nodes.get(envelope.robot)
+        if self._relay is not None and origin is not None:
+            self._relay.overheard(origin, envelope.version, time.monotonic())
+
+    def offer(self, envelope: Envelope) -> None:
+        link = self._link
+        if link is None or link.core is None:
+            raise TransportError("uwb: offer() before start()")
+        dests = self._dests()
+        if not dests:
+            log.debug("uwb: no peer to send %s v%d to", envelope.robot, envelope.version)
+            return
+        try:
+            msg = link.send(envelope.pack(), dests, stream=self._stream(envelope.robot))
+        except LimitError as exc:
+            for d in dests:
+                self.ctx.emit(Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc)))
+            return
+        self._msgs[msg] = (envelope.robot, envelope.version)
+
+    def send_pose(self, data: bytes, now: float) -> bool:
+        """Broadcast this robot's pose on the pose stream, behind every map chunk (latest wins)."""
+        link = self._link
+        if link is None or link.core is None:
+            return False
+        dests = self._dests()
+        if not dests or not self._poses.due(now):
+            return False
+        try:
+            # Sent once, unacknowledged (the next pose replaces a lost one), and only in the gaps
+            # maps leave; superseded by the next pose if maps keep the channel busy until then.
+            link.send(
+                data,
+                dests,
+                stream=POSE_STREAM,
+                deadline_s=2 * self.opts.pose_period_s,
+                background=True,
+                reliable=False,
+            )
+        except (MapdError, ValueError) as exc:
+            log.info("uwb: pose not sent: %s", exc)
+            return False
+        return True
+
+    async def request_keyframe(self, robot: str) -> None:
+        """Ask ``robot`` (over this link) for a whole map: a control message, throttled per robot."""
+        self._ask_keyframe(robot)
+
+    def _ask_keyframe(self, robot: str) -> None:
+        link = self._link
+        if link is None or link.core is None:
+            return
+        wanted = self._requests.want(robot, time.monotonic())
+        if wanted is None:
+            return
+        dests = sorted({self.opts.nodes[r] for r in wanted if r in self.opts.nodes} - {self.node_id})
+        if not dests:  # a robot we know by no link id: ask every peer, the one that has it answers
+            dests = self._dests()
+        if not dests:
+            return
+        try:
+            link.send(control.pack_request(wanted), dests, stream=control.CONTROL_STREAM)
+        except (MapdError, ValueError) as exc:  # ValueError: too many names for one message
+            log.info("uwb: keyframe request for %s not sent: %s", robot, exc)
+            return
+        self.control_counters.keyframe_requests_tx += 1
+
+    def peers(self) -> list[str]:
+        if self._link is None or self._link.core is None:
+            return []
+        return [self._name(i) for i in self._link.core.peers_up()]
+
+    def stats(self) -> dict[str, Any]:
+        out = self._link.stats() if self._link is not None else {}
+        out["node_id"] = self.node_id
+        out.update(dataclasses.asdict(self.control_counters))
+        if self._relay is not None:
+            out.update(self._relay.stats())
+        return out
+
+    def _on_event(self, e: arq.Event) -> None:
+        emit = self.ctx.emit
+        if isinstance(e, arq.MessageReceived):
+            if e.stream == control.CONTROL_STREAM:
+                self._on_control(e)
+            elif e.stream == POSE_STREAM:
+                emit(PoseReceived("uwb", self._name(e.src), e.data))
+            elif e.stream == forwarding.SUMMARY_STREAM:
+                if self._relay is not None:
+                    self._relay.summary(e.src, e.data, time.monotonic())
+            else:
+                self._heard_maps.add(e.src)
+                emit(Received("uwb", self._name(e.src), e.data))
+        elif isinstance(e, arq.MessageDelivered):
+            meta = self._msgs.get(e.msg) or self._late.get(e.msg)
+            if meta is not None:
+                emit(Delivered("uwb", self._name(e.peer), *meta))
+        elif isinstance(e, arq.MessageFailed):
+            if e.msg in self._msgs:
+                robot, version = self._msgs[e.msg]
+                emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
+        elif isinstance(e, arq.MessageFlushed):
+            meta = self._msgs.get(e.msg)
+            if meta is not None:
+                emit(OnAir("uwb", *meta))
+        elif isinstance(e, arq.MessageClosed):
+            meta = self._msgs.pop(e.msg, None)
+            if meta is not None and e.outcome == "superseded":
+                self._late[e.msg] = meta  # its late COMPLETEs still say who holds that version
+                while len(self._late) > arq.MAX_LATE:
+                    self._late.popitem(last=False)
+            if self._relay is not None:
+                self._relay.closed(e.msg)
+        elif isinstance(e, arq.PeerUp):
+            emit(PeerUp("uwb", self._name(e.peer)))
+            if e.peer not in self._heard_maps and e.peer in self.opts.nodes.values():
+                # A late joiner, as zenoh queries one: its last map may be long sent (and failed to
+                # reach us), and a robot whose map no longer changes would never send it again.
+                self._ask_keyframe(self._name(e.peer))
+        elif isinstance(e, arq.PeerDown):
+            emit(PeerDown("uwb", self._name(e.peer)))
+        elif isinstance(e, arq.PeerRestarted):
+            emit(PeerRestarted("uwb", self._name(e.peer)))
+
+    def _on_control(self, e: arq.MessageReceived) -> None:
+        try:
+            robots = control.parse_request(e.data)
+        except MapdError as exc:
+            self.control_counters.bad_control += 1
+            log.info("uwb: bad control message from %s: %s", self._name(e.src), exc)
+            return
+        self.control_counters.keyframe_requests_rx += 1
+        if self.ctx.robot in robots:
+            self.ctx.emit(KeyframeNeeded("uwb", self._name(e.src), self.ctx.robot))
