@@ -185,12 +185,15 @@ class UwbTransport(Transport):
         dests = self._dests()
         if not dests:
             log.debug("uwb: no peer to send %s v%d to", envelope.robot, envelope.version)
+            # nothing goes out, so nothing is left to wait for: the publisher's plain timeout applies
+            self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
         try:
             msg = link.send(envelope.pack(), dests, stream=self._stream(envelope.robot))
         except LimitError as exc:
             for d in dests:
                 self.ctx.emit(Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc)))
+            self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
 

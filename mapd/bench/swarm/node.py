@@ -215,7 +215,8 @@ class SwarmRobot:
             self.keyframes += 1
         dests = self.acks.dests(self.id, self.configured, self.arq.peers_up())
         if not dests:
-            return  # as the daemon's uwb transport: no peer to send to, the next version tries again
+            self.pub.on_air("uwb", version, now)  # as the daemon's uwb transport: nothing goes out
+            return  # no peer to send to: the next version tries again
         msg = self.arq.send(self._message(self.id, version, base, size), now, dests=dests, stream=MAP_STREAM)
         self._own_msgs[msg] = version
 

@@ -69,6 +69,35 @@ def test_a_robot_heard_before_any_map_of_it_came_is_asked_for_one_once() -> None
     assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 1
 
 
+def test_an_offer_that_goes_to_nobody_is_on_the_air_at_once() -> None:
+    """The publisher holds an offer on uwb until it is wholly on the air (P1); an offer that sends
+    nothing, to no peer or over the size limit, must not hold it four timeouts for a word that
+    never comes."""
+    from mapd.envelope import Envelope
+    from mapd.errors import LimitError
+    from mapd.grid import Pose2D
+    from transports.base import Failed, OnAir
+
+    env = Envelope(
+        fleet="f", robot="a", version=3, base_version=0, codec="lossless", width=1, height=1,
+        resolution=0.05, origin=Pose2D(0.0, 0.0, 0.0), payload=b"x",
+    )  # fmt: skip
+    events: list[object] = []
+    ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=events.append)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}, send_to="heard"), ctx)
+    t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: []))  # type: ignore[assignment]
+    t.offer(env)  # b is not heard: no message
+    assert events == [OnAir("uwb", "a", 3)]
+
+    def too_large(data: bytes, dests: list[int], stream: int) -> int:
+        raise LimitError("uwb: message over the limit")
+
+    events.clear()
+    t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [2]), send=too_large)  # type: ignore[assignment]
+    t.offer(env)
+    assert events == [Failed("uwb", "b", "a", 3, "uwb: message over the limit"), OnAir("uwb", "a", 3)]
+
+
 @pytest.mark.parametrize(
     "data",
     [
