@@ -182,6 +182,12 @@ def render_status(s: dict[str, Any]) -> str:
         f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
         f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
     )
+    for name, o in (s.get("offers") or {}).items():
+        air = {True: ", wholly on the air", False: ", still going out", None: ""}[o.get("on_air")]
+        out.append(
+            f"offer   {name}: {label(o.get('version'))} for {_age(o.get('age_s'))}{air}; "
+            f"waiting for {', '.join(o.get('waiting') or []) or '-'}"
+        )
     out.append("peers")
     peers = s.get("peers", {})
     if not peers:

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
@@ -226,6 +227,20 @@ class PublisherCore:
             timeout = max(self.inflight_timeout_s, INFLIGHT_PER_PEER_S * len(waiting))
             self._inflight[t] = InFlight(envelope.version, now, waiting, timeout, paced=t in self.paced)
         return job.transports
+
+    def offers(self, now: float) -> dict[str, dict[str, Any]]:
+        """Each transport's offer still waited for, for ``mapd status``: the version, its age, the
+        peers it waits for, and on a paced link whether it is wholly on the air yet (P1)."""
+        return {
+            t: {
+                "version": f.version,
+                "age_s": round(now - f.since, 1),
+                "waiting": sorted(f.unsettled),
+                "on_air": (f.on_air is not None) if f.paced else None,
+            }
+            for t, f in sorted(self._inflight.items())
+            if f.unsettled
+        }
 
     def next_deadline(self) -> float | None:
         """When an offer still in flight times out while a newer version waits for its link, or None.

@@ -473,6 +473,7 @@ class Daemon:
                 "stats": self.source.stats() if self.source else {},
             },
             "codec": {**self.coder.stats, "keyframes": pub.keyframes_sent, "deltas": pub.deltas_sent},
+            "offers": self.publisher.offers(time.monotonic()),
             "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "outputs": self.sinks.status(),

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from mapd.codec import read_header
+from mapd.commands.daemon import render_status
 from mapd.daemon import publisher
 from mapd.daemon.server import Daemon
 from mapd.daemon.versions import split
@@ -112,8 +113,15 @@ def test_a_paced_link_keeps_its_offer_until_it_says_the_map_is_on_the_air(
             await source.queue.put(dk.growing_map(2))
             await asyncio.sleep(0.6)  # three timeouts: the peer never acks, yet v1 is not on the air
             assert len(link.offers) == 1
+            # mapd status says so
+            offer = d.snapshot()["offers"]["virtual"]
+            assert offer["version"] == link.offers[0].version and offer["waiting"] == ["robot1"]
+            assert offer["on_air"] is False and offer["age_s"] >= 0.5
+            line = next(x for x in render_status(d.snapshot()).splitlines() if x.startswith("offer"))
+            assert "virtual:" in line and "still going out; waiting for robot1" in line
             link.ctx.emit(OnAir("virtual", "robot0", link.offers[0].version))
             await dk.wait_for(lambda: len(link.offers) == 2, what="v2 offered once v1 is on the air")
             assert num(link.offers[1].version) == 2
+            assert d.snapshot()["offers"]["virtual"]["on_air"] is False  # v2's turn now
 
     asyncio.run(main())

@@ -247,6 +247,22 @@ def test_a_paced_offer_is_not_superseded_before_it_is_wholly_on_the_air() -> Non
     assert job.transports == ("uwb",) and job.grid.version == 2
 
 
+def test_offers_say_what_each_transport_waits_for() -> None:
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    c.new_version(grid(1))
+    code(c, 100.0)
+    c.acked("zenoh", "robot1", 1)
+    assert c.offers(112.5) == {
+        "uwb": {"version": 1, "age_s": 12.5, "waiting": ["robot1", "robot2"], "on_air": False},
+        "zenoh": {"version": 1, "age_s": 12.5, "waiting": ["robot2"], "on_air": None},  # not paced
+    }
+    c.on_air("uwb", 1, 113.0)
+    c.acked("zenoh", "robot2", 1)
+    assert c.offers(114.0) == {
+        "uwb": {"version": 1, "age_s": 14.0, "waiting": ["robot1", "robot2"], "on_air": True},
+    }
+
+
 def test_a_paced_offer_on_the_air_early_keeps_its_timeout() -> None:
     c = core(inflight_timeout_s=30.0, paced={"uwb"})
     c.new_version(grid(1))
