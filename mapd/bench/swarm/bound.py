@@ -38,16 +38,14 @@ from __future__ import annotations
 
 import bisect
 import math
-import random
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from mapd.bench.swarm.links import link_matrices
 from mapd.bench.swarm.metrics import convergence, staleness_samples
-from mapd.bench.swarm.sim import SwarmConfig, default_slot_s
+from mapd.bench.swarm.sim import SwarmConfig, Timeline, default_slot_s
 from mapd.bench.swarm.streams import Fleet, Payloads
 from transports.uwb import arq
 from transports.uwb.pacing import SLOT_FRAMES
@@ -86,16 +84,8 @@ class Bound:
             raise ValueError(f"bound mode {mode!r}: one of {', '.join(MODES)}")
         self.fleet, self.pay, self.cfg, self.mode = fleet, payloads, config, mode
         n = self.n = len(fleet.robots)
-        # The same start phases as the real run (Swarm draws two 32-bit seeds per robot first).
-        rng = random.Random(config.seed)
-        for _ in range(2 * n):
-            rng.getrandbits(32)
-        spread = config.period if config.start_spread is None else config.start_spread
-        self.phase = [rng.uniform(0.0, spread) for _ in range(n)]
-        self.made = [
-            [t + ph for t in s.times if t + ph <= config.duration]
-            for s, ph in zip(fleet.robots, self.phase, strict=True)
-        ]
+        self.timeline = Timeline.draw(fleet, config)  # the real run's start phases and versions
+        self.made = self.timeline.made
         self.slot_s = config.slot_s if config.slot_s is not None else default_slot_s(config.rate_bps)
         probe = arq.ArqEndpoint(
             arq.ArqConfig(node_id=1, rate_bps=config.rate_bps, key=bytes(32) if config.signed else None),
@@ -217,9 +207,7 @@ class Bound:
         return res
 
     def _links(self, now: float) -> None:
-        pos = np.array([s.position(now - ph) for s, ph in zip(self.fleet.robots, self.phase, strict=True)])
-        building = self.fleet.building if self.cfg.wall_loss > 0 else None
-        self.hears, self.walls = link_matrices(pos, self.cfg.range_m, building)
+        self.hears, self.walls = self.timeline.links(now)
 
     def _size(self, item: Item) -> int:
         n = self._sizes.get(item)

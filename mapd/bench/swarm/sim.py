@@ -75,6 +75,37 @@ class SwarmConfig:
     start_spread: float | None = None
 
 
+@dataclass(frozen=True)
+class Timeline:
+    """What a run draws and where its robots are: each robot's ARQ session and seed, its start
+    phase, when it makes each version, and who hears whom at a time. The real run and the bound
+    (``bound.py``) share it, so both see the same fleet."""
+
+    fleet: Fleet
+    config: SwarmConfig
+    seeds: list[tuple[int, int]]  # (session, seed) per robot
+    phase: list[float]
+    made: list[list[float]]  # per robot: the times its versions are made
+
+    @classmethod
+    def draw(cls, fleet: Fleet, config: SwarmConfig) -> Timeline:
+        rng = random.Random(config.seed)
+        seeds = [(rng.getrandbits(32), rng.getrandbits(32)) for _ in fleet.robots]
+        spread = config.period if config.start_spread is None else config.start_spread
+        phase = [rng.uniform(0.0, spread) for _ in fleet.robots]
+        made = [
+            [t + ph for t in s.times if t + ph <= config.duration]
+            for s, ph in zip(fleet.robots, phase, strict=True)
+        ]
+        return cls(fleet, config, seeds, phase, made)
+
+    def links(self, now: float) -> tuple[np.ndarray, np.ndarray]:
+        """(hears, walls) at ``now``: positions from the streams, range and walls from ``links``."""
+        pos = np.array([s.position(now - ph) for s, ph in zip(self.fleet.robots, self.phase, strict=True)])
+        building = self.fleet.building if self.config.wall_loss > 0 else None
+        return link_matrices(pos, self.config.range_m, building)
+
+
 @dataclass
 class SwarmResult:
     """What a run produced, for :mod:`mapd.bench.swarm.metrics`."""
@@ -109,7 +140,7 @@ class Swarm:
             n, rate_bps=config.rate_bps, loss=config.loss, wall_loss=config.wall_loss, seed=config.seed
         )
         self.accepted: AcceptLog = []
-        rng = random.Random(config.seed)
+        self.timeline = tl = Timeline.draw(fleet, config)
         relay = RELAYS[config.relay]()
         acks = ACK_SCOPES[config.acks]()
         self.robots = [
@@ -122,20 +153,15 @@ class Swarm:
                 relay=relay,
                 acks=acks,
                 accepted=self.accepted,
-                session=rng.getrandbits(32),
-                seed=rng.getrandbits(32),
+                session=tl.seeds[i][0],
+                seed=tl.seeds[i][1],
                 inflight_s=config.inflight_s,
                 keyframe_every=config.keyframe_every,
                 hold=config.hold,
             )
             for i in range(n)
         ]
-        spread = config.period if config.start_spread is None else config.start_spread
-        self.phase = [rng.uniform(0.0, spread) for _ in range(n)]
-        self.made = [
-            [t + ph for t in s.times if t + ph <= config.duration]
-            for s, ph in zip(fleet.robots, self.phase, strict=True)
-        ]
+        self.made = tl.made
         self._gen = [0] * n
         self._wake_at: list[float | None] = [None] * n
         self._final = [len(m) for m in self.made]
@@ -245,9 +271,7 @@ class Swarm:
         self.loop.schedule(t, ("wake", i, self._gen[i]))
 
     def _update_links(self, now: float) -> None:
-        pos = np.array([s.position(now - ph) for s, ph in zip(self.fleet.robots, self.phase, strict=True)])
-        building = self.fleet.building if self.cfg.wall_loss > 0 else None
-        hears, walls = link_matrices(pos, self.cfg.range_m, building)
+        hears, walls = self.timeline.links(now)
         self.radio.set_links(hears, walls)
         self._links_seen += 1
         self._ever |= hears.T  # [holder, origin]: the holder hears the origin
