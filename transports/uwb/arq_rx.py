@@ -168,14 +168,12 @@ class ReceiverSide:
             peer.owe_ack(d.msg, self._nack_due(now))
 
     def _recover(self, part: Partial, block: int) -> None:
+        before = part.held
         try:
-            added, rebuilt = part.recover(block)
+            self.counters.recovered += part.recover(block)
         except ValueError:
             self.counters.bad_frames += 1  # parity of the wrong length: dropped with its block's
-            self._rx_held = sum(p.held for peer in self._peers.values() for p in peer.partials.values())
-            return
-        self._rx_held += added
-        self.counters.recovered += rebuilt
+        self._rx_held += part.held - before
 
     def _complete(
         self, peer: PeerState, part: Partial, now: float, owe: Callable[[int, float], None]

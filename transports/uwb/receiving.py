@@ -69,7 +69,7 @@ class Partial:
         than parity is held for it (more would be of no use, which bounds what parity may take)."""
         b, share = fec.parity_of(self.count, index)
         shares = self.parity.get(b, {})
-        return share not in shares and len(shares) < self._missing(b)
+        return share not in shares and len(shares) < len(self._missing(b))
 
     def add_parity(self, index: int, payload: bytes, now: float) -> None:
         """Store parity chunk ``index`` (one :meth:`wants_parity` said is of use)."""
@@ -81,10 +81,10 @@ class Partial:
         self.last = now
         self.top = self.count - 1  # parity follows the chunks it repairs: what is missing is lost
 
-    def recover(self, b: int) -> tuple[int, int]:
-        """Rebuild block ``b``'s missing chunks when enough parity is held: (bytes held added,
-        chunks rebuilt). ValueError when the parity cannot be this message's (its block's parity is
-        then dropped)."""
+    def recover(self, b: int) -> int:
+        """Rebuild block ``b``'s missing chunks when enough parity is held; returns how many were
+        rebuilt (``held`` follows). ValueError when the parity cannot be this message's (its
+        block's parity is then dropped)."""
         nb = fec.blocks(self.count)
         have = {i: self.chunks[i] for i in range(b, self.count, nb) if i in self.chunks}
         try:
@@ -93,35 +93,34 @@ class Partial:
             self._drop_parity(b)
             raise
         if not got:
-            return 0, 0
-        before = self.held
+            return 0
         width = len(next(iter(self.parity[b].values())))
         self._drop_parity(b)
         for i, data in got.items():
             if i == self.count - 1:  # the message's last chunk is the only short one
-                data = data[: self.total - (self.count - 1) * width] if self.count > 1 else data[: self.total]
+                data = data[: self.total - (self.count - 1) * width]
             self.chunks[i] = data
             self.held += len(data)
             self.top = max(self.top, i)
         while self.base in self.chunks:
             self.base += 1
-        return self.held - before, len(got)
+        return len(got)
 
     def _drop_parity(self, b: int) -> None:
         n = sum(len(p) for p in self.parity.pop(b, {}).values())
         self.held -= n
         self.parity_held -= n
 
-    def _missing(self, b: int) -> int:
-        return sum(1 for i in range(b, self.count, fec.blocks(self.count)) if i not in self.chunks)
+    def _missing(self, b: int) -> list[int]:
+        """Block ``b``'s data chunks not held, lowest first."""
+        return [i for i in range(b, self.count, fec.blocks(self.count)) if i not in self.chunks]
 
     def _covered(self) -> set[int]:
         """Missing chunks the parity held stands for: of each block, as many as parity chunks held,
         the highest first (those a report would otherwise ask for while they may still be coming)."""
         out: set[int] = set()
-        nb = fec.blocks(self.count)
         for b, shares in self.parity.items():
-            missing = [i for i in range(b, self.count, nb) if i not in self.chunks]
+            missing = self._missing(b)
             out.update(missing[len(missing) - min(len(shares), len(missing)) :])
         return out
 

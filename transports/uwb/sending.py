@@ -120,7 +120,7 @@ class Outgoing:
             b, share = fec.parity_of(self.count, i)
             block = self._blocks.get(b)
             if block is None:
-                data = [self.body[c * self.chunk_size : (c + 1) * self.chunk_size] for c in range(self.count)]
+                data = [self.chunk(c) for c in range(self.count)]
                 block = self._blocks[b] = fec.pad_block(data, self.count, b)
             made = self._parity[i] = fec.encode_parity(block, [share])[0]
             while len(self._parity) > 4:  # a parity chunk goes once: keep the few about to go
