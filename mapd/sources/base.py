@@ -14,9 +14,14 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, StampedPose
 
 
+def is_pose(v: list[float]) -> bool:
+    """Whether an option's ``v`` is a pose: ``[x, y, yaw]`` (m, m, rad), all finite."""
+    return len(v) == 3 and all(math.isfinite(x) for x in v)
+
+
 def check_start_pose(v: list[float] | None) -> list[float] | None:
-    """A ``start_pose`` option: None, or ``[x, y, yaw]`` (m, m, rad), all finite."""
-    if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
+    """A ``start_pose`` option: None, or a pose (:func:`is_pose`)."""
+    if v is not None and not is_pose(v):
         raise ValueError("start_pose must be [x, y, yaw] (m, m, rad)")
     return v
 

@@ -6,7 +6,6 @@ station merging several robots' maps, which robots to take and where each one st
 
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 from typing import Literal
@@ -15,7 +14,7 @@ from pydantic import Field, field_validator, model_validator
 
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
-from mapd.sources.base import SourceOptions, check_start_pose
+from mapd.sources.base import SourceOptions, check_start_pose, is_pose
 from mapd.sources.ros2_pose import PoseType
 
 #: A robot name mapd takes from a discovered topic (as ``[robot] name`` in config.py).
@@ -75,7 +74,7 @@ class Ros2Options(SourceOptions):
     @classmethod
     def _check_init_poses(cls, v: dict[str, list[float]]) -> dict[str, list[float]]:
         for robot, pose in v.items():
-            if len(pose) != 3 or not all(math.isfinite(x) for x in pose):
+            if not is_pose(pose):
                 raise ValueError(f"init pose of '{robot}' must be [x, y, yaw] (m, m, rad)")
         return v
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -38,7 +37,7 @@ from pydantic import Field, field_validator
 from mapd.errors import LimitError, MapFileError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, load_map
 from mapd.mapping.mapper import MapperOptions, relative
-from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
+from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions, is_pose
 
 if TYPE_CHECKING:
     from mapd.mapping.simrobot import SimRobot
@@ -81,7 +80,7 @@ class SimOptions(FleetSliceOptions, MapperOptions):
     @field_validator("start")
     @classmethod
     def _check_start(cls, v: list[float] | str) -> list[float] | str:
-        if isinstance(v, list) and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
+        if isinstance(v, list) and not is_pose(v):
             raise ValueError("start must be [x, y, yaw] (m, m, rad), 'auto' or 'random'")
         return v
 
