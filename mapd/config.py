@@ -35,7 +35,8 @@ M = TypeVar("M", bound=BaseModel)
 #: Config section -> plugin kind (mapd.plugins).
 _KINDS = {"source": "source", "codec": "codec", "transports": "transport", "output": "output"}
 
-_NAME = r"^[A-Za-z0-9_\-]{1,32}$"
+#: A fleet or robot id: also a zenoh key chunk and a ROS 2 namespace part, so no separators.
+NAME_PATTERN = r"^[A-Za-z0-9_\-]{1,32}$"
 
 
 class Strict(BaseModel):
@@ -45,9 +46,9 @@ class Strict(BaseModel):
 
 
 class RobotSection(Strict):
-    name: str = Field(pattern=_NAME, description="this robot's id in the fleet")
+    name: str = Field(pattern=NAME_PATTERN, description="this robot's id in the fleet")
     fleet: str = Field(
-        default="default", pattern=_NAME, description="fleet id; updates from other fleets are dropped"
+        default="default", pattern=NAME_PATTERN, description="fleet id; updates from other fleets are dropped"
     )
     key_file: Path | None = Field(
         default=None,
@@ -75,7 +76,7 @@ class FleetSection(Strict):
     @classmethod
     def _check_roster(cls, v: dict[str, str]) -> dict[str, str]:
         for robot in v:
-            if not re.fullmatch(_NAME, robot):
+            if not re.fullmatch(NAME_PATTERN, robot):
                 raise ValueError(f"roster: '{robot}' is not a valid robot name")
         return v
 
@@ -161,7 +162,7 @@ class FusionSection(Strict):
     )
     anchor: str | None = Field(
         default=None,
-        pattern=_NAME,
+        pattern=NAME_PATTERN,
         description="robot whose map frame is the fleet frame when no pose is configured; default: "
         "this robot, or on a base station (source none) the first robot heard, by name",
     )

@@ -12,13 +12,14 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
+from mapd.config import NAME_PATTERN
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
 from mapd.sources.base import SourceOptions, check_start_pose, is_pose
 from mapd.sources.ros2_pose import PoseType
 
 #: A robot name mapd takes from a discovered topic (as ``[robot] name`` in config.py).
-ROBOT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,32}$")
+ROBOT_NAME = re.compile(NAME_PATTERN)
 
 
 class Ros2Options(SourceOptions):

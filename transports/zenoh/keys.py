@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import re
 
+from mapd.config import NAME_PATTERN
+
 PREFIX = "mapd"
-_NAME = re.compile(r"[A-Za-z0-9_\-]{1,32}")
+_NAME = re.compile(NAME_PATTERN)
 
 
 def valid_name(name: str) -> bool:
