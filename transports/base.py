@@ -75,6 +75,16 @@ class PeerUp:
 
 
 @dataclass(frozen=True)
+class Arrived:
+    """``peer`` came into reach and no map of ours on its way over this link will reach it (sent by
+    links where robots pass in and out of range and nobody asks for the newest map: uwb). The
+    publisher offers it the newest own version once the link is free (P6)."""
+
+    transport: str
+    peer: str
+
+
+@dataclass(frozen=True)
 class PeerDown:
     """A peer vanished (token dropped, silent past its timeout)."""
 
@@ -109,7 +119,16 @@ class PoseReceived:
 
 
 TransportEvent = (
-    Received | Delivered | Failed | OnAir | PeerUp | PeerDown | PeerRestarted | KeyframeNeeded | PoseReceived
+    Received
+    | Delivered
+    | Failed
+    | OnAir
+    | PeerUp
+    | Arrived
+    | PeerDown
+    | PeerRestarted
+    | KeyframeNeeded
+    | PoseReceived
 )
 
 

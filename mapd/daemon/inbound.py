@@ -26,6 +26,7 @@ from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.fusion.worker import FusionWorker
 from mapd.identity import Roster
 from transports.base import (
+    Arrived,
     Delivered,
     Failed,
     KeyframeNeeded,
@@ -100,6 +101,9 @@ class Inbound:
             self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
             if isinstance(ev, PeerDown) and core.peer_gone(ev.transport, ev.peer):
                 self.wake()  # the offer waited only for a robot that left: the link is free
+        elif isinstance(ev, Arrived):
+            if core.arrived(ev.transport, ev.peer):
+                self.wake()  # back in reach and behind: the newest goes out again (P6)
         elif isinstance(ev, Failed):
             if core.failed(ev.transport, ev.peer, ev.version):
                 self.wake()

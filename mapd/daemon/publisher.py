@@ -36,6 +36,15 @@ The rules:
   on every transport, also those that had it already.
 * **P5 The delta base survives restarts.** When every peer acked the same version, that version is
   the base to persist (:meth:`base_to_save`); it is kept in memory however old it gets.
+* **P6 A peer that comes into reach gets the newest version.** A link whose peers cannot fetch it
+  themselves says when a peer came into reach that no offer on its way will reach
+  (:class:`~transports.base.Arrived`: uwb, where robots pass in and out of radio range; zenoh's
+  late joiners query the latest keyframe instead). If that peer lacks the newest own version, it
+  is offered again as soon as the link is free (unless the peer acked it by then), as a delta on
+  a version every peer still holds when there is one. Otherwise it would wait for the next
+  version, up to a period (never, for a map that no longer changes), and two robots that pass each
+  other in a corridor often part before then (issue #22 in the README: 4 robots in the building
+  accept a fifth more maps).
 """
 
 from __future__ import annotations
@@ -83,6 +92,7 @@ class InFlight:
     #: On a paced link: when the offer was wholly on the air (None: not yet).
     on_air: float | None = None
     paced: bool = False
+    keyframe: bool = False  # the offer is a whole map
 
     def expires(self) -> float:
         """When the offer stops holding its link though peers have not settled it (P1)."""
@@ -123,6 +133,8 @@ class PublisherCore:
     _held: dict[str, list[int]] = field(default_factory=dict)
     _inflight: dict[str, InFlight] = field(default_factory=dict)
     _offered: dict[str, int] = field(default_factory=dict)
+    #: Per transport, peers that came into reach lacking the newest version (P6).
+    _arrived: dict[str, set[str]] = field(default_factory=dict)
     _since_keyframe: int = 0
 
     # ------------------------------------------------------------------ inputs
@@ -168,11 +180,25 @@ class PublisherCore:
     def peer_gone(self, transport: str, peer: str) -> bool:
         """``peer`` went out of reach on ``transport`` (its presence timed out): the offer in flight
         stops waiting for it (P1). True when the transport became free (poll again)."""
+        self._arrived.get(transport, set()).discard(peer)
         busy = self._inflight.get(transport)
         if busy is None or peer not in busy.unsettled:
             return False
         busy.unsettled.discard(peer)
         return not busy.unsettled
+
+    def arrived(self, transport: str, peer: str) -> bool:
+        """``peer`` came into reach on ``transport``, and no offer on its way there reaches it (P6).
+        True when it lacks the newest version, so the adapter polls: :meth:`poll` offers it again
+        once the link is free, unless the peer acked it by then."""
+        latest = self._latest = self._latest or self._restored  # a map that no longer changes, too
+        if latest is None or self._newest(peer) >= latest.version:
+            return False
+        busy = self._inflight.get(transport)
+        if busy is not None and busy.version == latest.version and peer in busy.unsettled:
+            return False  # the offer in flight waits for it already
+        self._arrived.setdefault(transport, set()).add(peer)
+        return True
 
     def on_air(self, transport: str, version: int, now: float) -> bool:
         """Own ``version`` is wholly on the air on ``transport`` at ``now`` (P1). True when the
@@ -184,13 +210,19 @@ class PublisherCore:
         return True
 
     def keyframe_needed(self, peer: str) -> bool:
-        """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send."""
-        self._since_keyframe = self.keyframe_every
+        """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send.
+
+        Not when a whole map of the newest version is on its way to ``peer`` already (a relay may
+        ask on a neighbour's behalf while it is): the channel would carry both."""
         self._held.pop(peer, None)
         if self._latest is None:
             self._latest = self._restored
         if self._latest is None:
             return False
+        v = self._latest.version
+        if any(f.keyframe and f.version == v and peer in f.unsettled for f in self._inflight.values()):
+            return False
+        self._since_keyframe = self.keyframe_every
         self._offered.clear()  # even a transport that had the newest version gets it whole
         return True
 
@@ -204,7 +236,7 @@ class PublisherCore:
         latest = self._latest
         if latest is None:
             return None
-        free = tuple(t for t in peers if self._offered.get(t, 0) < latest.version and not self._busy(t, now))
+        free = tuple(t for t in peers if self._wants(t, latest.version, peers[t]) and not self._busy(t, now))
         if not free:
             return None
         return EncodeJob(latest, self._choose_base(peers), free)
@@ -222,10 +254,13 @@ class PublisherCore:
             self.counters.deltas_sent += 1
         for t in job.transports:
             self._offered[t] = envelope.version
+            self._arrived.pop(t, None)
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
             waiting = {p for p in peers.get(t, ()) if self._newest(p) < envelope.version}
             timeout = max(self.inflight_timeout_s, INFLIGHT_PER_PEER_S * len(waiting))
-            self._inflight[t] = InFlight(envelope.version, now, waiting, timeout, paced=t in self.paced)
+            self._inflight[t] = InFlight(
+                envelope.version, now, waiting, timeout, paced=t in self.paced, keyframe=envelope.is_keyframe
+            )
         return job.transports
 
     def offers(self, now: float) -> dict[str, dict[str, Any]]:
@@ -243,7 +278,8 @@ class PublisherCore:
         }
 
     def next_deadline(self) -> float | None:
-        """When an offer still in flight times out while a newer version waits for its link, or None.
+        """When an offer still in flight times out while a newer version (or a peer that came into
+        reach, P6) waits for its link, or None.
 
         Poll again then: the link is free for the newer version (P1).
         """
@@ -253,7 +289,7 @@ class PublisherCore:
         times = [
             f.expires()
             for t, f in self._inflight.items()
-            if f.unsettled and self._offered.get(t, 0) < latest.version
+            if f.unsettled and self._wants(t, latest.version, None)
         ]
         return min(times) if times else None
 
@@ -282,6 +318,14 @@ class PublisherCore:
         """The newest own version ``peer`` acknowledged (0: none)."""
         held = self._held.get(peer)
         return held[-1] if held else 0
+
+    def _wants(self, transport: str, version: int, up: Collection[str] | None) -> bool:
+        """Whether ``transport`` is to be offered own ``version``: it never was (P1, P2), or a peer
+        that came into reach since (of ``up``, when given) still lacks it (P6)."""
+        if self._offered.get(transport, 0) < version:
+            return True
+        arrived = self._arrived.get(transport, ())
+        return any(self._newest(p) < version and (up is None or p in up) for p in arrived)
 
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)

@@ -229,6 +229,28 @@ def test_a_map_is_held_until_it_is_on_the_air(tmp_path: Path) -> None:
     assert rows[True]["stale_p95_s"] < rows[False]["stale_p95_s"]
 
 
+def test_a_robot_that_comes_into_range_is_offered_the_newest_map(
+    swarm: SimpleNamespace, tmp_path: Path
+) -> None:
+    """Robot 1 comes into range at 40 s, after robot 0 made its last version (at about 30 s) and
+    sent it to nobody. With P6 (the daemon's uwb) robot 0 offers it as soon as it hears robot 1; the
+    daemon before P6 had robot 1 ask for it (a control message more); with neither, robot 1 waits for
+    a version that never comes."""
+    still = swarm.stream(0, (0.0, 0.0), versions=2)
+    comer = swarm.stream(1, (5.0, 0.0), versions=1)
+    comer.poses = np.array([(500.0, 0.0) if t < 40 else (5.0, 0.0) for t in range(200)])
+    fleet = Fleet([still, comer], None, "test")
+    rows = {a: _run(fleet, tmp_path, range_m=50.0, acks="up", arrival=a) for a in ("offer", "ask", "none")}
+    got = {a: [(t, v) for t, h, o, v in row["accepted_log"] if (h, o) == (1, 0)] for a, row in rows.items()}
+    assert not got["none"]
+    for a in ("offer", "ask"):
+        assert [v for _, v in got[a]] == [2] and 40.0 < got[a][0][0] < 60.0, got[a]
+        assert rows[a]["stale_p95_s"] < rows["none"]["stale_p95_s"]
+    assert rows["offer"]["kf_requests"] == 0 < rows["ask"]["kf_requests"]
+    with pytest.raises(ValueError, match="arrival"):
+        _run(fleet, tmp_path, arrival="wave")
+
+
 def test_config_is_plain_data() -> None:
     assert dataclasses.asdict(SwarmConfig())["codec"] == "lossless"
 
@@ -246,6 +268,19 @@ def test_command_runs_a_small_sim_swarm(tmp_path: Path, capsys: pytest.CaptureFi
         assert 0 < r["channel_use"] <= 1
         assert r["converge_s"] != "inf"
     assert any(tmp_path.glob("fleet-*.msgpack")) and (tmp_path / "sizes-lossless.json").exists()
+
+
+def test_several_seeds_give_a_row_each_and_their_mean(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["bench", "swarm", "--robots", "3", "--duration", "60", "--drain", "30", "--loss", "0.2"]
+    assert main([*argv, "--seed", "0", "1", "--cache", str(tmp_path), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert [(r["robots"], r["seed"]) for r in rows] == [(3, 0), (3, 1), (3, "mean")]
+    a, b, mean = rows
+    assert a["lost"] != b["lost"]  # another seed, other losses
+    for k in ("stale_p95_s", "accepted", "channel_use", "lost"):
+        assert mean[k] == pytest.approx((a[k] + b[k]) / 2)
 
 
 def test_log_slices_make_streams_with_poses(intel_log: Path, tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from mapd.commands.daemon import render_status
 from mapd.daemon import publisher
 from mapd.daemon.server import Daemon
 from mapd.daemon.versions import split
-from transports.base import OnAir, Received, TransportContext, TransportEvent
+from transports.base import Arrived, OnAir, Received, TransportContext, TransportEvent
 from transports.virtual import VirtualOptions, VirtualTransport
 
 
@@ -123,5 +123,47 @@ def test_a_paced_link_keeps_its_offer_until_it_says_the_map_is_on_the_air(
             await dk.wait_for(lambda: len(link.offers) == 2, what="v2 offered once v1 is on the air")
             assert num(link.offers[1].version) == 2
             assert d.snapshot()["offers"]["virtual"]["on_air"] is False  # v2's turn now
+
+    asyncio.run(main())
+
+
+def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path, dk: SimpleNamespace) -> None:
+    # P6 through the daemon's inbox: robot2 joins after robot1 acked v1 and nothing new is made. The
+    # link says Arrived (uwb does when no map on its way reaches the robot), so v1 goes out again,
+    # whole, and robot2 gets it; robot1, back too but holding v1, changes nothing.
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        async with one_peer(d, channel, dk, []) as (link, peer):
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            peer.ack("robot0", link.offers[0].version)
+            await settle()
+            heard: list[TransportEvent] = []
+            late = VirtualTransport(
+                VirtualOptions(channel=channel),
+                TransportContext(
+                    robot="robot2", fleet="default", max_message_bytes=1 << 20, emit=heard.append
+                ),
+            )
+            await late.start()
+            try:
+                await dk.wait_for(lambda: "robot2" in link.peers(), what="robot2 seen")
+                await settle()
+                assert len(link.offers) == 1  # virtual's late joiners query: PeerUp alone offers nothing
+                link.ctx.emit(Arrived("virtual", "robot1"))
+                await settle()
+                assert len(link.offers) == 1  # robot1 holds the newest
+                link.ctx.emit(Arrived("virtual", "robot2"))
+                await dk.wait_for(lambda: len(link.offers) == 2, what="v1 offered again")
+                again = link.offers[1]
+                assert again.version == link.offers[0].version and again.is_keyframe
+                await dk.wait_for(
+                    lambda: any(isinstance(e, Received) and e.peer == "robot0" for e in heard),
+                    what="robot2 got robot0's map",
+                )
+                assert d.snapshot()["offers"]["virtual"]["waiting"] == ["robot2"]
+            finally:
+                await late.close()
 
     asyncio.run(main())

@@ -294,3 +294,106 @@ def test_a_paced_offer_settled_by_every_peer_frees_its_link_before_it_is_on_the_
     assert free
     job, _ = code(c, 101.0, {"uwb": ["robot1"]})
     assert job.grid.version == 2 and job.base is not None and job.base.version == 1
+
+
+def test_a_peer_back_in_reach_is_offered_the_newest_version_again() -> None:
+    # P6: on uwb nothing else brings a robot that comes into range the newest map; without the
+    # offer it would wait for the next version, and robots passing in a corridor part before that.
+    # (The transport says Arrived only when no map on its way reaches the robot.)
+    c = core()
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, uwb)
+    c.acked("uwb", "robot1", 1)
+    c.new_version(grid(2))
+    code(c, 30.0, uwb)  # a delta on v1
+    c.acked("uwb", "robot1", 2)
+    assert c.poll(31.0, uwb) is None  # everyone in reach holds v2
+    assert not c.arrived("uwb", "robot1")  # back, but it holds the newest
+    assert c.arrived("uwb", "robot2")  # robot2 comes into range with nothing
+    job, _ = code(c, 32.0, {"uwb": ["robot1", "robot2"]})
+    assert job.grid.version == 2 and job.base is None  # whole: robot2 holds no version
+    assert c.offers(32.0)["uwb"]["waiting"] == ["robot2"]  # robot1 holds it: not waited for
+    assert not c.arrived("uwb", "robot2")  # already waited for by the offer in flight
+    c.acked("uwb", "robot2", 2)
+    assert c.poll(33.0, {"uwb": ["robot1", "robot2"]}) is None
+
+
+def test_a_peer_back_in_reach_gets_a_delta_on_what_it_still_holds() -> None:
+    c = core()
+    both = {"uwb": ["robot1", "robot2"]}
+    c.new_version(grid(1))
+    code(c, 0.0, both)
+    c.acked("uwb", "robot1", 1)
+    c.acked("uwb", "robot2", 1)
+    for v in (2, 3):  # robot2 is out of range: robot1 alone gets them
+        c.new_version(grid(v))
+        code(c, 30.0 * v, {"uwb": ["robot1"]})
+        c.acked("uwb", "robot1", v)
+    assert c.arrived("uwb", "robot2")
+    job, _ = code(c, 95.0, both)
+    assert job.grid.version == 3 and job.base is not None and job.base.version == 1
+
+
+def test_an_arrival_waits_for_a_busy_link() -> None:
+    c = core(inflight_timeout_s=30.0)
+    c.new_version(grid(1))
+    code(c, 0.0)  # offered on uwb and zenoh; nobody acks yet
+    assert c.arrived("uwb", "robot3")
+    assert c.poll(10.0, PEERS) is None  # uwb is busy with v1 for robot1 and robot2 until it times out
+    assert c.next_deadline() == 30.0  # then poll again: robot3 still lacks v1
+    job, _ = code(c, 30.0, {"uwb": ["robot1", "robot2", "robot3"]})
+    assert job.transports == ("uwb",) and job.grid.version == 1
+    assert c.poll(61.0, {"uwb": ["robot1", "robot2", "robot3"]}) is None  # offered once for the arrival
+
+
+def test_a_keyframe_asked_for_while_one_is_on_its_way_is_not_sent_twice() -> None:
+    # On uwb a robot that comes into range asks for a whole map as P6 offers it one: one is enough.
+    c = core()
+    c.new_version(grid(1))
+    code(c, 0.0, {"uwb": ["robot1"]})
+    c.acked("uwb", "robot1", 1)
+    c.new_version(grid(2))
+    code(c, 30.0, {"uwb": ["robot1"]})  # a delta on v1
+    c.acked("uwb", "robot1", 2)
+    assert c.arrived("uwb", "robot2")  # robot2 comes into range: P6 offers it v2, whole
+    job, _ = code(c, 31.0, {"uwb": ["robot1", "robot2"]})
+    assert job.base is None
+    assert not c.keyframe_needed("robot2")  # v2 whole is on its way to it
+    c.acked("uwb", "robot2", 2)
+    assert c.poll(32.0, {"uwb": ["robot1", "robot2"]}) is None  # and sent once
+    # a delta in flight does not help a robot that lost everything
+    c.new_version(grid(3))
+    code(c, 60.0, {"uwb": ["robot1", "robot2"]})
+    assert c.keyframe_needed("robot2")
+
+
+def test_an_arrival_that_acks_the_offer_in_flight_is_not_offered_it_again() -> None:
+    c = core(inflight_timeout_s=30.0)
+    c.new_version(grid(1))
+    code(c, 0.0, {"uwb": ["robot1"]})
+    assert c.arrived("uwb", "robot2")
+    c.acked("uwb", "robot2", 1)  # the offer reached it
+    free, _ = c.acked("uwb", "robot1", 1)
+    assert free and c.poll(1.0, {"uwb": ["robot1", "robot2"]}) is None
+    assert c.next_deadline() is None
+    # one that leaves again before the link is free is not offered it either
+    c.new_version(grid(2))
+    code(c, 30.0, {"uwb": ["robot1", "robot2"]})
+    assert c.arrived("uwb", "robot3")
+    assert c.next_deadline() == 60.0  # v2's offer frees the link then: robot3 would get it
+    assert not c.peer_gone("uwb", "robot3")
+    assert c.next_deadline() is None  # nothing is wanted of the link any more
+    assert c.poll(61.0, {"uwb": ["robot1", "robot2", "robot3"]}) is None
+
+
+def test_after_a_restart_an_arrival_gets_the_map_that_no_longer_changes() -> None:
+    # A robot that finished mapping and restarted makes no new version; a robot that comes into
+    # range later still gets its last map (as a zenoh peer's late-join query would).
+    c = core()
+    c.restore(grid(7), None, {"robot1": 7})
+    assert c.poll(0.0, {"uwb": ["robot1"]}) is None  # nothing new to send
+    assert not c.arrived("uwb", "robot1")  # it holds v7
+    assert c.arrived("uwb", "robot2")
+    job, _ = code(c, 1.0, {"uwb": ["robot1", "robot2"]})
+    assert job.grid.version == 7 and job.base is None

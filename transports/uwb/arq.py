@@ -417,6 +417,13 @@ class ArqEndpoint(SenderSide):
         """Link ids of the peers heard within ``peer_timeout_s``."""
         return sorted(p.id for p in self._peers.values() if p.up)
 
+    def reaches(self, msg: int, peer: int) -> bool:
+        """Whether message ``msg`` is still being sent and ``peer`` is one of its receivers that has
+        not got it all (so a map in flight will reach a robot that just came into range)."""
+        m = self._out.get(msg)
+        p = m.peers.get(peer) if m is not None else None
+        return p is not None and p.pending
+
     def in_flight(self) -> int:
         """Messages still in the send queue (neither delivered to all, failed nor superseded)."""
         return len(self._out)

@@ -21,6 +21,7 @@ from typing import Any
 from mapd.envelope import Envelope
 from mapd.errors import ConfigError, LimitError, MapdError, TransportError
 from transports.base import (
+    Arrived,
     Delivered,
     Failed,
     KeyframeNeeded,
@@ -73,7 +74,6 @@ class UwbTransport(Transport):
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
         self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
-        self._heard_maps: set[int] = set()  # link ids a map came from on this link (late join)
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
         self._poses = PoseThrottle(opts.pose_period_s)
@@ -268,7 +268,6 @@ class UwbTransport(Transport):
                 if self._relay is not None:
                     self._relay.summary(e.src, e.data, time.monotonic())
             else:
-                self._heard_maps.add(e.src)
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
             meta = self._msgs.get(e.msg) or self._late.get(e.msg)
@@ -292,10 +291,12 @@ class UwbTransport(Transport):
                 self._relay.closed(e.msg)
         elif isinstance(e, arq.PeerUp):
             emit(PeerUp("uwb", self._name(e.peer)))
-            if e.peer not in self._heard_maps and e.peer in self.opts.nodes.values():
-                # A late joiner, as zenoh queries one: its last map may be long sent (and failed to
-                # reach us), and a robot whose map no longer changes would never send it again.
-                self._ask_keyframe(self._name(e.peer))
+            core = self._link.core if self._link is not None else None
+            if core is not None and not any(core.reaches(m, e.peer) for m in self._msgs):
+                # A robot that comes into range (a late joiner, or one back from out of range) gets
+                # the newest map now (P6), not with the next version, which for a map that no longer
+                # changes never comes; unless the map on its way already goes to it.
+                emit(Arrived("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerDown):
             emit(PeerDown("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerRestarted):

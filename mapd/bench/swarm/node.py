@@ -10,7 +10,9 @@ and :mod:`mapd.daemon.server` do between them:
   signed envelope of the real codec's output (:class:`~mapd.bench.swarm.streams.Payloads`), sent on
   stream 0 to the :class:`~mapd.bench.swarm.policy.AckScope`'s dests (the daemon's default: every
   other robot configured); ``MessageDelivered`` / ``MessageFailed`` go back to the publisher as acks
-  and failures, ``MessageFlushed`` as the offer wholly on the air; coding takes no virtual time;
+  and failures, ``MessageFlushed`` as the offer wholly on the air, ``PeerUp`` of a robot that no map
+  on its way reaches as ``Arrived`` (P6, as the transport; see :data:`ARRIVALS`); coding takes no
+  virtual time;
 * a received map is accepted as the daemon's receiver accepts it (newer than the newest held, and a
   delta only when its base is among the :data:`~mapd.daemon.receiver.KEEP_PEER_VERSIONS` newest
   held); a delta whose base is gone asks the origin for a keyframe on the control stream, at most once
@@ -47,6 +49,10 @@ KEYFRAME_REQUEST_S = 5.0
 KEYFRAME_EVERY: int = CodecSection.model_fields["keyframe_every"].default
 _TINY = np.zeros((1, 1), dtype=np.int8)
 
+#: What a robot does when it hears another come into range: ``offer`` its newest map if no map on its
+#: way reaches that robot (P6, the daemon's uwb transport); ``ask`` the other for a keyframe if no map
+#: of it came yet (the transport before P6); or nothing.
+ARRIVALS = ("offer", "ask", "none")
 #: (time, holder index, origin index, version) of every accepted map.
 AcceptLog = list[tuple[float, int, int, int]]
 
@@ -70,6 +76,7 @@ class SwarmRobot:
         inflight_s: float = INFLIGHT_TIMEOUT_S,
         keyframe_every: int = KEYFRAME_EVERY,
         hold: bool = True,
+        arrival: str = "offer",
     ) -> None:
         self.index = index
         self.id = index + 1
@@ -83,6 +90,9 @@ class SwarmRobot:
             inflight_timeout_s=inflight_s,
             paced={"uwb"} if hold else set(),  # as the daemon's uwb transport (P1)
         )
+        if arrival not in ARRIVALS:
+            raise ValueError(f"arrival {arrival!r}: one of {', '.join(ARRIVALS)}")
+        self.arrival = arrival
         self.relay = relay
         self.acks = acks
         self.accepted = accepted
@@ -91,6 +101,7 @@ class SwarmRobot:
         self._own_msgs: dict[int, int] = {}  # ARQ message id -> own version
         self._late: dict[int, int] = {}  # superseded ARQ message id -> own version
         self._asked: dict[int, float] = {}  # origin index -> when a keyframe was last asked of it
+        self._maps_from: set[int] = set()  # link ids a map came from (for arrival "ask")
         self.coded_bytes = 0
         self.keyframes = 0
         self.deltas = 0
@@ -235,6 +246,7 @@ class SwarmRobot:
                     if self.pub.keyframe_needed(str(e.src)):
                         self._poll(now)
                 else:
+                    self._maps_from.add(e.src)
                     self._on_map(e.src, e.data, now)
             elif isinstance(e, arq.MessageDelivered):
                 v = self._own_msgs.get(e.msg) or self._late.get(e.msg)
@@ -250,6 +262,17 @@ class SwarmRobot:
                 v = self._own_msgs.get(e.msg)
                 if v is not None and self.pub.on_air("uwb", v, now):
                     self._poll(now)  # as the daemon: the offer's timeout may have passed already
+            elif isinstance(e, arq.PeerUp):
+                if self.arrival == "offer":
+                    reached = any(self.arq.reaches(m, e.peer) for m in self._own_msgs)
+                    if not reached and self.pub.arrived("uwb", str(e.peer)):
+                        self._poll(now)  # as transport.py: back in range, offered the newest (P6)
+                elif (
+                    self.arrival == "ask"
+                    and e.peer not in self._maps_from
+                    and 1 <= e.peer <= len(self.streams)
+                ):
+                    self._ask_keyframe(e.peer - 1, now)  # the daemon before P6: heard, but no map of it yet
             elif isinstance(e, arq.PeerDown):
                 if self.pub.peer_gone("uwb", str(e.peer)):  # as the daemon: not waited for any more
                     self._poll(now)

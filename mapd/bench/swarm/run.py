@@ -17,12 +17,14 @@ if TYPE_CHECKING:
 
 COLUMNS = [
     ("robots", "robots", ""),
+    ("seed", "seed", ""),
     ("codec", "codec", ""),
     ("mac", "mac", ""),
     ("ack_mode", "acks", ""),
     ("lend", "lend", ""),
     ("fec", "fec", ""),
     ("hold", "hold", ""),
+    ("arrival", "arrival", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -49,6 +51,7 @@ COLUMNS = [
 #: The bound's table (``--bound``): the same staleness figures, and how the scheduler used the slots.
 BOUND_COLUMNS = [
     ("robots", "robots", ""),
+    ("seed", "seed", ""),
     ("codec", "codec", ""),
     ("senders", "senders", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
@@ -173,6 +176,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(P1 on a paced link, as the daemon's uwb; default on)",
     )
     p.add_argument(
+        "--arrival",
+        nargs="+",
+        default=["offer"],
+        choices=["offer", "ask", "none"],
+        help="when a robot comes into range: offer it the newest map if no map on its way reaches "
+        "it (P6, the daemon's uwb; default), ask it for a keyframe if none of its maps came yet (the "
+        "daemon before P6), or nothing",
+    )
+    p.add_argument(
         "--slot-ms",
         type=float,
         default=None,
@@ -198,7 +210,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "turns, one sender at a time, spatial reuse, no channel limit) on the same fleet and "
         "channel: a second table",
     )
-    p.add_argument("--seed", type=int, default=0, help="radio, backoff and session seed")
+    p.add_argument(
+        "--seed",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="radio, backoff, session and start-phase seed; several: a row each, then their mean "
+        "(a few pairs decide a small fleet's p95, so one seed's figure is noisy)",
+    )
     p.add_argument(
         "--cache",
         type=Path,
@@ -218,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
         raise SourceError(f"{args.log}: no such log file")
     if args.keyframe_every is not None and args.keyframe_every < 1:
         raise SourceError(f"--keyframe-every {args.keyframe_every}: must be 1 or more")
-    seed = 7 if args.sim is None and args.log is None else args.sim
+    sim_seed = 7 if args.sim is None and args.log is None else args.sim
     rows: list[dict[str, Any]] = []
     bounds: list[dict[str, Any]] = []
     t_all = time.perf_counter()
@@ -230,28 +249,31 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         fleet = load_fleet(
             cache=args.cache, n=n, period=args.period, duration=args.duration,
-            sim_seed=seed if args.log is None else None, log=args.log,
+            sim_seed=sim_seed if args.log is None else None, log=args.log,
             size=args.building, scan_rate=args.scan_rate,
         )  # fmt: skip
         print(f"swarm: {n} robots: streams ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
             combos = [
-                (m, a, le, f, h)
+                (m, a, le, f, h, ar, sd)
                 for m in args.mac
                 for a in dict.fromkeys(args.ack_mode)
                 for le in args.lend
                 for f in args.fec
                 for h in args.hold
+                for ar in dict.fromkeys(args.arrival)
+                for sd in dict.fromkeys(args.seed)
             ]
-            for mac, ack_mode, lend, fec, hold in combos:
+            for mac, ack_mode, lend, fec, hold, arrival, seed in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
-                    mac=mac, signed=not args.unsigned, seed=args.seed, relay=args.relay, acks=args.acks,
+                    mac=mac, signed=not args.unsigned, seed=seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
-                    hold=hold == "on", **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
+                    hold=hold == "on", arrival=arrival,
+                    **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
                 payloads.flush()
@@ -262,24 +284,39 @@ def run(args: argparse.Namespace) -> int:
                 row["lend"] = lend
                 row["fec"] = fec
                 row["hold"] = hold
+                row["arrival"] = arrival
+                row["seed"] = seed
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}, hold {hold}: "
+                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}, hold {hold}, "
+                    f"arrival {arrival}, seed {seed}: "
                     f"{res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-            if args.bound:
-                bounds += _bounds(fleet, payloads, cfg)
+                if args.bound and (mac, ack_mode, lend, fec, hold, arrival) == combos[0][:6]:
+                    bounds += _bounds(fleet, payloads, cfg)  # the bound ignores the publisher's settings
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
-        return r["codec"], r["mac"], r["ack_mode"], r["lend"], r["fec"], r["hold"]
+        return (
+            r["codec"],
+            r["mac"],
+            r["ack_mode"],
+            r["lend"],
+            r["fec"],
+            r["hold"],
+            r["arrival"],
+            str(r["seed"]),
+        )
 
     base = {key(r): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:
         b = base.get(key(r))
         r["p95_x_smallest"] = r["stale_p95_s"] / b["stale_p95_s"] if b and b["stale_p95_s"] > 0 else math.nan
+    if len(set(args.seed)) > 1:
+        rows = with_means(rows, ("robots", *_SETTINGS))
+        bounds = with_means(bounds, ("robots", "codec", "senders"))
     info = {
         "source": rows[0]["source"] if rows else "",
         "period_s": args.period,
@@ -301,6 +338,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: What sets a row apart, besides its fleet size and seed.
+_SETTINGS = ("codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival")
+
+
+def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
+    """``rows`` (one per seed), each group of equal ``keys`` followed by a row of their means
+    (seed ``"mean"``; numbers averaged, an ``inf`` staying ``inf``, the rest as in the first)."""
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
+    out: list[dict[str, Any]] = []
+    for group in groups.values():
+        out += group
+        mean = dict(group[0], seed="mean")
+        for k, v in group[0].items():
+            if k != "seed" and k not in keys and isinstance(v, int | float) and not isinstance(v, bool):
+                mean[k] = sum(float(g[k]) for g in group) / len(group)
+        out.append(mean)
+    return out
+
+
 def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str, Any]]:
     """The bound's rows, one per schedule (:data:`~mapd.bench.swarm.bound.MODES`), for one fleet and codec."""
     from mapd.bench.swarm.bound import MODES, Bound, summarize_bound
@@ -308,7 +366,7 @@ def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str
     out = []
     for mode in MODES:
         res = Bound(fleet, payloads, cfg, mode).run()
-        out.append(summarize_bound(res, cfg))
+        out.append({**summarize_bound(res, cfg), "seed": cfg.seed})
         print(f"swarm: bound, {res.n} robots, {cfg.codec}, {mode}: {res.wall_s:.1f} s", file=sys.stderr)
     return out
 

@@ -70,6 +70,8 @@ class SwarmConfig:
     #: The publisher supersedes a map only once it is wholly on the air (P1 on a paced link: the
     #: daemon's uwb transport).
     hold: bool = True
+    #: What a robot does when another comes into range (``node.ARRIVALS``; default P6, the daemon's).
+    arrival: str = "offer"
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
     start_spread: float | None = None
@@ -158,6 +160,7 @@ class Swarm:
                 inflight_s=config.inflight_s,
                 keyframe_every=config.keyframe_every,
                 hold=config.hold,
+                arrival=config.arrival,
             )
             for i in range(n)
         ]

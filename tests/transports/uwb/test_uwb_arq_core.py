@@ -119,6 +119,22 @@ def test_latest_wins_supersedes_the_older_version() -> None:
     assert a.stats()["bytes_tx"] < 0.5 * RATE / 8 + 1.3 * len(new) + 2000
 
 
+def test_reaches_says_which_receivers_a_message_still_goes_to() -> None:
+    # The uwb transport asks it when a robot comes into range: a map on its way to it needs no
+    # second offer (the publisher's P6).
+    a, b, c = ep(1), ep(2), ep(3)
+    net = SimNet([a, b, c])
+    msg = a.send(os.urandom(3000), 0.0, dests=[2, 3])
+    assert a.reaches(msg, 2) and a.reaches(msg, 3)
+    assert not a.reaches(msg, 4)  # not among its receivers
+    assert not a.reaches(msg + 1, 2)  # no such message
+    assert net.run(30, stop=lambda: closed(net, 1, msg))
+    assert not a.reaches(msg, 2)  # delivered: nothing more goes to it
+    old = a.send(os.urandom(3000), net.now, dests=[2])
+    a.send(os.urandom(100), net.now, dests=[2])  # the same stream: latest wins
+    assert not a.reaches(old, 2)
+
+
 def _tap(net: SimNet, node: int) -> list[bytes]:
     """Record every frame ``node`` writes."""
     frames: list[bytes] = []

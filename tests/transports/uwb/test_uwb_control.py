@@ -51,22 +51,29 @@ def test_transport_drops_a_request_too_large_to_build() -> None:
     assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 0
 
 
-def test_a_robot_heard_before_any_map_of_it_came_is_asked_for_one_once() -> None:
-    """A late joiner, as the zenoh transport queries one: a robot whose map no longer changes would
-    never send it again. A robot whose maps did come (it was only out of range) is not asked."""
+def test_a_robot_that_comes_into_range_arrives_unless_the_map_in_flight_goes_to_it() -> None:
+    """P6: the publisher offers the newest map to a robot that comes into range (a late joiner, or one
+    back from out of range), but only when the transport says no map on its way reaches it (the link
+    may send to every robot configured). The robot that comes is not asked for its map: it offers
+    its own the same way (before P6 it was asked, and at a fleet's start every robot asked every
+    other while their first maps were on the air to them)."""
+    from transports import base
     from transports.uwb import arq
 
+    events: list[object] = []
+    ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=events.append)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2, "c": 3}), ctx)
+    t._msgs = {7: ("a", 3)}  # own v3 in flight, still going to b only
     sent: list[bytes] = []
-    t = _transport_with_stub_link(sent)
-    t._requests = control.KeyframeRequests(1e-9)  # (almost) no throttle: what counts is whom it asks
+    t._link = SimpleNamespace(  # type: ignore[assignment]
+        core=SimpleNamespace(reaches=lambda m, p: (m, p) == (7, 2)),
+        send=lambda data, dests, stream: sent.append(data),
+        stats=dict,
+    )
     t._on_event(arq.PeerUp(2))
-    assert [control.parse_request(d) for d in sent] == [["b"]]
-    t._on_event(arq.PeerUp(9))  # a link id of no robot in nodes: not asked
-    assert len(sent) == 1
-    t._on_event(arq.MessageReceived(2, 0, 7, b"an envelope of b"))
-    t._on_event(arq.PeerDown(2))
-    t._on_event(arq.PeerUp(2))  # back in range: its maps came before, deltas resume
-    assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 1
+    t._on_event(arq.PeerUp(3))
+    assert events == [base.PeerUp("uwb", "b"), base.PeerUp("uwb", "c"), base.Arrived("uwb", "c")]
+    assert not sent and t.stats()["keyframe_requests_tx"] == 0
 
 
 def test_an_offer_that_goes_to_nobody_is_on_the_air_at_once() -> None:
