@@ -44,11 +44,13 @@ The rules:
   a version every peer still holds when there is one. Otherwise it would wait for the next
   version, up to a period (never, for a map that no longer changes), and two robots that pass each
   other in a corridor often part before then (issue #22 in the README: 4 robots in the building
-  accept a fifth more maps).
+  accept a fifth more maps). Such offers go at most once per ``inflight_timeout_s`` on a
+  transport, however many peers seem to come and go (a holder of the link key could fake them).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -133,8 +135,10 @@ class PublisherCore:
     _held: dict[str, list[int]] = field(default_factory=dict)
     _inflight: dict[str, InFlight] = field(default_factory=dict)
     _offered: dict[str, int] = field(default_factory=dict)
-    #: Per transport, peers that came into reach lacking the newest version (P6).
+    #: Per transport, peers that came into reach lacking the newest version, and when the newest
+    #: was last offered again for such peers (P6).
     _arrived: dict[str, set[str]] = field(default_factory=dict)
+    _reoffered: dict[str, float] = field(default_factory=dict)
     _since_keyframe: int = 0
 
     # ------------------------------------------------------------------ inputs
@@ -236,7 +240,9 @@ class PublisherCore:
         latest = self._latest
         if latest is None:
             return None
-        free = tuple(t for t in peers if self._wants(t, latest.version, peers[t]) and not self._busy(t, now))
+        for t, arrived in self._arrived.items():
+            arrived.intersection_update(peers.get(t, ()))  # gone again: offered when it comes back
+        free = tuple(t for t in peers if self._wants(t, latest.version, now) and not self._busy(t, now))
         if not free:
             return None
         return EncodeJob(latest, self._choose_base(peers), free)
@@ -253,6 +259,8 @@ class PublisherCore:
             self._since_keyframe += 1
             self.counters.deltas_sent += 1
         for t in job.transports:
+            if self._offered.get(t, 0) >= envelope.version:
+                self._reoffered[t] = now  # for arrivals only (P6): at most one per timeout
             self._offered[t] = envelope.version
             self._arrived.pop(t, None)
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
@@ -286,11 +294,15 @@ class PublisherCore:
         latest = self._latest
         if latest is None:
             return None
+        v = latest.version
         times = [
-            f.expires()
-            for t, f in self._inflight.items()
-            if f.unsettled and self._wants(t, latest.version, None)
+            f.expires() for t, f in self._inflight.items() if f.unsettled and self._offered.get(t, 0) < v
         ]
+        for t, arrived in self._arrived.items():  # P6: once the link is free and the last such offer old
+            if self._offered.get(t, 0) >= v and any(self._newest(p) < v for p in arrived):
+                f = self._inflight.get(t)
+                busy = f.expires() if f is not None and f.unsettled else 0.0
+                times.append(max(busy, self._reoffered.get(t, -math.inf) + self.inflight_timeout_s))
         return min(times) if times else None
 
     def base_to_save(self, peers: Collection[str]) -> OccupancyGrid | None:
@@ -319,13 +331,15 @@ class PublisherCore:
         held = self._held.get(peer)
         return held[-1] if held else 0
 
-    def _wants(self, transport: str, version: int, up: Collection[str] | None) -> bool:
-        """Whether ``transport`` is to be offered own ``version``: it never was (P1, P2), or a peer
-        that came into reach since (of ``up``, when given) still lacks it (P6)."""
+    def _wants(self, transport: str, version: int, now: float) -> bool:
+        """Whether ``transport`` is to be offered own ``version`` at ``now``: it never was (P1, P2),
+        or a peer that came into reach since still lacks it and the last offer made for such peers
+        is a timeout old (P6)."""
         if self._offered.get(transport, 0) < version:
             return True
-        arrived = self._arrived.get(transport, ())
-        return any(self._newest(p) < version and (up is None or p in up) for p in arrived)
+        if now < self._reoffered.get(transport, -math.inf) + self.inflight_timeout_s:
+            return False
+        return any(self._newest(p) < version for p in self._arrived.get(transport, ()))
 
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)

@@ -340,11 +340,20 @@ def test_an_arrival_waits_for_a_busy_link() -> None:
     c.new_version(grid(1))
     code(c, 0.0)  # offered on uwb and zenoh; nobody acks yet
     assert c.arrived("uwb", "robot3")
-    assert c.poll(10.0, PEERS) is None  # uwb is busy with v1 for robot1 and robot2 until it times out
+    three = {**PEERS, "uwb": ["robot1", "robot2", "robot3"]}
+    assert c.poll(10.0, three) is None  # uwb is busy with v1 for robot1 and robot2 until it times out
     assert c.next_deadline() == 30.0  # then poll again: robot3 still lacks v1
-    job, _ = code(c, 30.0, {"uwb": ["robot1", "robot2", "robot3"]})
+    job, _ = code(c, 30.0, three)
     assert job.transports == ("uwb",) and job.grid.version == 1
-    assert c.poll(61.0, {"uwb": ["robot1", "robot2", "robot3"]}) is None  # offered once for the arrival
+    # robot3 leaves and comes back 10 s later; robot1 and robot2 ack: the link is free, but offers
+    # for arrivals go once per timeout (a link-key holder could fake arrivals: docs/security.md)
+    c.peer_gone("uwb", "robot3")
+    assert c.arrived("uwb", "robot3")
+    c.acked("uwb", "robot1", 1)
+    c.acked("uwb", "robot2", 1)
+    assert c.poll(42.0, three) is None
+    assert c.next_deadline() == 60.0
+    assert code(c, 60.0, three)[0].grid.version == 1
 
 
 def test_a_keyframe_asked_for_while_one_is_on_its_way_is_not_sent_twice() -> None:
@@ -397,3 +406,24 @@ def test_after_a_restart_an_arrival_gets_the_map_that_no_longer_changes() -> Non
     assert c.arrived("uwb", "robot2")
     job, _ = code(c, 1.0, {"uwb": ["robot1", "robot2"]})
     assert job.grid.version == 7 and job.base is None
+
+
+def test_a_robot_that_seems_to_arrive_again_and_again_costs_one_offer_per_timeout() -> None:
+    # A link-key holder can make a robot of the fleet seem to come into range every second (HELLOs
+    # with its link id after a silence; docs/security.md). It never acks, so each offer holds the
+    # link until it is on the air and its timeout has passed: no more offers than versions cost.
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    peers = {"uwb": ["robot1", "ghost"]}
+    c.new_version(grid(1))
+    code(c, 0.0, {"uwb": ["robot1"]})
+    c.acked("uwb", "robot1", 1)
+    offers = []
+    for t in range(1, 301):
+        c.peer_gone("uwb", "ghost")  # silent long enough to be down, then heard again
+        c.arrived("uwb", "ghost")
+        job = c.poll(float(t), peers)
+        if job is not None:
+            c.encoded(job, envelope(job), float(t), peers)
+            c.on_air("uwb", 1, float(t) + 5.0)  # its last chunk goes 5 s later
+            offers.append(t)
+    assert offers == list(range(1, 301, 30))  # every 30 s: one timeout each

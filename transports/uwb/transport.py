@@ -292,7 +292,8 @@ class UwbTransport(Transport):
         elif isinstance(e, arq.PeerUp):
             emit(PeerUp("uwb", self._name(e.peer)))
             core = self._link.core if self._link is not None else None
-            if core is not None and not any(core.reaches(m, e.peer) for m in self._msgs):
+            known = e.peer in self._names  # a robot of the fleet, not any link id heard (a bound)
+            if known and core is not None and not any(core.reaches(m, e.peer) for m in self._msgs):
                 # A robot that comes into range (a late joiner, or one back from out of range) gets
                 # the newest map now (P6), not with the next version, which for a map that no longer
                 # changes never comes; unless the map on its way already goes to it.

@@ -72,7 +72,13 @@ def test_a_robot_that_comes_into_range_arrives_unless_the_map_in_flight_goes_to_
     )
     t._on_event(arq.PeerUp(2))
     t._on_event(arq.PeerUp(3))
-    assert events == [base.PeerUp("uwb", "b"), base.PeerUp("uwb", "c"), base.Arrived("uwb", "c")]
+    t._on_event(arq.PeerUp(9))  # a link id of no robot in nodes: nothing to offer it
+    assert events == [
+        base.PeerUp("uwb", "b"),
+        base.PeerUp("uwb", "c"),
+        base.Arrived("uwb", "c"),
+        base.PeerUp("uwb", "uwb-9"),
+    ]
     assert not sent and t.stats()["keyframe_requests_tx"] == 0
 
 
