@@ -181,6 +181,7 @@ def render_status(s: dict[str, Any]) -> str:
         f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "
         f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
         f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
+        + (f", {c['reoffers']} offered again to robots come into range" if c.get("reoffers") else "")
     )
     for name, o in (s.get("offers") or {}).items():
         air = {True: ", wholly on the air", False: ", still going out", None: ""}[o.get("on_air")]

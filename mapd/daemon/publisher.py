@@ -111,6 +111,8 @@ class PublisherCounters:
 
     keyframes_sent: int = 0
     deltas_sent: int = 0
+    #: Versions offered again, for peers that came into reach lacking them (P6).
+    reoffers: int = 0
 
 
 @dataclass
@@ -258,6 +260,8 @@ class PublisherCore:
         else:
             self._since_keyframe += 1
             self.counters.deltas_sent += 1
+        if any(self._offered.get(t, 0) >= envelope.version for t in job.transports):
+            self.counters.reoffers += 1
         for t in job.transports:
             if self._offered.get(t, 0) >= envelope.version:
                 self._reoffered[t] = now  # for arrivals only (P6): at most one per timeout

@@ -472,7 +472,12 @@ class Daemon:
                 "finished": self.source_finished,
                 "stats": self.source.stats() if self.source else {},
             },
-            "codec": {**self.coder.stats, "keyframes": pub.keyframes_sent, "deltas": pub.deltas_sent},
+            "codec": {
+                **self.coder.stats,
+                "keyframes": pub.keyframes_sent,
+                "deltas": pub.deltas_sent,
+                "reoffers": pub.reoffers,
+            },
             "offers": self.publisher.offers(time.monotonic()),
             "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},

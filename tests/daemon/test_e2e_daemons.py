@@ -512,6 +512,7 @@ def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
         )
         assert snaps["robot0"]["source"]["version"] == final  # robot0 made nothing new meanwhile
         assert snaps["robot0"]["codec"]["keyframes"] > before["codec"]["keyframes"]  # offered again
+        assert snaps["robot0"]["codec"]["reoffers"] > before["codec"]["reoffers"] == 0
         assert snaps["robot1"]["links"]["uwb"]["keyframe_requests_tx"] == 0  # unasked
     finally:
         f.stop()

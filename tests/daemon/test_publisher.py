@@ -162,7 +162,11 @@ def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path,
                     lambda: any(isinstance(e, Received) and e.peer == "robot0" for e in heard),
                     what="robot2 got robot0's map",
                 )
-                assert d.snapshot()["offers"]["virtual"]["waiting"] == ["robot2"]
+                snap = d.snapshot()
+                assert snap["offers"]["virtual"]["waiting"] == ["robot2"]
+                assert snap["codec"]["reoffers"] == 1  # mapd status says so
+                line = next(x for x in render_status(snap).splitlines() if x.startswith("codec"))
+                assert "1 offered again to robots come into range" in line
             finally:
                 await late.close()
 

@@ -427,3 +427,4 @@ def test_a_robot_that_seems_to_arrive_again_and_again_costs_one_offer_per_timeou
             c.on_air("uwb", 1, float(t) + 5.0)  # its last chunk goes 5 s later
             offers.append(t)
     assert offers == list(range(1, 301, 30))  # every 30 s: one timeout each
+    assert c.counters.reoffers == len(offers) and c.counters.keyframes_sent == 1 + len(offers)
