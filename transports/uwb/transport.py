@@ -3,7 +3,7 @@
 
 It gives each robot's maps a stream of their own (latest wins per robot), sends to the peers the
 options name (or those heard lately), turns the core's events into the daemon's (``Delivered``,
-``OnAir``, ``PeerUp`` ...), asks for whole maps on the control stream, carries poses in the gaps
+``OnAir``, ``PeerUp``, ``Arrived`` ...), asks for whole maps on the control stream, carries poses in the gaps
 maps leave, and drives the multi-hop relay (``relaying.py``) in signed fleets.
 """
 
