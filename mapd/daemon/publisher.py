@@ -197,7 +197,7 @@ class PublisherCore:
         """``peer`` came into reach on ``transport``, and no offer on its way there reaches it (P6).
         True when it lacks the newest version, so the adapter polls: :meth:`poll` offers it again
         once the link is free, unless the peer acked it by then."""
-        latest = self._latest = self._latest or self._restored  # a map that no longer changes, too
+        latest = self._newest_own()
         if latest is None or self._newest(peer) >= latest.version:
             return False
         busy = self._inflight.get(transport)
@@ -221,11 +221,10 @@ class PublisherCore:
         Not when a whole map of the newest version is on its way to ``peer`` already (a relay may
         ask on a neighbour's behalf while it is): the channel would carry both."""
         self._held.pop(peer, None)
-        if self._latest is None:
-            self._latest = self._restored
-        if self._latest is None:
+        latest = self._newest_own()
+        if latest is None:
             return False
-        v = self._latest.version
+        v = latest.version
         if any(f.keyframe and f.version == v and peer in f.unsettled for f in self._inflight.values()):
             return False
         self._since_keyframe = self.keyframe_every
@@ -260,11 +259,11 @@ class PublisherCore:
         else:
             self._since_keyframe += 1
             self.counters.deltas_sent += 1
-        if any(self._offered.get(t, 0) >= envelope.version for t in job.transports):
-            self.counters.reoffers += 1
+        again = [t for t in job.transports if self._offered.get(t, 0) >= envelope.version]
+        if again:
+            self.counters.reoffers += 1  # for arrivals only (P6): at most one per timeout and link
+        self._reoffered.update(dict.fromkeys(again, now))
         for t in job.transports:
-            if self._offered.get(t, 0) >= envelope.version:
-                self._reoffered[t] = now  # for arrivals only (P6): at most one per timeout
             self._offered[t] = envelope.version
             self._arrived.pop(t, None)
             # a peer that already holds this version (a late joiner's query got it) will not ack it again
@@ -302,8 +301,8 @@ class PublisherCore:
         times = [
             f.expires() for t, f in self._inflight.items() if f.unsettled and self._offered.get(t, 0) < v
         ]
-        for t, arrived in self._arrived.items():  # P6: once the link is free and the last such offer old
-            if self._offered.get(t, 0) >= v and any(self._newest(p) < v for p in arrived):
+        for t in self._arrived:  # P6: once the link is free and the last such offer a timeout old
+            if self._offered.get(t, 0) >= v and self._arrivals_lack(t, v):
                 f = self._inflight.get(t)
                 busy = f.expires() if f is not None and f.unsettled else 0.0
                 times.append(max(busy, self._reoffered.get(t, -math.inf) + self.inflight_timeout_s))
@@ -335,6 +334,17 @@ class PublisherCore:
         held = self._held.get(peer)
         return held[-1] if held else 0
 
+    def _newest_own(self) -> OccupancyGrid | None:
+        """The newest own version; after a restart with none made yet, the one restored (a map that
+        no longer changes still goes to a peer that asks for it or comes into reach)."""
+        if self._latest is None:
+            self._latest = self._restored
+        return self._latest
+
+    def _arrivals_lack(self, transport: str, version: int) -> bool:
+        """Whether a peer that came into reach on ``transport`` still lacks own ``version`` (P6)."""
+        return any(self._newest(p) < version for p in self._arrived.get(transport, ()))
+
     def _wants(self, transport: str, version: int, now: float) -> bool:
         """Whether ``transport`` is to be offered own ``version`` at ``now``: it never was (P1, P2),
         or a peer that came into reach since still lacks it and the last offer made for such peers
@@ -343,7 +353,7 @@ class PublisherCore:
             return True
         if now < self._reoffered.get(transport, -math.inf) + self.inflight_timeout_s:
             return False
-        return any(self._newest(p) < version for p in self._arrived.get(transport, ()))
+        return self._arrivals_lack(transport, version)
 
     def _busy(self, transport: str, now: float) -> bool:
         busy = self._inflight.get(transport)

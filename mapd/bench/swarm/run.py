@@ -299,16 +299,7 @@ def run(args: argparse.Namespace) -> int:
                     bounds += _bounds(fleet, payloads, cfg)  # the bound ignores the publisher's settings
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
-        return (
-            r["codec"],
-            r["mac"],
-            r["ack_mode"],
-            r["lend"],
-            r["fec"],
-            r["hold"],
-            r["arrival"],
-            str(r["seed"]),
-        )
+        return (*(r[k] for k in _SETTINGS), str(r["seed"]))
 
     base = {key(r): r for r in rows if r["robots"] == min(args.robots)}
     for r in rows:
