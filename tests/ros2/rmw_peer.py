@@ -13,6 +13,7 @@ import contextlib
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,6 +98,11 @@ class Token:
     type: str = ""
     hash: str = ""
     qos: str = ""
+
+
+def having(node: str, *entities: tuple[str, str]) -> Callable[[list[Token]], bool]:
+    """A ``graph(until=...)`` test: ``node`` shows each (kind, topic), e.g. ("MS", "/map")."""
+    return lambda tokens: set(entities) <= {(t.kind, t.topic) for t in tokens if t.node == node}
 
 
 def parse(key: str) -> Token:
@@ -209,9 +215,19 @@ class RmwPeer:
         """Publish raw CDR bytes (any message, or garbage) with rmw_zenoh's attachment."""
         pub[0].put(payload, attachment=struct.pack("<qq", seq, time.time_ns()) + b"\x10" + pub[1])
 
-    def graph(self) -> list[Token]:
-        replies = self.session.liveliness().get(f"@ros2_lv/{self.domain}/**", timeout=3.0)
-        return [parse(str(r.ok.key_expr)) for r in replies if r.ok is not None]
+    def graph(self, until: Callable[[list[Token]], bool] | None = None, timeout: float = 10.0) -> list[Token]:
+        """The ROS graph's tokens; with ``until``, asked again until it holds or ``timeout`` passes.
+
+        A token declared by another session reaches this one a moment later, as in ``ros2 node
+        list``; a test that waits for one passes ``until`` and asserts on what is returned.
+        """
+        end = time.monotonic() + timeout
+        while True:
+            replies = self.session.liveliness().get(f"@ros2_lv/{self.domain}/**", timeout=3.0)
+            tokens = [parse(str(r.ok.key_expr)) for r in replies if r.ok is not None]
+            if until is None or until(tokens) or time.monotonic() > end:
+                return tokens
+            time.sleep(0.1)
 
     def received(self, topic: str) -> list[Received]:
         with self.lock:

@@ -53,8 +53,8 @@ def test_discovers_robots_by_namespace_and_waits_for_known_poses(
         got = [await asyncio.wait_for(it.__anext__(), 15) for _ in range(2)]  # the cached maps: history
         peer.publish_map(pubs["robot1"], _room(9), 0.05, (0.0, 0.0), "robot1/map", seq=2)
         got.append(await asyncio.wait_for(it.__anext__(), 15))
-        await asyncio.sleep(0.5)
-        graph = await asyncio.to_thread(peer.graph)
+        want = rmw_peer.having("mapd_source", ("NN", ""), ("MS", "/robot1/map"), ("MS", "/robot2/map"))
+        graph = await asyncio.to_thread(peer.graph, want)
         stats = src.stats()
         await it.aclose()
         return got, graph, stats
@@ -110,7 +110,8 @@ def test_one_robot_mode_announces_its_node_and_subscription(
     async def go() -> tuple[OccupancyGrid, list[Any]]:
         it = cast(AsyncGenerator[OccupancyGrid, None], src.maps().__aiter__())
         grid = await asyncio.wait_for(it.__anext__(), 15)
-        graph = await asyncio.to_thread(peer.graph)
+        want = rmw_peer.having("merger", ("NN", ""), ("MS", "/map"))
+        graph = await asyncio.to_thread(peer.graph, want)
         await it.aclose()
         return grid, graph
 

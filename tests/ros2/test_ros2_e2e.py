@@ -69,9 +69,10 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
             )
             moved = next(t for t in got.msg.transforms if t.child_frame_id == child)
             assert moved.header.frame_id == f"{robot}/map"
-        graph = peer.graph()
+        want = (("NN", ""), ("MP", "/map"), ("MP", "/tf_static"), ("MP", "/tf"))
+        graph = peer.graph(rmw_peer.having("mapd", *want))
         mine = {(t.kind, t.topic) for t in graph if t.node == "mapd"}
-        assert {("NN", ""), ("MP", "/map"), ("MP", "/tf_static"), ("MP", "/tf")} <= mine
+        assert set(want) <= mine
         assert snaps["base"]["outputs"]["ros2"]["maps"] >= 1
         peer.wait("/map", lambda r: r.seq >= 3, timeout=60)  # updates keep coming
         # stop the robots; once the base station is idle, its last /map is the global map it keeps
@@ -148,7 +149,8 @@ def test_mapd_run_replaces_multirobot_map_merge(
         # both robots merged (the known cells of two 40 x 60 maps)
         got = peer.wait("/map", lambda r: (np.asarray(r.msg.data) >= 0).sum() >= 2 * 40 * 60, timeout=60).msg
         tf = peer.wait("/tf_static", lambda r: len(r.msg.transforms) == 2, timeout=20).msg
-        graph = peer.graph()
+        subs = ("MS", "/robot1/map"), ("MS", "/robot2/map")
+        graph = peer.graph(lambda g: rmw_peer.having("mapd_source", *subs)(g) and rmw_peer.having("mapd")(g))
     finally:
         proc.send_signal(signal.SIGTERM)
         code = proc.wait(20)

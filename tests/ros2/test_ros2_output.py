@@ -58,7 +58,9 @@ def test_late_subscriber_gets_the_current_map_and_frames(
         assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1700000002, 500000000)
         # the attachment: sequence 2 (the second map), a wall-clock stamp, the GID of the MP token
         assert got.seq == 2 and abs(got.stamp_ns / 1e9 - time.time()) < 60
-        graph = peer.graph()
+        graph = peer.graph(
+            rmw_peer.having("mapd", ("NN", ""), ("MP", "/map"), ("MP", "/tf_static"), ("MP", "/tf"))
+        )
         mine = [t for t in graph if t.node == "mapd"]
         pub = next(t for t in mine if t.kind == "MP" and t.topic == "/map")
         assert got.gid == rmw_peer.gid(pub.key)
@@ -108,7 +110,11 @@ def test_poses_go_on_tf(endpoint: str, rmw_peer: ModuleType, peers: list[Any]) -
         out.publish_poses(PoseUpdate(poses=newer, frames={"robot0": Pose2D()}))
         peer.wait("/tf", lambda r: r.msg.transforms[0].transform.translation.x == 1.6)
         assert len(peer.received("/tf")) == 2 and out.stats()["tf"] == 2
-        tf_token = next(t for t in peer.graph() if t.node == "mapd" and t.topic == "/tf")
+        tf_token = next(
+            t
+            for t in peer.graph(rmw_peer.having("mapd", ("MP", "/tf")))
+            if t.node == "mapd" and t.topic == "/tf"
+        )
         assert tf_token.qos == rmw_peer.qos(False, 100)  # volatile, keep last 100 (tf2's broadcaster)
     finally:
         asyncio.run(out.close())
@@ -123,7 +129,11 @@ def test_humble_namespace_and_domain(endpoint: str, rmw_peer: ModuleType, peers:
         peer.subscribe("/fleet/merged", rmw_peer.GRID)
         got = peer.wait("/fleet/merged", lambda r: True)
         assert got.key == "7/fleet/merged/nav_msgs::msg::dds_::OccupancyGrid_/TypeHashNotSupported"
-        mine = [t for t in peer.graph() if t.node == "mapd"]
+        mine = [
+            t
+            for t in peer.graph(rmw_peer.having("mapd", ("NN", ""), ("MP", "/fleet/merged")))
+            if t.node == "mapd"
+        ]
         assert {(t.kind, t.topic) for t in mine} == {("NN", ""), ("MP", "/fleet/merged")}
         assert all(t.namespace == "/fleet" for t in mine)
         assert "%fleet/mapd/%fleet%merged/" in next(t.key for t in mine if t.kind == "MP")

@@ -160,7 +160,7 @@ def test_amcl_pose_cached_before_start_then_updates_wrong_frames_and_garbage(
         _wait(lambda: src.stats()["pose_bad_payloads"] == 1, "the garbage counted")
         peer.put(pub, _pose_msg(rmw_peer, rmw_peer.POSE_COV, 3.5, -0.5, -1.0, frame="/map"), seq=4)
         last = _wait(lambda: (p := src.pose()) is not None and p.pose.x == 3.5 and p, "the next pose")
-        graph = peer.graph()
+        graph = peer.graph(rmw_peer.having("mapd_source", ("NN", ""), ("MS", "/map"), ("MS", "/amcl_pose")))
         return first, after_odom, last, src.stats(), graph
 
     first, after_odom, last, stats, graph = _run_source(src, body)
