@@ -147,6 +147,8 @@ def test_summary_relay_carries_every_version_over_two_hops(
     else:
         assert got[(2, 0)] == got[(0, 2)] == 3  # the newest version, over two hops
         assert math.isfinite(row["converge_s"])
+        # each summary reaches the neighbours in range (robot 1's both ends, the ends' robot 1) at most
+        assert 0 < row["summaries_rx"] <= 2 * row["summaries"]
 
 
 def test_runs_are_deterministic_for_a_seed(swarm: SimpleNamespace, tmp_path: Path) -> None:
@@ -209,6 +211,7 @@ def test_parity_repairs_a_lossy_broadcast_in_fewer_frames(swarm: SimpleNamespace
         assert math.isfinite(row["converge_s"])  # every robot got every other's last version
     heavy = {f: row["robot_tx"][0] for f, row in rows.items()}
     assert heavy[True] < 0.9 * heavy[False], heavy  # the heavy robot's repairs: parity, not the union
+    assert rows[False]["parity_frames"] == 0 < rows[True]["parity_frames"] < rows[True]["data_frames"]
     assert rows[True]["stale_p95_s"] <= rows[False]["stale_p95_s"]
 
 

@@ -129,6 +129,13 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "kf_requests": sum(rb.kf_requests for rb in res.robots),
         "relayed": sum(rb.relayed for rb in res.robots),  # relays started (flood or summary)
         "summaries": sum(rb.summaries for rb in res.robots),
+        # how much a robot learns of what its neighbours hold: one received per neighbour per
+        # summary queued at best (README, issue #22: at 16 robots in the building, about a twentieth)
+        "summaries_rx": sum(rb.summaries_rx for rb in res.robots),
+        "data_frames": sum(
+            rb.arq.counters.data_tx for rb in res.robots
+        ),  # chunks sent, parity and resends too
+        "parity_frames": sum(rb.arq.counters.parity_tx for rb in res.robots),
         "resends": sum(rb.arq.counters.resends for rb in res.robots),
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
         "messages_delivered": sum(rb.arq.counters.messages_delivered for rb in res.robots),

@@ -107,7 +107,8 @@ class SwarmRobot:
         self.deltas = 0
         self.kf_requests = 0
         self.relayed = 0
-        self.summaries = 0
+        self.summaries = 0  # queued (background: they go on the air only in gaps the maps leave)
+        self.summaries_rx = 0  # neighbours' summaries received
         # The summary relay: the real forwarding core, summaries on their own stream at a random phase.
         self.fwd: forwarding.ForwardingCore | None = None
         self._summary_period = 0.0
@@ -240,6 +241,7 @@ class SwarmRobot:
         for e in self.arq.events():
             if isinstance(e, arq.MessageReceived):
                 if e.stream == forwarding.SUMMARY_STREAM:
+                    self.summaries_rx += 1
                     if self.fwd is not None:
                         self.fwd.on_summary(e.src, forwarding.unpack_summary(e.data), now)
                 elif e.stream == control.CONTROL_STREAM:
