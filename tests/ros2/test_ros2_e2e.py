@@ -150,7 +150,9 @@ def test_mapd_run_replaces_multirobot_map_merge(
         got = peer.wait("/map", lambda r: (np.asarray(r.msg.data) >= 0).sum() >= 2 * 40 * 60, timeout=60).msg
         tf = peer.wait("/tf_static", lambda r: len(r.msg.transforms) == 2, timeout=20).msg
         subs = ("MS", "/robot1/map"), ("MS", "/robot2/map")
-        graph = peer.graph(lambda g: rmw_peer.having("mapd_source", *subs)(g) and rmw_peer.having("mapd")(g))
+        graph = peer.graph(
+            lambda g: rmw_peer.having("mapd_source", *subs)(g) and rmw_peer.having("mapd", ("NN", ""))(g)
+        )
     finally:
         proc.send_signal(signal.SIGTERM)
         code = proc.wait(20)

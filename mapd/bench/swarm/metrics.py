@@ -132,9 +132,8 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         # how much a robot learns of what its neighbours hold: one received per neighbour per
         # summary queued at best (README, issue #22: at 16 robots in the building, about a twentieth)
         "summaries_rx": sum(rb.summaries_rx for rb in res.robots),
-        "data_frames": sum(
-            rb.arq.counters.data_tx for rb in res.robots
-        ),  # chunks sent, parity and resends too
+        # chunks sent, parity and resends among them
+        "data_frames": sum(rb.arq.counters.data_tx for rb in res.robots),
         "parity_frames": sum(rb.arq.counters.parity_tx for rb in res.robots),
         "resends": sum(rb.arq.counters.resends for rb in res.robots),
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
