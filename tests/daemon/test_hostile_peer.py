@@ -112,7 +112,8 @@ def test_garbage_unsigned_forged_foreign_and_flood_are_counted_and_never_stall(
         with zenoh.open(conf) as z:
             token = z.liveliness().declare_token(f"mapd/{FLEET}/mallory")
             key = f"mapd/{FLEET}/mallory/update"
-            time.sleep(1.0)  # let the daemon see the token and route its subscription to us
+            # the daemon sees the token once the two sessions are linked (its subscription with it)
+            wait_status(sock, lambda s: s["peers"].get("mallory", {}).get("present") is True, 30)
             rng = np.random.default_rng(0)
             for _ in range(50):
                 z.put(key, rng.bytes(int(rng.integers(1, 400))))
