@@ -72,7 +72,12 @@ def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(room_g
                 sub = z.declare_subscriber(
                     global_key("f", "base"), lambda s: got.append(s.payload.to_bytes())
                 )
-                time.sleep(1.0)  # let the subscription reach the output's session
+                # the subscription goes out with the link to the output's session: wait for the link,
+                # then a moment for the declaration (a blind 1 s sleep assumed the link within it)
+                end = time.monotonic() + 20
+                while not list(z.info.peers_zid()) and time.monotonic() < end:
+                    time.sleep(0.05)
+                time.sleep(0.5)
                 out.publish(update(room_grid, 3))
                 end = time.monotonic() + 5
                 while not got and time.monotonic() < end:
