@@ -175,6 +175,9 @@ def test_sink_attachment_and_liveliness_follow_rmw_zenoh(publisher_session: tupl
     got: list[Any] = []
     sub = other.declare_subscriber(ros2cdr.key_for("/map", "rmw_zenoh", subscribe=True), got.append)
     sink = Ros2Sink(session, "/map", node="fusion")
+    end = time.monotonic() + 20
+    while not list(other.info.peers_zid()) and time.monotonic() < end:
+        time.sleep(0.05)  # linked first: the subscription travels with the link
     time.sleep(0.5)
     sink.publish(_grid(3))
     sink.publish(_grid(4))
