@@ -148,6 +148,23 @@ def held_number(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
     return split(held_version(snaps, who, of))[1]
 
 
+def wait_zenoh_link(session: Any, timeout: float = 20.0) -> None:
+    """Wait until a zenoh ``session`` is linked to another; the subscriptions declared so far travel
+    with the link, and reach the other side a moment after it (a fixed sleep assumed both)."""
+    deadline = time.monotonic() + timeout
+    while not (list(session.info.peers_zid()) or list(session.info.routers_zid())):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no zenoh link within {timeout} s")
+        time.sleep(0.05)
+    time.sleep(0.5)
+
+
+@pytest.fixture
+def zenoh_linked() -> Callable[..., None]:
+    """:func:`wait_zenoh_link`, for test modules."""
+    return wait_zenoh_link
+
+
 @pytest.fixture
 def fk() -> SimpleNamespace:
     """The fleet helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""

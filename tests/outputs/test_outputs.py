@@ -6,6 +6,7 @@ import asyncio
 import json
 import socket
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -49,7 +50,9 @@ def test_files_output_writes_map_server_files_and_transforms(
     assert out.stats()["written"] == 1
 
 
-def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(room_grid: OccupancyGrid) -> None:
+def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(
+    room_grid: OccupancyGrid, zenoh_linked: Callable[..., None]
+) -> None:
     zenoh = pytest.importorskip("zenoh")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -72,12 +75,7 @@ def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(room_g
                 sub = z.declare_subscriber(
                     global_key("f", "base"), lambda s: got.append(s.payload.to_bytes())
                 )
-                # the subscription goes out with the link to the output's session: wait for the link,
-                # then a moment for the declaration (a blind 1 s sleep assumed the link within it)
-                end = time.monotonic() + 20
-                while not list(z.info.peers_zid()) and time.monotonic() < end:
-                    time.sleep(0.05)
-                time.sleep(0.5)
+                zenoh_linked(z)  # the subscription reaches the output's session
                 out.publish(update(room_grid, 3))
                 end = time.monotonic() + 5
                 while not got and time.monotonic() < end:

@@ -97,8 +97,7 @@ def test_poses_go_on_tf(endpoint: str, rmw_peer: ModuleType, peers: list[Any]) -
     peers.append(peer)
     peer.subscribe("/tf", rmw_peer.TF, transient_local=False, depth=100)
     try:
-        peer.linked()
-        time.sleep(0.5)  # the volatile subscription's declaration reaches the output's session
+        peer.linked()  # the volatile subscription reaches the output's session
         poses = {"robot0": StampedPose(Pose2D(1.5, 2.0, -0.5), 1700000100.0)}
         out.publish_poses(PoseUpdate(poses=poses, frames={"robot0": Pose2D()}))
         got = peer.wait("/tf", lambda r: True).msg.transforms[0]

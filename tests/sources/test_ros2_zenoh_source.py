@@ -7,7 +7,7 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -169,16 +169,15 @@ def test_late_subscriber_gets_the_current_map_then_updates(publisher_session: tu
     assert src._session is None  # closed with the stream
 
 
-def test_sink_attachment_and_liveliness_follow_rmw_zenoh(publisher_session: tuple[Any, str]) -> None:
+def test_sink_attachment_and_liveliness_follow_rmw_zenoh(
+    publisher_session: tuple[Any, str], zenoh_linked: Callable[..., None]
+) -> None:
     session, endpoint = publisher_session
     other = ros2cdr.open_session(mode="peer", connect=[endpoint])
     got: list[Any] = []
     sub = other.declare_subscriber(ros2cdr.key_for("/map", "rmw_zenoh", subscribe=True), got.append)
     sink = Ros2Sink(session, "/map", node="fusion")
-    end = time.monotonic() + 20
-    while not list(other.info.peers_zid()) and time.monotonic() < end:
-        time.sleep(0.05)  # linked first: the subscription travels with the link
-    time.sleep(0.5)
+    zenoh_linked(other)  # the subscription reaches the sink's session
     sink.publish(_grid(3))
     sink.publish(_grid(4))
     deadline = time.time() + 5
