@@ -110,6 +110,7 @@ def test_two_robots_in_range_exchange_every_version(swarm: SimpleNamespace, tmp_
     assert row["stale_p95_s"] < 30.0
     assert row["deltas"] > 0  # lossless sends deltas against the acked version
     assert row["collided"] == 0  # TDMA: one robot per slot
+    assert row["hears_all"] == row["robot_hears_all"] == 1.0
 
 
 def test_a_robot_out_of_range_never_receives_without_relay(swarm: SimpleNamespace, tmp_path: Path) -> None:
@@ -121,6 +122,7 @@ def test_a_robot_out_of_range_never_receives_without_relay(swarm: SimpleNamespac
     assert row["converge_s"] == math.inf
     assert row["stale_max_s"] > 85.0  # robot 2's first version, made within 5 s of the start, never received
     assert row["never_in_range"] == pytest.approx(4 / 6)
+    assert row["hears_all"] == row["robot_hears_all"] == 0.0  # robot 2 hears nobody, nobody hears it
     assert row["stale_p95_reach_s"] < 30.0  # the two robots in range keep up with each other
 
 
@@ -141,6 +143,8 @@ def test_summary_relay_carries_every_version_over_two_hops(
     fleet = swarm.fleet([(0.0, 0.0), (40.0, 0.0), (80.0, 0.0)])
     row = _run(fleet, tmp_path, range_m=50.0, relay=relay, acks="up", drain=200.0)
     got = {(a[1], a[2]): a[3] for a in row["accepted_log"]}  # newest version accepted per pair
+    assert row["hears_all"] == 0.0  # robots 0 and 2 never hear each other...
+    assert row["robot_hears_all"] == pytest.approx(1 / 3)  # ...while robot 1 always hears both
     if relay == "none":
         assert (2, 0) not in got and (0, 2) not in got
         assert row["converge_s"] == math.inf

@@ -139,6 +139,7 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
         "messages_delivered": sum(rb.arq.counters.messages_delivered for rb in res.robots),
         "hears_all": res.hears_all_share,
+        "robot_hears_all": res.robot_hears_all_share,
         "degree": res.mean_degree,
         "sim_s": res.end,
         "wall_s": res.wall_s,

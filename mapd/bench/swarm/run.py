@@ -40,6 +40,7 @@ COLUMNS = [
     ("collided", "collided", ""),
     ("lost", "lost", ""),
     ("degree", "hears", ".1f"),
+    ("robot_hears_all", "hears all", ".1%"),
     ("versions", "versions", ""),
     ("keyframes", "keyframes", ""),
     ("deltas", "deltas", ""),

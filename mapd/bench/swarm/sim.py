@@ -122,6 +122,9 @@ class SwarmResult:
     wall_s: float
     events: int
     hears_all_share: float  # share of link updates in which every robot heard every other
+    #: share of (link update, robot) in which the robot heard every other: issue #22's building is
+    #: one where no robot hears all others, so this is 0 there
+    robot_hears_all_share: float
     mean_degree: float  # mean number of robots each robot hears, over link updates
     ever_heard: np.ndarray  # (N, N) bool: holder ever in range of origin during the run
     extra: dict[str, Any] = field(default_factory=dict)
@@ -173,6 +176,7 @@ class Swarm:
         self._pairs = sum(1 for h in range(n) for o in range(n) if h != o and self._final[o] > 0)
         self._links_seen = 0
         self._links_full = 0
+        self._robot_full = 0.0
         self._degree = 0.0
         self._ever = np.zeros((n, n), dtype=bool)
 
@@ -208,6 +212,7 @@ class Swarm:
             n=self.n, config=self.cfg, made=self.made, accepted=self.accepted, radio=self.radio,
             robots=self.robots, end=reached, wall_s=time.perf_counter() - t0, events=loop.dispatched,
             hears_all_share=self._links_full / max(1, self._links_seen),
+            robot_hears_all_share=self._robot_full / max(1, self._links_seen),
             mean_degree=self._degree / max(1, self._links_seen),
             ever_heard=self._ever,
         )  # fmt: skip
@@ -280,5 +285,6 @@ class Swarm:
         self._ever |= hears.T  # [holder, origin]: the holder hears the origin
         deg = hears.sum(axis=1)
         self._degree += float(deg.mean())
+        self._robot_full += float((deg >= self.n - 1).mean())
         if bool((deg >= self.n - 1).all()):
             self._links_full += 1
