@@ -290,6 +290,56 @@ def test_several_seeds_give_a_row_each_and_their_mean(
         assert mean[k] == pytest.approx((a[k] + b[k]) / 2)
 
 
+def test_a_range_sweep_gives_rows_per_range_and_a_plot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    png = tmp_path / "sweep.png"
+    argv = ["bench", "swarm", "--robots", "3", "--duration", "60", "--drain", "30", "--wall-loss", "0.1"]
+    argv += ["--range", "inf", "6", "--seed", "0", "1", "--bound", "--plot", str(png), "--target", "2"]
+    assert main([*argv, "--cache", str(tmp_path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    rows = out["rows"]
+    assert [(r["range_m"], r["seed"]) for r in rows] == [
+        ("inf", 0), ("inf", 1), ("inf", "mean"), (6.0, 0), (6.0, 1), (6.0, "mean"),
+    ]  # fmt: skip
+    for i in (0, 3):  # each range's mean is of its own seeds
+        a, b, mean = rows[i : i + 3]
+        assert mean["accepted"] == pytest.approx((a["accepted"] + b["accepted"]) / 2)
+    assert rows[0]["degree"] == 2.0 and rows[3]["degree"] < 2.0  # 6 m apart, some do not hear others
+    assert {(b["range_m"], b["senders"]) for b in out["bound"]} == {
+        (r, m) for r in ("inf", 6.0) for m in ("turns", "one", "reuse", "reach")
+    }
+    assert out["range_m"] == ["inf", 6.0]
+    from PIL import Image
+
+    img = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    assert img.shape == (495, 880, 3)
+
+    def pixels(colour: str) -> int:
+        rgb = np.array([int(colour[i : i + 2], 16) for i in (1, 3, 5)])
+        return int((np.abs(img - rgb).sum(axis=2) < 30).sum())
+
+    assert pixels("#1f77b4") > 100  # the real protocol's line
+    assert pixels("#ff7f0e") > 20  # the bound's one sender at a time
+
+
+def test_a_range_of_zero_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "swarm", "--robots", "2", "--range", "30", "0", "--cache", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["mapd: error: --range 30 0: each must be above 0 m"]
+
+
+def test_a_plot_that_cannot_be_written_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "file").write_text("")
+    png = tmp_path / "file" / "sweep.png"  # under a file: no folder can be made there
+    argv = ["bench", "swarm", "--robots", "2", "--duration", "30", "--drain", "30", "--plot", str(png)]
+    assert main([*argv, "--cache", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"mapd: error: {png}: cannot write the plot")  # before any run
+
+
 def test_log_slices_make_streams_with_poses(intel_log: Path, tmp_path: Path) -> None:
     fleet = load_fleet(cache=tmp_path, n=3, period=30.0, duration=90.0, log=intel_log)
     assert len(fleet.robots) == 3 and fleet.building is not None

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 
 COLUMNS = [
     ("robots", "robots", ""),
+    ("range_m", "range m", "g"),
     ("seed", "seed", ""),
     ("codec", "codec", ""),
     ("mac", "mac", ""),
@@ -52,6 +53,7 @@ COLUMNS = [
 #: The bound's table (``--bound``): the same staleness figures, and how the scheduler used the slots.
 BOUND_COLUMNS = [
     ("robots", "robots", ""),
+    ("range_m", "range m", "g"),
     ("seed", "seed", ""),
     ("codec", "codec", ""),
     ("senders", "senders", ""),
@@ -122,8 +124,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--range",
         dest="range_m",
         type=float,
-        default=math.inf,
-        help="radio range in m of line-of-sight distance (default: all in range)",
+        nargs="+",
+        default=[math.inf],
+        help="radio range in m of line-of-sight distance; several: a run each (default: all in range)",
     )
     p.add_argument("--wall-loss", type=float, default=0.0, help="extra loss per wall crossed (default 0)")
     p.add_argument(
@@ -220,6 +223,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(a few pairs decide a small fleet's p95, so one seed's figure is noisy)",
     )
     p.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="PNG",
+        help="also draw p95 staleness against range (several --range) or fleet size, beside the "
+        "bound's schedules (--bound)",
+    )
+    p.add_argument(
+        "--target",
+        type=float,
+        default=None,
+        metavar="PERIODS",
+        help="with --plot: the goal, as a horizontal line",
+    )
+    p.add_argument(
         "--cache",
         type=Path,
         default=Path("out/swarm-cache"),
@@ -232,10 +250,17 @@ def run(args: argparse.Namespace) -> int:
     from mapd.bench.swarm.sim import Swarm, SwarmConfig
     from mapd.bench.swarm.streams import Payloads, load_fleet
     from mapd.codec.api import warm_up
-    from mapd.errors import SourceError
+    from mapd.errors import ConfigError, SourceError
 
     if args.log is not None and not args.log.exists():
         raise SourceError(f"{args.log}: no such log file")
+    if args.plot is not None:  # before the runs, which may take an hour, not after
+        try:
+            args.plot.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"{args.plot}: cannot write the plot: {exc.strerror or exc}") from None
+    if not all(r > 0 for r in args.range_m):
+        raise SourceError(f"--range {' '.join(f'{r:g}' for r in args.range_m)}: each must be above 0 m")
     if args.keyframe_every is not None and args.keyframe_every < 1:
         raise SourceError(f"--keyframe-every {args.keyframe_every}: must be 1 or more")
     sim_seed = 7 if args.sim is None and args.log is None else args.sim
@@ -257,7 +282,8 @@ def run(args: argparse.Namespace) -> int:
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
             combos = [
-                (m, a, le, f, h, ar, sd)
+                (rg, m, a, le, f, h, ar, sd)
+                for rg in dict.fromkeys(args.range_m)
                 for m in args.mac
                 for a in dict.fromkeys(args.ack_mode)
                 for le in args.lend
@@ -266,10 +292,10 @@ def run(args: argparse.Namespace) -> int:
                 for ar in dict.fromkeys(args.arrival)
                 for sd in dict.fromkeys(args.seed)
             ]
-            for mac, ack_mode, lend, fec, hold, arrival, seed in combos:
+            for range_m, mac, ack_mode, lend, fec, hold, arrival, seed in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
-                    rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=args.range_m,
+                    rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=range_m,
                     mac=mac, signed=not args.unsigned, seed=seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
@@ -281,6 +307,7 @@ def run(args: argparse.Namespace) -> int:
                 row = summarize(res)
                 row["coded_share"] = row["coded_bps_per_robot"] * n / args.rate
                 row["source"] = fleet.source
+                row["range_m"] = range_m
                 row["ack_mode"] = ack_mode
                 row["lend"] = lend
                 row["fec"] = fec
@@ -290,13 +317,13 @@ def run(args: argparse.Namespace) -> int:
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 rows.append(row)
                 print(
-                    f"swarm: {n} robots, {codec}, {mac}, acks {ack_mode}, lend {lend}, fec {fec}, hold {hold}, "
-                    f"arrival {arrival}, seed {seed}: "
+                    f"swarm: {n} robots, range {range_m:g} m, {codec}, {mac}, acks {ack_mode}, lend {lend}, "
+                    f"fec {fec}, hold {hold}, arrival {arrival}, seed {seed}: "
                     f"{res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-                if args.bound and (mac, ack_mode, lend, fec, hold, arrival) == combos[0][:6]:
+                if args.bound and (mac, ack_mode, lend, fec, hold, arrival) == combos[0][1:7]:
                     bounds += _bounds(fleet, payloads, cfg)  # the bound ignores the publisher's settings
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
@@ -308,7 +335,7 @@ def run(args: argparse.Namespace) -> int:
         r["p95_x_smallest"] = r["stale_p95_s"] / b["stale_p95_s"] if b and b["stale_p95_s"] > 0 else math.nan
     if len(set(args.seed)) > 1:
         rows = with_means(rows, ("robots", *_SETTINGS))
-        bounds = with_means(bounds, ("robots", "codec", "senders"))
+        bounds = with_means(bounds, ("robots", "codec", "range_m", "senders"))
     info = {
         "source": rows[0]["source"] if rows else "",
         "period_s": args.period,
@@ -316,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
         "drain_s": args.drain,
         "rate_bps": args.rate,
         "loss": args.loss,
-        "range_m": args.range_m,
+        "range_m": args.range_m[0] if len(args.range_m) == 1 else list(args.range_m),
         "wall_loss": args.wall_loss,
         "signed": not args.unsigned,
         "relay": args.relay,
@@ -327,11 +354,20 @@ def run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t_all,
     }
     emit({**info, "rows": rows, "bound": bounds}, args.json, lambda: _text(info, rows, bounds))
+    if args.plot is not None and rows:
+        from mapd.bench.swarm.plot import plot
+
+        title = (
+            f"{info['source']}: {', '.join(map(str, args.robots))} robots, a version every "
+            f"{args.period:g} s, {args.rate:g} bit/s, {args.wall_loss:g} loss per wall"
+        )
+        plot(args.plot, rows, bounds, settings=_SETTINGS, title=title, target=args.target)
+        print(f"swarm: plot written to {args.plot}", file=sys.stderr)
     return 0
 
 
 #: What sets a row apart, besides its fleet size and seed.
-_SETTINGS = ("codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival")
+_SETTINGS = ("range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival")
 
 
 def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
@@ -358,17 +394,15 @@ def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str
     out = []
     for mode in MODES:
         res = Bound(fleet, payloads, cfg, mode).run()
-        out.append({**summarize_bound(res, cfg), "seed": cfg.seed})
+        out.append({**summarize_bound(res, cfg), "range_m": cfg.range_m, "seed": cfg.seed})
         print(f"swarm: bound, {res.n} robots, {cfg.codec}, {mode}: {res.wall_s:.1f} s", file=sys.stderr)
     return out
 
 
 def _text(info: dict[str, Any], rows: list[dict[str, Any]], bounds: list[dict[str, Any]]) -> str:
-    rng = (
-        "all in range"
-        if math.isinf(info["range_m"])
-        else f"range {info['range_m']:g} m, {info['wall_loss']:g} loss per wall"
-    )
+    ranges = info["range_m"] if isinstance(info["range_m"], list) else [info["range_m"]]
+    rng = ", ".join("all in range" if math.isinf(r) else f"range {r:g} m" for r in ranges)
+    rng += f", {info['wall_loss']:g} loss per wall"
     head = (
         f"{info['source']}: a version every {info['period_s']:g} s for {info['duration_s']:g} s, "
         f"{info['rate_bps']:g} bit/s shared, {rng}, frame loss {info['loss']:g}, "
