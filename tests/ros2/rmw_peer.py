@@ -229,16 +229,6 @@ class RmwPeer:
                 return tokens
             time.sleep(0.1)
 
-    def linked(self, timeout: float = 20.0) -> None:
-        """Wait until this session is linked to another: declarations made so far travel with the
-        link, and reach the other side a moment after it."""
-        end = time.monotonic() + timeout
-        while not (list(self.session.info.peers_zid()) or list(self.session.info.routers_zid())):
-            if time.monotonic() > end:
-                raise AssertionError(f"no zenoh link within {timeout} s")
-            time.sleep(0.05)
-        time.sleep(0.5)
-
     def received(self, topic: str) -> list[Received]:
         with self.lock:
             return list(self.got.get(topic, []))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
@@ -91,13 +92,15 @@ def test_late_subscriber_gets_the_current_map_and_frames(
         asyncio.run(out.close())
 
 
-def test_poses_go_on_tf(endpoint: str, rmw_peer: ModuleType, peers: list[Any]) -> None:
+def test_poses_go_on_tf(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any], zenoh_linked: Callable[..., None]
+) -> None:
     out = _output(endpoint)
     peer = rmw_peer.RmwPeer(endpoint)
     peers.append(peer)
     peer.subscribe("/tf", rmw_peer.TF, transient_local=False, depth=100)
     try:
-        peer.linked()  # the volatile subscription reaches the output's session
+        zenoh_linked(peer.session)  # the volatile subscription reaches the output's session
         poses = {"robot0": StampedPose(Pose2D(1.5, 2.0, -0.5), 1700000100.0)}
         out.publish_poses(PoseUpdate(poses=poses, frames={"robot0": Pose2D()}))
         got = peer.wait("/tf", lambda r: True).msg.transforms[0]

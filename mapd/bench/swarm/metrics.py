@@ -130,7 +130,7 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "relayed": sum(rb.relayed for rb in res.robots),  # relays started (flood or summary)
         "summaries": sum(rb.summaries for rb in res.robots),
         # how much a robot learns of what its neighbours hold: one received per neighbour per
-        # summary queued at best (README, issue #22: at 16 robots in the building, about a twentieth)
+        # summary queued at best (docs/swarm.md, issue #22: at 16 robots in the building, about a twentieth)
         "summaries_rx": sum(rb.summaries_rx for rb in res.robots),
         # chunks sent, parity and resends among them
         "data_frames": sum(rb.arq.counters.data_tx for rb in res.robots),
