@@ -138,6 +138,14 @@ class Roster:
     def __contains__(self, robot: object) -> bool:
         return robot in self._keys
 
+    def adopt(self, other: Roster) -> None:
+        """Take ``other``'s keys (a config reload), keeping this roster's rule for unsigned messages.
+
+        Every holder of this object verifies with the new keys from its next call on. The dict is
+        swapped whole, so a verification on a worker thread sees the old keys or the new, never a mix.
+        """
+        self._keys = dict(other._keys)
+
     @property
     def robots(self) -> list[str]:
         return sorted(self._keys)

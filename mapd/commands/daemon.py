@@ -171,6 +171,13 @@ def render_status(s: dict[str, Any]) -> str:
         out.append(f"trust   signed; roster: {', '.join(sec.get('roster') or []) or '-'}")
     else:
         out.append("trust   UNSIGNED (fleet.allow_unsigned = true): anyone can write as any robot")
+    rl = s.get("reload") or {}
+    if rl.get("count"):
+        at = rl.get("last_at")
+        ago = _age(time.time() - at) if isinstance(at, int | float) else "-"
+        out.append(
+            f"reload  {rl['count']} ({rl.get('refused', 0)} refused); last {ago} ago: {rl.get('last')}"
+        )
     size = src.get("size") or ["-", "-"]
     done = ", finished" if src.get("finished") else ""
     out.append(

@@ -38,6 +38,8 @@ from mapd.daemon.inbound import Inbound
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import Receiver
+from mapd.daemon.reload import Reloads
+from mapd.daemon.reload import read as read_reload
 from mapd.daemon.sinks import Sinks, placed_frames
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
@@ -85,6 +87,8 @@ class Daemon:
         self.own: OccupancyGrid | None = None
         self.transports: list[Transport] = []
         self._stop = asyncio.Event()
+        self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
+        self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
         self._wake = asyncio.Event()  # the publisher has something to look at
         self._pending: OccupancyGrid | None = None  # newest own version, not yet saved
@@ -175,6 +179,37 @@ class Daemon:
     def request_stop(self) -> None:
         self._stop.set()
 
+    def request_reload(self) -> None:
+        """SIGHUP: read the config again and take its roster (:mod:`mapd.daemon.reload`)."""
+        self._reload.set()
+
+    async def reload(self) -> bool:
+        """Read the config file again (on a worker) and apply its roster; False when refused."""
+        notify(f"RELOADING=1\nMONOTONIC_USEC={time.monotonic_ns() // 1000}")
+        try:
+            new, keys, plan = await asyncio.to_thread(read_reload, self.reloads.config, self.keys)
+        except MapdError as exc:
+            log.error("reload %s", self.reloads.failed(str(exc)))
+            ok = False
+        else:
+            self.keys.roster.adopt(keys.roster)
+            said = self.reloads.applied(new, plan)
+            (log.warning if plan.restart else log.info)("reloaded: %s", said)
+            # A robot just admitted (or re-keyed) had its maps refused so far: ask for its newest
+            # now rather than wait for its next offer to time out.
+            for robot in plan.added + plan.rekeyed:
+                for t in self.transports:
+                    await t.request_keyframe(robot)
+            ok = True
+        notify("READY=1\nSTATUS=running")
+        return ok
+
+    async def _reload_loop(self) -> None:
+        while True:
+            await self._reload.wait()
+            self._reload.clear()  # signals during a reload fold into one more
+            await self.reload()
+
     async def run(self) -> None:
         """Start everything, run until asked to stop, then shut down within the timeout."""
         await self._restore()
@@ -258,6 +293,7 @@ class Daemon:
                 tg.create_task(self._watchdog(), name="watchdog"),
                 tg.create_task(self._record_links(), name="record"),
                 tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
+                tg.create_task(self._reload_loop(), name="reload"),
             ]
             await self._stop.wait()
             self._stopping_at = time.monotonic()
@@ -498,12 +534,14 @@ class Daemon:
                 "roster": self.keys.roster.robots,
                 "link_key": self.keys.link_key is not None,
             },
+            "reload": self.reloads.status(),
             "state_dir": str(self.cfg.state.dir),
         }
 
 
 def run_daemon(cfg: configmod.MapdConfig) -> int:
-    """Run the daemon with signal handling: SIGTERM/SIGINT drain, a second SIGINT forces exit."""
+    """Run the daemon with signal handling: SIGTERM/SIGINT drain, a second SIGINT forces exit, SIGHUP
+    reloads the roster."""
 
     async def main() -> None:
         daemon = Daemon(cfg)
@@ -518,6 +556,7 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
             daemon.request_stop()
 
         loop.add_signal_handler(signal.SIGTERM, daemon.request_stop)
+        loop.add_signal_handler(signal.SIGHUP, daemon.request_reload)
         loop.add_signal_handler(signal.SIGINT, on_sigint)
         await daemon.run()
 

@@ -176,8 +176,11 @@ class ZenohCore:
         A token alone is not enough: anyone on the network can declare one, and the daemon waits
         for acks from every peer listed here. A fleet that allows unsigned messages lists every token.
         """
+        # A robot a reloaded roster no longer admits is no peer: its acks cannot verify any more.
         return sorted(
-            r for r, st in self._robots.items() if st.alive and (st.verified or self.roster.allow_unsigned)
+            r
+            for r, st in self._robots.items()
+            if st.alive and self.roster.admits(r) and (st.verified or self.roster.allow_unsigned)
         )
 
     def last_version(self, robot: str) -> int:

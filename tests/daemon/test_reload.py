@@ -1,0 +1,203 @@
+"""``systemctl reload mapd`` (SIGHUP): the roster comes from the config again; the rest waits for a restart."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from mapd import config as configmod
+from mapd.commands.daemon import render_status
+from mapd.daemon import reload
+from mapd.daemon.server import Daemon
+from mapd.errors import ConfigError
+from mapd.identity import Identity
+
+
+def _drop_roster_line(path: Path, robot: str) -> None:
+    text = path.read_text()
+    kept = re.sub(rf'^{robot} = "ed25519:[^"]*"\n?', "", text, flags=re.M)
+    assert kept != text, f"no roster line for {robot}"
+    path.write_text(kept)
+
+
+def _virtual(dk: SimpleNamespace, tmp_path: Path, robot: str, channel: str, codec: str = "lossless") -> Path:
+    return dk.write_config(  # type: ignore[no-any-return]
+        tmp_path,
+        robot,
+        codec=codec,
+        extra='[transports]\nuse = ["virtual"]\n',
+        **{"transports.virtual": f'channel = "{channel}"'},
+    )
+
+
+def test_plan_names_roster_changes_and_what_needs_a_restart(tmp_path: Path, dk: SimpleNamespace) -> None:
+    path = _virtual(dk, tmp_path, "robot0", "c")
+    running = configmod.load(path)
+    _drop_roster_line(path, "robot1")
+    text = path.read_text().replace('use = "lossless"', 'use = "zstd"')
+    other = Identity.generate("robot2").public_text
+    text = re.sub(r'^robot2 = "[^"]*"', f'robot2 = "{other}"', text, flags=re.M)
+    added = f'robot9 = "{Identity.generate("robot9").public_text}"'
+    path.write_text(text.replace("[fleet.roster]\n", f"[fleet.roster]\n{added}\n"))
+    p = reload.plan(running, configmod.load(path))
+    assert (p.added, p.removed, p.rekeyed) == (["robot9"], ["robot1"], ["robot2"])
+    assert p.restart == ["codec.use"]
+    said = p.summary()
+    assert "added robot9" in said and "removed robot1" in said and "new key for robot2" in said
+    assert "needs a restart to take effect: codec.use" in said
+
+
+def test_read_says_when_the_keys_behind_the_same_paths_changed(tmp_path: Path, dk: SimpleNamespace) -> None:
+    path = _virtual(dk, tmp_path, "robot0", "c")
+    running = configmod.load(path)
+    keys = configmod.check(running).keys
+    _, new_keys, p = reload.read(running, keys)
+    assert not p.roster_changed and p.restart == [] and new_keys.roster.robots == keys.roster.robots
+    # robot0 got a new key file in place (and its roster line with it): that is a restart's job
+    me = Identity.generate("robot0")
+    (tmp_path / "keys" / "robot0.key").unlink()
+    me.write(tmp_path / "keys" / "robot0.key")
+    path.write_text(
+        re.sub(r'^robot0 = "[^"]*"', f'robot0 = "{me.public_text}"', path.read_text(), flags=re.M)
+    )
+    _, _, p = reload.read(running, keys)
+    assert p.rekeyed == ["robot0"] and p.restart == ["robot.key_file (the key in it changed)"]
+    # a roster key that does not parse: the whole file is refused, in one line naming the key
+    path.write_text(path.read_text().replace("[fleet.roster]\n", '[fleet.roster]\nrobot9 = "x"\n'))
+    with pytest.raises(ConfigError, match=r"fleet\.roster\.robot9") as err:
+        reload.read(running, keys)
+    assert "\n" not in str(err.value)
+
+
+def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken_file(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    channel = dk.channel()
+    path0 = _virtual(dk, tmp_path, "robot0", channel)
+    _drop_roster_line(path0, "robot2")  # robot2 joins the fleet later
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    d2, s2 = dk.virtual_daemon(tmp_path, "robot2", channel)
+    # robot0 never acks robot2's refused map: robot2's offer then waits out its in-flight time
+    # (at least 5 s a peer) before its next version goes
+    d2.publisher.inflight_timeout_s = 1.0
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d in (d0, d2)]
+        try:
+            await dk.wait_for(
+                lambda: bool(d2.transports) and d2.transports[0].peers() == ["robot0"], what="up"
+            )
+            await s2.queue.put(dk.growing_map(1).replace(robot="robot2"))
+            # not on robot0's roster: refused, however often it comes
+            await dk.wait_for(lambda: d0.receiver.counters.bad_signature >= 1, what="robot2 refused")
+            assert "robot2" not in d0.receiver.maps
+
+            _virtual(dk, tmp_path, "robot0", channel)  # the same config, robot2 on its roster now
+            assert await d0.reload()
+            st = d0.snapshot()
+            assert "robot2" in st["security"]["roster"]
+            assert st["reload"]["count"] == 1 and st["reload"]["last_ok"] is True
+            assert st["reload"]["last"] == "roster: added robot2"
+            await s2.queue.put(dk.growing_map(2).replace(robot="robot2"))
+            await dk.wait_for(lambda: "robot2" in d0.receiver.maps, 20, what="robot2 admitted")
+
+            # robot2's key is revoked, and the codec changed too: the roster is taken, the codec waits
+            path0.write_text(path0.read_text().replace('use = "lossless"', 'use = "zstd"'))
+            _drop_roster_line(path0, "robot2")
+            assert await d0.reload()
+            assert "robot2" not in d0.keys.roster and d0.cfg.codec.use == "lossless"
+            assert d0.snapshot()["reload"]["last"] == (
+                "roster: removed robot2; needs a restart to take effect: codec.use"
+            )
+            refused = d0.receiver.counters.bad_signature
+            held = d0.receiver.maps["robot2"].version
+            await s2.queue.put(dk.growing_map(3).replace(robot="robot2"))
+            await dk.wait_for(lambda: d0.receiver.counters.bad_signature > refused, 20, what="revoked")
+            assert d0.receiver.maps["robot2"].version == held
+
+            path0.write_text("[robot\nname = ")  # a half-written file: refused whole
+            assert not await d0.reload()
+            st = d0.snapshot()
+            assert st["reload"]["refused"] == 1 and st["reload"]["last_ok"] is False
+            assert st["reload"]["last"].startswith("refused, still running on the previous config: ")
+            assert str(path0) in st["reload"]["last"] and "\n" not in st["reload"]["last"]
+            assert st["security"]["roster"] == ["robot0", "robot1"]
+            assert "reload  3 (1 refused)" in render_status(st)
+        finally:
+            for d in (d0, d2):
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+
+
+@pytest.mark.slow
+def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path, fk: SimpleNamespace) -> None:
+    import argparse
+
+    from mapd.demo.fleet import Fleet
+
+    f = Fleet(
+        argparse.Namespace(
+            robots=2, transport="zenoh", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
+        )
+    )
+    f.prepare()
+    cfg0 = f.run_dir / "robot0" / "config.toml"
+    original = cfg0.read_text()
+    f.start()
+
+    def zenoh0(s: dict[str, dict[str, object]]) -> dict[str, object]:
+        return s["robot0"]["links"]["zenoh"]  # type: ignore[index,return-value]
+
+    try:
+        fk.wait_for(lambda s: len(s) == 2 and fk.held(s, "robot0", "robot1") >= 2, 90, f)
+        _drop_roster_line(cfg0, "robot1")
+        f.procs["robot0"].send_signal(signal.SIGHUP)
+        snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 1, 30, f)
+        assert snaps["robot0"]["security"]["roster"] == ["robot0"]
+        assert snaps["robot0"]["reload"]["last"] == "roster: removed robot1"
+        refused = zenoh0(snaps)["bad_signature"]
+        # robot1's next maps are refused by the running daemon, which does not restart
+        snaps = fk.wait_for(lambda s: zenoh0(s)["bad_signature"] > refused, 60, f)
+        assert snaps["robot0"]["pid"] == f.procs["robot0"].pid
+
+        cfg0.write_text(original)
+        f.procs["robot0"].send_signal(signal.SIGHUP)
+        snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 2, 30, f)
+        held = fk.held(snaps, "robot0", "robot1")
+        fk.wait_for(lambda s: fk.held(s, "robot0", "robot1") > held, 60, f)  # admitted again
+
+        cfg0.write_text(original.replace("[robot]", "[robot"))
+        f.procs["robot0"].send_signal(signal.SIGHUP)
+        snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 3, 30, f)
+        assert snaps["robot0"]["reload"]["refused"] == 1
+        out = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mapd",
+                "status",
+                "--json",
+                "--socket",
+                str(f.run_dir / "robot0" / "run" / "mapd.sock"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert json.loads(out.stdout)["security"]["roster"] == ["robot0", "robot1"]
+    finally:
+        codes = f.stop(timeout=10)
+    assert codes == {"robot0": 0, "robot1": 0}
+    log = (f.run_dir / "robot0" / "daemon.log").read_text()
+    refusals = [ln for ln in log.splitlines() if "reload refused" in ln]
+    assert len(refusals) == 1 and str(cfg0) in refusals[0] and "Traceback" not in log
