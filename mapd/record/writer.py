@@ -24,6 +24,8 @@ import threading
 from pathlib import Path
 from typing import IO, Any
 
+import yaml
+
 from mapd.errors import ConfigError
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -37,7 +39,40 @@ LINKS_SCHEMA = {
 
 
 def _ns(wall: float) -> int:
-    return round(wall * 1e9)
+    # From the header stamp's own (sec, nanosec) split: ``round(wall * 1e9)`` rounds the float
+    # product, which for today's epoch is off by up to ~128 ns from the stamp inside the message.
+    from mapd.ros2.cdr import split_stamp
+
+    sec, nanosec = split_stamp(wall)
+    return sec * 1_000_000_000 + nanosec
+
+
+# rosbag2's encoding of RMW_DURATION_INFINITE (``rosbag2_storage/qos.cpp``).
+_INFINITE = {"sec": 9223372036, "nsec": 854775807}
+
+
+def offered_qos_profiles(latched: bool) -> str:
+    """The ``offered_qos_profiles`` channel metadata the MCAP ``ros2`` profile requires, as rosbag2
+    writes it (one profile, rmw/types.h enum values, which every rosbag2 since Humble reads), for the
+    QoS the ``ros2`` output publishes with: maps and ``/tf_static`` reliable, transient local, keep
+    last 1 (so ``ros2 bag play`` latches them again); ``/tf`` reliable, volatile, keep last 100.
+    """
+    from mapd.ros2 import rmw
+
+    qos = rmw.LATCHED if latched else rmw.TF_QOS
+    profile = {
+        "history": qos.history,
+        "depth": qos.depth,
+        "reliability": qos.reliability,
+        "durability": qos.durability,
+        # copies: one shared dict would be dumped as a YAML anchor and aliases
+        "deadline": dict(_INFINITE),
+        "lifespan": dict(_INFINITE),
+        "liveliness": 1,  # RMW_QOS_POLICY_LIVELINESS_AUTOMATIC
+        "liveliness_lease_duration": dict(_INFINITE),
+        "avoid_ros_namespace_conventions": False,
+    }
+    return yaml.safe_dump([profile], sort_keys=False)
 
 
 class Recorder:
@@ -103,7 +138,13 @@ class Recorder:
             self._close()
 
     def _channel(
-        self, topic: str, schema: str, encoding: str, schema_data: bytes, schema_encoding: str
+        self,
+        topic: str,
+        schema: str,
+        encoding: str,
+        schema_data: bytes,
+        schema_encoding: str,
+        metadata: dict[str, str] | None = None,
     ) -> int:
         writer = self._writer if self._writer is not None else self._open()
         if schema not in self._schemas:
@@ -112,13 +153,17 @@ class Recorder:
             )
         if topic not in self._channels:
             self._channels[topic] = writer.register_channel(
-                topic=topic, message_encoding=encoding, schema_id=self._schemas[schema]
+                topic=topic,
+                message_encoding=encoding,
+                schema_id=self._schemas[schema],
+                metadata=metadata or {},
             )
         return self._channels[topic]
 
     def _ros2_channel(self, topic: str, msgtype: str) -> int:
         msgdef, _ = self._ts.generate_msgdef(msgtype, ros_version=2)
-        return self._channel(topic, msgtype, "cdr", msgdef.encode(), "ros2msg")
+        qos = {"offered_qos_profiles": offered_qos_profiles(latched=topic != "/tf")}
+        return self._channel(topic, msgtype, "cdr", msgdef.encode(), "ros2msg", qos)
 
     def _write(self, channel: int, data: bytes, wall: float) -> None:
         assert self._writer is not None and self._file is not None

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapd.grid import OCCUPIED
+from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D
 from mapd.view.tiles import PALETTE
 
 FREE_RGB, OCC_RGB, UNK_RGB = PALETTE[0], PALETTE[1], PALETTE[2]
@@ -101,6 +101,63 @@ def test_browser_draws_the_fleet_map_robots_and_a_live_update(
             assert near(await pixel_at(b, shot, 7.5, 1.5), OCC_RGB), "the new block is not drawn"
             assert near(await pixel_at(b, shot, 5.5, 4.5), OCC_RGB)  # the rest is still there
             assert await b.eval("mapdView.loadedAt") == loaded_at  # the same page: no reload
+
+    asyncio.run(main())
+
+
+async def _drag(b: Any, start: tuple[int, int], end: tuple[int, int]) -> None:
+    """A real mouse drag on the page (the pointer events a user's hand makes)."""
+    await b.send(
+        "Input.dispatchMouseEvent", type="mousePressed", x=start[0], y=start[1], button="left", clickCount=1
+    )
+    for k in range(1, 6):
+        x = start[0] + (end[0] - start[0]) * k // 5
+        y = start[1] + (end[1] - start[1]) * k // 5
+        await b.send("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y, button="left", buttons=1)
+    await b.send(
+        "Input.dispatchMouseEvent", type="mouseReleased", x=end[0], y=end[1], button="left", clickCount=1
+    )
+
+
+@pytest.mark.slow
+def test_a_panned_view_stays_put_when_the_map_grows_toward_minus_y(
+    chromium: str, map_fleet: Any, vk: Any, tmp_path: Path
+) -> None:
+    """Once the user has panned, a map growing downward (toward -y) must not move what is under the
+    cursor: the page shifts its view by the growth, with the sign REP-103's y-up asks for."""
+    map_fleet.wait_merged()
+    url = f"http://127.0.0.1:{map_fleet.view_port}/"
+    block = (5.5, 4.5)  # the middle of robot0's occupied block (conftest.BLOCKS), fleet frame
+
+    async def main() -> None:
+        async with vk.Browser(chromium, tmp_path) as b:
+            await b.goto(url)
+            await b.wait(DRAWN, 60, "the map drawn with both robots' outlines")
+            await _drag(b, (400, 300), (460, 340))
+            assert await b.eval("mapdView.view.moved") is True
+            at = await b.eval(f"mapdView.toScreen({block[0]}, {block[1]})")
+            oy = await b.eval("mapdView.geometry.origin[1]")
+            seq = await b.eval("mapdView.seq")
+            await asyncio.sleep(0.5)
+            _, shot = await b.screenshot()
+            assert near(shot[round(at[1]), round(at[0])], OCC_RGB)
+
+            # robot0 explores 6 m further toward -y, beyond the global map's margin: 120 free rows
+            # below its map (row 0 is the lowest y)
+            room = vk.box_map("robot0", vk.BLOCKS["robot0"])
+            grown = np.vstack([np.zeros((120, room.width), np.int8), room.data])
+            map_fleet.write_map("robot0", OccupancyGrid(grown, room.resolution, Pose2D(-1.0, -7.0, 0.0)))
+            await b.wait(
+                f"mapdView.seq > {seq} && mapdView.geometry.origin[1] < {oy} - 1.5 && "
+                "mapdView.drawnSeq === mapdView.seq",
+                60,
+                "the grown map drawn",
+            )
+            await asyncio.sleep(0.5)
+            _, shot = await b.screenshot()
+            after = await b.eval(f"mapdView.toScreen({block[0]}, {block[1]})")
+            assert after == pytest.approx(at, abs=0.5)
+            assert near(shot[round(at[1]), round(at[0])], OCC_RGB), "the block moved on the screen"
 
     asyncio.run(main())
 

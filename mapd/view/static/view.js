@@ -142,9 +142,11 @@
       st.tileSeq.clear();
       st.pending = 0;
       if (old && st.view.moved) {
-        // keep the same fleet point under the same screen point when the map grows
+        // keep the same fleet point under the same screen point when the map grows: a point's
+        // pixel column (x - ox) / res shifts by -dox / res, but its row height - (y - oy) / res
+        // (row 0 is the top) shifts by dheight + doy / res, so the view moves the opposite way
         const dx = (g.origin[0] - old.origin[0]) / g.resolution;
-        const dy = (old.height - g.height) + (g.origin[1] - old.origin[1]) / g.resolution;
+        const dy = (old.height - g.height) + (old.origin[1] - g.origin[1]) / g.resolution;
         st.view.x += dx * st.view.scale;
         st.view.y += dy * st.view.scale;
       }
