@@ -40,6 +40,8 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
+from mapd.errors import ProtocolError
+
 #: Envelopes kept per origin (the newest ones, oldest first): a neighbour a few versions behind gets
 #: the next delta in the chain rather than waiting for the origin's next keyframe.
 CHAIN = 8
@@ -52,6 +54,11 @@ _COUNT = struct.Struct("<B")
 # high bits, so low bits alone would never equal a delta's base and no delta would ever be relayed)
 _HOLD = struct.Struct("<BQ")
 _HEAR = struct.Struct("<B")
+
+
+class SummaryError(ProtocolError):
+    """A summary's bytes are malformed (a :class:`~mapd.errors.ProtocolError`, as every fault in
+    bytes from a link is: counted, never fatal)."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +81,7 @@ def pack_summary(summary: Summary) -> bytes:
 
 
 def unpack_summary(data: bytes) -> Summary:
-    """Parse :func:`pack_summary`'s bytes; ValueError when they are malformed."""
+    """Parse :func:`pack_summary`'s bytes; :class:`SummaryError` when they are malformed."""
     try:
         (n,) = _COUNT.unpack_from(data, 0)
         off = _COUNT.size
@@ -88,9 +95,9 @@ def unpack_summary(data: bytes) -> Summary:
         hears = frozenset(_HEAR.unpack_from(data, off + i)[0] for i in range(m))
         off += m * _HEAR.size
     except struct.error as exc:
-        raise ValueError(f"truncated summary: {exc}") from None
+        raise SummaryError(f"uwb: truncated relay summary: {exc}") from None
     if off != len(data):
-        raise ValueError("trailing bytes after a summary")
+        raise SummaryError("uwb: trailing bytes after a relay summary")
     return Summary(holds, hears)
 
 

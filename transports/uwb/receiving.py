@@ -39,6 +39,10 @@ class Partial:
     #: block -> zfec share number -> parity chunk held (fec.py), until the block is whole
     parity: dict[int, dict[int, bytes]] = field(default_factory=dict)
     parity_held: int = 0  # bytes of it (in ``held`` too)
+    #: block -> the missing chunks its parity stands for (see :meth:`_covered`), kept up to date
+    #: block by block as chunks and parity arrive: rebuilt for every block on every frame, a sender
+    #: with parity held in each of a 65,000-chunk message's 500 blocks cost 5 ms a 25-byte frame.
+    _cover: dict[int, frozenset[int]] = field(default_factory=dict, init=False, repr=False)
 
     def add(self, index: int, payload: bytes, now: float) -> bool:
         """Store a chunk; False when it was already held (a duplicate)."""
@@ -51,6 +55,9 @@ class Partial:
         self.last = now
         while self.base in self.chunks:
             self.base += 1
+        b = fec.block_of(self.count, index)
+        if b in self.parity:
+            self._update_cover(b)
         return True
 
     def complete(self) -> bool:
@@ -75,6 +82,7 @@ class Partial:
         """Store parity chunk ``index`` (one :meth:`wants_parity` said is of use)."""
         b, share = fec.parity_of(self.count, index)
         self.parity.setdefault(b, {})[share] = payload
+        self._update_cover(b)
         self.held += len(payload)
         self.parity_held += len(payload)
         self.fresh += 1
@@ -107,6 +115,7 @@ class Partial:
         return len(got)
 
     def _drop_parity(self, b: int) -> None:
+        self._cover.pop(b, None)
         n = sum(len(p) for p in self.parity.pop(b, {}).values())
         self.held -= n
         self.parity_held -= n
@@ -115,25 +124,32 @@ class Partial:
         """Block ``b``'s data chunks not held, lowest first."""
         return [i for i in range(b, self.count, fec.blocks(self.count)) if i not in self.chunks]
 
-    def _covered(self) -> set[int]:
-        """Missing chunks the parity held stands for: of each block, as many as parity chunks held,
-        the highest first (those a report would otherwise ask for while they may still be coming)."""
-        out: set[int] = set()
-        for b, shares in self.parity.items():
-            missing = self._missing(b)
-            out.update(missing[len(missing) - min(len(shares), len(missing)) :])
-        return out
+    def _update_cover(self, b: int) -> None:
+        """Work out again which of block ``b``'s missing chunks its parity stands for: as many as
+        parity chunks held, the highest first (those a report would otherwise ask for while they may
+        still be coming)."""
+        shares = self.parity.get(b)
+        if not shares:
+            self._cover.pop(b, None)
+            return
+        missing = self._missing(b)
+        self._cover[b] = frozenset(missing[len(missing) - min(len(shares), len(missing)) :])
+
+    def _covered(self, i: int) -> bool:
+        """Whether missing chunk ``i`` is one the parity held stands for (O(1): per frame, a report
+        or a gap check looks at up to 256 chunks, never at every block of the message)."""
+        return i in self._cover.get(fec.block_of(self.count, i), ())
 
     def report(self) -> tuple[int, bytes]:
         """(base, bitmap) of an ACK: chunks held, with those the parity held stands for counted as
         held, so a gap report asks, block by block, for just what this receiver still needs."""
-        covered = self._covered()
+        covered = self._covered
         base = self.base
-        while base in self.chunks or base in covered:
+        while base in self.chunks or covered(base):
             base += 1
         out = bytearray(MAX_BITMAP)
         for i in range(base + 1, min(self.count, base + 1 + 8 * MAX_BITMAP)):
-            if i in self.chunks or i in covered:
+            if i in self.chunks or covered(i):
                 k = i - base - 1
                 out[k >> 3] |= 1 << (k & 7)
         return base, bytes(out.rstrip(b"\x00"))
@@ -141,9 +157,8 @@ class Partial:
     def gaps(self) -> list[int]:
         """Chunks missing below the highest one held, as far as an ACK can describe them (NACK mode:
         what a gap report asks for), less those the parity held stands for."""
-        covered = self._covered()
         top = min(self.top, self.base + 8 * MAX_BITMAP)
-        return [i for i in range(self.base, top) if i not in self.chunks and i not in covered]
+        return [i for i in range(self.base, top) if i not in self.chunks and not self._covered(i)]
 
 
 def asked_by(base: int, bitmap: bytes) -> set[int]:

@@ -68,7 +68,7 @@ class RelayDriver:
         """A summary arrived on :data:`~transports.uwb.forwarding.SUMMARY_STREAM`."""
         try:
             s = forwarding.unpack_summary(data)
-        except ValueError as exc:
+        except forwarding.SummaryError as exc:
             self.bad_summaries += 1
             log.info("uwb: bad summary from link id %d: %s", src, exc)
             return

@@ -41,6 +41,7 @@ from typing import Any
 
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
+from mapd.identity import SIG_LEN
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.core import NAME, Step, ZenohCore
@@ -51,6 +52,9 @@ from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
 log = logging.getLogger(__name__)
 #: Pose messages are about 100 bytes; larger samples on a pose key are dropped before they are read.
 MAX_POSE_BYTES = 512
+#: An ack is an 8-byte version and, in a signed fleet, a signature (``core.pack_ack``); a larger
+#: sample on an ack key is refused before it is read.
+MAX_ACK_BYTES = 8 + SIG_LEN
 
 
 @dataclass
@@ -238,6 +242,11 @@ class ZenohTransport(Transport):
             self._post(self._on_pose, str(sample.key_expr), sample.payload.to_bytes())
 
     def _cb_ack(self, sample: Any) -> None:
+        if len(sample.payload) > MAX_ACK_BYTES:
+            # zenoh takes samples up to max_message_bytes: copying one (8 MiB) and queueing it on the
+            # loop only for the core to refuse its length would cost a million times the ack's size.
+            self._post(self._ack_oversize)
+            return
         self._post(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
 
     def _cb_presence(self, sample: Any) -> None:
@@ -278,6 +287,9 @@ class ZenohTransport(Transport):
 
     def _on_ack(self, key_expr: str, data: bytes) -> None:
         self._apply(self.core.on_ack(key_expr, data, time.monotonic()))
+
+    def _ack_oversize(self) -> None:
+        self.core.counters.dropped += 1  # counted as the core counts an ack of the wrong length
 
     def _on_presence(self, key_expr: str, alive: bool) -> None:
         self._apply(self.core.on_presence(key_expr, alive, time.monotonic()))

@@ -7,7 +7,7 @@ import asyncio
 
 import pytest
 
-from transports.uwb.forwarding import ForwardingCore, Summary, pack_summary, unpack_summary
+from transports.uwb.forwarding import ForwardingCore, Summary, SummaryError, pack_summary, unpack_summary
 
 A, B, C, D = 1, 2, 3, 4
 KF = b"signed keyframe of A v3"
@@ -27,9 +27,9 @@ def test_summary_round_trip_and_malformed() -> None:
     assert split(daemon_version)[0] > 0 and daemon_version >= 2**32
     s = Summary({1: 7, 9: 2**32 - 1, 4: daemon_version}, frozenset({2, 3}))
     assert unpack_summary(pack_summary(s)) == s
-    with pytest.raises(ValueError):
+    with pytest.raises(SummaryError, match="truncated"):
         unpack_summary(pack_summary(s)[:-1])
-    with pytest.raises(ValueError):
+    with pytest.raises(SummaryError, match="trailing"):
         unpack_summary(pack_summary(s) + b"x")
 
 
