@@ -93,8 +93,14 @@ class Sinks:
             wall = time.time()
             for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link, when it moved
                 if before.get(robot) != sp:
+                    # stamped when the robot was there (as the ros2 output does), logged on arrival
                     self._record(
-                        self.recorder.transforms, "/tf", f"{robot}/map", {f"{robot}/base_link": sp.pose}, wall
+                        self.recorder.transforms,
+                        "/tf",
+                        f"{robot}/map",
+                        {f"{robot}/base_link": sp.pose},
+                        wall,
+                        sp.stamp,
                     )
 
     def links(self, links: dict[str, Any]) -> None:

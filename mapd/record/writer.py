@@ -184,18 +184,22 @@ class Recorder:
         with self._lock:
             self._write(self._ros2_channel(topic, GRID_TYPE), data, wall)
 
-    def transforms(self, topic: str, parent: str, children: dict[str, Pose2D], wall: float) -> None:
-        """A TFMessage: ``parent`` -> each child frame at its pose (x, y in m, yaw in rad)."""
+    def transforms(
+        self, topic: str, parent: str, children: dict[str, Pose2D], wall: float, stamp: float | None = None
+    ) -> None:
+        """A TFMessage: ``parent`` -> each child frame at its pose (x, y in m, yaw in rad), logged at
+        ``wall``; its header stamp is ``stamp`` (when the pose held, as the ``ros2`` output stamps
+        it), or ``wall``."""
         from mapd.ros2.cdr import split_stamp
 
         t = self._ts.types
-        sec, nanosec = split_stamp(wall)
-        stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        sec, nanosec = split_stamp(wall if stamp is None else stamp)
+        header_stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
         items = []
         for child, pose in sorted(children.items()):
             items.append(
                 t["geometry_msgs/msg/TransformStamped"](
-                    header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=parent),
+                    header=t["std_msgs/msg/Header"](stamp=header_stamp, frame_id=parent),
                     child_frame_id=child,
                     transform=t["geometry_msgs/msg/Transform"](
                         translation=t["geometry_msgs/msg/Vector3"](x=pose.x, y=pose.y, z=0.0),

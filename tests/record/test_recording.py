@@ -154,7 +154,7 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
                         if sch.encoding == "ros2msg":
                             decoded[ch.topic] = DecoderFactory().decoder_for("cdr", sch)(record.data)
                             if ch.topic == "/tf":
-                                tf_msgs.append(decoded[ch.topic])
+                                tf_msgs.append((record.log_time, decoded[ch.topic]))
                         else:
                             decoded[ch.topic] = json.loads(record.data)
             except Exception:  # the killed file ends mid-chunk: everything before it was read
@@ -168,11 +168,15 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
     assert decoded["/robot1/map"].header.frame_id == "robot1/map"
     assert {t.child_frame_id for t in decoded["/tf_static"].transforms} == {"robot0/map", "robot1/map"}
     # robot poses: <robot>/map -> <robot>/base_link, one robot a message, both robots seen
-    for msg in tf_msgs:
+    lags = []
+    for log_time, msg in tf_msgs:
         for t in msg.transforms:
             assert t.header.frame_id == t.child_frame_id.replace("/base_link", "/map")
             tf_children.add(t.child_frame_id)
+            lags.append(log_time - (t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec))
     assert {"robot0/base_link", "robot1/base_link"} <= tf_children
+    # stamped when the robot was there (as the ros2 output stamps /tf), logged when it was recorded
+    assert min(lags) >= 0 and max(lags) > 0, lags[:10]
     assert "zenoh" in decoded["/mapd/links"]
     info = subprocess.run([sys.executable, "-m", "mapd", "record", "info", str(files[-1])],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
