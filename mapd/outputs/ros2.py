@@ -35,7 +35,7 @@ import threading
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
@@ -55,6 +55,16 @@ class Ros2OutputOptions(OutputOptions):
     domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID")
     format: rmw.KeyFormat = Field(default="rmw_zenoh", description="rmw_zenoh, or zenoh-bridge-ros2dds keys")
     tf: bool = Field(default=True, description="publish /tf_static (robot map frames) and /tf (poses)")
+    robot_map_frame: str = Field(
+        default="{robot}/map",
+        description="each robot's map frame, a child of `frame` on /tf_static; {robot} is its name",
+    )
+    robot_pose_frame: str = Field(
+        default="{robot}/base_link",
+        description="the frame a robot's pose moves on /tf, a child of its map frame. A frame has one "
+        "parent: where the robots' own TF reaches this ROS graph ({robot}/odom -> {robot}/base_link), "
+        "name another, e.g. {robot}/mapd_pose; empty: no poses on /tf",
+    )
     mode: Literal["peer", "client"] = Field(default="peer", description="zenoh session mode")
     connect: list[str] = Field(
         default_factory=lambda: ["tcp/127.0.0.1:7447"],
@@ -76,6 +86,16 @@ class Ros2OutputOptions(OutputOptions):
         rmw.check_name(v, "node or frame")
         return v
 
+    @field_validator("robot_map_frame", "robot_pose_frame")
+    @classmethod
+    def _check_robot_frame(cls, v: str, info: ValidationInfo) -> str:
+        if v == "" and info.field_name == "robot_pose_frame":
+            return v
+        if "{robot}" not in v:
+            raise ValueError(f"{v!r} must name the robot with {{robot}}: one frame each")
+        rmw.check_name(robot_frame(v, "robot0"), "frame")
+        return v
+
     @field_validator("namespace")
     @classmethod
     def _check_ns(cls, v: str) -> str:
@@ -83,24 +103,34 @@ class Ros2OutputOptions(OutputOptions):
         return v
 
 
+def robot_frame(template: str, robot: str) -> str:
+    """``template`` with ``{robot}`` replaced (plain replacement: a config's braces never reach
+    ``str.format``)."""
+    return template.replace("{robot}", robot)
+
+
 def static_transforms(
-    frame: str, frames: dict[str, Pose2D], stamp: float
+    frame: str, frames: dict[str, Pose2D], stamp: float, map_frame: str = "{robot}/map"
 ) -> list[tuple[str, str, Pose2D, float]]:
-    """``frame -> <robot>/map`` for each placed robot, by name."""
-    return [(frame, f"{robot}/map", pose, stamp) for robot, pose in sorted(frames.items())]
+    """``frame -> <robot>/map`` (``map_frame``) for each placed robot, by name."""
+    return [(frame, robot_frame(map_frame, robot), pose, stamp) for robot, pose in sorted(frames.items())]
 
 
 def pose_transforms(
-    update: PoseUpdate | GlobalUpdate, sent: dict[str, float] | None = None
+    update: PoseUpdate | GlobalUpdate,
+    sent: dict[str, float] | None = None,
+    map_frame: str = "{robot}/map",
+    pose_frame: str = "{robot}/base_link",
 ) -> list[tuple[str, str, Pose2D, float]]:
-    """``<robot>/map -> <robot>/base_link`` for each robot with a known pose, at the pose's stamp.
+    """``<robot>/map -> <robot>/base_link`` (``map_frame -> pose_frame``) for each robot with a
+    known pose, at the pose's stamp.
 
     With ``sent`` (robot -> stamp already published), only newer poses: tf2 warns about, and drops,
     a transform repeated with the same stamp (``TF_REPEATED_DATA``).
     """
     last = sent or {}
     return [
-        (f"{r}/map", f"{r}/base_link", sp.pose, sp.stamp)
+        (robot_frame(map_frame, r), robot_frame(pose_frame, r), sp.pose, sp.stamp)
         for r, sp in sorted(update.poses.items())
         if sp.stamp > last.get(r, float("-inf"))
     ]
@@ -184,17 +214,26 @@ class Ros2Output(Output):
             self._static_sent = dict(frames)
         from mapd.ros2 import cdr
 
-        self._tf_static.put(cdr.encode_tf(static_transforms(self.opts.frame, frames, stamp)))
+        self._tf_static.put(
+            cdr.encode_tf(static_transforms(self.opts.frame, frames, stamp, self.opts.robot_map_frame))
+        )
         self.static_msgs += 1
 
     def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
         from mapd.ros2 import cdr
 
-        if self._tf is None:
+        o = self.opts
+        if self._tf is None or not o.robot_pose_frame:
             return
         with self._lock:
-            items = pose_transforms(update, self._pose_sent)
-            self._pose_sent.update({child.split("/")[0]: stamp for _, child, _, stamp in items})
+            items = pose_transforms(update, self._pose_sent, o.robot_map_frame, o.robot_pose_frame)
+            self._pose_sent.update(
+                {
+                    r: sp.stamp
+                    for r, sp in update.poses.items()
+                    if sp.stamp > self._pose_sent.get(r, float("-inf"))
+                }
+            )
         if not items:
             return
         self._tf.put(cdr.encode_tf(items))

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import struct
-from types import ModuleType
+from pathlib import Path
+from types import ModuleType, SimpleNamespace
 
 import pytest
 
@@ -128,3 +129,44 @@ def test_output_options_are_checked() -> None:
     for bad in ({"distro": "iron"}, {"format": "dds"}, {"topic": "a//b"}, {"domain_id": 300}, {"typo": 1}):
         with pytest.raises(ValueError):
             Ros2OutputOptions(**bad)
+
+
+def test_robot_frames_are_configurable_so_poses_need_not_fight_the_robots_own_tf(
+    rmw_peer: ModuleType, tmp_path: Path
+) -> None:
+    """A frame has one parent: where the robots' own TF (``<robot>/odom -> <robot>/base_link``)
+    reaches the same ROS graph, the output's poses must move another frame, or none."""
+    from mapd.outputs.base import OutputContext
+    from mapd.outputs.ros2 import Ros2Output
+
+    opts = Ros2OutputOptions(robot_map_frame="{robot}/map_fleet", robot_pose_frame="{robot}/mapd_pose")
+    out = Ros2Output(opts, OutputContext(robot="base", fleet="f", state_dir=tmp_path))
+    sent: list[bytes] = []
+    out._tf = out._tf_static = SimpleNamespace(put=sent.append)
+    frames = {"robot1": Pose2D(1.0, -2.0, 0.5)}
+    poses = {"robot1": StampedPose(Pose2D(3.0, 4.0, -1.0), 1700000001.25)}
+    out.publish_poses(PoseUpdate(poses=poses, frames=frames))
+    got = [
+        (t.header.frame_id, t.child_frame_id)
+        for data in sent
+        for t in rmw_peer.TS.deserialize_cdr(data, rmw_peer.TF).transforms
+    ]
+    assert got == [("map", "robot1/map_fleet"), ("robot1/map_fleet", "robot1/mapd_pose")]
+    out.publish_poses(PoseUpdate(poses=poses, frames=frames))  # the same stamp: not again (tf2 warns)
+    assert len(sent) == 2
+
+    sent.clear()
+    quiet = Ros2Output(
+        Ros2OutputOptions(robot_pose_frame=""), OutputContext(robot="b", fleet="f", state_dir=tmp_path)
+    )
+    quiet._tf = quiet._tf_static = SimpleNamespace(put=sent.append)
+    quiet.publish_poses(PoseUpdate(poses=poses, frames=frames))
+    assert [t.child_frame_id for t in rmw_peer.TS.deserialize_cdr(sent[0], rmw_peer.TF).transforms] == [
+        "robot1/map"
+    ] and len(sent) == 1  # the map frame, and no pose
+
+    for bad in ("map", "{robot}//x", "{robot}/*", "{robot.__class__}"):
+        with pytest.raises(ValueError, match="robot"):
+            Ros2OutputOptions(robot_map_frame=bad)
+    with pytest.raises(ValueError):
+        Ros2OutputOptions(robot_map_frame="")  # the map frames cannot be switched off: the map needs them
