@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapd.bench.swarm.links import count_walls, link_matrices
-from mapd.bench.swarm.metrics import convergence, staleness_samples, summarize
+from mapd.bench.swarm.links import count_walls, hop_counts, link_matrices
+from mapd.bench.swarm.metrics import convergence, staleness_samples, staleness_trend, summarize
 from mapd.bench.swarm.radio import Radio, channel_use
+from mapd.bench.swarm.run import with_means
 from mapd.bench.swarm.sim import Swarm, SwarmConfig
 from mapd.bench.swarm.streams import Building, Fleet, Payloads, RobotStream, load_fleet
 from mapd.cli import main
@@ -99,6 +100,36 @@ def test_staleness_on_a_hand_made_scenario() -> None:
     assert convergence(made, [*accepted, (25.0, 0, 1, 1)], 2) == pytest.approx(15.0)
 
 
+def test_hop_counts_follow_the_radio_graph() -> None:
+    hears = np.zeros((4, 4), dtype=bool)
+    for a, b in ((0, 1), (1, 2)):  # a line 0 - 1 - 2; robot 3 hears nobody
+        hears[a, b] = hears[b, a] = True
+    assert hop_counts(hears).tolist() == [[0, 1, 2, -1], [1, 0, 1, -1], [2, 1, 0, -1], [-1, -1, -1, 0]]
+
+
+def test_staleness_trend_rises_only_while_a_pair_goes_unserved() -> None:
+    made = [[0.0, 30.0, 60.0], [0.0, 30.0, 60.0]]
+    served = [(t + 2.0, h, 1 - h, v + 1) for v, t in enumerate((0.0, 30.0, 60.0)) for h in (0, 1)]
+    flat = staleness_trend(made, served, 90.0, windows=3)
+    assert [w[0] for w in flat] == [0.0, 30.0, 60.0] and max(w[1] for w in flat) < 1.0
+    starved = staleness_trend(made, served[:2], 90.0, windows=3)  # only v1 gets through
+    assert starved[0][1] < starved[1][1] < starved[2][1]
+
+
+def test_means_over_seeds_reach_into_dicts_and_lists() -> None:
+    a = {"robots": 2, "seed": 0, "p": 1.0, "hops": {"1": {"mean_s": 2.0}}, "trend": [[0.0, 4.0]], "c": "x"}
+    b = {"robots": 2, "seed": 1, "p": 3.0, "hops": {"1": {"mean_s": 6.0}}, "trend": [[0.0, 8.0]], "c": "x"}
+    mean = with_means([a, b], ("robots",))[-1]
+    assert mean == {
+        "robots": 2,
+        "seed": "mean",
+        "p": 2.0,
+        "hops": {"1": {"mean_s": 4.0}},
+        "trend": [[0.0, 6.0]],
+        "c": "x",
+    }
+
+
 # --- small swarms of the real cores --------------------------------------------------------------
 
 
@@ -145,9 +176,15 @@ def test_summary_relay_carries_every_version_over_two_hops(
     got = {(a[1], a[2]): a[3] for a in row["accepted_log"]}  # newest version accepted per pair
     assert row["hears_all"] == 0.0  # robots 0 and 2 never hear each other...
     assert row["robot_hears_all"] == pytest.approx(1 / 3)  # ...while robot 1 always hears both
+    hops = row["stale_by_hops"]  # two of the six pairs are two hops apart all run long
+    assert hops["1"]["samples"] == pytest.approx(4 / 6) and hops["2"]["samples"] == pytest.approx(2 / 6)
+    assert hops["3+"]["samples"] == hops["none"]["samples"] == 0.0
     if relay == "none":
         assert (2, 0) not in got and (0, 2) not in got
         assert row["converge_s"] == math.inf
+        assert hops["2"]["tail"] == 1.0  # the unserved far pairs make the whole p95 tail
+        trend = [m for _, m in row["stale_trend"]]
+        assert trend == sorted(trend) and trend[-1] > 2 * trend[0]  # and their staleness only grows
     else:
         assert got[(2, 0)] == got[(0, 2)] == 3  # the newest version, over two hops
         assert math.isfinite(row["converge_s"])

@@ -38,6 +38,14 @@ def link_matrices(
     return hears, walls
 
 
+def hop_counts(hears: np.ndarray) -> np.ndarray:
+    """(N, N) radio hops between robots over ``hears`` (0 to itself, -1 where no path joins them)."""
+    from scipy.sparse.csgraph import shortest_path
+
+    d = shortest_path(hears.astype(np.float64), method="D", unweighted=True)
+    return np.where(np.isfinite(d), d, -1).astype(np.int16)
+
+
 def count_walls(building: Building, a: np.ndarray, b: np.ndarray, batch: int = 256) -> np.ndarray:
     """Walls crossed by each segment ``a[k]`` -> ``b[k]`` ((K, 2) arrays, metres)."""
     if len(a) > batch:

@@ -24,7 +24,9 @@ pairs: ``collided`` (another audible frame overlapped), ``deaf`` (the receiver w
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -33,21 +35,19 @@ from mapd.bench.swarm.radio import channel_use
 from mapd.bench.swarm.sim import SwarmResult
 
 
-def staleness_samples(
+def _staleness_rows(
     made: list[list[float]],
     accepted: list[tuple[float, int, int, int]],
     t_end: float,
-    dt: float = 1.0,
-    pairs: np.ndarray | None = None,
-) -> np.ndarray:
-    """Staleness samples (seconds) of every (holder, origin) pair over ``[0, t_end]`` (one flat array);
-    only the pairs true in ``pairs[holder, origin]`` when given."""
+    dt: float,
+    pairs: np.ndarray | None,
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """``(holder, origin, samples over [0, t_end])`` for each pair, origin by origin."""
     n = len(made)
     ts = np.arange(0.0, t_end + 1e-9, dt)
     by_pair: dict[tuple[int, int], list[tuple[float, int]]] = {}
     for t, h, o, v in accepted:
         by_pair.setdefault((h, o), []).append((t, v))
-    out: list[np.ndarray] = []
     for o in range(n):
         mt = np.asarray(made[o], dtype=np.float64)
         if mt.size == 0:
@@ -65,8 +65,82 @@ def staleness_samples(
                 held = np.where(k > 0, rv[np.maximum(k - 1, 0)], 0)
             behind = held < newest
             first_missing = np.minimum(held, mt.size - 1)  # index of version held + 1
-            out.append(np.where(behind, ts - mt[first_missing], 0.0))
+            yield h, o, np.where(behind, ts - mt[first_missing], 0.0)
+
+
+def staleness_samples(
+    made: list[list[float]],
+    accepted: list[tuple[float, int, int, int]],
+    t_end: float,
+    dt: float = 1.0,
+    pairs: np.ndarray | None = None,
+) -> np.ndarray:
+    """Staleness samples (seconds) of every (holder, origin) pair over ``[0, t_end]`` (one flat array);
+    only the pairs true in ``pairs[holder, origin]`` when given."""
+    out = [s for _, _, s in _staleness_rows(made, accepted, t_end, dt, pairs)]
     return np.concatenate(out) if out else np.zeros(0)
+
+
+#: Hop classes of :func:`staleness_by_hops`: how far apart holder and origin are at a sample.
+HOP_CLASSES = ("1", "2", "3+", "none")
+
+
+def staleness_by_hops(
+    made: list[list[float]],
+    accepted: list[tuple[float, int, int, int]],
+    t_end: float,
+    hops: list[tuple[float, np.ndarray]],
+    dt: float = 1.0,
+) -> dict[str, dict[str, float]]:
+    """Where the staleness lies: the samples split by how many radio hops apart holder and origin
+    were at the time (``hops``: each link update's time and hop counts, -1 for no path).
+
+    Per class: ``samples`` (its share of all samples), ``mean_s``, and ``tail`` (its share of the
+    samples at or above the p95), so a p95 set by pairs in direct range (the channel or the MAC) is
+    told from one set by pairs that only a relay can serve."""
+    if not hops:
+        return {}
+    times = np.asarray([t for t, _ in hops])
+    stack = np.stack([h for _, h in hops])
+    ts = np.arange(0.0, t_end + 1e-9, dt)
+    at = np.maximum(np.searchsorted(times, ts, side="right") - 1, 0)
+    parts: dict[str, list[np.ndarray]] = {c: [] for c in HOP_CLASSES}
+    for h, o, s in _staleness_rows(made, accepted, t_end, dt, None):
+        hp = stack[at, h, o]
+        for c, m in zip(HOP_CLASSES, (hp == 1, hp == 2, hp >= 3, hp < 0), strict=True):
+            parts[c].append(s[m])
+    flat = {c: np.concatenate(v) if v else np.zeros(0) for c, v in parts.items()}
+    total = sum(a.size for a in flat.values())
+    if not total:
+        return {}
+    p95 = float(np.percentile(np.concatenate(list(flat.values())), 95))
+    tail = max(1, sum(int((a >= p95).sum()) for a in flat.values()))
+    return {
+        c: {
+            "samples": a.size / total,
+            "mean_s": float(a.mean()) if a.size else 0.0,
+            "tail": int((a >= p95).sum()) / tail,
+        }
+        for c, a in flat.items()
+    }
+
+
+def staleness_trend(
+    made: list[list[float]], accepted: list[tuple[float, int, int, int]], t_end: float, windows: int = 6
+) -> list[list[float]]:
+    """``[[window start s, mean staleness s], ...]`` over ``windows`` equal windows of ``[0, t_end]``:
+    flat once the channel keeps up, rising all run long when it does not."""
+    rows = [s for _, _, s in _staleness_rows(made, accepted, t_end, 1.0, None)]
+    if not rows:
+        return []
+    st = np.stack(rows)  # (pairs, samples), one a second
+    edges = np.linspace(0.0, t_end, windows + 1)
+    ts = np.arange(st.shape[1], dtype=np.float64)
+    out = []
+    for a, b in itertools.pairwise(edges):
+        m = (ts >= a) & (ts < b)
+        out.append([float(a), float(st[:, m].mean()) if m.any() else 0.0])
+    return out
 
 
 def convergence(made: list[list[float]], accepted: list[tuple[float, int, int, int]], n: int) -> float:
@@ -138,6 +212,9 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "resends": sum(rb.arq.counters.resends for rb in res.robots),
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
         "messages_delivered": sum(rb.arq.counters.messages_delivered for rb in res.robots),
+        # where the staleness lies (JSON only): by hops between holder and origin, and over the run
+        "stale_by_hops": staleness_by_hops(res.made, res.accepted, dur, res.hops),
+        "stale_trend": staleness_trend(res.made, res.accepted, dur),
         "hears_all": res.hears_all_share,
         "robot_hears_all": res.robot_hears_all_share,
         "degree": res.mean_degree,

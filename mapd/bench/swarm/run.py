@@ -372,7 +372,8 @@ _SETTINGS = ("range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arri
 
 def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
     """``rows`` (one per seed), each group of equal ``keys`` followed by a row of their means
-    (seed ``"mean"``; numbers averaged, an ``inf`` staying ``inf``, the rest as in the first)."""
+    (seed ``"mean"``; numbers averaged, also inside dicts and lists, an ``inf`` staying ``inf``, the
+    rest as in the first)."""
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault(tuple(r[k] for k in keys), []).append(r)
@@ -380,11 +381,23 @@ def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[s
     for group in groups.values():
         out += group
         mean = dict(group[0], seed="mean")
-        for k, v in group[0].items():
-            if k != "seed" and k not in keys and isinstance(v, int | float) and not isinstance(v, bool):
-                mean[k] = sum(float(g[k]) for g in group) / len(group)
+        for k in group[0]:
+            if k != "seed" and k not in keys:
+                mean[k] = _mean_of([g[k] for g in group])
         out.append(mean)
     return out
+
+
+def _mean_of(values: list[Any]) -> Any:
+    """The mean of numbers, of dicts key by key, of equally long lists item by item; else the first."""
+    first = values[0]
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return sum(float(v) for v in values) / len(values)
+    if all(isinstance(v, dict) and v.keys() == first.keys() for v in values):
+        return {k: _mean_of([v[k] for v in values]) for k in first}
+    if all(isinstance(v, list) and len(v) == len(first) for v in values):
+        return [_mean_of([v[i] for v in values]) for i in range(len(first))]
+    return first
 
 
 def _bounds(fleet: Fleet, payloads: Payloads, cfg: SwarmConfig) -> list[dict[str, Any]]:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from mapd.bench.swarm.des import Event, EventLoop
-from mapd.bench.swarm.links import link_matrices
+from mapd.bench.swarm.links import hop_counts, link_matrices
 from mapd.bench.swarm.node import KEYFRAME_EVERY, AcceptLog, SwarmRobot
 from mapd.bench.swarm.policy import ACK_SCOPES, RELAYS
 from mapd.bench.swarm.radio import Radio, Transmission
@@ -128,6 +128,8 @@ class SwarmResult:
     mean_degree: float  # mean number of robots each robot hears, over link updates
     ever_heard: np.ndarray  # (N, N) bool: holder ever in range of origin during the run
     extra: dict[str, Any] = field(default_factory=dict)
+    #: at each link update: (time, (N, N) radio hops between robots, -1 for no path)
+    hops: list[tuple[float, np.ndarray]] = field(default_factory=list)
 
 
 class Swarm:
@@ -179,6 +181,7 @@ class Swarm:
         self._robot_full = 0.0
         self._degree = 0.0
         self._ever = np.zeros((n, n), dtype=bool)
+        self._hops: list[tuple[float, np.ndarray]] = []
 
     def _arq_config(self, i: int) -> arq.ArqConfig:
         c = self.cfg
@@ -215,6 +218,7 @@ class Swarm:
             robot_hears_all_share=self._robot_full / max(1, self._links_seen),
             mean_degree=self._degree / max(1, self._links_seen),
             ever_heard=self._ever,
+            hops=self._hops,
         )  # fmt: skip
 
     def _converged(self) -> bool:
@@ -283,6 +287,7 @@ class Swarm:
         self.radio.set_links(hears, walls)
         self._links_seen += 1
         self._ever |= hears.T  # [holder, origin]: the holder hears the origin
+        self._hops.append((now, hop_counts(hears)))
         deg = hears.sum(axis=1)
         self._degree += float(deg.mean())
         self._robot_full += float((deg >= self.n - 1).mean())
