@@ -165,9 +165,10 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
         snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 1, 30, f)
         assert snaps["robot0"]["security"]["roster"] == ["robot0"]
         assert snaps["robot0"]["reload"]["last"] == "roster: removed robot1"
-        refused = zenoh0(snaps)["bad_signature"]
-        # robot1's next maps are refused by the running daemon, which does not restart
-        snaps = fk.wait_for(lambda s: zenoh0(s)["bad_signature"] > refused, 60, f)
+        refused = zenoh0(snaps)["unadmitted"]
+        # robot1's next maps are refused by the running daemon (before any check: not on the
+        # roster), which does not restart
+        snaps = fk.wait_for(lambda s: zenoh0(s)["unadmitted"] > refused, 60, f)
         assert snaps["robot0"]["pid"] == f.procs["robot0"].pid
 
         cfg0.write_text(original)

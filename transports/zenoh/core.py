@@ -5,10 +5,16 @@ expressions, payload bytes and ``now``, and carries out the :class:`Step` it get
 emit, keyframe queries to send). The rules:
 
 * **Verify before anything.** An update or query reply is unpacked with the fleet's roster, fleet
-  id and size limit; a signature the roster does not accept (missing, another robot's key, a robot
-  not on the roster) counts in ``bad_signature``, anything else malformed (or an envelope whose robot
-  differs from the key it came on) in ``dropped``. Neither is ever emitted. A robot the roster does
-  not admit gets no state at all: its liveliness token, updates and acks cost nothing.
+  id and size limit; a signature the roster does not accept (missing, another robot's key) counts
+  in ``bad_signature``, anything else malformed (or an envelope whose robot differs from the key it
+  came on) in ``dropped``. Neither is ever emitted. A robot the roster does not admit gets no state
+  at all: its liveliness token, updates and acks cost nothing, and its updates and replies are
+  refused unread (``unadmitted``), before any verification.
+* **Check, then apply.** Verification is split from the state it feeds so that the adapter can run
+  it off the event loop: :meth:`ZenohCore.check` (unpack and verify; pure, touches nothing, safe on
+  any thread) and :meth:`ZenohCore.on_update_checked` / :meth:`ZenohCore.on_reply_checked` (take its
+  result and apply the rules below; loop only). :meth:`ZenohCore.on_update` and
+  :meth:`ZenohCore.on_reply` do both, for callers with no thread to spare (tests, tools).
 * **Bases.** Per robot, the core remembers the last version it passed on and the last
   ``base_window`` versions passed on. A keyframe newer than the last version is passed on. A delta
   newer than the last version is passed on when its base is one of the remembered versions (the
@@ -20,7 +26,9 @@ emit, keyframe queries to send). The rules:
   until its replies end or ``query_timeout_s`` passes; a gap seen meanwhile asks once more when it
   ends (the reply may predate the gap). A peer that appears with no map known yet is
   queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
-  robot's versions, so the keyframe that answers is accepted whatever its version.
+  robot's versions, so the keyframe that answers is accepted whatever its version. A query of our
+  own keyframe emits ``KeyframeNeeded`` for its asker only when the roster admits the asker (an
+  unknown name counts in ``unadmitted``; the adapter still answers it).
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
   forgets the robot's versions. Tokens are not signed, so in a signed fleet :meth:`ZenohCore.peers`
   (the robots the daemon waits for) lists only robots that have also shown a verified message.
@@ -108,6 +116,9 @@ class CoreCounters:
     stale: int = 0
     acks_rx: int = 0
     queries_served: int = 0
+    #: Updates, replies and keyframe queries naming a robot the roster does not admit: refused
+    #: unread (updates, replies) or answered without a ``KeyframeNeeded`` (queries).
+    unadmitted: int = 0
 
 
 @dataclass
@@ -209,17 +220,64 @@ class ZenohCore:
                 while len(self._offered_at) > RTT_VERSIONS:
                     del self._offered_at[min(self._offered_at)]
 
-    def on_update(self, key_expr: str, data: bytes, now: float) -> Step:
-        """A sample arrived on an update key."""
+    def update_robot(self, key_expr: str) -> str | None:
+        """The robot whose update ``key_expr`` carries, or None when it is no peer's update key.
+
+        Pure (reads only fixed settings), so the adapter can call it on zenoh's thread to refuse a
+        sample before copying it. Whether the roster admits that robot is :meth:`admits`.
+        """
         robot = keys.parse_update(self.fleet, key_expr)
-        if robot is None or robot == self.robot:
+        return None if robot is None or robot == self.robot else robot
+
+    def admits(self, robot: str) -> bool:
+        """Whether an update or reply of ``robot`` is worth verifying at all (thread-safe, cheap).
+
+        A robot the roster does not admit could only fail verification, so its samples are refused
+        unread: an 8 MiB sample under a made-up name costs no copy and no Ed25519 check.
+        """
+        return self.roster.admits(robot)
+
+    def check(self, data: bytes) -> Envelope | EnvelopeError:
+        """Unpack and verify ``data`` (msgpack parse, size limit, fleet id, Ed25519 signature).
+
+        Pure: no state or counter is touched, and the roster is read whole (a reload swaps its keys
+        atomically), so it may run on any thread. The result goes to :meth:`on_update_checked` or
+        :meth:`on_reply_checked`, on the thread that owns this core.
+        """
+        try:
+            return unpack(data, max_bytes=self.max_message_bytes, roster=self.roster, fleet=self.fleet)
+        except EnvelopeError as exc:
+            return exc
+
+    def on_update(self, key_expr: str, data: bytes, now: float) -> Step:
+        """A sample arrived on an update key: refuse, check and apply it in one go."""
+        robot = self.update_robot(key_expr)
+        if robot is None:
             self.counters.dropped += 1
             return Step()
-        return self._on_envelope(robot, data, now, from_query=False)
+        if not self.admits(robot):
+            self.counters.unadmitted += 1
+            return Step()
+        return self.on_update_checked(robot, data, self.check(data), now)
+
+    def on_update_checked(
+        self, robot: str, data: bytes, checked: Envelope | EnvelopeError, now: float
+    ) -> Step:
+        """An update of ``robot`` (from :meth:`update_robot`) arrived, and :meth:`check` gave ``checked``."""
+        return self._on_envelope(robot, data, checked, now, from_query=False)
 
     def on_reply(self, robot: str, data: bytes, now: float) -> Step:
-        """A reply to our keyframe query of ``robot`` arrived."""
-        return self._on_envelope(robot, data, now, from_query=True)
+        """A reply to our keyframe query of ``robot`` arrived: check and apply it in one go."""
+        if not self.admits(robot):
+            self.counters.unadmitted += 1
+            return Step()
+        return self.on_reply_checked(robot, data, self.check(data), now)
+
+    def on_reply_checked(
+        self, robot: str, data: bytes, checked: Envelope | EnvelopeError, now: float
+    ) -> Step:
+        """A reply to our keyframe query of ``robot`` arrived, and :meth:`check` gave ``checked``."""
+        return self._on_envelope(robot, data, checked, now, from_query=True)
 
     def query_done(self, robot: str, now: float) -> Step:
         """Our query of ``robot`` has ended (all replies in, or timed out)."""
@@ -281,6 +339,11 @@ class ZenohCore:
         self.counters.queries_served += 1
         if asker is None or not keys.valid_name(asker) or asker == self.robot:
             return Step()
+        if not self.roster.admits(asker):
+            # KeyframeNeeded makes the daemon forget the asker's acked base and send its next map
+            # whole: a name off the roster must not be able to force that on the fleet.
+            self.counters.unadmitted += 1
+            return Step()
         return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
 
     def request_keyframe(self, robot: str, now: float) -> Step:
@@ -317,18 +380,14 @@ class ZenohCore:
         else:
             self.counters.dropped += 1
 
-    def _verify(self, data: bytes) -> Envelope | None:
-        try:
-            return unpack(data, max_bytes=self.max_message_bytes, roster=self.roster, fleet=self.fleet)
-        except EnvelopeError as exc:
-            self._refused(exc)
-            return None
-
-    def _on_envelope(self, robot: str, data: bytes, now: float, *, from_query: bool) -> Step:
+    def _on_envelope(
+        self, robot: str, data: bytes, checked: Envelope | EnvelopeError, now: float, *, from_query: bool
+    ) -> Step:
         self.counters.bytes_rx += len(data)
-        env = self._verify(data)
-        if env is None:
+        if isinstance(checked, EnvelopeError):
+            self._refused(checked)
             return Step()
+        env = checked
         st = self._state(robot)
         if env.robot != robot or st is None:
             self.counters.dropped += 1

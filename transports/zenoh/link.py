@@ -7,15 +7,25 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
 :mod:`transports.zenoh.core`. This module is the adapter between zenoh's threads and asyncio:
 
 * **Threads.** zenoh's callbacks run on zenoh's threads; they copy the key and payload and hand
-  them to the loop with ``call_soon_threadsafe``, nothing more. Every blocking zenoh call (open,
-  declare, put, get, reply, undeclare, close) runs on one daemon thread, the
-  :class:`~transports.zenoh.jobs.JobQueue`.
+  them on, nothing more. Updates and query replies go to the *check* thread
+  (:class:`~transports.zenoh.checks.CheckQueue`), which unpacks and verifies them
+  (:meth:`ZenohCore.check <transports.zenoh.core.ZenohCore.check>`: msgpack and Ed25519 over up to
+  ``max_message_bytes``) and posts the result to the loop, where the core applies it; everything
+  else goes to the loop with ``call_soon_threadsafe``. The check queue runs in arrival order, so an
+  older update is never applied after a newer one, and holds per robot at most
+  ``max_message_bytes`` of waiting samples (latest wins: a newer sample that does not fit pushes
+  out the oldest, counted in ``superseded``), for at most ``max_peers`` robots. Samples on a key that
+  is no peer's update key, or of a robot the roster does not admit (``unadmitted``), are refused
+  before they are copied.
+  Every blocking zenoh call (open, declare, put, get, reply, undeclare, close) runs on one daemon
+  thread, the :class:`~transports.zenoh.jobs.JobQueue`.
 * **Latest wins.** ``offer`` packs the envelope and puts it in the outbox under the key
   ``("update", robot)``: while a put is in flight, a newer offer replaces the one still waiting, so
   no stale version is ever queued. Acks are latest-wins per robot too.
 * **Keyframes.** The queryable ``mapd/<fleet>/<robot>/latest`` answers with
   ``ctx.latest_keyframe()`` (the daemon's latest keyframe), or else the last keyframe offered here.
-  A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one.
+  A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one,
+  when the roster admits ``<peer>`` (any asker still gets the reply).
 * **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
   decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
   ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, HMAC-signed with the fleet key). The robot
@@ -40,10 +50,11 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from mapd.envelope import Envelope
-from mapd.errors import TransportError
+from mapd.errors import EnvelopeError, TransportError
 from mapd.identity import SIG_LEN
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
+from transports.zenoh.checks import CheckQueue
 from transports.zenoh.core import NAME, Step, ZenohCore
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
@@ -69,6 +80,17 @@ class SendCounters:
     #: Own envelopes over limits.max_message_bytes, never sent.
     oversize: int = 0
     poses_tx: int = 0
+
+
+@dataclass
+class IntakeCounters:
+    """Samples refused on zenoh's threads, unread; :meth:`ZenohTransport.stats` adds these to the core's."""
+
+    #: On an update key that is not a peer's (ours, malformed), or refused by the check queue
+    #: (``max_peers`` robots already waiting).
+    dropped: int = 0
+    #: Updates and replies of a robot the roster does not admit.
+    unadmitted: int = 0
 
 
 class ZenohTransport(Transport):
@@ -97,6 +119,8 @@ class ZenohTransport(Transport):
         )
         self._loop: asyncio.AbstractEventLoop | None = None
         self._jobs: JobQueue | None = None
+        # Where updates and replies are unpacked and verified, off the loop (see the module docstring).
+        self._checks: CheckQueue[Envelope | EnvelopeError] | None = None
         self._session: Any = None
         self._publisher: Any = None
         self._entities: list[Any] = []  # undeclared in reverse order at close
@@ -109,6 +133,9 @@ class ZenohTransport(Transport):
         # Written on the outbox thread and read on the loop's (stats), hence the lock.
         self._tx_lock = threading.Lock()
         self._tx = SendCounters()
+        # Written on zenoh's threads and read on the loop's (stats), hence the lock.
+        self._rx_lock = threading.Lock()
+        self._rx = IntakeCounters()
         self._poses = PoseThrottle(self.opts.pose_period_s)
 
     # -- lifecycle ---------------------------------------------------------------------------------
@@ -122,11 +149,21 @@ class ZenohTransport(Transport):
         self._jobs = JobQueue(
             f"mapd-zenoh-{self.ctx.robot}", max_pending=self.opts.max_pending, on_error=self._send_failed
         )
+        # At most one full-size message's worth waiting per robot, for max_peers robots: memory
+        # held for checking is bounded by about max_peers large samples, whatever peers send.
+        self._checks = CheckQueue(
+            f"mapd-zenoh-check-{self.ctx.robot}",
+            self.core.check,
+            budget=self.ctx.max_message_bytes,
+            max_robots=self.opts.max_peers,
+            on_error=self._check_failed,
+        )
         try:
             await asyncio.wrap_future(self._jobs.call(lambda: self._open(conf)))
         except BaseException as exc:
             # Cancelled mid-open, the session may still come up: close whatever did, then end.
             outbox, self._jobs = self._jobs, None
+            self._checks.stop()
             outbox.call(lambda: self._shutdown(time.monotonic() + self.opts.close_timeout_s))
             outbox.finish()
             if isinstance(exc, Exception) and not isinstance(exc, TransportError):
@@ -181,6 +218,9 @@ class ZenohTransport(Transport):
         if self._closed:
             return
         self._closed = self._closing = True
+        if self._checks is not None:
+            # Drop waiting checks; one running ends on its own, and its result is no longer posted.
+            self._checks.stop()
         outbox = self._jobs
         if outbox is None:
             return
@@ -235,7 +275,45 @@ class ZenohTransport(Transport):
         return True
 
     def _cb_update(self, sample: Any) -> None:
-        self._post(self._on_update, str(sample.key_expr), sample.payload.to_bytes())
+        robot = self.core.update_robot(str(sample.key_expr))
+        if robot is None:
+            with self._rx_lock:
+                self._rx.dropped += 1
+            return
+        self._check_later(robot, sample, self._on_update_checked)
+
+    def _check_later(
+        self, robot: str, sample: Any, then: Callable[[str, bytes, Envelope | EnvelopeError], None]
+    ) -> None:
+        """Verify ``sample`` on the check thread, then hand the result to ``then`` on the loop."""
+        checks = self._checks
+        if self._closing or checks is None:
+            return
+        if not self.core.admits(robot):
+            # It could only fail verification: refuse it before copying up to max_message_bytes.
+            with self._rx_lock:
+                self._rx.unadmitted += 1
+            return
+        data = sample.payload.to_bytes()
+
+        def checked(data: bytes, result: Envelope | EnvelopeError) -> None:
+            self._post(then, robot, data, result)
+
+        # Latest wins past the robot's budget: neither memory nor the loop's work grows with what a
+        # peer (or anyone on the bus) sends.
+        if not checks.submit(robot, data, checked):
+            with self._rx_lock:
+                self._rx.dropped += 1
+
+    def _query_ended(self, robot: str) -> None:
+        # Through the check queue, behind the query's replies still waiting there, so the core
+        # sees them before it hears the query has ended (it may then query again).
+        def job() -> None:
+            self._post(self._on_query_done, robot)
+
+        checks = self._checks
+        if checks is None or not checks.after(job):
+            job()
 
     def _cb_pose(self, sample: Any) -> None:
         if len(sample.payload) <= MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
@@ -261,7 +339,7 @@ class ZenohTransport(Transport):
     def _cb_reply(self, robot: str, reply: Any) -> None:
         sample = reply.ok
         if sample is not None:
-            self._post(self._on_reply, robot, sample.payload.to_bytes())
+            self._check_later(robot, sample, self._on_reply_checked)
 
     # -- loop thread -------------------------------------------------------------------------------
 
@@ -271,11 +349,11 @@ class ZenohTransport(Transport):
         for robot in step.queries:
             self._send_query(robot)
 
-    def _on_update(self, key_expr: str, data: bytes) -> None:
-        self._apply(self.core.on_update(key_expr, data, time.monotonic()))
+    def _on_update_checked(self, robot: str, data: bytes, checked: Envelope | EnvelopeError) -> None:
+        self._apply(self.core.on_update_checked(robot, data, checked, time.monotonic()))
 
-    def _on_reply(self, robot: str, data: bytes) -> None:
-        self._apply(self.core.on_reply(robot, data, time.monotonic()))
+    def _on_reply_checked(self, robot: str, data: bytes, checked: Envelope | EnvelopeError) -> None:
+        self._apply(self.core.on_reply_checked(robot, data, checked, time.monotonic()))
 
     def _on_query_done(self, robot: str) -> None:
         self._apply(self.core.query_done(robot, time.monotonic()))
@@ -321,7 +399,7 @@ class ZenohTransport(Transport):
             if self._session is None:
                 return
             handler = self._handlers.callback(
-                lambda reply: self._cb_reply(robot, reply), lambda: self._post(self._on_query_done, robot)
+                lambda reply: self._cb_reply(robot, reply), lambda: self._query_ended(robot)
             )
             self._session.get(selector, handler, timeout=timeout)
 
@@ -339,6 +417,12 @@ class ZenohTransport(Transport):
         if self._kf_cache is None or self._kf_cache[0] is not env:
             self._kf_cache = (env, env.pack())
         return self._kf_cache[1]
+
+    # -- check thread ------------------------------------------------------------------------------
+
+    def _check_failed(self, exc: BaseException) -> None:
+        # core.check returns every EnvelopeError, so this is a bug, not a peer's doing: say so.
+        log.error("zenoh: checking a received sample failed: %r", exc)
 
     # -- outbox thread -----------------------------------------------------------------------------
 
@@ -432,10 +516,21 @@ class ZenohTransport(Transport):
         return self.core.peers()
 
     def stats(self) -> dict[str, Any]:
-        """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers."""
+        """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers.
+
+        ``superseded``: updates and replies pushed out, unchecked, by newer ones of the same robot
+        (past its byte budget while waiting to be checked); ``unadmitted``: those of robots off the roster, refused unread, and keyframe
+        queries from such robots (answered, but no ``KeyframeNeeded``).
+        """
         with self._tx_lock:
             tx = asdict(self._tx)
-        out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0}
+        with self._rx_lock:
+            rx = self._rx.dropped, self._rx.unadmitted
+        out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0, "superseded": 0}
+        out["dropped"] += rx[0]
+        out["unadmitted"] += rx[1]
+        if self._checks is not None:
+            out["superseded"] = self._checks.superseded
         if self._jobs is not None:
             out["replaced"] = self._jobs.replaced
             out["dropped"] += self._jobs.rejected
