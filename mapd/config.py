@@ -26,8 +26,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mapd import plugins
 from mapd.errors import ConfigError, MapdError
-from mapd.files import read_capped
-from mapd.grid import DEFAULT_MAX_CELLS
+from mapd.files import open_for_reading, read_capped
+from mapd.grid import DEFAULT_MAX_CELLS, short_repr
 from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
 
@@ -324,9 +324,9 @@ def format_validation_error(exc: ValidationError, where: str, prefix: str = "") 
         elif err["type"] == "missing":
             msg = "required key is missing"
         elif "input" in err and err["type"] not in ("value_error",):
-            shown = repr(err["input"])
-            # A hostile value can be a megabyte long; the error stays one readable line.
-            msg = f"{msg} (got {shown if len(shown) <= 80 else shown[:77] + '...'})"
+            # A hostile value can be a megabyte long or an integer too long to print; the error
+            # stays one readable line.
+            msg = f"{msg} (got {short_repr(err['input'], 80)})"
         lines.append(f"{where}: {loc}: {msg}" if loc else f"{where}: {msg}")
     return "\n".join(lines)
 
@@ -345,6 +345,10 @@ MAX_CONFIG_BYTES = 1 << 20
 MAX_CONFIG_DEPTH = 16
 
 
+#: TOML integers are 64-bit signed (the spec asks a parser to refuse others; tomllib does not).
+_TOML_INT_MIN, _TOML_INT_MAX = -(1 << 63), (1 << 63) - 1
+
+
 def _too_deep(data: Any, limit: int) -> bool:
     """True when ``data`` nests dicts and lists more than ``limit`` levels (checked without recursion)."""
     stack: list[tuple[Any, int]] = [(data, 1)]
@@ -359,6 +363,31 @@ def _too_deep(data: Any, limit: int) -> bool:
     return False
 
 
+def _bad_value(data: Any) -> str | None:
+    """Where and why a parsed config holds a value no config can mean, or None.
+
+    An integer outside 64 bits (``0x`` and 20,000 digits) cannot even be printed in an error, and
+    one accepted as a limit or a seed would break later, far from the config; a NUL character in a
+    string makes every path or name that holds it fail with a ValueError when it is opened. Called
+    after :func:`_too_deep`, so the walk is shallow; it keeps no recursion either.
+    """
+    stack: list[tuple[Any, str]] = [(data, "")]
+    while stack:
+        node, where = stack.pop()
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if "\x00" in k:
+                    return f"{where or 'a table'}: a key holds a NUL character"
+                stack.append((v, f"{where}.{k}" if where else k))
+        elif isinstance(node, list):
+            stack.extend((v, f"{where}[{i}]") for i, v in enumerate(node))
+        elif isinstance(node, str) and "\x00" in node:
+            return f"{where}: the string holds a NUL character"
+        elif isinstance(node, int) and not _TOML_INT_MIN <= node <= _TOML_INT_MAX:
+            return f"{where}: integer out of the 64-bit range TOML allows"
+    return None
+
+
 def load(path: str | os.PathLike[str]) -> MapdConfig:
     """Read and validate a config file. Plugin tables are checked by :func:`check_plugins`.
 
@@ -367,7 +396,8 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
     """
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        # open_for_reading: a FIFO named as the config reads as empty instead of blocking for ever.
+        with open_for_reading(p) as f:
             raw = f.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such config file") from None
@@ -384,6 +414,9 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
         raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deeply") from None
     if _too_deep(data, MAX_CONFIG_DEPTH):
         raise ConfigError(f"{p}: arrays or tables nested more than {MAX_CONFIG_DEPTH} levels deep")
+    problem = _bad_value(data)
+    if problem is not None:
+        raise ConfigError(f"{p}: {problem}")
     cfg = validate(MapdConfig, data, str(p))
     cfg._path = p
     # Relative paths in a config are relative to the file, like systemd drop-ins expect.

@@ -5,6 +5,7 @@
 * :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
 * :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
   map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever.
+* :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import json
 import os
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
@@ -43,9 +44,33 @@ def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True, default=str) + "\n").encode())
 
 
+def open_for_reading(path: Path) -> BinaryIO:
+    """``path`` opened for reading (OSError as the OS raises it), without blocking on a FIFO.
+
+    A plain ``open`` of a FIFO blocks until some process opens it for writing, which for a FIFO
+    named by mistake is for ever. Opened with O_NONBLOCK, then switched back to blocking reads: a
+    pipe with a writer (``--key <(...)``) is read as before, one without any writer reads as empty.
+    ValueError (a NUL in the path) is raised as an OSError, so callers have one error to catch.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except ValueError:
+        raise OSError(22, "the path holds a NUL character") from None
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def read_capped(path: Path, cap: int) -> bytes:
-    """Up to ``cap + 1`` bytes of ``path`` (OSError as the OS raises it); the caller refuses more than ``cap``."""
-    with open(path, "rb") as fh:
+    """Up to ``cap + 1`` bytes of ``path`` (OSError as the OS raises it); the caller refuses more than ``cap``.
+
+    Opened by :func:`open_for_reading`, so a FIFO without a writer reads as empty instead of hanging.
+    """
+    with open_for_reading(path) as fh:
         return fh.read(cap + 1)
 
 

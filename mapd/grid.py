@@ -24,6 +24,7 @@ import dataclasses
 import hashlib
 import math
 import os
+import reprlib
 import struct
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -336,7 +337,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
 
     image = _field(meta, "image", path, str)
     if not image or "\x00" in image:
-        raise MapFileError(f"{path}: key 'image' must name an image file, got {image!r}")
+        raise MapFileError(f"{path}: key 'image' must name an image file, got {_short(image)}")
     resolution = _field(meta, "resolution", path, float)
     if resolution <= 0:
         raise MapFileError(f"{path}: resolution must be positive, got {resolution}")
@@ -356,7 +357,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
         raise MapFileError(f"{path}: {problem}")
     negate = _field(meta, "negate", path, int, default=0)
     if negate not in (0, 1):
-        raise MapFileError(f"{path}: negate must be 0 or 1, got {negate}")
+        raise MapFileError(f"{path}: negate must be 0 or 1, got {_short(negate)}")
     occ = _field(meta, "occupied_thresh", path, float, default=0.65)
     free = _field(meta, "free_thresh", path, float, default=0.196)
     if not (0.0 <= free <= 1.0 and 0.0 <= occ <= 1.0):
@@ -380,10 +381,47 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
     }
 
 
+class _BoundedRepr(reprlib.Repr):
+    """A ``repr`` whose cost is bounded whatever the value.
+
+    A YAML alias bomb (anchors nested ten deep, ten aliases each) is a few hundred bytes that
+    ``repr`` expands to 10**10 items, and a hex integer of 64 KiB has more digits than Python
+    converts to decimal (ValueError). Both are shown cut short instead.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.maxlevel = 3
+        self.maxdict = self.maxlist = self.maxtuple = self.maxset = self.maxfrozenset = 6
+        self.maxstring = self.maxother = 60
+        self.maxlong = 40
+
+    def repr_int(self, x: int, level: int) -> str:
+        if x.bit_length() > 128:  # decimal conversion of a huge int is slow, or refused past 4300 digits
+            return f"<{'-' if x < 0 else ''}integer of {x.bit_length()} bits>"
+        return super().repr_int(x, level)
+
+
+_BOUNDED_REPR = _BoundedRepr()
+
+
+def short_repr(value: object, limit: int = 60) -> str:
+    """``repr`` of an untrusted value cut to about ``limit`` characters, at a bounded cost.
+
+    Nested containers are shown a few levels and items deep, huge integers by their size, so a
+    hostile YAML or TOML value (an alias bomb, a 64 KiB hex number) is one short line, never a hang
+    or a ValueError.
+    """
+    try:
+        shown = _BOUNDED_REPR.repr(value)
+    except Exception:  # a hostile object's own __repr__; a name is still one clear line
+        shown = f"<{type(value).__name__}>"
+    return shown if len(shown) <= limit else shown[: limit - 3] + "..."
+
+
 def _short(value: object) -> str:
-    """``repr`` cut to a readable length (a hostile YAML can hold a megabyte in one value)."""
-    shown = repr(value)
-    return shown if len(shown) <= 60 else shown[:57] + "..."
+    """:func:`short_repr` at the length of a map file's error line."""
+    return short_repr(value, 60)
 
 
 def _occupancy(px: np.ndarray, has_alpha: bool, meta: dict[str, Any]) -> np.ndarray:
@@ -458,6 +496,9 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
     pixels = grid.to_image() if mode == "trinary" else np.flipud(grid.data.view(np.uint8))
     image_path = path.with_suffix(".pgm")
     header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
+    if path.is_dir():
+        # Checked first: the image would otherwise be written beside it (DIR.pgm) before the YAML fails.
+        raise MapFileError(f"{path}: is a directory; name the map's YAML file")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(image_path, header + np.ascontiguousarray(pixels).tobytes())
@@ -472,5 +513,6 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
         }
         atomic_write_bytes(path, yaml.safe_dump(meta, sort_keys=False).encode())
     except OSError as exc:
-        raise MapFileError(f"{path}: cannot write map: {exc}") from None
+        # strerror, not str(exc): that names the hidden temp file, which means nothing to the user.
+        raise MapFileError(f"{path}: cannot write map: {exc.strerror or one_line(exc)}") from None
     return path

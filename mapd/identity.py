@@ -27,7 +27,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from mapd.errors import ConfigError, SignatureError
-from mapd.files import write_new_secret
+from mapd.files import open_for_reading, write_new_secret
 from mapd.keys import MAX_KEY_FILE_BYTES
 
 SIG_LEN = 64
@@ -81,7 +81,8 @@ def read_identity(path: Path, robot: str, option: str = "robot.key_file") -> Ide
     ever); refused when other users may read it (as ssh refuses a private key).
     """
     try:
-        with open(path, "rb") as fh:
+        # Not open(): that blocks on a FIFO with no writer before the regular-file check can refuse it.
+        with open_for_reading(path) as fh:
             st = os.fstat(fh.fileno())
             if not stat.S_ISREG(st.st_mode):
                 raise ConfigError(f"{option}: {path} is not a regular file")

@@ -157,8 +157,11 @@ def cmd_encode(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     payload = encode(grid, args.codec, base)
     ms = 1000 * (time.perf_counter() - t0)
+    from mapd.files import atomic_write_bytes
+
     try:
-        args.output.write_bytes(payload)
+        # Atomic: a full disk or a crash mid-write leaves the previous payload, never half of one.
+        atomic_write_bytes(args.output, payload)
     except OSError as exc:
         raise CodecError(f"{args.output}: cannot write payload: {exc.strerror}") from None
     ratio = grid.cells / len(payload)
@@ -177,15 +180,19 @@ def cmd_decode(args: argparse.Namespace) -> int:
     # Read at most what the largest payload decode accepts (a raw map at the cell limit plus its
     # header), so that /dev/zero or a wrong file is refused instead of read into memory.
     limit = DEFAULT_MAX_CELLS + (1 << 16)
+    from mapd.files import read_capped
+
     try:
-        with args.payload.open("rb") as f:
-            payload = f.read(limit + 1)
+        payload = read_capped(args.payload, limit)  # a FIFO with no writer reads as empty, never blocks
     except OSError as exc:
         raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
     if len(payload) > limit:
         raise CodecError(f"{args.payload}: over {limit} bytes, larger than any payload mapd decodes")
     base = load_map(args.base) if args.base else None
-    grid = decode(payload, base)
+    try:
+        grid = decode(payload, base)
+    except CodecError as exc:
+        raise CodecError(f"{args.payload}: {exc}") from None  # say which file, as the other errors do
     save_map(grid, args.output)
     print(f"{args.output}: {grid.width} x {grid.height} cells", file=sys.stderr)
     return 0

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 from typing import Any
 
 from mapd.errors import MapFileError
+from mapd.files import open_for_reading
+from mapd.grid import DEFAULT_MAX_CELLS
 
 
 @dataclass
@@ -36,40 +41,162 @@ class RecordingSummary:
         }
 
 
+#: Largest record read from the file (a chunk, compressed): a map of ``DEFAULT_MAX_CELLS`` compresses
+#: well under it; a hostile length is refused before it is read.
+MAX_RECORD_BYTES = 64 << 20
+#: Largest chunk decompressed. A chunk holds the messages of ``chunk_bytes`` plus at most one more,
+#: which is at most a map of ``DEFAULT_MAX_CELLS`` cells (one byte each) and its header. A chunk
+#: declaring more is refused before anything is decompressed, and none decompresses past what it
+#: declares: a few KiB of zstd can otherwise stand for gigabytes.
+MAX_CHUNK_BYTES = DEFAULT_MAX_CELLS + (1 << 20)
+
+#: Records parsed out of chunks, at most, per byte of the file read so far (plus
+#: :data:`RECORDS_GRACE`). A recorded record is a map, a transform or link counters, 100 bytes or
+#: more that compress a few times, so a real file has well under one record a byte; a zstd chunk of
+#: a few KiB can hold millions of 9-byte records, each a step of the parsing loop.
+RECORDS_PER_FILE_BYTE = 16
+RECORDS_GRACE = 1 << 20
+
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_MESSAGE_HEAD = struct.Struct("<H4xQ")  # channel id, (sequence), log time
+_MESSAGE_HEAD_BYTES = 22  # channel id, sequence, log time, publish time
+
+
+def _decompress(chunk: Any) -> bytes:
+    """A chunk's records, decompressed to at most the size it declares (and :data:`MAX_CHUNK_BYTES`)."""
+    size = chunk.uncompressed_size
+    if size > MAX_CHUNK_BYTES:
+        raise MapFileError(
+            f"a chunk declares {size} bytes, over the {MAX_CHUNK_BYTES} a recording's chunk holds"
+        )
+    if chunk.compression == "":
+        data = bytes(chunk.data)
+    elif chunk.compression == "zstd":
+        import zstandard
+
+        with zstandard.ZstdDecompressor().stream_reader(chunk.data) as reader:
+            parts: list[bytes] = []
+            got = 0
+            while got <= size:  # one byte past the declared size tells a lie from the truth
+                part = reader.read(size + 1 - got)
+                if not part:
+                    break
+                parts.append(part)
+                got += len(part)
+            data = b"".join(parts)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    else:
+        raise MapFileError(f"a chunk is compressed with {chunk.compression[:20]!r}, which mapd does not read")
+    if len(data) != size:
+        raise MapFileError(f"a chunk decompresses to {'more than ' if len(data) > size else ''}"
+                           f"{min(len(data), size)} bytes, not the {size} it declares")  # fmt: skip
+    return data
+
+
+@dataclass
+class _RecordCount:
+    """Records parsed out of chunks so far, against what the bytes read so far allow."""
+
+    parsed: int = 0
+    allowed: int = RECORDS_GRACE
+
+
+def _chunk_records(data: bytes, count: _RecordCount) -> Iterator[Any]:
+    """The schemas and channels of a decompressed chunk, and ``(channel id, log time)`` of each message.
+
+    Messages are not built as objects: a chunk can hold millions of tiny ones. Other records are
+    skipped, as the MCAP spec asks of readers. Every record is counted in ``count``; past
+    ``count.allowed`` the file is refused (:data:`RECORDS_PER_FILE_BYTE`).
+    """
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Schema
+
+    message, schema, channel = int(Opcode.MESSAGE), int(Opcode.SCHEMA), int(Opcode.CHANNEL)
+    head_size, unpack_head = _RECORD_HEAD.size, _RECORD_HEAD.unpack_from
+    pos, end = 0, len(data)
+    while pos < end:
+        count.parsed += 1
+        if count.parsed > count.allowed:
+            raise MapFileError(
+                f"chunks hold more records than {RECORDS_PER_FILE_BYTE} a byte of the file "
+                "(a compression bomb, not a recording)"
+            )
+        if end - pos < head_size:
+            raise MapFileError("a chunk ends inside a record header")
+        opcode, length = unpack_head(data, pos)
+        pos += head_size
+        if length > end - pos:
+            raise MapFileError("a record runs past the end of its chunk")
+        if opcode == message:
+            if length < _MESSAGE_HEAD_BYTES:
+                raise MapFileError("a message record is shorter than its header")
+            yield _MESSAGE_HEAD.unpack_from(data, pos)
+        elif opcode in (schema, channel):
+            stream = ReadDataStream(BytesIO(data[pos : pos + length]))
+            yield Schema.read(stream) if opcode == schema else Channel.read(stream)
+        pos += length
+
+
 def summarize(path: Path) -> RecordingSummary:
-    """Read every message of ``path`` in order (so a file without its footer reads up to its last chunk)."""
+    """Read every message of ``path`` in order (so a file without its footer reads up to its last chunk).
+
+    Memory stays bounded whatever the file says: records over :data:`MAX_RECORD_BYTES` and chunks
+    over :data:`MAX_CHUNK_BYTES` are refused, and messages are counted, not kept.
+    """
     try:
-        from mcap.records import Channel, Footer, Message, Schema
+        from mcap.records import Channel, Chunk, Footer, Message, Schema
         from mcap.stream_reader import StreamReader
     except ModuleNotFoundError:
         raise MapFileError("record info needs mcap (pip install 'mapd[record]')") from None
     summary = RecordingSummary(str(path), complete=False)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
+
+    def message(channel_id: int, log_time: int) -> None:
+        ch = channels.get(channel_id)
+        if ch is None:
+            return
+        sch = schemas.get(ch.schema_id)
+        t = summary.topics.setdefault(ch.topic, TopicSummary(sch.name if sch else "", ch.message_encoding))
+        t.messages += 1
+        t.first_ns = log_time if t.first_ns is None else min(t.first_ns, log_time)
+        t.last_ns = log_time if t.last_ns is None else max(t.last_ns, log_time)
+        summary.messages += 1
+
+    def take(record: Any) -> None:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, tuple):
+            message(*record)
+
     try:
-        with open(path, "rb") as fh:
-            # records over 64 MiB are refused: a map of max_cells is well under it, a hostile size is not
-            for record in StreamReader(fh, skip_magic=False, record_size_limit=64 << 20).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
+        # open_for_reading: a FIFO named by mistake reads as empty instead of blocking for ever
+        with open_for_reading(path) as fh:
+            # emit_chunks: chunks are decompressed here, within MAX_CHUNK_BYTES; the mcap reader
+            # would decompress whatever size a chunk claims and build every message it holds.
+            reader = StreamReader(fh, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)
+            count = _RecordCount()
+            for record in reader.records:
+                if isinstance(record, Chunk):
+                    count.allowed = RECORDS_GRACE + RECORDS_PER_FILE_BYTE * fh.tell()
+                    for item in _chunk_records(_decompress(record), count):
+                        take(item)
                 elif isinstance(record, Message):
-                    ch = channels.get(record.channel_id)
-                    if ch is None:
-                        continue
-                    sch = schemas.get(ch.schema_id)
-                    t = summary.topics.setdefault(
-                        ch.topic, TopicSummary(sch.name if sch else "", ch.message_encoding)
-                    )
-                    t.messages += 1
-                    t.first_ns = record.log_time if t.first_ns is None else min(t.first_ns, record.log_time)
-                    t.last_ns = record.log_time if t.last_ns is None else max(t.last_ns, record.log_time)
-                    summary.messages += 1
+                    message(record.channel_id, record.log_time)
                 elif isinstance(record, Footer):
                     summary.complete = True
+                else:
+                    take(record)
     except OSError as exc:
         raise MapFileError(f"{path}: cannot read: {exc.strerror}") from None
+    except MapFileError as exc:  # damage found here: say what it is
+        summary.error = f"cut short after {summary.messages} messages ({exc})"
     except Exception as exc:  # the mcap reader raises assorted errors on a cut or damaged file
         summary.error = f"cut short after {summary.messages} messages ({type(exc).__name__})"
     if summary.messages == 0 and summary.error is not None and not summary.topics:

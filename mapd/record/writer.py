@@ -11,7 +11,8 @@ Channels (REP-105 frame names: the fleet frame is ``map``, each robot's map fram
 Every message is stamped with the wall clock (log time and publish time, nanoseconds). The file is
 written in chunks (``chunk_bytes``) and flushed to the OS after each one, so a daemon killed with
 ``kill -9`` leaves a file readable up to its last chunk; a clean stop writes the summary and
-footer. Past ``max_bytes`` the recording rotates: ``fleet.mcap``, ``fleet.1.mcap``, ...
+footer. Past ``max_bytes`` the recording rotates: ``fleet.mcap``, ``fleet.1.mcap``, ... A file that
+exists is never written over: a restarted daemon records into the next free number.
 
 Blocking (file writes, CDR encoding): the daemon calls it from its file thread, never the loop.
 """
@@ -110,7 +111,15 @@ class Recorder:
         path = self._current_path()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(path, "wb")  # noqa: SIM115 - closed in _close
+            while True:
+                # "xb", never "wb": a daemon restarted after a crash (systemd, 2 s later) must not
+                # truncate the recording of that crash; it goes on with the next free number.
+                try:
+                    self._file = open(path, "xb")  # noqa: SIM115 - closed in _close
+                    break
+                except FileExistsError:
+                    self._index += 1
+                    path = self._current_path()
         except OSError as exc:
             raise ConfigError(f"record: cannot write {path}: {exc.strerror}") from None
         self._writer = Writer(self._file, chunk_size=self.chunk_bytes, compression=CompressionType.ZSTD)
