@@ -191,6 +191,9 @@ class Daemon:
         except MapdError as exc:
             log.error("reload %s", self.reloads.failed(str(exc)))
             ok = False
+        except Exception as exc:  # a bug in reading it must not take the running daemon down
+            log.error("reload %s", self.reloads.failed(f"{type(exc).__name__}: {exc}"))
+            ok = False
         else:
             self.keys.roster.adopt(keys.roster)
             said = self.reloads.applied(new, plan)

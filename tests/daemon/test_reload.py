@@ -202,3 +202,30 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
     log = (f.run_dir / "robot0" / "daemon.log").read_text()
     refusals = [ln for ln in log.splitlines() if "reload refused" in ln]
     assert len(refusals) == 1 and str(cfg0) in refusals[0] and "Traceback" not in log
+
+
+def test_a_reload_that_fails_unexpectedly_leaves_the_daemon_running(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mapd.daemon.server as server
+
+    def broken(*_: object) -> None:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(server, "read_reload", broken)
+    d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+
+    async def main() -> None:
+        task = asyncio.create_task(d.run())
+        try:
+            await dk.wait_for(lambda: bool(d.transports), what="up")
+            d.request_reload()  # as SIGHUP does
+            await dk.wait_for(lambda: d.reloads.count == 1, what="reload done")
+            assert d.snapshot()["reload"]["last"].endswith("RuntimeError: a bug")
+            await asyncio.sleep(0.2)
+            assert not task.done()  # the daemon runs on
+        finally:
+            d.request_stop()
+            await task
+
+    asyncio.run(main())
