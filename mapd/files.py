@@ -2,6 +2,8 @@
 
 * :func:`atomic_write_bytes` / :func:`atomic_write_json`: readers see the old file or the new one,
   never half of either (temp file, fsync, rename, fsync of the directory).
+* :func:`remove_stale_temps`: the temp files a writer killed mid-write (``kill -9``, power loss)
+  left behind, removed at start-up so they never pile up.
 * :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
 * :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
   map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever.
@@ -12,9 +14,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any, BinaryIO
+
+#: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>``.
+_TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+")
 
 
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
@@ -29,14 +35,48 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    _fsync_dir(path.parent)  # make the rename itself durable across a power cut
+
+
+def _fsync_dir(directory: Path) -> None:
+    """fsync ``directory`` so a name just created or renamed in it is durable (best effort)."""
     try:
-        dfd = os.open(path.parent, os.O_RDONLY)
+        dfd = os.open(directory, os.O_RDONLY)
         try:
-            os.fsync(dfd)  # make the rename itself durable across a power cut
+            os.fsync(dfd)
         finally:
             os.close(dfd)
     except OSError:
         pass
+
+
+def remove_stale_temps(directory: Path) -> list[Path]:
+    """Remove the temp files of :func:`atomic_write_bytes` in ``directory`` left by other processes.
+
+    A writer killed between creating its temp file and the rename leaves it behind, and the next
+    run's temp files have other names (the pid is in them), so without this they pile up for ever,
+    each as large as the file it was to replace. Only regular files named as this module names its
+    temps are removed, and not this process's own (a write of ours may be under way). Returns the
+    paths removed; a directory that cannot be listed, or a file that cannot be removed, is skipped.
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    me = str(os.getpid())
+    for entry in entries:
+        m = _TEMP_NAME.fullmatch(entry.name)
+        if m is None or m.group(1) == me:
+            continue
+        try:
+            if not entry.is_file(follow_symlinks=False):
+                continue
+            os.unlink(entry.path)
+        except OSError:
+            continue
+        removed.append(Path(entry.path))
+    return removed
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
@@ -78,9 +118,16 @@ def write_new_secret(path: Path, data: bytes) -> None:
     """Write ``data`` to a new file readable by its owner only, durably.
 
     Raises FileExistsError when ``path`` exists (a key is never overwritten) and OSError otherwise.
+    A write that fails (a full disk) removes the file it created: a half-written key left there
+    would be refused as an existing key by every later attempt to write it.
     """
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)  # the new name survives a power cut too, not just the key's bytes

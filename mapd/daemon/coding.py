@@ -11,6 +11,8 @@ keyframe queries), possibly two at once, so its shared bits are locked.
 from __future__ import annotations
 
 import csv
+import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -24,22 +26,77 @@ from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.identity import Identity
 
+log = logging.getLogger(__name__)
+
 
 class CsvLog:
-    """Rows appended to one CSV file, header first. Blocking and thread-safe: call it off the loop."""
+    """Rows appended to one CSV file, header first. Blocking and thread-safe: call it off the loop.
+
+    A log is not state: a row that cannot be written (a full disk) is dropped with one log line (one
+    per run of failures, not one per row), and never stops what logged it (coding a map). The first
+    write of a run cuts a torn last line (power lost mid-append) back to the last whole row, so the
+    next row never runs into half of an old one.
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._lock = threading.Lock()
+        self._checked = False
+        self._failing = False
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         if not rows:
             return
-        with self._lock, open(self.path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            if fh.tell() == 0:
-                w.writeheader()
-            w.writerows(rows)
+        with self._lock:
+            try:
+                if not self._checked:
+                    _cut_torn_line(self.path)
+                    self._checked = True
+                with open(self.path, "a", newline="") as fh:
+                    w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+                    if fh.tell() == 0:
+                        w.writeheader()
+                    w.writerows(rows)
+            except OSError as exc:
+                if not self._failing:
+                    log.error(
+                        "cannot write %s (rows dropped until it can): %s", self.path, exc.strerror or exc
+                    )
+                self._failing = True
+                return
+            if self._failing:
+                log.info("writing %s again", self.path)
+                self._failing = False
+
+
+def _cut_torn_line(path: Path) -> None:
+    """Truncate ``path`` after its last newline when it ends inside a line (a torn append)."""
+    try:
+        fh = open(path, "rb+")  # noqa: SIM115 - closed below; a missing file has nothing torn
+    except FileNotFoundError:
+        return
+    with fh:
+        end = fh.seek(0, os.SEEK_END)
+        if end == 0:
+            return
+        fh.seek(end - 1)
+        if fh.read(1) == b"\n":
+            return
+        pos = end
+        while pos > 0:  # backwards a piece at a time: a row is short, the file need not be
+            start = max(0, pos - 4096)
+            fh.seek(start)
+            piece = fh.read(pos - start)
+            nl = piece.rfind(b"\n")
+            if nl >= 0:
+                fh.truncate(start + nl + 1)
+                break
+            pos = start
+        else:
+            fh.truncate(0)  # not even the header is whole: it is written again
+        fh.flush()
+        os.fsync(fh.fileno())
+    log.warning("%s ended inside a row (an interrupted write); cut back to its last whole row", path)
 
 
 class Coder:

@@ -88,7 +88,10 @@ class Inbound:
             if free:
                 self.wake()  # the link is free: the publisher sends it the newest version
             if newer and self.store.set_acked(ev.peer, ev.version):
-                await self._save_base()
+                try:
+                    await self._save_base()
+                except StateError as exc:  # a full disk: the base is saved with a later ack
+                    log.error("%s", exc)
         elif isinstance(ev, OnAir):
             if ev.robot == self.me and core.on_air(ev.transport, ev.version, time.monotonic()):
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever

@@ -10,14 +10,16 @@ Layout::
     <state>/global/...          written by the fusion worker
 
 Every file is replaced atomically (temp file, fsync, rename), map files first and ``state.json``
-last. ``state.json`` names each map by version and digest, so a map file that does not match it
-(a crash between the two writes) is treated as absent, never as the wrong version.
+last; the temp files a crash mid-write left anywhere in the directory are removed at start-up.
+``state.json`` names each map by version and digest, so a map file that does not match it (a crash
+between the two writes) is treated as absent, never as the wrong version.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +27,7 @@ from typing import Any
 
 from mapd.daemon.versions import next_version
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_json
+from mapd.files import atomic_write_json, remove_stale_temps
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
 
 log = logging.getLogger(__name__)
@@ -110,6 +112,7 @@ class StateStore:
             probe.unlink()
         except OSError as exc:
             raise StateError(f"state directory {self.root} is not writable: {exc.strerror}") from None
+        self._remove_stale_temps()
         path = self.root / "state.json"
         if path.exists():
             try:
@@ -118,6 +121,19 @@ class StateStore:
                 log.warning("state.json unreadable (%s); starting with empty state", exc)
                 self.data = StateData()
         return self.data
+
+    def _remove_stale_temps(self) -> None:
+        """Remove what writers killed mid-write (``kill -9``, power loss) left in the state directory.
+
+        Each is as large as the map it was to replace and bears its dead writer's pid, so no later
+        write reuses it: without this a robot that crashes now and then fills its disk. The whole
+        tree is swept (own, peers, global, the transports' ``links``), before anything writes.
+        """
+        removed = 0
+        for here, _dirs, _files in os.walk(self.root):  # symlinks not followed: only our own tree
+            removed += len(remove_stale_temps(Path(here)))
+        if removed:
+            log.info("removed %d temp file(s) an interrupted write left in %s", removed, self.root)
 
     # ------------------------------------------------------------------ counters (no file I/O)
     def next_own_version(self, wall_time: float) -> int:

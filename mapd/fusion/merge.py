@@ -29,12 +29,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import cv2
 import numpy as np
 
 from mapd.errors import FusionError, LimitError
+from mapd.files import atomic_write_bytes
 from mapd.fusion.transforms import transformed_corners, warp_matrix
 from mapd.fusion.views import MAX_SIDE, resample_classes
 from mapd.grid import DEFAULT_MAX_CELLS, OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D
@@ -323,10 +325,22 @@ def colour_image(result: MergeResult) -> np.ndarray:
 
 
 def save_png(result: MergeResult, path: str) -> None:
-    """Write :func:`colour_image` as a PNG (raises FusionError when it cannot be written)."""
+    """Write :func:`colour_image` as a PNG (raises FusionError when it cannot be written).
+
+    Encoded in memory and written atomically: a full disk or a crash mid-write leaves the previous
+    preview whole (a web page or viewer may be reading it), never a truncated PNG in its place.
+    """
+    import io
+
     from PIL import Image
 
+    buf = io.BytesIO()
     try:
-        Image.fromarray(colour_image(result), mode="RGB").save(path, format="PNG")
+        Image.fromarray(colour_image(result), mode="RGB").save(buf, format="PNG")
     except (OSError, ValueError) as exc:
         raise FusionError(f"{path}: cannot write preview: {exc}") from None
+    try:
+        atomic_write_bytes(Path(path), buf.getvalue())
+    except OSError as exc:
+        # strerror, not str(exc): that names the hidden temp file, which means nothing to the user.
+        raise FusionError(f"{path}: cannot write preview: {exc.strerror or exc}") from None

@@ -110,6 +110,8 @@ class FusionWorker:
         self._last_merge: float | None = None
         self._last_seconds: float | None = None
         self._error: str | None = None
+        #: The global map could not be written at the last try (said once, not at every merge).
+        self._save_failing = False
         self._dropped = 0
         self._loaded = False
 
@@ -258,7 +260,19 @@ class FusionWorker:
         stamp = time.time()
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)
         result = MergeResult(grid=grid, bounds=result.bounds, owner=result.owner)
-        self._save(result, placements, stamp)
+        try:
+            self._save(result, placements, stamp)
+        except MapdError as exc:
+            # A full disk must not freeze the fleet's global map: the outputs and status still
+            # get the new one, and the state directory keeps the last one written whole (each
+            # file is atomic), which a restart restores.
+            if not self._save_failing:
+                log.error("fusion: global map not saved (saving again at each merge): %s", exc)
+            self._save_failing = True
+        else:
+            if self._save_failing:
+                log.info("fusion: global map saved again")
+            self._save_failing = False
         self._save_owner(result.owner, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
 

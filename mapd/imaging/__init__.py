@@ -8,7 +8,8 @@ before any pixel is decoded).
 
 * :func:`read_pixels`: the one entry point; sniffs the format and hands the file to one of:
 * :mod:`~mapd.imaging.pnm`: PNM header parser and reader (P5/P6 with numpy, P1-P4 checked for Pillow);
-* :mod:`~mapd.imaging.png`: PNG chunk, CRC, IEND and data-length verifier, run before Pillow decodes;
+* :mod:`~mapd.imaging.png`: PNG chunk, CRC, IEND, PLTE and data-length verifier, run before Pillow
+  decodes;
 * :mod:`~mapd.imaging.pixels`: the Pillow wrapper for everything else (only map_server's formats,
   one error per failure), :class:`Pixels` (grey levels a band of rows at a time) and the helpers the
   readers share (regular-file open, the cell check).
@@ -48,9 +49,9 @@ def read_pixels(image_path: Path, where: str, max_cells: int) -> Pixels:
                 f.seek(0)
                 return pillow_pixels(f, ("PPM",), where, image_path, max_cells)
             if magic == PNG_SIGNATURE:
-                check_png(f, where, image_path, max_cells)
+                palette = check_png(f, where, image_path, max_cells)
                 f.seek(0)
-                return pillow_pixels(f, ("PNG",), where, image_path, max_cells)
+                return pillow_pixels(f, ("PNG",), where, image_path, max_cells, palette=palette)
             if PNG_SIGNATURE.startswith(magic) or (magic[:1] == b"P" and len(magic) < 3):
                 raise MapFileError(f"{where}: image '{image_path}' is truncated ({len(magic)} bytes)")
             return pillow_pixels(f, PILLOW_FORMATS, where, image_path, max_cells)

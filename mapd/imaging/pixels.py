@@ -110,8 +110,14 @@ def check_cells(width: int, height: int, where: str, image: Path, max_cells: int
         )
 
 
-def pillow_pixels(f: Any, formats: tuple[str, ...], where: str, image: Path, max_cells: int) -> Pixels:
+def pillow_pixels(
+    f: Any, formats: tuple[str, ...], where: str, image: Path, max_cells: int, *, palette: int | None = None
+) -> Pixels:
     """Decode with Pillow (after any header checks of our own); every failure is one MapFileError.
+
+    ``palette``: how many colours the file's palette holds, as the caller's own check read it (a
+    PNG's PLTE); a pixel whose index lies beyond it is refused. Pillow would decode it as black, a
+    wall by map_server's rules, where libpng refuses the file.
 
     ``max_cells`` is checked right after ``Image.open``, which reads only the header, so nothing over
     the limit is decoded. Pillow's own decompression-bomb guard (``Image.MAX_IMAGE_PIXELS``, about
@@ -134,16 +140,23 @@ def pillow_pixels(f: Any, formats: tuple[str, ...], where: str, image: Path, max
     try:
         with img:
             check_cells(img.size[0], img.size[1], where, image, max_cells)
-            return _pillow_array(img)
+            return _pillow_array(img, palette)
     except (MapFileError, LimitError):
         raise
     except _PIL_ERRORS as exc:
         raise MapFileError(f"{name} is truncated or corrupt: {one_line(exc)}") from None
 
 
-def _pillow_array(img: Image.Image) -> Pixels:
-    """Pixels of a Pillow image, converted as map_server's SDL_image would hand them over."""
+def _pillow_array(img: Image.Image, palette: int | None = None) -> Pixels:
+    """Pixels of a Pillow image, converted as map_server's SDL_image would hand them over.
+
+    Raises ValueError for a palette image with an index at or beyond ``palette`` colours.
+    """
     mode = img.mode
+    if mode == "P" and palette is not None:
+        top = int(np.asarray(img).max(initial=0))
+        if top >= palette:
+            raise ValueError(f"pixel index {top} lies beyond its palette of {palette} colours")
     if mode == "P":
         img = img.convert("RGBA" if "transparency" in img.info else "RGB")
     elif mode == "1":

@@ -4,7 +4,10 @@ Pillow pads an image whose compressed data ends early (a complete zlib stream th
 rows) with black, which map_server's rules read as walls. So :func:`check_png` walks the chunks
 first: every CRC checked, IEND present, IHDR's size held against the cell limit before any pixel data
 is inflated, and the IDAT stream inflated (in bounded pieces, counted, not kept) to at least the
-size IHDR implies.
+size IHDR implies. A palette image must hold one well-formed PLTE chunk before its pixel data, as
+libpng requires: without it Pillow decodes every pixel as black, which map_server's rules read as
+walls. Its pixels' indices are checked against the palette after decoding
+(:func:`mapd.imaging.pixels.pillow_pixels`), for the same reason.
 """
 
 from __future__ import annotations
@@ -44,9 +47,12 @@ def _png_raw_size(width: int, height: int, bits: int, interlaced: bool) -> int:
     return total
 
 
-def check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
+def check_png(f: Any, where: str, image: Path, max_cells: int) -> int | None:
     """Walk a PNG's chunks: raise MapFileError unless it is complete and consistent, LimitError when
-    IHDR's size is over ``max_cells`` (before any pixel data is inflated)."""
+    IHDR's size is over ``max_cells`` (before any pixel data is inflated).
+
+    Returns how many colours a palette image's PLTE holds (None for other colour types).
+    """
     name = f"{where}: image '{image}'"
     cut = f"{name} is truncated (ends before its IEND chunk)"
     f.seek(len(PNG_SIGNATURE))
@@ -54,6 +60,9 @@ def check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
     expect = -1
     got = 0
     first = True
+    colour = -1
+    palette: int | None = None
+    seen_idat = False
     while True:
         head = f.read(8)
         if len(head) < 8:
@@ -63,6 +72,19 @@ def check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
             raise MapFileError(f"{name} is corrupt (bad chunk header)")
         if first and (ctype != b"IHDR" or length != 13):
             raise MapFileError(f"{name} is corrupt (it does not start with IHDR)")
+        if colour == 3 and ctype == b"PLTE":
+            # libpng's rules: one PLTE, before the pixel data, of 1 to 256 whole RGB entries.
+            if palette is not None or seen_idat:
+                raise MapFileError(f"{name} is corrupt (a second PLTE chunk, or one after its pixel data)")
+            if length == 0 or length % 3 or length > 3 * 256:
+                raise MapFileError(f"{name} is corrupt (a PLTE chunk of {length} bytes)")
+            palette = length // 3
+        if ctype == b"IDAT":
+            if colour == 3 and palette is None:
+                raise MapFileError(
+                    f"{name} is corrupt (a palette image without a PLTE chunk before its pixels)"
+                )
+            seen_idat = True
         crc = zlib.crc32(ctype)
         left = length
         ihdr = b""
@@ -100,6 +122,7 @@ def check_png(f: Any, where: str, image: Path, max_cells: int) -> None:
         raise MapFileError(
             f"{name} ends early: its pixel data holds {got} of {expect} bytes (truncated or cut short)"
         )
+    return palette
 
 
 def _inflate_count(inflater: Any, data: bytes, want: int, name: str) -> int:

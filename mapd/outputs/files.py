@@ -8,13 +8,14 @@ another place, say where a ``map_server`` on the same robot or a web server look
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field
 
 from mapd.errors import ConfigError
-from mapd.files import atomic_write_json
+from mapd.files import atomic_write_json, remove_stale_temps
 from mapd.grid import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
 
@@ -43,6 +44,8 @@ class FilesOutput(Output):
             self.opts.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"output.files: cannot create {self.opts.dir}: {exc.strerror}") from None
+        # what a write killed mid-way (kill -9, power loss) left there would otherwise pile up
+        await asyncio.to_thread(remove_stale_temps, self.opts.dir)
 
     def publish(self, update: GlobalUpdate) -> None:
         save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml")

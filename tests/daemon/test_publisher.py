@@ -171,3 +171,41 @@ def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path,
                 await late.close()
 
     asyncio.run(main())
+
+
+def test_a_version_that_cannot_be_saved_is_not_sent_and_the_robot_runs_on(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full disk while saving an own version: that version is not sent unsaved (after a restart
+    its number could come again), the daemon does not stop, and the next version goes out."""
+    from mapd.errors import StateError
+
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        d.publisher.inflight_timeout_s = 0.1
+        save = d.store.save_own
+        full = {"disk": False}
+
+        def save_own(grid: Any) -> None:
+            if full["disk"]:
+                raise StateError(f"{d.cfg.state.dir}: cannot save own map: No space left on device")
+            save(grid)
+
+        d.store.save_own = save_own  # type: ignore[method-assign]
+        async with one_peer(d, channel, dk, []) as (link, _):
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            full["disk"] = True
+            for v in (2, 3):
+                await source.queue.put(dk.growing_map(v))
+                await settle()
+            assert len(link.offers) == 1  # neither v2 nor v3 went out unsaved
+            full["disk"] = False
+            await source.queue.put(dk.growing_map(4))
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v4 offered once saved")
+            assert num(link.offers[1].version) == 4
+        errors = [r for r in caplog.records if "No space left" in r.getMessage()]
+        assert len(errors) == 1  # one line for the run of failures, not one a version
+
+    asyncio.run(main())

@@ -39,7 +39,12 @@ def test_files_output_writes_map_server_files_and_transforms(
     tmp_path: Path, room_grid: OccupancyGrid
 ) -> None:
     out = FilesOutput(FilesOptions(dir=tmp_path / "maps", name="fleet"), OutputContext("base", "f"))
+    (tmp_path / "maps").mkdir()
+    stale = tmp_path / "maps" / ".fleet.pgm.tmp999999.1"  # a write killed mid-way, by another pid
+    stale.write_bytes(b"half a map")
+    (tmp_path / "maps" / "notes.tmp").write_text("not ours")
     asyncio.run(out.start())
+    assert not stale.exists() and (tmp_path / "maps" / "notes.tmp").exists()  # only our temps go
     out.publish(update(room_grid))
     back = load_map(tmp_path / "maps" / "fleet.yaml")
     assert back.same_map(room_grid)

@@ -1,0 +1,392 @@
+"""Nothing lost on a crash: kill -9 mid-write, a full disk, a torn append, a clock that steps back.
+
+A full disk is a file-size limit (``RLIMIT_FSIZE``) in a child process: writes past it fail with
+EFBIG exactly where a full disk fails with ENOSPC (Python ignores SIGXFSZ), without filling a real
+disk. A kill -9 mid-write is the child killing itself between a temp file's fsync and its rename.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import struct
+import subprocess
+import sys
+import textwrap
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapd.daemon.coding import Coder, CsvLog
+from mapd.daemon.state import StateStore
+from mapd.daemon.versions import split
+from mapd.errors import MapFileError
+from mapd.files import atomic_write_bytes
+from mapd.fusion.worker import GLOBAL_YAML
+from mapd.grid import OccupancyGrid, load_map
+from mapd.imaging import read_pixels
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _child(script: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``script`` in a fresh interpreter (its own rlimits, its own death)."""
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script), *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def _temps(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob(".*") if ".tmp" in p.name)
+
+
+# ---------------------------------------------------------------------- atomic writes
+
+
+def test_atomic_write_fsyncs_the_file_before_the_rename_and_the_directory_after(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
+        events.append(("replace", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    target = tmp_path / "state.json"
+    atomic_write_bytes(target, b"{}\n")
+    kinds = [k for k, _ in events]
+    assert kinds == ["fsync", "replace", "fsync"]
+    assert ".state.json.tmp" in events[0][1]  # the temp file's data is on disk before it is renamed
+    assert events[1][1] == str(target)
+    assert events[2][1] == str(tmp_path)  # and the rename itself, by the directory's fsync
+    assert target.read_bytes() == b"{}\n" and _temps(tmp_path) == []
+
+
+KILLED_MID_WRITE = """
+    import os, signal, sys
+    from pathlib import Path
+    import numpy as np
+    from mapd.daemon.state import StateStore
+    from mapd.grid import OccupancyGrid
+
+    root, what = Path(sys.argv[1]), sys.argv[2]
+    store = StateStore(root)
+    store.open()
+    grid = OccupancyGrid(np.zeros((40, 60), np.int8), 0.05, robot="alpha", version=1)
+    if what == "first":
+        store.save_own(grid)
+        store.save_peer(grid.replace(robot="beta", version=7))
+    # kill -9 after the temp file is written and fsynced, before it is renamed over the map
+    os.replace = lambda src, dst: os.kill(os.getpid(), signal.SIGKILL)
+    if what == "peer":
+        store.save_peer(grid.replace(robot="beta", version=8, data=np.full((40, 60), 100, np.int8)))
+    else:
+        store.save_own(grid.replace(version=2, data=np.full((40, 60), 100, np.int8)))
+"""
+
+
+def test_temp_files_left_by_kill_9_are_removed_at_start_and_the_state_is_intact(tmp_path: Path) -> None:
+    root = tmp_path / "state"
+    left: set[Path] = set()
+    for what in ("first", "own", "peer"):
+        done = _child(KILLED_MID_WRITE, str(root), what)
+        assert done.returncode == -9, done.stderr
+        # Each killed writer leaves a temp file named by its pid, which no later write reuses.
+        assert _temps(root), "the writer was not killed mid-write"
+        left |= set(_temps(root))
+    assert len(left) == 3
+    mine = root / "global" / f".global.pgm.tmp{os.getpid()}.1"  # a write of this process: kept
+    mine.write_bytes(b"P5")
+    other = root / "notes.tmp"  # not a name mapd gives its temps: kept
+    other.write_bytes(b"x")
+
+    store = StateStore(root)
+    data = store.open()
+    assert _temps(root) == [mine]  # without the sweep, every crash's temp stayed for ever
+    assert other.exists()
+    own, peer = store.own_map(), store.peer_map("beta")
+    assert own is not None and own.version == 1 and int(own.data.max()) == 0
+    assert peer is not None and peer.version == 7 and int(peer.data.max()) == 0
+    assert split(data.own_version)[1] == 1
+
+
+# ---------------------------------------------------------------------- a full disk
+
+FULL_DISK_STATE = """
+    import resource, sys
+    from pathlib import Path
+    import numpy as np
+    from mapd.daemon.state import StateStore
+    from mapd.errors import StateError
+    from mapd.grid import OccupancyGrid
+
+    root = Path(sys.argv[1])
+    store = StateStore(root)
+    store.open()
+    small = OccupancyGrid(np.zeros((20, 20), np.int8), 0.05, robot="alpha", version=1)
+    store.save_own(small)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2000, hard))
+    try:
+        store.save_own(small.replace(version=2, data=np.zeros((100, 100), np.int8)))
+    except StateError as exc:
+        print("ERROR", exc)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    store.save_own(small.replace(version=3))  # the disk has room again: the store goes on
+    print("SAVED")
+"""
+
+
+def test_a_full_disk_while_saving_state_is_one_error_and_the_old_state_is_kept(tmp_path: Path) -> None:
+    root = tmp_path / "state"
+    done = _child(FULL_DISK_STATE.replace("store.save_own(small.replace(version=3))", "pass"), str(root))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("ERROR ") and "own/map.yaml: cannot write map: File too large" in lines[0]
+    assert len(lines) == 2 and lines[1] == "SAVED"
+    assert _temps(root) == []  # the failed write's temp file is gone at once
+    again = StateStore(root)
+    again.open()
+    own = again.own_map()
+    assert own is not None and own.version == 1 and own.width == 20  # the old map, whole
+
+    done = _child(FULL_DISK_STATE, str(tmp_path / "state2"))
+    assert done.returncode == 0 and done.stdout.splitlines()[-1] == "SAVED", done.stderr
+    later = StateStore(tmp_path / "state2")
+    later.open()
+    assert later.own_map() is not None and later.own_map().version == 3  # type: ignore[union-attr]
+
+
+FULL_DISK_SECRET = """
+    import resource, sys
+    from pathlib import Path
+    from mapd.files import write_new_secret
+
+    path = Path(sys.argv[1])
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (16, hard))
+    try:
+        write_new_secret(path, b"-----BEGIN PRIVATE KEY-----\\n" + b"A" * 64 + b"\\n")
+    except OSError as exc:
+        print("ERROR", exc.strerror)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    write_new_secret(path, b"key\\n")  # once there is room, the same command works
+    print("WRITTEN")
+"""
+
+
+def test_a_key_that_cannot_be_written_whole_leaves_no_half_key_behind(tmp_path: Path) -> None:
+    key = tmp_path / "robot.key"
+    done = _child(FULL_DISK_SECRET, str(key))
+    # A half key left in place would be refused as "exists" by every later keygen.
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["ERROR File too large", "WRITTEN"]
+    assert key.read_bytes() == b"key\n"
+    assert oct(key.stat().st_mode & 0o777) == "0o600"
+
+
+FULL_DISK_PNG = """
+    import resource, sys
+    import numpy as np
+    from mapd.errors import FusionError
+    from mapd.fusion.merge import MergeResult, NO_OWNER, Bounds, save_png
+    from mapd.grid import OccupancyGrid
+
+    path = sys.argv[1]
+    rng = np.random.default_rng(1)
+    data = rng.choice(np.array([-1, 0, 100], np.int8), size=(128, 128))
+    grid = OccupancyGrid(data, 0.05)
+    owner = np.full(data.shape, NO_OWNER, np.uint8)
+    result = MergeResult(grid=grid, bounds=Bounds.of_grid(grid), owner=owner)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (1000, hard))
+    try:
+        save_png(result, path)
+    except FusionError as exc:
+        print("ERROR", exc)
+"""
+
+
+def test_the_png_preview_is_written_atomically(tmp_path: Path) -> None:
+    png = tmp_path / "fused.png"
+    png.write_bytes(b"the previous preview")
+    done = _child(FULL_DISK_PNG, str(png))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"ERROR {png}: cannot write preview: File too large"
+    # Written in place, the preview was cut to the first 1000 bytes of a new PNG: a broken image.
+    assert png.read_bytes() == b"the previous preview"
+    assert _temps(tmp_path) == []
+
+
+FULL_DISK_FUSION = """
+    import asyncio, resource, sys
+    from pathlib import Path
+    import numpy as np
+    from mapd.config import FusionSection
+    from mapd.fusion.worker import FusionWorker
+    from mapd.grid import OccupancyGrid
+
+    state = Path(sys.argv[1])
+    got = []
+    rng = np.random.default_rng(2)
+    room = OccupancyGrid(rng.choice(np.array([-1, 0, 100], np.int8), size=(120, 120)), 0.05, robot="a")
+
+    async def main():
+        worker = FusionWorker("a", FusionSection(), state, [got.append])
+        worker.submit(room)
+        await worker.merge_now()
+        soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2000, hard))  # the disk fills up
+        worker.submit(room.replace(version=2, data=np.zeros((120, 120), np.int8)))
+        await worker.merge_now()
+        print("GLOBALS", len(got), int(got[-1].data.max()), worker.status()["error"])
+
+    asyncio.run(main())
+"""
+
+
+def test_a_full_disk_does_not_freeze_the_global_map(tmp_path: Path) -> None:
+    # A base station sends no map of its own: with a full disk, fusion was all that stopped, the
+    # fleet's global map frozen at the last one that could be written.
+    state = tmp_path / "global"
+    done = _child(FULL_DISK_FUSION, str(state))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["GLOBALS 2 0 None"]  # the new map (all free) went out
+    assert done.stderr.count("global map not saved") == 1  # one clear line
+    assert _temps(state) == []
+    saved = load_map(state / GLOBAL_YAML)
+    assert int(saved.data.max()) == 100  # the last map written is kept whole on disk
+
+
+# ---------------------------------------------------------------------- CSV logs
+
+
+def test_a_torn_last_csv_row_is_cut_before_the_next_append(tmp_path: Path) -> None:
+    path = tmp_path / "updates.csv"
+    CsvLog(path).write([{"time": 1.5, "version": 1, "kind": "keyframe"}])
+    with open(path, "ab") as fh:  # power lost in the middle of the second row
+        fh.write(b"2.5,2,del")
+    CsvLog(path).write([{"time": 3.5, "version": 3, "kind": "delta"}])
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows == [
+        {"time": "1.5", "version": "1", "kind": "keyframe"},
+        {"time": "3.5", "version": "3", "kind": "delta"},
+    ]
+
+
+def test_a_csv_torn_inside_its_header_starts_again(tmp_path: Path) -> None:
+    path = tmp_path / "fused.csv"
+    path.write_bytes(b"time,rob")
+    CsvLog(path).write([{"time": 1.0, "robot": "beta", "version": 4}])
+    assert path.read_text() == "time,robot,version\n1.0,beta,4\n"
+
+
+def test_a_csv_log_that_cannot_be_written_never_stops_coding_a_map(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    (tmp_path / "file").write_bytes(b"")
+    bad = CsvLog(tmp_path / "file" / "updates.csv")  # as a full disk: every append fails
+    store = StateStore(tmp_path / "state")
+    store.open()
+    coder = Coder(
+        robot="alpha",
+        fleet="lab",
+        codec="raw",
+        options=None,
+        lossless=True,
+        measure_quality=False,
+        identity=None,
+        max_cells=1_000_000,
+        store=store,
+        log=bad,
+    )
+    grid = OccupancyGrid(np.zeros((30, 30), np.int8), 0.05, robot="alpha", version=5)
+    with caplog.at_level(logging.INFO, logger="mapd.daemon.coding"):
+        # The publisher catches MapdError only: an OSError here stopped the daemon.
+        assert coder.envelope(grid, None).version == 5
+        assert coder.envelope(grid.replace(version=6), None).version == 6
+    errors = [r for r in caplog.records if r.levelno == logging.ERROR]
+    assert len(errors) == 1 and "cannot write" in errors[0].getMessage()  # one line, not one per row
+
+
+# ---------------------------------------------------------------------- versions and the clock
+
+
+def test_own_versions_keep_increasing_across_a_restart_with_the_clock_set_back(
+    tmp_path: Path, room_grid: OccupancyGrid
+) -> None:
+    store = StateStore(tmp_path)
+    store.open()
+    now = 1_800_000_000.0
+    first = store.next_own_version(now)
+    store.save_own(room_grid.replace(robot="alpha", version=first))
+    again = StateStore(tmp_path)
+    again.open()
+    # NTP stepped the clock back a year (or a robot without an RTC booted at 1970)
+    later = [again.next_own_version(t) for t in (now - 365 * 86400, 0.0, now + 86400)]
+    assert first < later[0] < later[1] < later[2]
+    assert {split(v)[0] for v in (first, *later)} == {split(first)[0]}
+
+
+# ---------------------------------------------------------------------- palette PNGs
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _palette_png(
+    rows: list[list[int]], chunks: list[tuple[bytes, bytes]], *, plte_after: bool = False
+) -> bytes:
+    raw = b"".join(b"\x00" + bytes(r) for r in rows)
+    ihdr = struct.pack(">IIBBBBB", len(rows[0]), len(rows), 8, 3, 0, 0, 0)
+    idat = _chunk(b"IDAT", zlib.compress(raw))
+    extra = b"".join(_chunk(k, d) for k, d in chunks)
+    body = idat + extra if plte_after else extra + idat
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + body + _chunk(b"IEND", b"")
+
+
+GREYS = bytes([0, 0, 0, 128, 128, 128, 254, 254, 254])  # three colours: wall, grey, free
+
+
+@pytest.mark.parametrize(
+    ("case", "chunks", "plte_after", "match"),
+    [
+        ("no PLTE", [], False, "without a PLTE chunk"),
+        ("PLTE after IDAT", [(b"PLTE", GREYS)], True, "without a PLTE chunk"),
+        ("two PLTE", [(b"PLTE", GREYS), (b"PLTE", GREYS)], False, "a second PLTE"),
+        ("ragged PLTE", [(b"PLTE", GREYS[:-1])], False, "a PLTE chunk of 8 bytes"),
+        ("empty PLTE", [(b"PLTE", b"")], False, "a PLTE chunk of 0 bytes"),
+        ("index past it", [(b"PLTE", GREYS[:6])], False, "pixel index 2 lies beyond its palette of 2"),
+    ],
+)
+def test_palette_pngs_libpng_refuses_are_refused(
+    tmp_path: Path, case: str, chunks: list[tuple[bytes, bytes]], plte_after: bool, match: str
+) -> None:
+    # Pillow decodes each of these, every pixel it has no colour for as black: a wall on the map.
+    path = tmp_path / "map.png"
+    path.write_bytes(_palette_png([[0, 1, 2], [2, 1, 0]], chunks, plte_after=plte_after))
+    with pytest.raises(MapFileError, match=match):
+        read_pixels(path, "map.yaml", 1000)
+
+
+def test_a_well_formed_palette_png_still_reads(tmp_path: Path) -> None:
+    path = tmp_path / "map.png"
+    path.write_bytes(_palette_png([[0, 1, 2], [2, 1, 0]], [(b"PLTE", GREYS)]))
+    pixels = read_pixels(path, "map.yaml", 1000)
+    assert pixels.arr[..., 0].tolist() == [[0, 128, 254], [254, 128, 0]]
