@@ -9,7 +9,11 @@ Routes (everything else is 404; with a token configured, any request without it 
 Read-only: nothing here changes the daemon. Messages are encoded off the loop (the map on the
 output thread) or are small (the status); the loop only hands shared ``bytes`` to each viewer's
 bounded :class:`~mapd.view.queue.ClientQueue` and writes them. At most ``max_viewers`` streams run at
-once; one more gets a 503.
+once; one more gets a 503. At most ``max_connections`` sockets are open at once (one more gets a 503
+and is closed before anything is read), an idle one closes after ``IDLE_TIMEOUT_S`` and a stream
+that takes nothing for ``WRITE_TIMEOUT_S`` is cut, so no client can hold sockets or memory for long.
+Without a token (a loopback listen), only requests naming a loopback host are served: a web page
+that rebinds its own DNS name to 127.0.0.1 still sends its own name as ``Host``.
 """
 
 from __future__ import annotations
@@ -25,8 +29,9 @@ from importlib import resources
 from typing import Any
 from urllib.parse import quote
 
-from aiohttp import web
+from aiohttp import hdrs, web
 
+from mapd.config import is_loopback
 from mapd.errors import DaemonError
 from mapd.view.model import StatusModel
 from mapd.view.queue import ClientQueue, Message
@@ -39,6 +44,9 @@ ASSETS = {"view.js": "text/javascript; charset=utf-8", "view.css": "text/css; ch
 KEEPALIVE_S = 15.0
 #: A viewer that cannot take one write in this long is dropped (its socket is stuck).
 WRITE_TIMEOUT_S = 30.0
+#: An open connection with no request in progress (none sent yet, or a page load done) closes after
+#: this long; aiohttp's default is an hour, long enough to pile up sockets.
+IDLE_TIMEOUT_S = 15.0
 #: Messages queued per viewer before it is resynced with the full state (see ClientQueue).
 QUEUE_LIMIT = 8
 _HEADERS = {
@@ -51,8 +59,29 @@ _HEADERS = {
 }
 
 
+_REFUSED = b"503: too many connections; try again later\n"
+
+
 def _asset(name: str) -> bytes:
     return resources.files("mapd.view").joinpath("static", name).read_bytes()
+
+
+class _Refused(asyncio.Protocol):
+    """A connection past ``max_connections``: one 503, then closed, before anything is read.
+
+    A client that sent its request already may see a reset instead (the kernel resets a socket
+    closed with unread input); either way it is gone at once and costs nothing.
+    """
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        transport.write(
+            b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+            b"Retry-After: 10\r\nConnection: close\r\n"
+            + f"Content-Length: {len(_REFUSED)}\r\n\r\n".encode()
+            + _REFUSED
+        )
+        transport.close()
 
 
 @dataclass(eq=False)
@@ -71,28 +100,46 @@ class ViewServer:
         *,
         token: str | None = None,
         max_viewers: int = 256,
+        max_connections: int | None = None,
         snapshot: Callable[[], dict[str, Any]] | None = None,
         status_every_s: float = 1.0,
     ) -> None:
         self.host, self.port = host, port
         self.token = token
         self.max_viewers = max_viewers
+        #: Open sockets at most: every stream, plus room for page loads and viewers reconnecting.
+        #: Without a cap a flood of idle sockets would use up the daemon's file descriptors.
+        self.max_connections = 2 * max_viewers + 16 if max_connections is None else max_connections
         self.snapshot = snapshot
         self.status_every_s = status_every_s
         self._viewers: set[_Viewer] = set()
         self._state: dict[str, Message] = {}  # kind -> the newest full message of that kind
         self._status_model = StatusModel()
         self._runner: web.AppRunner | None = None
+        self._listener: asyncio.base_events.Server | None = None
         self._status_task: asyncio.Task[None] | None = None
         self._closing = False
         self._page = b""
         self._assets: dict[str, bytes] = {}
         #: Counters for ``mapd status``.
-        self.counters = {"viewers_total": 0, "refused_busy": 0, "refused_token": 0, "dropped_msgs": 0}
+        self.counters = {
+            "viewers_total": 0,
+            "refused_busy": 0,
+            "refused_token": 0,
+            "refused_host": 0,
+            "refused_conns": 0,
+            "dropped_msgs": 0,
+        }
 
     @property
     def viewers(self) -> int:
         return len(self._viewers)
+
+    @property
+    def connections(self) -> int:
+        """Open HTTP connections (streams, page loads, idle keep-alives)."""
+        server = self._runner.server if self._runner is not None else None
+        return len(server.connections) if server is not None else 0
 
     @property
     def url(self) -> str:
@@ -107,22 +154,33 @@ class ViewServer:
         app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._index)
         app.router.add_get("/static/{name}", self._static)
-        app.router.add_get("/events", self._events)
+        # HEAD would start a stream (taking a viewer's place) and write its body after the headers.
+        app.router.add_get("/events", self._events, allow_head=False)
         # handler_cancellation: a viewer that leaves ends its stream at once, freeing its place
         # under the cap, instead of at the next write (up to KEEPALIVE_S later).
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0, handler_cancellation=True)
+        self._runner = web.AppRunner(
+            app,
+            access_log=None,
+            shutdown_timeout=1.0,
+            handler_cancellation=True,
+            keepalive_timeout=IDLE_TIMEOUT_S,
+        )
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
+        # Our own listener instead of web.TCPSite, so each new socket is counted against the cap
+        # before aiohttp takes it (runner.cleanup still shuts down the connections it took).
         try:
-            await site.start()
+            self._listener = await asyncio.get_running_loop().create_server(
+                self._accept,
+                self.host,
+                self.port,
+                backlog=128,  # web.TCPSite's default
+            )
         except OSError as exc:
             await self._runner.cleanup()
             self._runner = None
             raise DaemonError(f"view: cannot listen on {self.host}:{self.port}: {exc.strerror}") from None
-        if self.port == 0:  # an ephemeral port (tests): say which one
-            server = site._server
-            if isinstance(server, asyncio.base_events.Server) and server.sockets:
-                self.port = int(server.sockets[0].getsockname()[1])
+        if self.port == 0 and self._listener.sockets:  # an ephemeral port (tests): say which one
+            self.port = int(self._listener.sockets[0].getsockname()[1])
         if self.snapshot is not None:
             self._status_task = asyncio.create_task(self._status_loop(), name="view-status")
         log.info("live view on %s", self.url)
@@ -136,6 +194,9 @@ class ViewServer:
             self._status_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._status_task
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -170,21 +231,52 @@ class ViewServer:
             await asyncio.sleep(self.status_every_s)
 
     # ------------------------------------------------------------------ HTTP
+    def _accept(self) -> asyncio.BaseProtocol:
+        """The protocol for a new socket: aiohttp's, or a 503 once ``max_connections`` are open."""
+        assert self._runner is not None and self._runner.server is not None
+        if self.connections >= self.max_connections:
+            self.counters["refused_conns"] += 1
+            return _Refused()
+        return self._runner.server()
+
     def _authorized(self, request: web.Request) -> bool:
         assert self.token is not None
         given = request.query.get("token")
         auth = request.headers.get("Authorization", "")
         if given is None and auth.startswith("Bearer "):
             given = auth[len("Bearer ") :].strip()
-        return given is not None and hmac.compare_digest(given.encode(), self.token.encode())
+        # The token is ASCII (the config says so); other text cannot match, and a header's
+        # undecodable bytes arrive as lone surrogates, which .encode() would raise on (a 500).
+        if given is None or not given.isascii():
+            return False
+        return hmac.compare_digest(given.encode(), self.token.encode())
+
+    @staticmethod
+    def _loopback_host(request: web.Request) -> bool:
+        """True when the ``Host`` header names a loopback host (or is absent: not a browser)."""
+        host = request.headers.get(hdrs.HOST)
+        if host is None:
+            return True
+        if host.startswith("["):  # "[::1]:8080"
+            name = host[1 : host.find("]")] if "]" in host else ""
+        else:
+            name = host.partition(":")[0]
+        return is_loopback(name.lower().removesuffix("."))
 
     @web.middleware
     async def _guard(
         self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
     ) -> web.StreamResponse:
-        if self.token is not None and not self._authorized(request):
-            self.counters["refused_token"] += 1
+        if self.token is None and not self._loopback_host(request):
+            # No token means a loopback listen; a Host of another name is a page that rebound
+            # its DNS name to 127.0.0.1 to read the view from a browser here (DNS rebinding).
+            self.counters["refused_host"] += 1
             resp: web.StreamResponse = web.Response(
+                status=403, text="403: without a token the view answers only to a loopback host name\n"
+            )
+        elif self.token is not None and not self._authorized(request):
+            self.counters["refused_token"] += 1
+            resp = web.Response(
                 status=401, text="401: a valid token is needed (?token=... or Authorization: Bearer ...)\n"
             )
             resp.headers["WWW-Authenticate"] = 'Bearer realm="mapd view"'
@@ -193,6 +285,8 @@ class ViewServer:
                 resp = await handler(request)
             except web.HTTPException as exc:  # 404 and 405 as plain text, with the same headers
                 resp = web.Response(status=exc.status, text=f"{exc.status}: {exc.reason}\n")
+                if hdrs.ALLOW in exc.headers:  # a 405 says which methods there are
+                    resp.headers[hdrs.ALLOW] = exc.headers[hdrs.ALLOW]
         if not resp.prepared:  # an SSE stream has sent its headers already
             resp.headers.update(_HEADERS)
         return resp
@@ -236,8 +330,13 @@ class ViewServer:
                 viewer.wake.clear()
                 for msg in viewer.queue.take(self._current):
                     await asyncio.wait_for(resp.write(msg.frame), WRITE_TIMEOUT_S)
-        except (ConnectionError, TimeoutError, RuntimeError):
-            pass  # the viewer left or is stuck: it just stops getting messages
+        except TimeoutError:
+            # Stuck: cut the socket, or aiohttp's final write_eof() waits on it for ever, holding
+            # the connection and the frame buffered for it after the viewer's place is freed.
+            if request.transport is not None:
+                request.transport.abort()
+        except (ConnectionError, RuntimeError):
+            pass  # the viewer left: it just stops getting messages
         finally:
             self._viewers.discard(viewer)
         return resp

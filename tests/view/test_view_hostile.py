@@ -1,0 +1,219 @@
+"""Hostile clients against the view's real server on a real socket: bytes, names, methods, floods.
+
+Each test is one thing a client on the network (or a web page in a browser on this machine) can
+do; the server must answer with one clear error, never a 500, and never hold sockets or memory for
+it past a short, fixed time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+
+import aiohttp
+import pytest
+
+import mapd.view.server as server_mod
+from mapd.view.queue import sse
+from mapd.view.server import ViewServer
+
+from .test_server import TOKEN, serve
+
+
+async def raw(port: int, request: bytes, timeout: float = 5.0) -> bytes:
+    """Send ``request`` as is and read the answer until the server closes (or ``timeout``)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(request)
+        await writer.drain()
+        return await asyncio.wait_for(reader.read(), timeout)
+    finally:
+        writer.close()
+
+
+async def closed_by_server(sock: socket.socket, within: float) -> bool:
+    """True when the server closes (FIN or reset) ``sock`` within ``within`` seconds; reads all."""
+    loop = asyncio.get_running_loop()
+    sock.setblocking(False)
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        try:
+            chunk = await asyncio.wait_for(loop.sock_recv(sock, 1 << 20), deadline - time.monotonic())
+        except TimeoutError:
+            return False
+        except ConnectionError:
+            return True
+        if not chunk:
+            return True
+    return False
+
+
+def test_an_undecodable_bearer_token_is_a_401_not_a_500(caplog: pytest.LogCaptureFixture) -> None:
+    async def body(server: ViewServer, url: str) -> None:
+        for auth in (b"Bearer \xff\xfe", "Bearer tökén-0123456789abcdef".encode()):
+            answer = await raw(
+                server.port,
+                b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\nAuthorization: "
+                + auth
+                + b"\r\n\r\n",
+            )
+            assert answer.startswith(b"HTTP/1.1 401 "), answer[:80]
+        assert server.counters["refused_token"] == 2
+
+    serve(body, token=TOKEN)
+    assert "Traceback" not in caplog.text and "Error handling request" not in caplog.text
+
+
+def test_without_a_token_only_loopback_host_names_are_served() -> None:
+    """DNS rebinding: a page at evil.example re-resolved to 127.0.0.1 still sends Host: evil.example."""
+
+    async def body(server: ViewServer, url: str) -> None:
+        port = server.port
+        async with aiohttp.ClientSession() as s:
+            for host in (
+                "evil.example",
+                f"evil.example:{port}",
+                f"127.0.0.1.evil.example:{port}",
+                "10.0.0.1",
+            ):
+                for path in ("", "static/view.js", "events"):
+                    async with s.get(url + path, headers={"Host": host}) as r:
+                        assert r.status == 403, (host, path)
+                        assert r.headers["X-Frame-Options"] == "DENY"
+            for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"LOCALHOST.:{port}", f"[::1]:{port}"):
+                async with s.get(url, headers={"Host": host}) as r:
+                    assert r.status == 200, host
+        assert server.counters["refused_host"] == 12
+
+    serve(body)
+
+
+def test_with_a_token_the_host_name_is_free() -> None:
+    # A token is needed off loopback, where the view is reached under the robot's own name.
+    async def body(server: ViewServer, url: str) -> None:
+        async with aiohttp.ClientSession() as s:
+            async with s.get(url, headers={"Host": "robot7.lan:8080"}, params={"token": TOKEN}) as r:
+                assert r.status == 200
+            async with s.get(url, headers={"Host": "robot7.lan:8080"}) as r:
+                assert r.status == 401
+
+    serve(body, token=TOKEN)
+
+
+def test_head_on_the_stream_is_405_and_takes_no_place() -> None:
+    async def body(server: ViewServer, url: str) -> None:
+        answer = await raw(
+            server.port, b"HEAD /events HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+        )
+        head, _, rest = answer.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 405 ") and rest == b""  # a HEAD answer has no body
+        assert b"\r\nAllow: GET\r\n" in head
+        assert server.viewers == 0 and server.counters["viewers_total"] == 0
+        async with aiohttp.ClientSession() as s, s.head(url) as r:
+            assert r.status == 200  # the page still answers HEAD
+
+    serve(body)
+
+
+def test_a_stuck_viewer_is_cut_after_the_write_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(server_mod, "WRITE_TIMEOUT_S", 0.5)
+
+    async def body(server: ViewServer, url: str) -> None:
+        server.post(sse("status", {"pad": "x" * 8_000_000}))  # far more than the socket buffers hold
+        stuck = socket.socket()
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stuck.connect(("127.0.0.1", server.port))
+        stuck.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # and never read
+        try:
+            for _ in range(100):
+                if server.counters["viewers_total"] and not server.viewers:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.counters["viewers_total"] == 1 and server.viewers == 0
+            # its place is free, and so is its socket (before: held for ever by write_eof)
+            for _ in range(40):
+                if server.connections == 0:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.connections == 0
+            assert await closed_by_server(stuck, within=5.0)
+        finally:
+            stuck.close()
+
+    serve(body)
+
+
+def test_connections_past_the_cap_get_one_503_and_are_closed() -> None:
+    async def body(server: ViewServer, url: str) -> None:
+        idle = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(3)]
+        try:
+            for _ in range(40):
+                if server.connections == 3:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.connections == 3
+            for _ in range(5):
+                reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+                try:  # sends nothing: the 503 comes at once, then the end of the stream
+                    answer = await asyncio.wait_for(reader.read(), 5)
+                finally:
+                    writer.close()
+                assert answer.startswith(b"HTTP/1.1 503 ") and answer.endswith(
+                    b"too many connections; try again later\n"
+                )
+            assert server.connections == 3 and server.counters["refused_conns"] == 5
+        finally:
+            for sock in idle:
+                sock.close()
+        for _ in range(40):  # the places are freed once the idle sockets go
+            if server.connections == 0:
+                break
+            await asyncio.sleep(0.05)
+        async with aiohttp.ClientSession() as s, s.get(url) as r:
+            assert r.status == 200
+
+    serve(body, max_connections=3)
+
+
+def test_the_default_connection_cap_follows_max_viewers() -> None:
+    assert ViewServer("127.0.0.1", 0, max_viewers=256).max_connections == 2 * 256 + 16
+
+
+@pytest.mark.parametrize("sent", [b"", b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: "])
+def test_an_idle_or_slow_connection_is_closed(monkeypatch: pytest.MonkeyPatch, sent: bytes) -> None:
+    # aiohttp's own default keeps a socket that sends nothing (or half a request) for an hour.
+    monkeypatch.setattr(server_mod, "IDLE_TIMEOUT_S", 0.5)
+
+    async def body(server: ViewServer, url: str) -> None:
+        sock = socket.create_connection(("127.0.0.1", server.port))
+        try:
+            sock.sendall(sent)
+            assert await closed_by_server(sock, within=5.0)
+            for _ in range(40):
+                if server.connections == 0:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.connections == 0
+        finally:
+            sock.close()
+
+    serve(body)
+
+
+def test_a_stream_outlives_the_idle_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The idle timeout is for sockets with no request in progress: a viewer's stream stays.
+    monkeypatch.setattr(server_mod, "IDLE_TIMEOUT_S", 0.3)
+
+    async def body(server: ViewServer, url: str) -> None:
+        async with aiohttp.ClientSession() as s, s.get(url + "events") as r:
+            assert r.status == 200
+            await asyncio.sleep(1.5)
+            assert server.viewers == 1
+            server.post(sse("status", {"i": 1}))
+            async for line in r.content:
+                if line.startswith(b"data: "):
+                    assert line == b'data: {"i":1}\n'
+                    break
+
+    serve(body)
