@@ -243,8 +243,8 @@ class ViewServer:
         assert self.token is not None
         given = request.query.get("token")
         auth = request.headers.get("Authorization", "")
-        if given is None and auth.startswith("Bearer "):
-            given = auth[len("Bearer ") :].strip()
+        if given is None and auth[:7].lower() == "bearer ":  # the scheme is case-insensitive (RFC 9110)
+            given = auth[7:].strip()
         # The token is ASCII (the config says so); other text cannot match, and a header's
         # undecodable bytes arrive as lone surrogates, which .encode() would raise on (a 500).
         if given is None or not given.isascii():

@@ -90,9 +90,16 @@ def test_token_is_required_when_configured() -> None:
                 assert f"static/view.js?token={TOKEN}" in await r.text()
             async with s.get(url + "static/view.css", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
                 assert r.status == 200
+            # the scheme is case-insensitive (RFC 9110), the token is not
+            async with s.get(url + "static/view.css", headers={"Authorization": f"bearer {TOKEN}"}) as r:
+                assert r.status == 200
+            async with s.get(
+                url + "static/view.css", headers={"Authorization": f"Bearer {TOKEN.upper()}"}
+            ) as r:
+                assert r.status == 401
             async with s.get(url + "nope", params={"token": TOKEN}) as r:
                 assert r.status == 404
-        assert server.counters["refused_token"] == 8
+        assert server.counters["refused_token"] == 9
 
     serve(body, token=TOKEN)
 

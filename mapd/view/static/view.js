@@ -208,7 +208,7 @@
       cell(tr, r.label || "–");
       cell(tr, r.own ? r.keyframes + "k+" + r.deltas + "d" : (r.updates || 0) + " got" + (r.last_kind ? ", last " + r.last_kind : ""));
       cell(tr, r.own ? "last " + kb(r.bytes) : kb(r.bytes));
-      const conf = r.confidence === null ? "–" : r.confidence.toFixed(2);
+      const conf = fmt(r.confidence, 2);  // fmt: null or absent shows as a dash
       cell(tr, (r.accepted ? "✓ " : "✗ ") + conf + (r.source ? " " + r.source : ""), r.accepted ? "good" : "warn");
       if (r.reason) {
         const tr2 = rb.insertRow();
