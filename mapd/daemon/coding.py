@@ -10,6 +10,7 @@ keyframe queries), possibly two at once, so its shared bits are locked.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import os
@@ -35,11 +36,18 @@ class CsvLog:
     A log is not state: a row that cannot be written (a full disk) is dropped with one log line (one
     per run of failures, not one per row), and never stops what logged it (coding a map). The first
     write of a run cuts a torn last line (power lost mid-append) back to the last whole row, so the
-    next row never runs into half of an old one.
+    next row never runs into half of an old one. Past ``max_bytes`` the file moves to
+    ``<name>.1.csv`` (replacing the one before) and a new one starts, header first: a base station
+    of 16 robots may write ``fused.csv`` rows at up to ~8 a second (a row per robot per global
+    map), which would fill a robot's disk over months.
     """
 
-    def __init__(self, path: Path) -> None:
+    #: Bytes a log grows to before it rotates (two files at most: this and ``<name>.1.csv``).
+    MAX_BYTES = 16 << 20
+
+    def __init__(self, path: Path, max_bytes: int = MAX_BYTES) -> None:
         self.path = path
+        self.max_bytes = max_bytes
         self._lock = threading.Lock()
         self._checked = False
         self._failing = False
@@ -52,6 +60,9 @@ class CsvLog:
                 if not self._checked:
                     _cut_torn_line(self.path)
                     self._checked = True
+                with contextlib.suppress(FileNotFoundError):
+                    if self.path.stat().st_size >= self.max_bytes:
+                        os.replace(self.path, self.path.with_suffix(".1" + self.path.suffix))
                 with open(self.path, "a", newline="") as fh:
                     w = csv.DictWriter(fh, fieldnames=list(rows[0]))
                     if fh.tell() == 0:

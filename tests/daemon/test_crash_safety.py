@@ -296,6 +296,22 @@ def test_a_csv_torn_inside_its_header_starts_again(tmp_path: Path) -> None:
     assert path.read_text() == "time,robot,version\n1.0,beta,4\n"
 
 
+def test_a_csv_log_rotates_so_it_never_fills_the_disk(tmp_path: Path) -> None:
+    path = tmp_path / "fused.csv"
+    log = CsvLog(path, max_bytes=200)
+    for t in range(100):  # ~20 bytes a row: 2000 bytes in all
+        log.write([{"time": float(t), "robot": "beta", "version": t}])
+    old = tmp_path / "fused.1.csv"
+    assert path.stat().st_size < 200 + 40 and old.stat().st_size < 200 + 40  # two files at most
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fused.1.csv", "fused.csv"]
+    rows = []
+    for p in (old, path):  # each starts with its header, and together they hold the newest rows
+        with open(p, newline="") as fh:
+            rows += list(csv.DictReader(fh))
+    versions = [int(r["version"]) for r in rows]
+    assert versions == list(range(versions[0], 100)) and versions[0] > 0
+
+
 def test_a_csv_log_that_cannot_be_written_never_stops_coding_a_map(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
