@@ -178,8 +178,20 @@ class FusionSection(Strict):
     @classmethod
     def _check_poses(cls, v: dict[str, Any]) -> dict[str, Any]:
         for robot, pose in v.items():
+            if not re.fullmatch(NAME_PATTERN, robot):
+                raise ValueError(f"{short_repr(robot, 40)} is not a valid robot name")
             if isinstance(pose, list) and (len(pose) != 3 or not all(math.isfinite(p) for p in pose)):
                 raise ValueError(f"pose of '{robot}' must be [x, y, yaw] in meters and radians")
+        return v
+
+    @field_validator("poses", mode="before")
+    @classmethod
+    def _no_boolean_poses(cls, v: Any) -> Any:
+        # pydantic reads true as 1.0: a pose written with booleans is a typo, not a place
+        if isinstance(v, dict):
+            for robot, pose in v.items():
+                if isinstance(pose, list) and any(isinstance(p, bool) for p in pose):
+                    raise ValueError(f"pose of '{robot}' must be [x, y, yaw] in meters and radians")
         return v
 
 

@@ -95,6 +95,14 @@ def test_example_config_passes_check_config_once_its_keys_are_made(tmp_path: Pat
         ("[robot]\nfleet = 'x'\n", r"robot\.name: required key is missing"),
         ("[robot\nname=1", r"not valid TOML"),
         (MINIMAL + "\n[fusion.poses]\nbeta = [1.0, 2.0]\n", r"fusion\.poses.*\[x, y, yaw\]"),
+        (
+            MINIMAL + "\n[fusion.poses]\nbeta = [true, 0.0, 0.0]\n",
+            r"fusion\.poses.*'beta' must be \[x, y, yaw\]",
+        ),
+        (
+            MINIMAL + '\n[fusion.poses]\n"be ta" = [0.0, 0.0, 0.0]\n',
+            r"fusion\.poses.*'be ta' is not a valid robot name",
+        ),
     ],
 )
 def test_config_errors_name_file_and_key(tmp_path: Path, text: str, match: str) -> None:
