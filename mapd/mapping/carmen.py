@@ -8,8 +8,9 @@ A ``FLASER`` line carries no angles: CARMEN's front laser covers ``fov_deg`` (18
 ``theta - fov/2``; 180 or 360 beams give 1 or 0.5 degree steps, 181 or 361 beams include both ends.
 
 Bad lines never stop a replay. A line with the wrong number of fields, a non-number, a NaN or a
-negative range, or a message type CARMEN does not define is skipped, counted in :class:`LogStats`,
-and logged once with the file and line number. Other CARMEN messages (``ODOM``, ``PARAM``, ...) are
+negative range, a pose more than :data:`MAX_COORD_M` from the origin, or a message type CARMEN does
+not define is skipped, counted in :class:`LogStats`, and logged once per kind of fault with the file
+and line number. Other CARMEN messages (``ODOM``, ``PARAM``, ...) are
 ignored and counted separately. A log that cannot be opened or read is one :class:`SourceError`.
 """
 
@@ -36,6 +37,9 @@ log = logging.getLogger(__name__)
 MAX_LINE_BYTES = 1 << 20
 #: Most beams accepted in one scan.
 MAX_BEAMS = 8192
+#: Largest pose coordinate accepted (m). Beyond it, frame arithmetic on two poses can overflow to
+#: infinity; no building is a thousand kilometres across.
+MAX_COORD_M = 1e6
 
 # Message types CARMEN logs define that carry no front-laser scan for the mapper.
 _IGNORED = frozenset(
@@ -72,17 +76,25 @@ class LogStats:
     last_error: str = ""
     by_reason: dict[str, int] = field(default_factory=dict)
 
-    def skip(self, where: str, reason: str) -> None:
+    def skip(self, where: str, reason: str, key: str | None = None) -> None:
+        """Count a skipped line; log it if it is the first of its ``key`` (default: ``reason``)."""
         self.skipped += 1
-        self.by_reason[reason] = self.by_reason.get(reason, 0) + 1
+        k = reason if key is None else key
+        self.by_reason[k] = self.by_reason.get(k, 0) + 1
         self.last_error = f"{where}: {reason}"
-        # One warning per reason keeps a log full of the same fault readable.
-        if self.by_reason[reason] == 1:
+        # One warning per kind of fault keeps a log full of the same fault readable. Reasons that
+        # quote the line (a message type, a count) pass a fixed key, or a file of garbage would
+        # log one warning per distinct word.
+        if self.by_reason[k] == 1:
             log.warning("%s: %s (skipped; further lines like it are counted, not logged)", where, reason)
 
 
 class BadLine(ValueError):
-    """A line that cannot be a scan; the message says why."""
+    """A line that cannot be a scan; the message says why, ``key`` names the kind of fault."""
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
 
 
 def _open(path: Path) -> io.BufferedIOBase:
@@ -144,6 +156,11 @@ def _check_ranges(ranges: np.ndarray) -> None:
         raise BadLine("negative range")
 
 
+def _check_pose(x: float, y: float) -> None:
+    if abs(x) > MAX_COORD_M or abs(y) > MAX_COORD_M:
+        raise BadLine(f"pose is more than {MAX_COORD_M:g} m from the origin")
+
+
 def _beam_angles(n: int, fov: float) -> np.ndarray:
     # 181/361 beams include both ends of the field of view; 180/360 beams step fov/n from the start.
     step = fov / (n - 1) if (n % 2 == 1 and n > 1) else fov / n
@@ -157,18 +174,19 @@ def parse_flaser(tokens: list[str], fov: float, line: int) -> LaserScan:
     try:
         n = int(tokens[1])
     except ValueError:
-        raise BadLine(f"FLASER beam count {tokens[1]!r} is not an integer") from None
+        raise BadLine(f"FLASER beam count {tokens[1][:40]!r} is not an integer", "FLASER count") from None
     if not 1 <= n <= MAX_BEAMS:
-        raise BadLine(f"FLASER beam count {n} is outside 1..{MAX_BEAMS}")
+        raise BadLine(f"FLASER beam count {n} is outside 1..{MAX_BEAMS}", "FLASER count")
     expected = 2 + n + 6 + 3
     if len(tokens) != expected:
-        raise BadLine(f"FLASER with {n} beams needs {expected} fields, got {len(tokens)}")
+        raise BadLine(f"FLASER with {n} beams needs {expected} fields, got {len(tokens)}", "FLASER fields")
     ranges = _floats(tokens[2 : 2 + n], "ranges")
     _check_ranges(ranges)
     tail = _floats([*tokens[2 + n : 2 + n + 3], tokens[2 + n + 6]], "pose or timestamp")
     if not np.isfinite(tail).all():
         raise BadLine("pose or timestamp is not finite")
     x, y, theta, stamp = (float(v) for v in tail)
+    _check_pose(x, y)
     return LaserScan(ranges, _beam_angles(n, fov), Pose2D(x, y, theta), stamp, line)
 
 
@@ -181,7 +199,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
     try:
         n = int(tokens[8])
         if not 1 <= n <= MAX_BEAMS:
-            raise BadLine(f"ROBOTLASER1 beam count {n} is outside 1..{MAX_BEAMS}")
+            raise BadLine(f"ROBOTLASER1 beam count {n} is outside 1..{MAX_BEAMS}", "ROBOTLASER1 count")
         m = int(tokens[9 + n]) if len(tokens) > 9 + n else -1
     except ValueError:
         raise BadLine("ROBOTLASER1 beam or remission count is not an integer") from None
@@ -190,7 +208,8 @@ def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
     expected = 10 + n + m + 14
     if len(tokens) != expected:
         raise BadLine(
-            f"ROBOTLASER1 with {n} beams and {m} remissions needs {expected} fields, got {len(tokens)}"
+            f"ROBOTLASER1 with {n} beams and {m} remissions needs {expected} fields, got {len(tokens)}",
+            "ROBOTLASER1 fields",
         )
     head = _floats(tokens[2:4], "start angle or field of view")
     ranges = _floats(tokens[9 : 9 + n], "ranges")
@@ -203,6 +222,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
     step = fov / (n - 1) if n > 1 else 0.0
     angles = start + step * np.arange(n, dtype=np.float64)
     x, y, theta, stamp = (float(v) for v in tail)
+    _check_pose(x, y)
     return LaserScan(ranges, angles, Pose2D(x, y, theta), stamp, line)
 
 
@@ -239,9 +259,9 @@ def read_scans(
                 st.ignored += 1
                 continue
             else:
-                raise BadLine(f"unknown message type {kind[:40]!r}")
+                raise BadLine(f"unknown message type {kind[:40]!r}", "unknown message type")
         except BadLine as exc:
-            st.skip(where, str(exc))
+            st.skip(where, str(exc), exc.key)
             continue
         st.scans += 1
         yield LaserScan(scan.ranges, scan.angles, scan.pose, scan.stamp, number, ordinal)

@@ -192,12 +192,16 @@ class Mapper:
             return 0
         res = self._res
         th = pose.yaw + a[used]
-        length = free_len[used] / res
         hits = hit[used]
         # Continuous frame-cell coordinates (x -> col, y -> row) of the sensor and the beam ends.
         sc, sr = pose.x / res, pose.y / res
-        ec = sc + length * np.cos(th)
-        er = sr + length * np.sin(th)
+        with np.errstate(over="ignore", invalid="ignore"):
+            length = free_len[used] / res
+            ec = sc + length * np.cos(th)
+            er = sr + length * np.sin(th)
+        if not (math.isfinite(sc) and math.isfinite(sr) and np.isfinite(ec).all() and np.isfinite(er).all()):
+            # A finite range or pose so large that it overflows in cells: no grid could hold it.
+            raise LimitError(f"scan reaches past any grid: sensor at {pose.x:g}, {pose.y:g} m")
         r0 = math.floor(min(sr, float(er.min())))
         r1 = math.floor(max(sr, float(er.max()))) + 1
         c0 = math.floor(min(sc, float(ec.min())))

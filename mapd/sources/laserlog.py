@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 #: When pacing falls further behind than this (wall seconds), the schedule restarts from now.
 MAX_BEHIND_S = 1.0
+#: Longest wall-clock wait for one scan. A later timestamp (a gap in the log, or a corrupt stamp
+#: years ahead) is replayed as this long a pause, so one bad line cannot stall the source for ever.
+MAX_GAP_S = 60.0
 
 
 class LaserLogOptions(FleetSliceOptions, MapperOptions):
@@ -83,6 +86,7 @@ class LaserLogSource(MapSource):
         self._scans = 0
         self._limit_skips = 0
         self._late = 0.0
+        self._gap_logged = False
         self._pose: StampedPose | None = None
 
     @property
@@ -129,6 +133,15 @@ class LaserLogSource(MapSource):
                     # Stalled (a slow consumer, a busy CPU): carry on from now, no burst to catch up.
                     wall0 -= delay
                     delay = 0.0
+                elif delay > MAX_GAP_S:
+                    if not self._gap_logged:
+                        log.warning(
+                            "%s: line %d: log time jumps %.3g s ahead; pausing %.0f s instead "
+                            "(further jumps are not logged)", path, scan.line, delay * o.realtime, MAX_GAP_S,
+                        )  # fmt: skip
+                        self._gap_logged = True
+                    wall0 -= delay - MAX_GAP_S
+                    delay = MAX_GAP_S
                 self._late = max(0.0, -delay)
                 await asyncio.sleep(max(delay, 0.0))
             else:

@@ -31,6 +31,11 @@ POSE_STREAM = 254
 
 log = logging.getLogger("mapd.uwb")
 
+#: A frame that has not left the port's buffer after this long means the port is stuck (a peer or
+#: a driver that stopped reading, flow control held): the port is dropped and reopened, so the loop
+#: (timers, deadlines, events) never waits on one write for ever.
+WRITE_STALL_S = 5.0
+
 
 def port_error(port: str, exc: BaseException | None = None) -> TransportError:
     if not os.path.exists(port):
@@ -107,6 +112,8 @@ class UwbLink:
         self.reconnects = 0
         self.started_at = 0.0
         self.first_rx_at: float | None = None
+        self.write_stalls = 0
+        self._stall_logged = False
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
@@ -179,6 +186,7 @@ class UwbLink:
             port=self.port,
             port_open=self._proto is not None and not self._proto.lost,
             reconnects=self.reconnects,
+            write_stalls=self.write_stalls,
             write_peak_bps_1s=round(self.write_peak_bps, 1),
         )
         return out
@@ -236,6 +244,24 @@ class UwbLink:
         except TransportError:
             self._reopen_at = now + self.reopen_s
 
+    async def _drain(self, proto: _Proto) -> None:
+        try:
+            await asyncio.wait_for(proto.drain(), WRITE_STALL_S)
+        except TimeoutError:
+            self.write_stalls += 1
+            if not self._stall_logged:  # once until a write goes through again, not every reopen
+                self._stall_logged = True
+                log.warning(
+                    "uwb: serial port %s took no bytes for %.0f s; reopening it", self.port, WRITE_STALL_S
+                )
+            if proto.transport is not None:
+                proto.transport.abort()  # connection_lost follows: the reopen path takes over
+            proto.lost = True
+            proto.resume_writing()
+            self._reopen_at = asyncio.get_running_loop().time() + self.reopen_s
+            return
+        self._stall_logged = False
+
     async def _run(self) -> None:
         core = self.core
         assert core is not None
@@ -258,7 +284,7 @@ class UwbLink:
                 if proto is not None and not proto.lost and proto.transport is not None:
                     proto.transport.write(frame)
                     self._record_write(now, len(frame))
-                    await proto.drain()
+                    await self._drain(proto)
                 # else: the line is down; the frame is lost like any other and will be resent
                 self._persist_counter()
                 self._dispatch()
