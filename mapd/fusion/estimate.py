@@ -7,7 +7,9 @@ resolutions, has no side effects beyond a small cache of prepared maps, and neve
 How (each stage keeps several hypotheses, so one wrong peak cannot decide):
 
 1. Both maps are brought to one working resolution, the coarser of the two (the finer map is pooled
-   so that thin walls survive). Resolutions more than ``max_resolution_ratio`` apart are refused.
+   so that thin walls survive), and coarser still when a map would have more than
+   ``max_match_cells`` cells there, so that no map, however large, costs more to match than one of
+   that size. Resolutions more than ``max_resolution_ratio`` apart are refused.
    Matching uses *wall faces*: occupied cells that are not lone speckle nor inside a thick wall.
 2. **Candidates** (:mod:`mapd.fusion.candidates`): SIFT features with a 2-point rigid RANSAC, plus
    a search that needs no features: a wall-orientation signature proposes headings and FFT
@@ -144,6 +146,20 @@ def _check_input(a: OccupancyGrid, b: OccupancyGrid, opt: EstimateOptions) -> st
     return ""
 
 
+def working_resolution(a: OccupancyGrid, b: OccupancyGrid, opt: EstimateOptions) -> float:
+    """The resolution both maps are matched at: the coarser of the two, coarser still when a map
+    would have more than ``opt.max_match_cells`` cells there (a peer's map is untrusted: its size
+    must not decide how much memory and time matching takes)."""
+    res = max(a.resolution, b.resolution)
+    cells = max(g.cells * (g.resolution / res) ** 2 for g in (a, b))
+    cap = max(1, opt.max_match_cells)
+    if cells > cap:
+        # a whole factor: the coarser map is pooled by whole cells, as a map of that resolution
+        # would be made (a fractional pooling smears walls, and judging was tuned on whole cells)
+        res *= math.ceil(math.sqrt(cells / cap) - 1e-9)
+    return res
+
+
 def estimate_transform(
     a: OccupancyGrid,
     b: OccupancyGrid,
@@ -170,7 +186,7 @@ def estimate_transform(
     problem = _check_input(a, b, opt)
     if problem:
         return rejected(problem)
-    res = max(a.resolution, b.resolution)
+    res = working_resolution(a, b, opt)
     va, vb = view(a, res), view(b, res)
     for name, v in (("a", va), ("b", vb)):
         if v.n_walls < opt.min_walls:
@@ -282,9 +298,12 @@ def check_transform(
     """
     opt = options or EstimateOptions()
     problem = _check_input(a, b, opt)
+    if not all(math.isfinite(v) for v in t):
+        # checked here too, not only where poses come in: a NaN would raise deep in verify()
+        problem = f"the placement ({t.x:g}, {t.y:g}, {t.yaw:g}) is not finite"
     if problem:
         return rejected(problem, x=t.x, y=t.y, yaw=t.yaw, method="given")
-    res = max(a.resolution, b.resolution)
+    res = working_resolution(a, b, opt)
     va, vb = view(a, res), view(b, res)
     h = Hyp.from_matrix(np.linalg.inv(va.g) @ to_matrix(t) @ vb.g, source="given")
     sc = refine.verify(va, vb, h)

@@ -19,6 +19,12 @@ class EstimateOptions:
     min_agreement: float = 0.8
     #: refuse pairs whose resolutions differ by more than this factor
     max_resolution_ratio: float = 4.0
+    #: most cells of a map at the working resolution (2048 x 2048): a larger map is matched pooled
+    #: to a coarser one. Matching costs a few hundred bytes a working cell (SIFT's pyramid, the
+    #: orientation fields, the wall points), so a peer's 8192 x 8192 map (``limits.max_cells``)
+    #: would otherwise take 16 GB and most of a minute; with the cap no map costs more than a
+    #: 2048 x 2048 one
+    max_match_cells: int = 1 << 22
     #: the correlation search works on images of about this many cells a side ...
     coarse_cells: int = 256
     #: ... with coarse cells no wider than this (meters)

@@ -52,7 +52,15 @@ from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_
 from mapd.fusion.placement import Placement, Placer
 from mapd.fusion.transforms import transformed_corners
 from mapd.fusion.views import MAX_SIDE
-from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, load_map, save_map
+from mapd.grid import (
+    DEFAULT_MAX_CELLS,
+    UNKNOWN,
+    OccupancyGrid,
+    Pose2D,
+    geometry_problem,
+    load_map,
+    save_map,
+)
 
 log = logging.getLogger(__name__)
 
@@ -132,9 +140,15 @@ class FusionWorker:
     def known_pose(self, robot: str, pose: Pose2D) -> None:
         """``robot`` reports where its map frame lies in the fleet frame (its source's start pose).
 
-        Used as a configured pose, unless ``fusion.poses`` names that robot: the config wins.
+        Used as a configured pose, unless ``fusion.poses`` names that robot: the config wins. A pose
+        that is not finite or lies beyond the bounds of a map origin is ignored with a warning: a
+        NaN in it would make every merge fail, freezing the global map for the whole fleet.
         """
         if robot in self.cfg.poses or self.placer.poses.get(robot) == pose:
+            return
+        problem = geometry_problem(1.0, (pose.x, pose.y, pose.yaw))
+        if problem is not None:
+            log.warning("fusion: ignoring the start pose reported for '%s': %s", robot, problem)
             return
         self.placer.poses[robot] = pose
         self.placer.reported.add(robot)

@@ -1,0 +1,146 @@
+"""A peer's map is untrusted: fusion's cost must not grow with how big a map a robot sends, and a
+damaged start pose must not stop the fleet's global map.
+
+Before the fixes, matching a peer's 8192 x 8192 map of noise (``limits.max_cells``) took 16.5 GB
+and 45 s (about 250 bytes a cell: SIFT's pyramid, the orientation fields, the wall points), and a
+start pose with a NaN or an infinity made every merge fail with an internal error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from mapd.config import FusionSection
+from mapd.fusion import estimate as estimate_mod
+from mapd.fusion import synth, views
+from mapd.fusion.estimate import check_transform, estimate_transform
+from mapd.fusion.options import EstimateOptions
+from mapd.fusion.transforms import pose_distance
+from mapd.fusion.worker import FusionWorker
+from mapd.grid import OccupancyGrid, Pose2D
+
+
+@pytest.fixture
+def built_views(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, int]]:
+    """Shapes of every map view the estimator prepares (the cache emptied first, so all are built)."""
+    shapes: list[tuple[int, int]] = []
+
+    class Counting(views.MapView):
+        def __init__(self, grid: OccupancyGrid, res: float) -> None:
+            super().__init__(grid, res)
+            shapes.append(self.shape)
+
+    monkeypatch.setattr(views, "_CACHE", type(views._CACHE)())
+    monkeypatch.setattr(views, "MapView", Counting)
+    return shapes
+
+
+def _sparse_walls(height: int, width: int) -> OccupancyGrid:
+    """A large, cheap-to-match map: free floor with a lattice of short walls (enough to be matched)."""
+    data = np.zeros((height, width), dtype=np.int8)
+    data[::97, :] = 100
+    data[:, ::89] = 100
+    return OccupancyGrid(data, 0.05, robot="big")
+
+
+def test_a_huge_peer_map_is_matched_at_a_bounded_size(
+    building: OccupancyGrid, built_views: list[tuple[int, int]]
+) -> None:
+    # 2600 x 1700 = 4.4 M cells, over the default cap of 2048 x 2048 working cells
+    big = _sparse_walls(2600, 1700)
+    cap = EstimateOptions().max_match_cells
+    est = estimate_transform(building, big)
+    assert not est.accepted
+    assert built_views, "no map view was built"
+    for h, w in built_views:
+        assert h * w <= cap, (h, w)
+    # pooled by whole cells: 2 x 2 of the map's own make one working cell
+    assert estimate_mod.working_resolution(building, big, EstimateOptions()) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("kind", ["noise", "checkerboard"])
+def test_hostile_maps_cost_no_more_than_the_cap(
+    building: OccupancyGrid, built_views: list[tuple[int, int]], kind: str
+) -> None:
+    side, cap = 1024, 1 << 16
+    if kind == "noise":
+        data = np.random.default_rng(0).integers(-128, 128, (side, side), dtype=np.int16).astype(np.int8)
+    else:
+        y, x = np.indices((side, side))
+        data = np.where((x // 2 + y // 2) % 2 == 0, 100, 0).astype(np.int8)
+    hostile = OccupancyGrid(data, 0.05, robot="x")
+    opt = EstimateOptions(max_match_cells=cap)
+    est = estimate_transform(building, hostile, options=opt)
+    assert not est.accepted and est.reason
+    chk = check_transform(building, hostile, Pose2D(1.0, 2.0, 0.3), options=opt)
+    assert math.isfinite(chk.confidence)
+    assert built_views and all(h * w <= cap for h, w in built_views), built_views
+
+
+def test_a_pooled_match_still_finds_the_true_placement(building: OccupancyGrid) -> None:
+    pair = synth.make_pair(building, 0.6, np.random.default_rng(1), size=(170, 210))
+    assert pair is not None
+    # matched at cells twice as wide as the maps' own
+    opt = EstimateOptions(max_match_cells=max(pair.a.cells, pair.b.cells) * 4 // 10)
+    assert estimate_mod.working_resolution(pair.a, pair.b, opt) == pytest.approx(2 * pair.b.resolution)
+    est = estimate_transform(pair.a, pair.b, options=opt)
+    x, y = pair.b.cell_to_world(np.array([pair.b.height / 2]), np.array([pair.b.width / 2]))
+    d, yaw = pose_distance(est.transform, pair.truth, (float(x[0]), float(y[0])))
+    assert est.accepted, est.reason
+    assert d / pair.b.resolution <= 2.0 and math.degrees(yaw) <= 1.0
+
+
+def test_check_transform_refuses_a_placement_that_is_not_finite(building: OccupancyGrid) -> None:
+    for t in (Pose2D(math.nan, 0.0, 0.0), Pose2D(0.0, math.inf, 0.0), Pose2D(0.0, 0.0, math.nan)):
+        chk = check_transform(building, building, t)
+        assert chk.confidence == 0.0 and "not finite" in chk.reason
+
+
+def _crop(world: OccupancyGrid, r0: int, r1: int, c0: int, c1: int, name: str) -> OccupancyGrid:
+    return world.replace(data=np.ascontiguousarray(world.data[r0:r1, c0:c1]), origin=Pose2D(), robot=name)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        Pose2D(math.nan, 0.0, 0.0),
+        Pose2D(math.inf, 0.0, 0.0),
+        Pose2D(0.0, 0.0, math.nan),
+        Pose2D(0.0, 2e7, 0.0),
+        Pose2D(5.5, 3.0, 1e300),
+    ],
+)
+def test_a_damaged_start_pose_is_ignored_and_the_fleet_keeps_merging(
+    building: OccupancyGrid, bad: Pose2D
+) -> None:
+    a = _crop(building, 0, 220, 0, 170, "a")
+    b = _crop(building, 60, 300, 110, 260, "b")
+    c = _crop(building, 0, 200, 150, 300, "c")
+
+    async def main() -> None:
+        cfg = FusionSection(debounce_s=0.0, poses={"a": [0.0, 0.0, 0.0], "b": [5.5, 3.0, 0.0]})
+        w = FusionWorker("a", cfg, None)
+        for g in (a, b, c):
+            w.submit(g)
+        await w.merge_now()
+        assert w.status()["merges"] == 1
+        w.known_pose("c", bad)
+        assert "c" not in w.placer.poses
+        data = a.data.copy()
+        data[10:20, 10:20] = 100  # a's map changes: the global map must follow
+        w.submit(a.replace(data=data, version=2))
+        w.submit(c.replace(version=2))
+        await w.merge_now()
+        st = w.status()
+        assert st["error"] is None and st["merges"] == 2
+        assert st["robots"]["a"]["accepted"] and st["robots"]["b"]["accepted"]
+        g = w.global_map
+        assert g is not None
+        rows, cols = g.world_to_cell(np.array([15 * 0.05]), np.array([15 * 0.05]))
+        assert g.data[int(rows[0]), int(cols[0])] == 100
+
+    asyncio.run(main())
