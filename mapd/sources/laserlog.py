@@ -122,7 +122,13 @@ class LaserLogSource(MapSource):
         pending = 0
         frame: Pose2D | None = None
         stamp = 0.0
-        for scan in scans:
+        it = iter(scans)
+        while True:
+            # Reading, inflating and parsing the log, ray-casting a scan and copying a snapshot are
+            # CPU work: each runs on a worker thread, one at a time; only the pacing stays here.
+            scan = await asyncio.to_thread(next, it, None)
+            if scan is None:
+                break
             if frame is None:
                 frame, log_t0, last_emit_t = scan.pose, scan.stamp, scan.stamp
                 self._start = scan.pose
@@ -144,14 +150,11 @@ class LaserLogSource(MapSource):
                     delay = MAX_GAP_S
                 self._late = max(0.0, -delay)
                 await asyncio.sleep(max(delay, 0.0))
-            else:
-                # Let other tasks run between scans; a replay is CPU work.
-                await asyncio.sleep(0)
             here = relative(frame, scan.pose)
             # stamped on the wall clock: a replayed log's own times are years old
             self._pose = StampedPose(here, time.time())
             try:
-                mapper.integrate(scan.ranges, scan.angles, here)
+                await asyncio.to_thread(mapper.integrate, scan.ranges, scan.angles, here)
             except LimitError as exc:
                 self._limit_skips += 1
                 self.log_stats.skip(f"{path}: line {scan.line}", str(exc))
@@ -164,9 +167,9 @@ class LaserLogSource(MapSource):
             if due:
                 pending = 0
                 last_emit_t = scan.stamp
-                yield self._snapshot(mapper, scan.stamp)
+                yield await asyncio.to_thread(self._snapshot, mapper, scan.stamp)
         if pending:
-            yield self._snapshot(mapper, stamp)
+            yield await asyncio.to_thread(self._snapshot, mapper, stamp)
 
     def pose(self) -> StampedPose | None:
         """The robot's pose in its map frame at the last replayed scan."""

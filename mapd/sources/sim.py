@@ -186,7 +186,9 @@ class SimSource(MapSource):
         next_emit: float | None = None
         pending = False
         while o.duration is None or sim.time < sim0 + o.duration - 1e-9:
-            sim.step()
+            # driving, ray-casting and mapping a scan, and copying a snapshot, are CPU work: on a
+            # worker thread, one at a time; only the pacing stays on the loop
+            await asyncio.to_thread(sim.step)
             self._pose = StampedPose(relative(sim.start, sim.pose), time.time())
             pending = True
             if next_emit is None or sim.time >= next_emit - 1e-9:
@@ -194,7 +196,7 @@ class SimSource(MapSource):
                 while next_emit <= sim.time + 1e-9:
                     next_emit += o.emit_period
                 pending = False
-                yield self._emit()
+                yield await asyncio.to_thread(self._emit)
             if o.realtime > 0:
                 delay = wall0 + (sim.time - sim0) / o.realtime - loop.time()
                 if delay < -MAX_BEHIND_S:
@@ -205,10 +207,8 @@ class SimSource(MapSource):
                     delay = 0.0
                 self._late = max(0.0, -delay)
                 await asyncio.sleep(max(delay, 0.0))
-            else:
-                await asyncio.sleep(0)
         if pending:
-            yield self._emit()
+            yield await asyncio.to_thread(self._emit)
 
     def stats(self) -> dict[str, int | float | str]:
         if self._sim is None:

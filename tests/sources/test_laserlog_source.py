@@ -126,3 +126,38 @@ def test_intel_final_map_agrees_with_the_reference(intel_log: Path, data_dir: Pa
     # Without the alignment it does not agree: the robot's frame really is not the world frame.
     unaligned = resample(maps[-1], Pose2D(), ref)
     assert occupied_f1(ref.data, unaligned.data, tolerance=1) < 0.5
+
+
+def test_reading_and_ray_casting_run_off_the_event_loop(
+    box_log: BoxLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Parsing the log, ray-casting each scan and copying snapshots are CPU work: never on the
+    loop's thread, where they would delay every timer and link of the daemon."""
+    import threading
+
+    from mapd.mapping import carmen
+    from mapd.mapping.mapper import Mapper
+
+    threads: dict[str, set[int]] = {"parse": set(), "integrate": set(), "snapshot": set()}
+    parse, integrate, snapshot = carmen.parse_flaser, Mapper.integrate, Mapper.snapshot
+
+    def spy(name: str, fn: Callable[..., object]) -> Callable[..., object]:
+        def wrapped(*a: object, **k: object) -> object:
+            threads[name].add(threading.get_ident())
+            return fn(*a, **k)
+
+        return wrapped
+
+    monkeypatch.setattr(carmen, "parse_flaser", spy("parse", parse))
+    monkeypatch.setattr(Mapper, "integrate", spy("integrate", integrate))
+    monkeypatch.setattr(Mapper, "snapshot", spy("snapshot", snapshot))
+    path, _ = box_log(scans=12)
+    src = LaserLogSource(LaserLogOptions(log=path, every=4, realtime=0), SourceContext(robot="r1"))
+
+    async def go() -> tuple[int, list[OccupancyGrid]]:
+        return threading.get_ident(), [g async for g in src.maps()]
+
+    loop_thread, maps = asyncio.run(go())
+    assert len(maps) == 3
+    for name, seen in threads.items():
+        assert seen and loop_thread not in seen, name

@@ -161,3 +161,33 @@ def test_realtime_factor_paces_sim_time() -> None:
     took = time.perf_counter() - t0
     assert [g.stamp for g in maps] == pytest.approx([0.2, 1.2, 2.0])
     assert 0.45 <= took < 5.0  # 2 sim seconds at 4x real time
+
+
+def test_driving_and_mapping_run_off_the_event_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scan's ray-casting and mapping, and each snapshot, are CPU work: never on the loop's
+    thread, where they would delay every timer and link of the daemon (the demo's source)."""
+    import threading
+
+    from mapd.mapping.mapper import Mapper
+
+    seen: dict[str, set[int]] = {"integrate": set(), "snapshot": set()}
+    integrate, snapshot = Mapper.integrate, Mapper.snapshot
+
+    def spy(name: str, fn: object) -> object:
+        def wrapped(*a: object, **k: object) -> object:
+            seen[name].add(threading.get_ident())
+            return fn(*a, **k)  # type: ignore[operator]
+
+        return wrapped
+
+    monkeypatch.setattr(Mapper, "integrate", spy("integrate", integrate))
+    monkeypatch.setattr(Mapper, "snapshot", spy("snapshot", snapshot))
+    src = SimSource(SimOptions(seed=3, duration=4.0, realtime=0, emit_period=2.0), SourceContext(robot="r1"))
+
+    async def go() -> tuple[int, list[OccupancyGrid]]:
+        return threading.get_ident(), [g async for g in src.maps()]
+
+    loop_thread, maps = asyncio.run(go())
+    assert len(maps) >= 2
+    for name, threads in seen.items():
+        assert threads and loop_thread not in threads, name
