@@ -13,9 +13,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -82,6 +84,25 @@ def remove_stale_temps(directory: Path) -> list[Path]:
 def atomic_write_json(path: Path, obj: Any) -> None:
     """:func:`atomic_write_bytes` of ``obj`` as indented JSON."""
     atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True, default=str) + "\n").encode())
+
+
+@dataclass
+class WriteOutage:
+    """A run of failed writes (a full disk) said in two lines, not one a try: the first failure as
+    an error, and the first success after it. Whoever writes carries on either way."""
+
+    logger: logging.Logger
+    failing: bool = False
+
+    def failed(self, message: str) -> None:
+        if not self.failing:
+            self.logger.error("%s", message)
+        self.failing = True
+
+    def recovered(self, message: str) -> None:
+        if self.failing:
+            self.logger.info("%s", message)
+        self.failing = False
 
 
 def open_for_reading(path: Path) -> BinaryIO:

@@ -24,6 +24,7 @@ from mapd.codec.base import CodecOptions
 from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
+from mapd.files import WriteOutage
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.identity import Identity
 
@@ -50,7 +51,7 @@ class CsvLog:
         self.max_bytes = max_bytes
         self._lock = threading.Lock()
         self._checked = False
-        self._failing = False
+        self._outage = WriteOutage(log)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         if not rows:
@@ -69,15 +70,11 @@ class CsvLog:
                         w.writeheader()
                     w.writerows(rows)
             except OSError as exc:
-                if not self._failing:
-                    log.error(
-                        "cannot write %s (rows dropped until it can): %s", self.path, exc.strerror or exc
-                    )
-                self._failing = True
+                self._outage.failed(
+                    f"cannot write {self.path} (rows dropped until it can): {exc.strerror or exc}"
+                )
                 return
-            if self._failing:
-                log.info("writing %s again", self.path)
-                self._failing = False
+            self._outage.recovered(f"writing {self.path} again")
 
 
 def _cut_torn_line(path: Path) -> None:

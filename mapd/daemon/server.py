@@ -47,6 +47,7 @@ from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
 from mapd.envelope import Envelope
 from mapd.errors import MapdError, StateError
+from mapd.files import WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
@@ -88,7 +89,7 @@ class Daemon:
         self.transports: list[Transport] = []
         self._stop = asyncio.Event()
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
-        self._save_failing = False  # the last own version could not be saved (a full disk)
+        self._saves = WriteOutage(log)  # own versions that could not be saved (a full disk)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
         self._wake = asyncio.Event()  # the publisher has something to look at
@@ -453,13 +454,9 @@ class Daemon:
                 except StateError as exc:
                     # A full disk: the version is not sent unsaved (after a restart its number could
                     # come again), and the robot runs on; the next version tries again.
-                    if not self._save_failing:
-                        log.error("%s; new versions are not sent until one is saved", exc)
-                    self._save_failing = True
+                    self._saves.failed(f"{exc}; new versions are not sent until one is saved")
                 else:
-                    if self._save_failing:
-                        log.info("own map saved again")
-                    self._save_failing = False
+                    self._saves.recovered("own map saved again")
                     core.new_version(grid)
             job = core.poll(time.monotonic(), self._peers_by_transport())
             if job is None:

@@ -46,7 +46,7 @@ import numpy as np
 
 from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError, StateError
-from mapd.files import atomic_write_bytes
+from mapd.files import WriteOutage, atomic_write_bytes
 from mapd.fusion.estimate import EstimateOptions
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
 from mapd.fusion.placement import Placement, Placer
@@ -118,8 +118,8 @@ class FusionWorker:
         self._last_merge: float | None = None
         self._last_seconds: float | None = None
         self._error: str | None = None
-        #: The global map could not be written at the last try (said once, not at every merge).
-        self._save_failing = False
+        #: The global map could not be written (said once, not at every merge).
+        self._saves = WriteOutage(log)
         self._dropped = 0
         self._loaded = False
 
@@ -280,13 +280,9 @@ class FusionWorker:
             # A full disk must not freeze the fleet's global map: the outputs and status still
             # get the new one, and the state directory keeps the last one written whole (each
             # file is atomic), which a restart restores.
-            if not self._save_failing:
-                log.error("fusion: global map not saved (saving again at each merge): %s", exc)
-            self._save_failing = True
+            self._saves.failed(f"fusion: global map not saved (saving again at each merge): {exc}")
         else:
-            if self._save_failing:
-                log.info("fusion: global map saved again")
-            self._save_failing = False
+            self._saves.recovered("fusion: global map saved again")
         self._save_owner(result.owner, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
 
