@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 
 from mapd.bench.swarm.links import count_walls, hop_counts, link_matrices
-from mapd.bench.swarm.metrics import convergence, staleness_samples, staleness_trend, summarize
+from mapd.bench.swarm.metrics import (
+    convergence,
+    staleness_rows,
+    staleness_samples,
+    staleness_trend,
+    summarize,
+)
 from mapd.bench.swarm.radio import Radio, channel_use
 from mapd.bench.swarm.run import with_means
 from mapd.bench.swarm.sim import Swarm, SwarmConfig
@@ -110,9 +116,9 @@ def test_hop_counts_follow_the_radio_graph() -> None:
 def test_staleness_trend_rises_only_while_a_pair_goes_unserved() -> None:
     made = [[0.0, 30.0, 60.0], [0.0, 30.0, 60.0]]
     served = [(t + 2.0, h, 1 - h, v + 1) for v, t in enumerate((0.0, 30.0, 60.0)) for h in (0, 1)]
-    flat = staleness_trend(made, served, 90.0, windows=3)
+    flat = staleness_trend(staleness_rows(made, served, 90.0), 90.0, windows=3)
     assert [w[0] for w in flat] == [0.0, 30.0, 60.0] and max(w[1] for w in flat) < 1.0
-    starved = staleness_trend(made, served[:2], 90.0, windows=3)  # only v1 gets through
+    starved = staleness_trend(staleness_rows(made, served[:2], 90.0), 90.0, windows=3)  # only v1 gets through
     assert starved[0][1] < starved[1][1] < starved[2][1]
 
 

@@ -34,15 +34,29 @@ import numpy as np
 from mapd.bench.swarm.radio import channel_use
 from mapd.bench.swarm.sim import SwarmResult
 
+#: ``(holder, origin, staleness samples over [0, t_end])`` for each pair, origin by origin.
+StalenessRows = list[tuple[int, int, np.ndarray]]
 
-def _staleness_rows(
+
+def staleness_rows(
+    made: list[list[float]],
+    accepted: list[tuple[float, int, int, int]],
+    t_end: float,
+    dt: float = 1.0,
+    pairs: np.ndarray | None = None,
+) -> StalenessRows:
+    """Each (holder, origin) pair's staleness samples (seconds) over ``[0, t_end]``, origin by
+    origin; only the pairs true in ``pairs[holder, origin]`` when given."""
+    return list(_rows(made, accepted, t_end, dt, pairs))
+
+
+def _rows(
     made: list[list[float]],
     accepted: list[tuple[float, int, int, int]],
     t_end: float,
     dt: float,
     pairs: np.ndarray | None,
 ) -> Iterator[tuple[int, int, np.ndarray]]:
-    """``(holder, origin, samples over [0, t_end])`` for each pair, origin by origin."""
     n = len(made)
     ts = np.arange(0.0, t_end + 1e-9, dt)
     by_pair: dict[tuple[int, int], list[tuple[float, int]]] = {}
@@ -77,8 +91,11 @@ def staleness_samples(
 ) -> np.ndarray:
     """Staleness samples (seconds) of every (holder, origin) pair over ``[0, t_end]`` (one flat array);
     only the pairs true in ``pairs[holder, origin]`` when given."""
-    out = [s for _, _, s in _staleness_rows(made, accepted, t_end, dt, pairs)]
-    return np.concatenate(out) if out else np.zeros(0)
+    return _flat(staleness_rows(made, accepted, t_end, dt, pairs))
+
+
+def _flat(rows: StalenessRows) -> np.ndarray:
+    return np.concatenate([s for _, _, s in rows]) if rows else np.zeros(0)
 
 
 #: Hop classes of :func:`staleness_by_hops`: how far apart holder and origin are at a sample.
@@ -86,26 +103,23 @@ HOP_CLASSES = ("1", "2", "3+", "none")
 
 
 def staleness_by_hops(
-    made: list[list[float]],
-    accepted: list[tuple[float, int, int, int]],
-    t_end: float,
-    hops: list[tuple[float, np.ndarray]],
-    dt: float = 1.0,
+    rows: StalenessRows, hops: list[tuple[float, np.ndarray]], dt: float = 1.0
 ) -> dict[str, dict[str, float]]:
-    """Where the staleness lies: the samples split by how many radio hops apart holder and origin
-    were at the time (``hops``: each link update's time and hop counts, -1 for no path).
+    """Where the staleness lies: the samples (``rows``, a ``dt`` apart from 0 s) split by how many
+    radio hops apart holder and origin were at the time (``hops``: each link update's time and hop
+    counts, -1 for no path).
 
     Per class: ``samples`` (its share of all samples), ``mean_s``, and ``tail`` (its share of the
     samples at or above the p95), so a p95 set by pairs in direct range (the channel or the MAC) is
     told from one set by pairs that only a relay can serve."""
-    if not hops:
+    if not hops or not rows:
         return {}
     times = np.asarray([t for t, _ in hops])
     stack = np.stack([h for _, h in hops])
-    ts = np.arange(0.0, t_end + 1e-9, dt)
+    ts = dt * np.arange(rows[0][2].size)
     at = np.maximum(np.searchsorted(times, ts, side="right") - 1, 0)
     parts: dict[str, list[np.ndarray]] = {c: [] for c in HOP_CLASSES}
-    for h, o, s in _staleness_rows(made, accepted, t_end, dt, None):
+    for h, o, s in rows:
         hp = stack[at, h, o]
         for c, m in zip(HOP_CLASSES, (hp == 1, hp == 2, hp >= 3, hp < 0), strict=True):
             parts[c].append(s[m])
@@ -125,15 +139,13 @@ def staleness_by_hops(
     }
 
 
-def staleness_trend(
-    made: list[list[float]], accepted: list[tuple[float, int, int, int]], t_end: float, windows: int = 6
-) -> list[list[float]]:
-    """``[[window start s, mean staleness s], ...]`` over ``windows`` equal windows of ``[0, t_end]``:
-    flat once the channel keeps up, rising all run long when it does not."""
-    rows = [s for _, _, s in _staleness_rows(made, accepted, t_end, 1.0, None)]
+def staleness_trend(rows: StalenessRows, t_end: float, windows: int = 6) -> list[list[float]]:
+    """``[[window start s, mean staleness s], ...]`` over ``windows`` equal windows of ``[0, t_end]``
+    (``rows`` sampled once a second): flat once the channel keeps up, rising all run long when it
+    does not."""
     if not rows:
         return []
-    st = np.stack(rows)  # (pairs, samples), one a second
+    st = np.stack([s for _, _, s in rows])  # (pairs, samples), one a second
     edges = np.linspace(0.0, t_end, windows + 1)
     ts = np.arange(st.shape[1], dtype=np.float64)
     out = []
@@ -161,9 +173,10 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
     """One row of the table (and of the JSON)."""
     cfg = res.config
     dur = cfg.duration
-    st = staleness_samples(res.made, res.accepted, dur)
+    rows = staleness_rows(res.made, res.accepted, dur)  # once: every figure below is made from them
+    st = _flat(rows)
     p50, p95, mx = (float(np.percentile(st, q)) for q in (50, 95, 100)) if st.size else (0.0, 0.0, 0.0)
-    reach = staleness_samples(res.made, res.accepted, dur, pairs=res.ever_heard)
+    reach = _flat([r for r in rows if res.ever_heard[r[0], r[1]]])
     reach_p95 = float(np.percentile(reach, 95)) if reach.size else math.nan
     off = ~np.eye(res.n, dtype=bool)
     r = res.radio
@@ -213,8 +226,8 @@ def summarize(res: SwarmResult) -> dict[str, Any]:
         "superseded": sum(rb.arq.counters.superseded for rb in res.robots),
         "messages_delivered": sum(rb.arq.counters.messages_delivered for rb in res.robots),
         # where the staleness lies (JSON only): by hops between holder and origin, and over the run
-        "stale_by_hops": staleness_by_hops(res.made, res.accepted, dur, res.hops),
-        "stale_trend": staleness_trend(res.made, res.accepted, dur),
+        "stale_by_hops": staleness_by_hops(rows, res.hops),
+        "stale_trend": staleness_trend(rows, dur),
         "hears_all": res.hears_all_share,
         "robot_hears_all": res.robot_hears_all_share,
         "degree": res.mean_degree,
