@@ -1,7 +1,8 @@
 """``mapfile``: watch a map_server YAML (say, what ``map_saver`` rewrites every few seconds).
 
 The YAML and its image are polled every ``poll_s``. A change is loaded only once both files have
-stayed the same for ``settle_s`` (a writer mid-way through is left alone), and it is emitted only if
+stayed the same for ``settle_s`` (a writer mid-way through is left alone; so is a YAML that cannot
+be read yet, or an image not there yet, until that fault has lasted ``settle_s``), and it is emitted only if
 they were still the same after loading and the map differs from the last one sent, so a half-written
 file is retried, never emitted. A file that will not load (truncated image, broken YAML) or that
 vanishes is logged with the reason (one line, once per distinct fault), counted, and retried when the
@@ -124,9 +125,17 @@ class MapFileSource(MapSource):
         try:
             sig = self._signature()
         except MapdError as exc:
+            # A writer mid-way through (the YAML truncated, the image not yet there) fails here too:
+            # the fault counts only once it has stayed the same for settle_s, like a change does.
             state["pending"] = None
-            self._fail(str(exc))
+            reason = str(exc)
+            if state.get("fault") != reason:
+                state["fault"], state["fault_since"] = reason, now
+            since = state.get("fault_since")
+            if isinstance(since, float) and now - since >= self.opts.settle_s:
+                self._fail(reason)
             return None
+        state["fault"] = None
         if sig == state.get("done"):
             return None
         if sig != state.get("pending"):

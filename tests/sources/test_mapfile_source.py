@@ -34,6 +34,17 @@ def _source(path: Path, **kw: float) -> MapFileSource:
     return MapFileSource(MapFileOptions(path=path, **kw), SourceContext(robot="r3"))
 
 
+def _watching(path: Path, k: int, settle_s: float) -> tuple[MapFileSource, dict[str, object]]:
+    """A source whose first check emitted ``_grid(k)``, saved at ``path`` long ago; and its state."""
+    save_map(_grid(k), path)
+    _age(path, 10)
+    src = _source(path, settle_s=settle_s)
+    state: dict[str, object] = {}
+    first = src.check(state, 0.0)
+    assert first is not None and first.same_map(_grid(k))
+    return src, state
+
+
 def test_registered_under_mapd_sources() -> None:
     assert plugins.load("source", "mapfile") is MapFileSource
 
@@ -42,7 +53,9 @@ def test_rewrites_emit_new_versions_and_touches_do_not(tmp_path: Path) -> None:
     path = tmp_path / "map.yaml"
     src = _source(path, settle_s=0.5)
     state: dict[str, object] = {}
-    assert src.check(state, 0.0) is None  # nothing written yet
+    assert src.check(state, 0.0) is None  # nothing written yet: a fault once it has lasted settle_s
+    assert src.stats()["load_errors"] == 0
+    assert src.check(state, 0.6) is None
     assert "vanished or not written yet" in str(src.stats()["last_error"])
 
     save_map(_grid(0), path)
@@ -64,11 +77,7 @@ def test_rewrites_emit_new_versions_and_touches_do_not(tmp_path: Path) -> None:
 
 def test_half_written_image_is_retried_never_emitted(tmp_path: Path) -> None:
     path = tmp_path / "map.yaml"
-    save_map(_grid(0), path)
-    _age(path, 10)
-    src = _source(path, settle_s=0.2)
-    state: dict[str, object] = {}
-    assert src.check(state, 0.0) is not None
+    src, state = _watching(path, 0, settle_s=0.2)
     # A writer died half-way through the image: the files settle, but the map must not be emitted.
     pgm = path.with_suffix(".pgm")
     save_map(_grid(5), tmp_path / "full.yaml")
@@ -88,11 +97,7 @@ def test_half_written_image_is_retried_never_emitted(tmp_path: Path) -> None:
 
 def test_half_written_yaml_and_vanished_files(tmp_path: Path) -> None:
     path = tmp_path / "map.yaml"
-    save_map(_grid(1), path)
-    _age(path, 10)
-    src = _source(path, settle_s=0.0)
-    state: dict[str, object] = {}
-    assert src.check(state, 0.0) is not None
+    src, state = _watching(path, 1, settle_s=0.0)
     full = path.read_text()
     path.write_text(full[: full.index("resolution") + 5])  # cut in the middle of a key
     assert src.check(state, 1.0) is None
@@ -102,6 +107,31 @@ def test_half_written_yaml_and_vanished_files(tmp_path: Path) -> None:
     save_map(_grid(2), path)
     g = src.check(state, 3.0)
     assert g is not None and g.version == 2 and g.same_map(_grid(2))
+
+
+def test_a_writer_mid_way_through_the_yaml_is_not_a_fault(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # map_saver rewrites the YAML in place: a poll between its truncate and its write reads nothing.
+    path = tmp_path / "map.yaml"
+    src, state = _watching(path, 1, settle_s=0.3)
+    whole = path.read_text()
+    with caplog.at_level("WARNING", logger="mapd.sources.mapfile"):
+        path.write_text("")
+        assert src.check(state, 1.0) is None
+        path.write_text(whole[: whole.index("resolution") + 5])
+        assert src.check(state, 1.1) is None
+        path.write_text(whole)
+        assert src.check(state, 1.2) is None
+        assert src.check(state, 2.0) is None  # settled, loads, and it is the same map: nothing new
+    st = src.stats()
+    assert st["load_errors"] == 0 and st["last_error"] == "" and st["versions"] == 1
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    # A YAML that stays broken is still a fault, once it has lasted settle_s.
+    path.write_text(whole[: whole.index("resolution") + 5])
+    assert src.check(state, 3.0) is None and src.stats()["load_errors"] == 0
+    assert src.check(state, 3.4) is None
+    assert src.stats()["load_errors"] == 1 and "map.yaml" in str(src.stats()["last_error"])
 
 
 def test_stream_picks_up_rewrites(tmp_path: Path) -> None:
@@ -138,12 +168,7 @@ def test_pgm_cut_inside_its_header_is_one_logged_error(
 ) -> None:
     # The cut that crashed the daemon (exit 1 and a traceback; systemd restarted it into the same crash).
     path = tmp_path / "map.yaml"
-    save_map(_grid(0), path)
-    _age(path, 10)
-    src = _source(path, settle_s=0.0)
-    state: dict[str, object] = {}
-    first = src.check(state, 0.0)
-    assert first is not None
+    src, state = _watching(path, 0, settle_s=0.0)
     for cut in (b"P5\n100 ", b"P5\n50 40\n0\n", b"P5\n50 40\n65536\n", b""):
         path.with_suffix(".pgm").write_bytes(cut)
         _age(path, 10 + len(cut))  # a new signature each time
