@@ -8,6 +8,7 @@ loop's thread, with the events below.
 
 from __future__ import annotations
 
+import asyncio
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -195,6 +196,14 @@ class Transport(ABC):
     @abstractmethod
     async def close(self) -> None:
         """Stop promptly and release everything (undeclare, close ports); never hang."""
+
+    async def watch(self) -> None:
+        """Wait while the link works; return once it is closed. Raise
+        :class:`~mapd.errors.TransportError` (one line, the cause) if its background work stopped
+        for good, so that the daemon stops with that line (and systemd restarts it) rather than run
+        on as a robot that looks alive and sends nothing. The default, for a link whose work runs
+        in its library's threads, waits for ever (the daemon cancels it on shutdown)."""
+        await asyncio.Event().wait()
 
     @abstractmethod
     def offer(self, envelope: Envelope) -> None:

@@ -134,7 +134,7 @@ async def _send(args: argparse.Namespace, data: bytes, peers: list[int]) -> int:
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         link.send(data, peers, deadline_s=args.deadline)
-        await closed.wait()
+        await link.run_until(closed.wait())
         dt = loop.time() - t0
         stats = link.stats()
     finally:
@@ -183,7 +183,7 @@ async def _recv(args: argparse.Namespace) -> int:
     loop = asyncio.get_running_loop()
     try:
         try:
-            msg = await asyncio.wait_for(got, args.timeout)
+            msg = await asyncio.wait_for(link.run_until(got), args.timeout)
         except TimeoutError:
             raise TransportError(
                 f"uwb: no complete message on {args.port} within {args.timeout:.0f} s"

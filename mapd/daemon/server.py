@@ -300,6 +300,9 @@ class Daemon:
                 tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
                 tg.create_task(self._reload_loop(), name="reload"),
             ]
+            # A link whose loop died raises here, which stops the daemon with its line: systemd
+            # restarts it (Restart=on-failure) instead of a robot that looks alive and sends nothing.
+            tasks += [tg.create_task(t.watch(), name=f"transport-{t.name}") for t in self.transports]
             await self._stop.wait()
             self._stopping_at = time.monotonic()
             notify("STOPPING=1")

@@ -18,10 +18,10 @@ import dataclasses
 import logging
 import os
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
-from mapd.errors import MapdError, TransportError
+from mapd.errors import MapdError, StateError, TransportError
 from transports.uwb import arq
 from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import CounterStore, clock_floor
@@ -30,11 +30,14 @@ from transports.uwb.signing import CounterStore, clock_floor
 POSE_STREAM = 254
 
 log = logging.getLogger("mapd.uwb")
+T = TypeVar("T")
 
 #: A frame that has not left the port's buffer after this long means the port is stuck (a peer or
 #: a driver that stopped reading, flow control held): the port is dropped and reopened, so the loop
 #: (timers, deadlines, events) never waits on one write for ever.
 WRITE_STALL_S = 5.0
+#: How often a signing counter that could not be saved is tried again.
+COUNTER_RETRY_S = 1.0
 
 
 def port_error(port: str, exc: BaseException | None = None) -> TransportError:
@@ -42,6 +45,14 @@ def port_error(port: str, exc: BaseException | None = None) -> TransportError:
         return TransportError(f"uwb: serial port {port} does not exist")
     detail = str(exc).splitlines()[0] if exc is not None and str(exc) else "cannot be opened"
     return TransportError(f"uwb: cannot open serial port {port}: {detail}")
+
+
+def failure_reason(exc: BaseException) -> str:
+    """Why a task stopped, on one line: a typed fault's own words, a bug's type and message."""
+    text = " ".join(str(exc).split())
+    if isinstance(exc, MapdError) and text:
+        return text
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class _Proto(asyncio.Protocol):
@@ -114,6 +125,10 @@ class UwbLink:
         self.first_rx_at: float | None = None
         self.write_stalls = 0
         self._stall_logged = False
+        #: Times the signing counter could not be saved (a full or read-only disk): the core signs
+        #: on within the block saved before, then goes quiet until a save goes through.
+        self.counter_save_errors = 0
+        self._counter_fault = ""
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
@@ -121,7 +136,7 @@ class UwbLink:
             start = max(self._store.load(), clock_floor(time.time()))
             self._cfg = dataclasses.replace(self._cfg, counter_start=start)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
-        self._persist_counter()  # a state dir that cannot be written fails here, not later
+        self._persist_counter(strict=True)  # a state dir that cannot be written fails here
         await self._open()
         self.started_at = asyncio.get_running_loop().time()
         self._task = asyncio.create_task(self._run(), name=f"uwb-{self.port}")
@@ -130,7 +145,22 @@ class UwbLink:
     def _task_done(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
             exc = task.exception()
-            log.error("uwb: link on %s stopped: %s", self.port, exc, exc_info=exc)
+            # A bug gets its traceback in the log; a typed fault is its one line (see stopped()).
+            trace = None if isinstance(exc, MapdError) else exc
+            log.error("uwb: link on %s stopped: %s", self.port, exc, exc_info=trace)
+
+    async def stopped(self) -> None:
+        """Wait while the link runs; return when it is closed, raise :class:`TransportError` (one
+        line, with the cause) if its loop ended any other way, so its owner need not poll."""
+        task = self._task
+        if task is None:
+            raise TransportError(f"uwb: link on {self.port} not started")
+        await asyncio.wait([task])
+        if self._closing or task.cancelled():
+            return
+        exc = task.exception()
+        why = "its loop returned" if exc is None else failure_reason(exc)
+        raise TransportError(f"uwb: link on {self.port} stopped: {why}")
 
     async def _open(self) -> None:
         import serial
@@ -187,6 +217,7 @@ class UwbLink:
             port_open=self._proto is not None and not self._proto.lost,
             reconnects=self.reconnects,
             write_stalls=self.write_stalls,
+            counter_save_errors=self.counter_save_errors,
             write_peak_bps_1s=round(self.write_peak_bps, 1),
         )
         return out
@@ -211,12 +242,46 @@ class UwbLink:
 
     # --- the loop -------------------------------------------------------------------------------
 
-    def _persist_counter(self) -> None:
+    async def run_until(self, aw: Awaitable[T]) -> T:
+        """``aw``'s result, or :class:`TransportError` if the link stops first (never a hang on a
+        link whose loop has died)."""
+        waiter = asyncio.ensure_future(aw)
+        stop = asyncio.ensure_future(self.stopped())
+        try:
+            await asyncio.wait([waiter, stop], return_when=asyncio.FIRST_COMPLETED)
+            if waiter.done():
+                return waiter.result()
+            stop.result()  # the loop's fault, as one line
+            raise TransportError(f"uwb: link on {self.port} was closed")
+        finally:
+            waiter.cancel()
+            stop.cancel()
+
+    def _persist_counter(self, *, strict: bool = False) -> None:
+        """Save the counter bound the core asks for, then let it sign below it.
+
+        Only at start (``strict``) does a failed save raise. Later the loop goes on: the core still
+        has the rest of the block saved before (half a block, minutes of frames), after which it
+        sends nothing signed; each wake retries, and a save that goes through resumes it.
+        """
         assert self.core is not None
         upto = self.core.counter_reservation()
-        if upto is not None:
+        if upto is None:
+            return
+        try:
             self._store.save(upto)
-            self.core.confirm_counter(upto)
+        except StateError as exc:
+            if strict:
+                raise
+            self.counter_save_errors += 1
+            if str(exc) != self._counter_fault:
+                self._counter_fault = str(exc)
+                log.warning("%s; signing on within the counters saved before, retrying", exc)
+            return
+        if self._counter_fault:
+            self._counter_fault = ""
+            log.warning("uwb: signing counter saved again on %s", self.port)
+        self.core.confirm_counter(upto)
 
     def _dispatch(self) -> None:
         assert self.core is not None
@@ -293,6 +358,8 @@ class UwbLink:
             wait = None if timer is None else max(0.0, timer - loop.time())
             if self._proto is None or self._proto.lost:
                 wait = min(wait if wait is not None else self.reopen_s, self.reopen_s)
+            if self._counter_fault:
+                wait = min(wait if wait is not None else COUNTER_RETRY_S, COUNTER_RETRY_S)
             if self._wake.is_set():
                 continue
             with contextlib.suppress(TimeoutError):

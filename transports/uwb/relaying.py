@@ -16,8 +16,9 @@ import contextlib
 import logging
 from collections.abc import Callable
 
-from mapd.errors import MapdError
+from mapd.errors import MapdError, TransportError
 from transports.uwb import forwarding
+from transports.uwb.link import failure_reason
 
 log = logging.getLogger("mapd.uwb")
 
@@ -94,6 +95,25 @@ class RelayDriver:
         """Run the task: ``peers()`` are the link ids heard lately, ``dests()`` whom summaries go
         to, ``ask(origin)`` asks a robot for a whole map (for a neighbour the chain cannot serve)."""
         self._task = asyncio.get_running_loop().create_task(self._run(send, peers, dests, ask))
+        self._task.add_done_callback(self._task_done)
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            exc = task.exception()
+            log.error("uwb: relay stopped: %s", exc, exc_info=None if isinstance(exc, MapdError) else exc)
+
+    async def stopped(self) -> None:
+        """Wait while the relay runs; return once closed, raise :class:`TransportError` (one line)
+        if its task ended any other way."""
+        task = self._task
+        if task is None:
+            raise TransportError("uwb: relay not started")
+        await asyncio.wait([task])
+        if task.cancelled():
+            return
+        exc = task.exception()
+        why = "its task returned" if exc is None else failure_reason(exc)
+        raise TransportError(f"uwb: relay stopped: {why}")
 
     async def close(self) -> None:
         if self._task is not None:

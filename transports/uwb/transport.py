@@ -151,6 +151,22 @@ class UwbTransport(Transport):
                 ask=lambda origin: self._ask_keyframe(self._name(origin)),
             )
 
+    async def watch(self) -> None:
+        # The serial loop and the relay task: the first to stop for a fault ends the watch.
+        assert self._link is not None, "watch() before start()"
+        waits = [asyncio.ensure_future(self._link.stopped())]
+        if self._relay is not None:
+            waits.append(asyncio.ensure_future(self._relay.stopped()))
+        try:
+            while waits:
+                done, pending = await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+                for w in done:
+                    w.result()  # raises the TransportError of one that stopped for a fault
+                waits = list(pending)
+        finally:
+            for w in waits:
+                w.cancel()
+
     async def close(self) -> None:
         if self._relay is not None:
             await self._relay.close()

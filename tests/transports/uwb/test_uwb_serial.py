@@ -5,6 +5,7 @@ keep its loop running, say so once, and carry on when the port does."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import os
 import shutil
@@ -19,7 +20,7 @@ from typing import Any
 import pytest
 
 from mapd.envelope import Envelope
-from mapd.errors import TransportError
+from mapd.errors import StateError, TransportError
 from mapd.grid import Pose2D
 from transports.base import (
     Delivered,
@@ -32,7 +33,7 @@ from transports.base import (
     TransportContext,
     TransportEvent,
 )
-from transports.uwb import arq, link
+from transports.uwb import arq, link, signing
 from transports.uwb.faults import Faults
 from transports.uwb.link import UwbLink
 from transports.uwb.relay import FaultRelay, MediumRelay
@@ -99,6 +100,13 @@ async def started(*robots: Robot) -> AsyncIterator[None]:
     finally:
         for r in up:
             await r.t.close()
+
+
+def signed_pair(ports: list[str], tmp_path: Path, key: bytes) -> tuple[Robot, Robot]:
+    """alpha and beta on ``ports``, signing with ``key``, their state under ``tmp_path/a`` and ``/b``."""
+    names = ["alpha", "beta"]
+    a = Robot("alpha", ports[0], key=key, state=tmp_path / "a", names=names)
+    return a, Robot("beta", ports[1], key=key, state=tmp_path / "b", names=names)
 
 
 async def until(pred: Callable[[], bool], timeout: float) -> None:
@@ -215,8 +223,7 @@ def test_signed_link_persists_counter_and_detects_restart(tmp_path: Path) -> Non
     async def main() -> None:
         async with FaultRelay(rate_bps=RATE, seed=3) as relay:
             state_a = tmp_path / "a"
-            a = Robot("alpha", relay.ports[0], key=key, state=state_a, names=["alpha", "beta"])
-            b = Robot("beta", relay.ports[1], key=key, state=tmp_path / "b", names=["alpha", "beta"])
+            a, b = signed_pair(relay.ports, tmp_path, key)
             async with started(a, b):
                 a.t.offer(envelope("alpha", 1, 5000))
                 await until(lambda: bool(a.of(Delivered)), 10)
@@ -417,3 +424,99 @@ def test_ports_that_vanish_and_come_back_are_reopened_and_carry_maps_again(
     lost = [r for r in caplog.records if "lost" in r.getMessage()]
     assert len(lost) == 2  # one line per link, not one per reopen attempt
     assert not [r for r in caplog.records if r.exc_info]
+
+
+def test_a_signing_counter_that_cannot_be_saved_quiets_the_link_until_it_can(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Small blocks, so that a 20 kB map needs many saves (the daemon's block lasts minutes).
+    monkeypatch.setattr(arq, "Signer", functools.partial(signing.Signer, block=16))
+    key = os.urandom(32)
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=RATE, seed=5) as relay:
+            a, b = signed_pair(relay.ports, tmp_path, key)
+            counter = tmp_path / "a" / "uwb-1.counter"
+            async with started(a, b):
+                saved = int(counter.read_text())
+                counter.unlink()
+                counter.mkdir()  # the save's rename onto it fails, as on a full or read-only disk
+                a.t.offer(envelope("alpha", 1, 20_000))
+                await until(lambda: a.t.stats()["counter_save_errors"] >= 3, 10)
+                # It signs on within the block saved before (half a block left at the first
+                # fault), then uses no counter past it: the link goes quiet, but lives.
+                await asyncio.sleep(0.5)
+                sent = a.t.stats()["frames_tx"]
+                await asyncio.sleep(0.5)
+                assert a.t.stats()["frames_tx"] == sent and not a.of(Delivered)
+                counter.rmdir()
+                await until(lambda: bool(a.of(Delivered)), 20)
+                assert int(counter.read_text()) > saved
+                assert b.t.stats()["bad_signature"] == 0 and b.t.stats()["replayed"] == 0
+
+    with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("cannot write signing counter" in m for m in said) == 1  # once, not once a retry
+    assert sum("signing counter saved again" in m for m in said) == 1
+    assert not [r for r in caplog.records if "stopped" in r.getMessage()]
+
+
+def test_a_link_whose_loop_dies_says_why_to_its_watcher() -> None:
+    class Refuses(Robot):
+        def __init__(self, name: str, port: str) -> None:
+            super().__init__(name, port, names=["alpha", "beta"])
+            self.t.ctx.emit = self.refuse
+
+        def refuse(self, e: TransportEvent) -> None:
+            if isinstance(e, Received):
+                raise StateError("state: cannot write /var/lib/mapd/peers: No space left on device")
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=RATE, seed=6) as relay:
+            a = Refuses("alpha", relay.ports[0])
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"])
+            async with started(a, b):
+                watch = asyncio.ensure_future(a.t.watch())
+                await asyncio.sleep(0.3)
+                assert not watch.done()  # a link at work is not reported
+                b.t.offer(envelope("beta", 1, 100))  # alpha's handler raises on beta's map
+                with pytest.raises(TransportError) as err:
+                    await asyncio.wait_for(watch, 10)
+                assert str(err.value) == (
+                    f"uwb: link on {relay.ports[0]} stopped: "
+                    "state: cannot write /var/lib/mapd/peers: No space left on device"
+                )
+                # The healthy link's watch ends quietly when it is closed.
+                healthy = asyncio.ensure_future(b.t.watch())
+                await b.t.close()
+                await asyncio.wait_for(healthy, 5)
+
+    asyncio.run(main())
+
+
+def test_waiting_on_a_link_whose_loop_died_is_an_error_not_a_hang() -> None:
+    # What `mapd link send` waits on (its message closing) never comes once the loop is dead.
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+
+    def on_event(e: arq.Event) -> None:
+        if isinstance(e, arq.MessageFailed):
+            raise StateError("state: disk full")
+
+    async def main() -> None:
+        lk = UwbLink(arq.ArqConfig(node_id=1, rate_bps=1_000_000.0), path, on_event=on_event)
+        await lk.start()
+        try:
+            lk.send(b"x" * 100, [2], deadline_s=0.3)  # nobody answers: it fails, the handler raises
+            with pytest.raises(TransportError) as err:
+                await asyncio.wait_for(lk.run_until(asyncio.Event().wait()), 10)
+            assert str(err.value) == f"uwb: link on {path} stopped: state: disk full"
+        finally:
+            await lk.close()
+
+    try:
+        asyncio.run(main())
+    finally:
+        os.close(master)
+        os.close(slave)
