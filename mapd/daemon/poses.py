@@ -98,6 +98,10 @@ class PoseRelay:
             return
         self.book.offer(msg.robot, msg.stamped, time.time())
 
+    def forget(self, robot: str) -> None:
+        """Drop ``robot``'s last pose (revoked): it is no longer published or shown."""
+        self.book.poses.pop(robot, None)
+
     def status(self, now: float) -> dict[str, Any]:
         """Each robot's position for ``mapd status``: in its map frame, and in the fleet frame when placed."""
         frames = self._frames()

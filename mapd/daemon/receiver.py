@@ -137,6 +137,13 @@ class Receiver:
         self._history[grid.robot] = {grid.version: grid}
         self._held_at[grid.robot] = grid.stamp
 
+    def forget(self, robot: str) -> bool:
+        """Drop ``robot``'s maps and what is known of it (revoked); False if nothing was held."""
+        held = robot in self.maps or robot in self.info
+        for d in (self.maps, self.info, self._history, self._held_at):
+            d.pop(robot, None)
+        return held
+
     def refused(self, exc: Exception) -> None:
         """:func:`open_envelope` refused the bytes: count why."""
         if isinstance(exc, SignatureError):

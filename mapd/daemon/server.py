@@ -131,6 +131,7 @@ class Daemon:
             max_robots=cfg.limits.max_peers + 1,  # the peers and this robot
             # a base station has no map frame of its own: the anchor, or the first robot heard
             anchor=cfg.fusion.anchor or (self.me if self._own_map_source() else None),
+            admits=self.keys.roster.admits,
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
         self.outputs: list[Output] = []
@@ -198,6 +199,9 @@ class Daemon:
             ok = False
         else:
             self.keys.roster.adopt(keys.roster)
+            for robot in plan.removed:
+                if robot != self.me and not self.keys.roster.admits(robot):
+                    self._revoke(robot)
             said = self.reloads.applied(new, plan)
             (log.warning if plan.restart else log.info)("reloaded: %s", said)
             # A robot just admitted (or re-keyed) had its maps refused so far: ask for its newest
@@ -208,6 +212,16 @@ class Daemon:
             ok = True
         notify("READY=1\nSTATUS=running")
         return ok
+
+    def _revoke(self, robot: str) -> None:
+        """``robot`` left the roster: what it sent goes too (its map from the global map, its pose),
+        as after a restart without it; a key that had to be revoked may have signed bad maps."""
+        self.receiver.forget(robot)
+        self.fusion.forget(robot)
+        self.poses.forget(robot)
+        self.store.forget_peer(robot)
+        self.store.forget_acked(robot)
+        log.warning("revoked %s: its map is out of the global map, its pose is dropped", robot)
 
     async def _reload_loop(self) -> None:
         while True:
@@ -353,6 +367,12 @@ class Daemon:
         own = self.store.own_map()
         peers = []
         for robot in list(self.store.data.peers):
+            if not self.keys.roster.admits(robot):
+                # Revoked while the daemon was down: as a reload would have, leave its map out.
+                log.warning("not restoring %s's map: it is no longer on the roster", robot)
+                self.store.forget_peer(robot)
+                self.store.forget_acked(robot)
+                continue
             grid = self.store.peer_map(robot)
             if grid is None:
                 self.store.forget_peer(robot)

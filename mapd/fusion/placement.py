@@ -152,6 +152,15 @@ class Placer:
             if p.accepted and p.transform is not None and p.source == "estimate" and robot not in self.poses:
                 self.placements[robot] = replace(p, reason="restored from the state directory")
 
+    def forget(self, robot: str) -> None:
+        """Drop all that is held of ``robot``: its placement, its track, a pose its maps reported
+        (a configured pose stays: the config still names it)."""
+        self.placements.pop(robot, None)
+        self._tracks.pop(robot, None)
+        if robot in self.reported:
+            self.reported.discard(robot)
+            self.poses.pop(robot, None)
+
     def update(self, maps: Mapping[str, OccupancyGrid], *, estimate: bool = True) -> dict[str, Placement]:
         """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
 

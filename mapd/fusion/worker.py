@@ -91,6 +91,7 @@ class FusionWorker:
         max_robots: int = 64,
         anchor: str | None = "",
         options: EstimateOptions | None = None,
+        admits: Callable[[str], bool] | None = None,
     ) -> None:
         self.robot = robot
         self.cfg = cfg
@@ -122,6 +123,10 @@ class FusionWorker:
         self._saves = WriteOutage(log)
         self._dropped = 0
         self._loaded = False
+        #: Whether a robot's map may be in the global map at all (the roster); others found in the
+        #: state directory at start are left out, as :meth:`forget` leaves them out later.
+        self._admits = admits or (lambda robot: True)
+        self.forgotten = 0
 
     # -- the daemon's side ------------------------------------------------------------------
 
@@ -153,6 +158,34 @@ class FusionWorker:
         self.placer.poses[robot] = pose
         self.placer.reported.add(robot)
         self._wake.set()
+
+    def forget(self, robot: str) -> bool:
+        """Take ``robot``'s map out of the global map (it was revoked); False if none was held.
+
+        Its map, placement and reported pose go, and the map is merged again without it. The global
+        map held from before the restart goes too if the robot is in it (its cells cannot be told
+        from the others'), and so do the bounds, which only ever grew: what is left is built from
+        the maps held now, and covers what they cover.
+        """
+        if robot == self.robot:
+            raise FusionError("a robot cannot take its own map out of its global map")
+        held = robot in self._latest or robot in self._placements or robot in self._restored_robots
+        self._latest.pop(robot, None)
+        self._placements.pop(robot, None)
+        self.placer.forget(robot)
+        if robot in self._restored_robots:
+            self._drop_restored()
+        if held:
+            self.forgotten += 1
+            self._bounds = None
+            self._wake.set()
+        return held
+
+    def _drop_restored(self) -> None:
+        if self._global is self._restored:
+            self._global = None
+        self._restored = None
+        self._restored_robots = set()
 
     @property
     def global_map(self) -> OccupancyGrid | None:
@@ -194,6 +227,7 @@ class FusionWorker:
             "pending": self._wake.is_set(),
             "error": self._error,
             "dropped": self._dropped,
+            "revoked": self.forgotten,
             "restored_until": sorted(self._restored_robots - set(self._latest)) if self._restored else [],
         }
 
@@ -399,10 +433,22 @@ class FusionWorker:
                     placements[str(name)] = Placement.from_dict(entry)
                 except (KeyError, TypeError, ValueError) as exc:
                     log.warning("fusion: ignoring entry '%s' of %s: %s", name, tj, exc)
+        # Robots off the roster since the last run: their placements go, and a global map built
+        # with their maps is not restored (its cells are theirs and the others' alike).
+        revoked = sorted(r for r in placements if r != self.robot and not self._admits(r))
+        in_global = [r for r in revoked if placements.pop(r).accepted]
+        if revoked:
+            self.forgotten += len(revoked)
+            log.warning(
+                "fusion: leaving out %s, no longer on the roster%s",
+                ", ".join(revoked),
+                "; the global map is built afresh" if in_global else "",
+            )
+        if isinstance(doc, dict) and isinstance(doc.get("robots"), dict):
             self._merges = int(doc.get("version", 0)) if isinstance(doc.get("version"), int) else 0
         self.placer.restore(placements)
         self._placements = {r: p for r, p in placements.items()}
-        if gy.exists():
+        if gy.exists() and not in_global:
             try:
                 grid = load_map(gy, max_cells=self.max_cells)
             except MapdError as exc:

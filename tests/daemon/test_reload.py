@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -117,11 +118,15 @@ def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken
             assert d0.snapshot()["reload"]["last"] == (
                 "roster: removed robot2; needs a restart to take effect: codec.use"
             )
+            # What it sent goes too: its map from the peers held, the state and the global map.
+            st = d0.snapshot()
+            assert "robot2" not in d0.receiver.maps and "robot2" not in st["peers"]
+            assert "robot2" not in d0.store.data.peers and "robot2" not in d0.fusion.status()["robots"]
+            assert d0.fusion.status()["revoked"] == 1
             refused = d0.receiver.counters.bad_signature
-            held = d0.receiver.maps["robot2"].version
             await s2.queue.put(dk.growing_map(3).replace(robot="robot2"))
             await dk.wait_for(lambda: d0.receiver.counters.bad_signature > refused, 20, what="revoked")
-            assert d0.receiver.maps["robot2"].version == held
+            assert "robot2" not in d0.receiver.maps
 
             path0.write_text("[robot\nname = ")  # a half-written file: refused whole
             assert not await d0.reload()
@@ -137,6 +142,39 @@ def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken
             await asyncio.gather(*tasks)
 
     asyncio.run(main())
+
+
+def test_a_robot_revoked_while_the_daemon_was_down_is_not_restored(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    channel = dk.channel()
+    path0 = _virtual(dk, tmp_path, "robot0", channel)
+    d1, s1 = dk.virtual_daemon(tmp_path, "robot1", channel)
+    s1.queue.put_nowait(dk.growing_map(1).replace(robot="robot1"))
+
+    async def run(*daemons: Daemon, until: Callable[[], bool]) -> None:
+        tasks = [asyncio.create_task(d.run()) for d in daemons]
+        try:
+            await dk.wait_for(until, 20)
+        finally:
+            for d in daemons:
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    def holds_robot1(d0: Daemon) -> bool:
+        return "robot1" in d0.receiver.maps and "robot1" in d0.snapshot()["peers"]
+
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    asyncio.run(run(d0, d1, until=lambda: "robot1" in d0.store.data.peers))
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    asyncio.run(run(d0, until=lambda: d0.fusion._loaded))
+    assert holds_robot1(d0)  # a plain restart brings robot1's map back from the state directory
+
+    _drop_roster_line(path0, "robot1")  # revoked in the config while robot0 was down
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    asyncio.run(run(d0, until=lambda: d0.fusion._loaded))
+    assert not holds_robot1(d0) and "robot1" not in d0.store.data.peers
+    assert "robot1" not in d0.fusion.status()["robots"]
 
 
 @pytest.mark.slow
@@ -165,6 +203,9 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
         snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 1, 30, f)
         assert snaps["robot0"]["security"]["roster"] == ["robot0"]
         assert snaps["robot0"]["reload"]["last"] == "roster: removed robot1"
+        # Its map left with its key: not held, not in the global map.
+        assert "robot1" not in snaps["robot0"]["peers"]
+        assert "robot1" not in snaps["robot0"]["fusion"]["robots"]
         refused = zenoh0(snaps)["unadmitted"]
         # robot1's next maps are refused by the running daemon (before any check: not on the
         # roster), which does not restart

@@ -133,3 +133,69 @@ def test_submit_needs_a_robot_and_caps_robots(fleet: dict[str, OccupancyGrid]) -
         assert w.status()["dropped"] == 1 and list(w.status()["robots"]) == ["a"]
 
     asyncio.run(main())
+
+
+def _known(grid: OccupancyGrid | None) -> int:
+    assert grid is not None
+    return int((grid.data >= 0).sum())
+
+
+def test_a_revoked_robots_map_leaves_the_global_map(tmp_path: Path, fleet: dict[str, OccupancyGrid]) -> None:
+    # b sits 30 m east of a: the global map's east part is b's alone.
+    cfg = FusionSection(debounce_s=0.0, poses={"a": [0.0, 0.0, 0.0], "b": [30.0, 0.0, 0.0]})
+
+    async def main() -> None:
+        w = FusionWorker("a", cfg, tmp_path)
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await w.merge_now()
+        both = w.global_map
+        assert both is not None and both.width > fleet["a"].width + fleet["b"].width
+        assert w.forget("b") and not w.forget("b")  # the second time there is nothing left of it
+        await w.merge_now()
+        alone = w.global_map
+        # As if b had never been merged: its cells are gone, and so is the room the map grew to.
+        fresh = FusionWorker("a", cfg, None)
+        fresh.submit(fleet["a"])
+        await fresh.merge_now()
+        assert fresh.global_map is not None and alone is not None
+        assert alone.same_map(fresh.global_map) and alone.width < both.width
+        assert _known(alone) == _known(fleet["a"])
+        st = w.status()
+        assert set(st["robots"]) == {"a"} and st["maps"] == 1 and st["revoked"] == 1
+        doc = json.loads((tmp_path / TRANSFORMS_JSON).read_text())
+        assert set(doc["robots"]) == {"a"}
+        with pytest.raises(FusionError):
+            w.forget("a")  # its own map is not the roster's to take
+
+    asyncio.run(main())
+
+
+def test_a_robot_revoked_across_a_restart_leaves_no_cells_behind(
+    tmp_path: Path, fleet: dict[str, OccupancyGrid]
+) -> None:
+    async def first() -> int:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await w.merge_now()
+        return _known(w.global_map)
+
+    async def restart(admits: object, forget: bool) -> tuple[dict[str, object], int]:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path, admits=admits)  # type: ignore[arg-type]
+        await asyncio.to_thread(w._load_state)
+        w._loaded = True
+        if forget:  # revoked by a reload after the restart, before b was heard again
+            assert w.forget("b")
+        w.submit(fleet["a"])
+        await w.merge_now()
+        return w.status(), _known(w.global_map)
+
+    both = asyncio.run(first())
+    assert both > _known(fleet["a"])
+    for admits, forget in ((lambda r: r != "b", False), (lambda r: True, True)):
+        st, known = asyncio.run(restart(admits, forget))
+        # Not restored: the cells of a alone, where a plain restart keeps b's until it is back.
+        assert known == _known(fleet["a"]) and st["restored_until"] == [] and set(st["robots"]) == {"a"}
+        assert st["revoked"] == 1
+        asyncio.run(first())  # b back in the state directory for the next variant
