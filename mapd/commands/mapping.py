@@ -55,6 +55,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not 0.0 <= args.overlap < 1.0:
         raise ConfigError("--overlap must lie in [0, 1)")
     total = carmen.count_scans(args.log)
+    # One record of bad lines for every robot's pass: each kind of fault is said once, not per robot.
+    stats = carmen.LogStats()
     poses: dict[str, list[float]] = {}
     for i in range(args.robots):
         name = f"robot{i}"
@@ -72,6 +74,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 index=i,
                 overlap=args.overlap,
                 robot=name,
+                stats=stats,
             ):
                 save_map(grid, out / f"map_{grid.version:04d}.yaml")
                 step = min(args.every, len(part) - done)

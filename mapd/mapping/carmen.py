@@ -75,6 +75,8 @@ class LogStats:
     ignored: int = 0
     last_error: str = ""
     by_reason: dict[str, int] = field(default_factory=dict)
+    #: Count, but log nothing: for a pass whose faults another pass over the same lines reports.
+    quiet: bool = False
 
     def skip(self, where: str, reason: str, key: str | None = None) -> None:
         """Count a skipped line; log it if it is the first of its ``key`` (default: ``reason``)."""
@@ -85,7 +87,7 @@ class LogStats:
         # One warning per kind of fault keeps a log full of the same fault readable. Reasons that
         # quote the line (a message type, a count) pass a fixed key, or a file of garbage would
         # log one warning per distinct word.
-        if self.by_reason[k] == 1:
+        if self.by_reason[k] == 1 and not self.quiet:
             log.warning("%s: %s (skipped; further lines like it are counted, not logged)", where, reason)
 
 

@@ -337,6 +337,7 @@ def replay_log(
     options: MapperOptions | None = None,
     robot: str = "",
     max_cells: int = DEFAULT_MAX_CELLS,
+    stats: carmen.LogStats | None = None,
 ) -> Iterator[tuple[float, OccupancyGrid]]:
     """Replay a CARMEN log with corrected poses through the mapper, as robot ``index`` of ``robots``.
 
@@ -346,7 +347,8 @@ def replay_log(
     the log longer than that gives one snapshot, not several). The map frame is the robot's first
     laser pose (see :func:`first_pose` for where that sits in the log's world frame). ``options``
     overrides ``resolution``/``max_range``.
-    Bad lines are skipped (logged and counted); a log that cannot be read raises SourceError.
+    Bad lines are skipped (logged and counted in ``stats``: pass one to several passes over the same
+    log to log each kind of fault once); a log that cannot be read raises SourceError.
     """
     if every < 1:
         raise ValueError("every must be at least 1")
@@ -359,7 +361,7 @@ def replay_log(
     pending = 0
     stamp = 0.0
     due = math.inf  # log time of the next snapshot when going by time
-    for scan in replay_scans(path, robots=robots, index=index, overlap=overlap):
+    for scan in replay_scans(path, robots=robots, index=index, overlap=overlap, stats=stats):
         if frame is None:
             frame = scan.pose
             if every_s is not None:
@@ -388,8 +390,12 @@ def replay_log(
 def first_pose(
     path: str | os.PathLike[str], *, robots: int = 1, index: int = 0, overlap: float = 0.2
 ) -> Pose2D | None:
-    """Robot ``index``'s map frame in the log's world frame (its first laser pose), or None if no scan."""
-    for scan in replay_scans(path, robots=robots, index=index, overlap=overlap):
+    """Robot ``index``'s map frame in the log's world frame (its first laser pose), or None if no scan.
+
+    Bad lines on the way are skipped without a word: the replay that reads them too reports them.
+    """
+    quiet = carmen.LogStats(quiet=True)
+    for scan in replay_scans(path, robots=robots, index=index, overlap=overlap, stats=quiet):
         return scan.pose
     return None
 

@@ -49,3 +49,22 @@ def test_replay_errors_are_one_line(tmp_path: Path) -> None:
     assert r.stderr.strip().splitlines() == [f"mapd: error: {tmp_path / 'missing.log'}: no such log file"]
     r = _mapd("replay", str(tmp_path / "missing.log"), "-o", str(tmp_path / "o"), "--every", "0")
     assert r.returncode == 2 and "--every must be at least 1" in r.stderr
+
+
+def test_each_kind_of_bad_line_is_said_once_however_many_robots_read_it(
+    box_log: BoxLog, tmp_path: Path
+) -> None:
+    import gzip
+
+    log, _poses = box_log(scans=40)
+    lines = gzip.decompress(log.read_bytes()).decode().splitlines(keepends=True)
+    # Near the start, so every robot's pass (and the lookup of its first pose) reads them.
+    lines[1:1] = ["BOGUS 1 2 3\n", "BOGUS 4 5 6\n", "FLASER 3 1.0 2.0\n"]
+    bad = tmp_path / "bad.log"
+    bad.write_text("".join(lines))
+    r = _mapd("replay", str(bad), "-o", str(tmp_path / "out"), "--every", "6", "--robots", "3")
+    assert r.returncode == 0, r.stderr
+    said = [ln for ln in r.stderr.splitlines() if "skipped; further lines like it" in ln]
+    assert len(said) == 2, said  # the unknown type once (not per line or robot), the short scan once
+    assert sum("unknown message type" in ln for ln in said) == 1
+    assert sum(f"{bad}: line 4:" in ln for ln in said) == 1
