@@ -22,6 +22,11 @@ and forwards that keyframe when it comes. Without this, a far robot that missed 
 Bounds, so relays never flood the channel:
 
 * at most one relay in flight per robot, and one started per ``relay_period_s``;
+* a relay gives up after :meth:`ForwardingCore.relay_deadline_s`: :data:`RELAY_FLOOR_S` plus
+  :data:`RELAY_AIRTIMES` times the time its bytes take at this robot's share of the channel
+  (``share_bps``), so that a neighbour that walked off mid-relay (still heard now and then through
+  the walls, so never down) does not hold up this robot's next relay for the link's whole map
+  deadline. On a fast channel that wait was most of what kept far robots stale;
 * a forwarded (or overheard forwarded) ``(O, v)`` is not forwarded again for ``retry_s``, the time a
   neighbour's next summary needs to show whether it arrived;
 * of several neighbours that could serve the same ``N``, the one with the lowest link id goes first;
@@ -47,6 +52,11 @@ from mapd.errors import ProtocolError
 CHAIN = 8
 #: Bytes of envelopes kept, all origins together; past it the oldest of the longest chain goes.
 MAX_HELD_BYTES = 8 << 20
+#: A relay's deadline: this floor (a summary period or two, for the acks to come back) ...
+RELAY_FLOOR_S = 15.0
+#: ... plus this many times its airtime at the robot's share of the channel (the air per coded byte
+#: through walls, repairs and acks included, runs 2 to 5 in ``mapd bench swarm``).
+RELAY_AIRTIMES = 4.0
 #: The stream summaries ride on (unreliable, background; maps use 0..252, 254 poses, 255 control).
 SUMMARY_STREAM = 253
 _COUNT = struct.Struct("<B")
@@ -103,12 +113,14 @@ def unpack_summary(data: bytes) -> Summary:
 
 @dataclass(frozen=True)
 class Relay:
-    """Forward ``data`` (origin ``origin``'s keyframe envelope of ``version``, as received) to ``dests``."""
+    """Forward ``data`` (origin ``origin``'s envelope of ``version``, as received) to ``dests``, giving
+    up after ``deadline_s`` (None: the link's own deadline for a message)."""
 
     origin: int
     version: int
     data: bytes
     dests: tuple[int, ...]
+    deadline_s: float | None = None
 
 
 @dataclass
@@ -127,6 +139,11 @@ class ForwardingCore:
     summary_timeout_s: float = 45.0
     #: How long a forwarded (O, v) is not forwarded again: a summary period or two.
     retry_s: float = 30.0
+    #: Bits per second this robot may expect to send (its share of the channel: the link rate over
+    #: the robots taking turns on it); None: relays take the link's own deadline.
+    share_bps: float | None = None
+    #: The longest a relay may take: the link's deadline for any message (None: no cap).
+    max_relay_s: float | None = None
     _heard: dict[int, _Heard] = field(default_factory=dict)
     _kf: dict[int, tuple[int, bytes]] = field(default_factory=dict)  # origin -> newest keyframe
     #: origin -> its newest (version, base, envelope), oldest first, at most CHAIN
@@ -203,7 +220,10 @@ class ForwardingCore:
                 dests = tuple(n for n in sorted(self._heard) if self._needs(n, origin, version, base, now))
                 key = (-len(dests), origin, -version)
                 if dests and (best is None or key < best):
-                    best, best_relay = key, Relay(origin, version, data, dests)
+                    best, best_relay = (
+                        key,
+                        Relay(origin, version, data, dests, self.relay_deadline_s(len(data))),
+                    )
         if best_relay is None:
             return None
         self._in_flight = True
@@ -211,6 +231,13 @@ class ForwardingCore:
         self._forwarded[(best_relay.origin, best_relay.version)] = now
         self.relays_started += 1
         return best_relay
+
+    def relay_deadline_s(self, nbytes: int) -> float | None:
+        """How long a relay of ``nbytes`` may take before it is given up (None: no share known)."""
+        if self.share_bps is None or not self.share_bps > 0:
+            return self.max_relay_s
+        wanted = RELAY_FLOOR_S + RELAY_AIRTIMES * 8.0 * nbytes / self.share_bps
+        return wanted if self.max_relay_s is None else min(wanted, self.max_relay_s)
 
     def keyframes_wanted(self, now: float, hears: frozenset[int] | set[int]) -> list[int]:
         """Origins (among ``hears``, the link ids this robot hears) to ask for a whole map now: a

@@ -36,12 +36,16 @@ class RelayDriver:
         summary_period_s: float,
         relay_period_s: float,
         stream_of: Callable[[int], int],
+        share_bps: float | None = None,
+        max_relay_s: float | None = None,
     ) -> None:
         self.core = forwarding.ForwardingCore(
             me,
             relay_period_s=relay_period_s,
             summary_timeout_s=3 * summary_period_s,
             retry_s=2 * summary_period_s,
+            share_bps=share_bps,
+            max_relay_s=max_relay_s,
         )
         self.summary_period_s = summary_period_s
         self._stream_of = stream_of  # origin link id -> the map stream its relays ride on
@@ -139,7 +143,9 @@ class RelayDriver:
             r = self.core.next_forward(now)
             if r is not None:
                 try:
-                    self._relay_msg = send(r.data, list(r.dests), stream=self._stream_of(r.origin))
+                    self._relay_msg = send(
+                        r.data, list(r.dests), stream=self._stream_of(r.origin), deadline_s=r.deadline_s
+                    )
                     self.relays_tx += 1
                 except (MapdError, ValueError) as exc:
                     log.info("uwb: relay of link id %d v%d not sent: %s", r.origin, r.version, exc)

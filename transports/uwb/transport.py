@@ -86,6 +86,9 @@ class UwbTransport(Transport):
                 summary_period_s=opts.summary_period_s,
                 relay_period_s=opts.relay_period_s,
                 stream_of=lambda origin: self._stream(self._name(origin)),
+                # TDMA gives each robot an equal turn: its share is the rate over the slots
+                share_bps=opts.link_rate_bps / (opts.slots or max(1, len(opts.nodes))),
+                max_relay_s=opts.deadline_s,
             )
 
     def _name(self, link_id: int) -> str:

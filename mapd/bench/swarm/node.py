@@ -117,7 +117,12 @@ class SwarmRobot:
         if isinstance(relay, SummaryRelay):
             p = self._summary_period = relay.summary_period_s
             self.fwd = forwarding.ForwardingCore(
-                self.id, relay_period_s=relay.relay_period_s, summary_timeout_s=3 * p, retry_s=2 * p
+                self.id,
+                relay_period_s=relay.relay_period_s,
+                summary_timeout_s=3 * p,
+                retry_s=2 * p,
+                share_bps=config.rate_bps / n,  # as the daemon's uwb transport: an equal turn
+                max_relay_s=config.deadline_s,
             )
             self._next_summary = random.Random(seed).uniform(0.0, p)
 
@@ -187,7 +192,10 @@ class SwarmRobot:
             self.summaries += 1
         r = self.fwd.next_forward(now)
         if r is not None:
-            self._relay_msg = self.arq.send(r.data, now, dests=list(r.dests), stream=r.origin)
+            deadline = None if r.deadline_s is None else now + r.deadline_s
+            self._relay_msg = self.arq.send(
+                r.data, now, dests=list(r.dests), stream=r.origin, deadline=deadline
+            )
             self.relayed += 1
         for origin_id in self.fwd.keyframes_wanted(now, set(self.arq.peers_up())):
             self._ask_keyframe(origin_id - 1, now)  # for a neighbour the chain cannot serve

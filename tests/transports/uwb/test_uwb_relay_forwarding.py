@@ -7,7 +7,15 @@ import asyncio
 
 import pytest
 
-from transports.uwb.forwarding import ForwardingCore, Summary, SummaryError, pack_summary, unpack_summary
+from transports.uwb.forwarding import (
+    RELAY_AIRTIMES,
+    RELAY_FLOOR_S,
+    ForwardingCore,
+    Summary,
+    SummaryError,
+    pack_summary,
+    unpack_summary,
+)
 
 A, B, C, D = 1, 2, 3, 4
 KF = b"signed keyframe of A v3"
@@ -77,6 +85,23 @@ def test_rate_bound_one_in_flight_and_one_per_period() -> None:
     assert second is not None and second.origin != first.origin
     core.relay_done()
     assert core.next_forward(25.0) is None  # both forwarded: nothing until retry_s or a new version
+
+
+def test_a_relay_gives_up_after_a_few_airtimes_at_the_robots_share_not_the_links_deadline() -> None:
+    # A neighbour that walked off mid-relay (still heard through the walls now and then, so never
+    # down) held up every later relay of this robot for the link's whole deadline.
+    core = ForwardingCore(B, relay_period_s=1.0, share_bps=800.0, max_relay_s=120.0)
+    core.on_held(A, 3, 0, KF)
+    core.on_summary(C, Summary({}, frozenset({B})), 0.0)
+    r = core.next_forward(0.0)
+    assert r is not None and r.deadline_s == pytest.approx(
+        RELAY_FLOOR_S + RELAY_AIRTIMES * 8 * len(KF) / 800.0
+    )
+    assert r.deadline_s < 120.0
+    assert core.relay_deadline_s(100_000) == 120.0  # never past the link's own deadline
+    assert ForwardingCore(B, share_bps=1e5).relay_deadline_s(1000) == pytest.approx(15.32)  # 15 s + 4 x 80 ms
+    assert ForwardingCore(B).relay_deadline_s(1000) is None  # no share known: the link's deadline
+    assert ForwardingCore(B, max_relay_s=90.0).relay_deadline_s(1000) == 90.0
 
 
 def test_prefers_the_map_missing_at_most_neighbours_and_only_keeps_the_newest() -> None:
@@ -231,9 +256,11 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
     roster = Roster({"a": ida.public_key})
     opts = UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, summary_period_s=0.05, relay_period_s=0.01)
     sent: list[tuple[bytes, list[int], int]] = []
+    deadlines: dict[int, float | None] = {}
 
     def send(data: bytes, dests: list[int], *, stream: int, **kw: Any) -> int:
         sent.append((data, dests, stream))
+        deadlines[stream] = kw.get("deadline_s")
         return len(sent)
 
     async def scenario(
@@ -259,6 +286,9 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
 
     t, data = asyncio.run(scenario(opts, already_relayed=False, wait_s=0.2))
     assert (data, [3], t._stream("a")) in sent  # the envelope's bytes, unaltered
+    # Given up after four airtimes at b's equal turn (12.5 kb/s over three robots) past the floor.
+    share = opts.link_rate_bps / 3
+    assert deadlines[t._stream("a")] == pytest.approx(RELAY_FLOOR_S + RELAY_AIRTIMES * 8 * len(data) / share)
     summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
     assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
     assert t.stats()["relays_tx"] == 1
