@@ -137,6 +137,9 @@ class Placer:
         self._tracks: dict[str, _Track] = {}
         #: Robots whose pose came with their maps (a source's start pose), not from the config.
         self.reported: set[str] = set()
+        #: Robots held where they were placed when the robot whose map frame was the fleet frame
+        #: was forgotten (see :meth:`pin`).
+        self.pinned: set[str] = set()
 
     @property
     def fleet_frame(self) -> str:
@@ -157,9 +160,15 @@ class Placer:
         (a configured pose stays: the config still names it)."""
         self.placements.pop(robot, None)
         self._tracks.pop(robot, None)
-        if robot in self.reported:
+        if robot in self.reported or robot in self.pinned:
             self.reported.discard(robot)
+            self.pinned.discard(robot)
             self.poses.pop(robot, None)
+
+    def pin(self, robot: str, pose: Pose2D) -> None:
+        """Hold ``robot`` at ``pose`` from now on, as a known pose (the fleet frame's own robot left)."""
+        self.poses[robot] = pose
+        self.pinned.add(robot)
 
     def update(self, maps: Mapping[str, OccupancyGrid], *, estimate: bool = True) -> dict[str, Placement]:
         """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
@@ -239,6 +248,8 @@ class Placer:
         return Placement(robot, t, "pose", True, 1.0, None, self._pose_word(robot))
 
     def _pose_word(self, robot: str) -> str:
+        if robot in self.pinned:
+            return "held where it was placed when the fleet frame's robot left"
         return "start pose reported by the robot" if robot in self.reported else "configured pose"
 
     def _place(

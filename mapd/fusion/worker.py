@@ -173,6 +173,8 @@ class FusionWorker:
         self._latest.pop(robot, None)
         self._placements.pop(robot, None)
         self.placer.forget(robot)
+        if robot == self.placer.anchor:
+            self._keep_fleet_frame(robot)
         if robot in self._restored_robots:
             self._drop_restored()
         if held:
@@ -180,6 +182,25 @@ class FusionWorker:
             self._bounds = None
             self._wake.set()
         return held
+
+    def _keep_fleet_frame(self, anchor: str) -> None:
+        """The fleet frame was ``anchor``'s map frame (a base station's first robot, or
+        ``fusion.anchor``): keep it where it is, holding the robots placed in it so far as known
+        poses, rather than leave every map waiting for a robot that will not come back."""
+        pinned = []
+        for r, p in self._placements.items():
+            if p.accepted and p.transform is not None and r not in self.placer.poses:
+                self.placer.pin(r, p.transform)
+                pinned.append(r)
+        if not self.placer.poses:
+            self.placer.anchor = None  # nobody placed yet: the next map fixes a new fleet frame
+        log.warning(
+            "fusion: the fleet frame was %s's map frame; kept, %s",
+            anchor,
+            f"with {', '.join(sorted(pinned))} held where they are"
+            if pinned
+            else "no robot placed in it yet",
+        )
 
     def _drop_restored(self) -> None:
         if self._global is self._restored:

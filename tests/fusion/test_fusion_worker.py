@@ -199,3 +199,26 @@ def test_a_robot_revoked_across_a_restart_leaves_no_cells_behind(
         assert known == _known(fleet["a"]) and st["restored_until"] == [] and set(st["robots"]) == {"a"}
         assert st["revoked"] == 1
         asyncio.run(first())  # b back in the state directory for the next variant
+
+
+def test_a_base_station_keeps_its_fleet_frame_when_the_robot_that_fixed_it_is_revoked(
+    fleet: dict[str, OccupancyGrid],
+) -> None:
+    # No map of its own: the first robot by name (a) fixed the fleet frame, b was placed in it.
+    async def main() -> None:
+        w = FusionWorker("base", FusionSection(debounce_s=0.0), None, anchor=None)
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await w.merge_now()
+        placed = w.placements["b"]
+        assert placed.accepted and placed.source == "estimate" and placed.transform is not None
+        assert w.forget("a")
+        w.submit(fleet["b"].replace(version=2))
+        await w.merge_now()
+        # b stays where it was, and so does its map in the global map: nothing waits for a.
+        now = w.placements["b"]
+        assert now.accepted and now.transform == placed.transform and "held where it was" in now.reason
+        g = w.global_map
+        assert g is not None and _known(g) == _known(fleet["b"]) and set(w.status()["robots"]) == {"b"}
+
+    asyncio.run(main())
