@@ -238,6 +238,10 @@ class Transport(ABC):
         already or not: a relaying link need not forward the same version for a while; the default
         does nothing."""
 
+    def forget(self, robot: str) -> None:  # noqa: B027 - optional hook
+        """``robot`` was revoked: drop what the link holds of it to pass on (a relaying link keeps
+        other robots' maps to forward); the default holds nothing."""
+
     def peers(self) -> list[str]:
         """Peers this transport currently sees."""
         return []

@@ -219,6 +219,8 @@ class Daemon:
         self.receiver.forget(robot)
         self.fusion.forget(robot)
         self.poses.forget(robot)
+        for t in self.transports:
+            t.forget(robot)
         self.store.forget_peer(robot)
         self.store.forget_acked(robot)
         log.warning("revoked %s: its map is out of the global map, its pose is dropped", robot)

@@ -193,6 +193,14 @@ class ForwardingCore:
         """Another robot forwarded ``origin``'s ``version``: do not forward the same one for a while."""
         self._forwarded[(origin, version)] = now
 
+    def forget(self, origin: int) -> None:
+        """Drop every map of ``origin`` held to forward (it was revoked: nobody takes them now)."""
+        for _, _, data in self._chain.pop(origin, []):
+            self._held_bytes -= len(data)
+        kf = self._kf.pop(origin, None)
+        if kf is not None:
+            self._held_bytes -= len(kf[1])
+
     def relay_done(self) -> None:
         """The relay in flight was delivered, failed or closed: another may start."""
         self._in_flight = False

@@ -197,6 +197,12 @@ class UwbTransport(Transport):
         if self._relay is not None and origin is not None:
             self._relay.overheard(origin, envelope.version, time.monotonic())
 
+    def forget(self, robot: str) -> None:
+        """A revoked robot's maps are no longer relayed (its peers refuse them now too)."""
+        origin = self.opts.nodes.get(robot)
+        if self._relay is not None and origin is not None:
+            self._relay.core.forget(origin)
+
     def offer(self, envelope: Envelope) -> None:
         link = self._link
         if link is None or link.core is None:

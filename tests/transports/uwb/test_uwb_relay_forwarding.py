@@ -104,6 +104,16 @@ def test_a_relay_gives_up_after_a_few_airtimes_at_the_robots_share_not_the_links
     assert ForwardingCore(B, max_relay_s=90.0).relay_deadline_s(1000) == 90.0
 
 
+def test_a_revoked_robots_maps_are_no_longer_relayed() -> None:
+    core = _core()
+    core.on_held(A, 4, 3, b"delta of A v4 on v3")
+    core.on_held(D, 5, 0, b"kf D")
+    core.forget(A)
+    core.on_summary(C, Summary({D: 5}, frozenset({B})), 0.0)  # C lacks A's maps, holds D's
+    assert core.next_forward(0.0) is None and core.holds() == {D: 5}
+    assert core._held_bytes == len(b"kf D") * 2  # D's keyframe, as newest keyframe and in its chain
+
+
 def test_prefers_the_map_missing_at_most_neighbours_and_only_keeps_the_newest() -> None:
     core = _core()
     core.on_held(A, 2, 0, b"older")  # not newer: ignored
@@ -264,7 +274,7 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
         return len(sent)
 
     async def scenario(
-        opts: UwbOptions, *, already_relayed: bool, wait_s: float
+        opts: UwbOptions, *, already_relayed: bool, wait_s: float, revoked: bool = False
     ) -> tuple[UwbTransport, bytes]:
         """b holds a's v7 and c says it lacks it; ``already_relayed``: the daemon saw another robot
         forward v7 first (Transport.relayed)."""
@@ -279,6 +289,8 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
         if already_relayed:
             t.relayed(env)
         t.held(env, env.pack())
+        if revoked:
+            t.forget("a")  # the daemon revoked a (Transport.forget): its map is not passed on
         t._on_event(arq.MessageReceived(3, SUMMARY_STREAM, 9, pack_summary(Summary({}, frozenset({2})))))
         await asyncio.sleep(wait_s)
         await t._relay.close()
@@ -301,5 +313,8 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
     t, _ = asyncio.run(scenario(slow, already_relayed=True, wait_s=0.3))
     assert sent and all(s == SUMMARY_STREAM for _, _, s in sent)  # summaries only, no relay
     assert t.stats()["relays_tx"] == 0 and t.stats()["relays_overheard"] == 1
+    sent.clear()
+    t, _ = asyncio.run(scenario(opts, already_relayed=False, wait_s=0.2, revoked=True))
+    assert sent and all(s == SUMMARY_STREAM for _, _, s in sent) and t.stats()["relays_tx"] == 0
     unsigned = TransportContext("b", "f", 1 << 20, lambda e: None, roster=Roster({}, allow_unsigned=True))
     assert UwbTransport(opts, unsigned)._relay is None
