@@ -157,6 +157,28 @@ def _num(v: Any, spec: str = ".1f") -> str:
     return format(v, spec) if isinstance(v, int | float) else "-"
 
 
+#: A link's figures that mean something is wrong when not zero (``port_open``: when false).
+LINK_FAULTS = {
+    "port_open": "serial port closed (reopening)",
+    "reconnects": "port reopened {} times",
+    "write_stalls": "port took no bytes {} times",
+    "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
+}
+
+
+def _link_faults(st: dict[str, Any]) -> list[str]:
+    """The link's faults worth a line in ``mapd status``, in words."""
+    out = []
+    for k, words in LINK_FAULTS.items():
+        v = st.get(k)
+        if k == "port_open":
+            if v is False:
+                out.append(words)
+        elif isinstance(v, int) and v > 0:
+            out.append(words.format(v))
+    return out
+
+
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
     from mapd.daemon.versions import label
@@ -223,8 +245,19 @@ def render_status(s: dict[str, Any]) -> str:
             "rtt_ms",
         )
         parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st]
-        others = [f"{k}={v}" for k, v in st.items() if k not in keys and isinstance(v, int | float)]
+        faults = _link_faults(st)
+        others = [
+            f"{k}={v}"
+            for k, v in st.items()
+            if k not in keys
+            and k not in LINK_FAULTS
+            and isinstance(v, int | float)
+            and not isinstance(v, bool)
+        ]
         out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
+        if faults:
+            # Said on a line of its own, whatever the link's other figures: what needs a look.
+            out.append(f"  {'':<6} FAULTS " + ", ".join(faults))
     f = s.get("fusion", {})
     g = f.get("global") or {}
     out.append(

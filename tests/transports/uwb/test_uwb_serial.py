@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from mapd.commands.daemon import render_status
 from mapd.envelope import Envelope
 from mapd.errors import StateError, TransportError
 from mapd.grid import Pose2D
@@ -404,6 +405,7 @@ def test_ports_that_vanish_and_come_back_are_reopened_and_carry_maps_again(
             for path in (a_path, b_path):
                 Path(path).unlink(missing_ok=True)
             await until(lambda: not a.stats()["port_open"] and not b.stats()["port_open"], 5.0)
+            assert "FAULTS serial port closed (reopening)" in render_status({"links": {"uwb": a.stats()}})
             await asyncio.sleep(1.0)  # several failed reopen attempts while the ports are gone
             proc = socat()  # plugged back in, at the same paths
             await until(lambda: a.stats()["port_open"] and b.stats()["port_open"], 10.0)
@@ -443,6 +445,9 @@ def test_a_signing_counter_that_cannot_be_saved_quiets_the_link_until_it_can(
                 counter.mkdir()  # the save's rename onto it fails, as on a full or read-only disk
                 a.t.offer(envelope("alpha", 1, 20_000))
                 await until(lambda: a.t.stats()["counter_save_errors"] >= 3, 10)
+                # `mapd status` says so on a line of its own, not among the link's many figures.
+                shown = render_status({"links": {"uwb": a.t.stats()}}).splitlines()
+                assert any("FAULTS" in ln and "signing counter not saved" in ln for ln in shown)
                 # It signs on within the block saved before (half a block left at the first
                 # fault), then uses no counter past it: the link goes quiet, but lives.
                 await asyncio.sleep(0.5)
