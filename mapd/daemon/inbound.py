@@ -153,13 +153,22 @@ class Inbound:
             if ask is not None and transport is not None:
                 await transport.request_keyframe(ask.robot)
             return
+        if not self.roster.admits(env.robot):
+            log.info("dropped v%d of %s: revoked while it was decoded", env.version, env.robot)
+            return
         rx.accept(grid, env, ev.transport, len(ev.data), time.time())
-        if env.frame_pose is not None:
-            self.fusion.known_pose(env.robot, env.frame_pose)
         try:
             await asyncio.to_thread(self.store.save_peer, grid)
         except StateError as exc:
             log.error("%s", exc)
+        if not self.roster.admits(env.robot):
+            # Revoked while it was saved: the revocation found nothing in the state to take out.
+            self.store.forget_peer(env.robot)
+            rx.forget(env.robot)
+            log.info("dropped v%d of %s: revoked while it was saved", env.version, env.robot)
+            return
+        if env.frame_pose is not None:
+            self.fusion.known_pose(env.robot, env.frame_pose)
         self.fusion.submit(grid)
         self.sinks.robot_map(grid)
         if transport is not None:

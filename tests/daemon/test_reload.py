@@ -144,6 +144,55 @@ def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken
     asyncio.run(main())
 
 
+@pytest.mark.parametrize("stage", ["decode_envelope", "save_peer"])
+def test_a_map_on_its_way_in_when_its_robot_is_revoked_is_dropped(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch, stage: str
+) -> None:
+    # The revocation runs on the loop while the map is decoded, or saved, on a worker thread.
+    import threading
+
+    from mapd.daemon import inbound
+
+    channel = dk.channel()
+    path0 = _virtual(dk, tmp_path, "robot0", channel)
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    d2, s2 = dk.virtual_daemon(tmp_path, "robot2", channel)
+    inside, go_on = threading.Event(), threading.Event()
+
+    def held_up(real: Callable[..., object]) -> Callable[..., object]:
+        def step(*args: object, **kw: object) -> object:
+            inside.set()
+            go_on.wait(20)
+            return real(*args, **kw)
+
+        return step
+
+    if stage == "decode_envelope":
+        monkeypatch.setattr(inbound, "decode_envelope", held_up(inbound.decode_envelope))
+    else:
+        monkeypatch.setattr(d0.store, "save_peer", held_up(d0.store.save_peer))
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d in (d0, d2)]
+        try:
+            await s2.queue.put(dk.growing_map(1).replace(robot="robot2"))
+            await dk.wait_for(inside.is_set, 20, what=f"robot2's map in {stage}")
+            _drop_roster_line(path0, "robot2")
+            assert await d0.reload()
+            go_on.set()
+            await dk.wait_for(lambda: d0.snapshot()["reload"]["count"] == 1, what="reloaded")
+            await asyncio.sleep(0.5)  # the map's way in finishes
+            assert "robot2" not in d0.receiver.maps and "robot2" not in d0.store.data.peers
+            assert "robot2" not in d0.fusion.status()["robots"] and "robot2" not in d0.snapshot()["peers"]
+        finally:
+            go_on.set()
+            for d in (d0, d2):
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+
+
 def test_a_robot_revoked_while_the_daemon_was_down_is_not_restored(
     tmp_path: Path, dk: SimpleNamespace
 ) -> None:
