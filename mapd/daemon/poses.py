@@ -96,6 +96,9 @@ class PoseRelay:
             # a robot may speak only for itself: over uwb the link id names the sender
             self.wrong_link += 1
             return
+        if not self.roster.admits(msg.robot):  # revoked while it was checked
+            self.refused += 1
+            return
         self.book.offer(msg.robot, msg.stamped, time.time())
 
     def forget(self, robot: str) -> None:

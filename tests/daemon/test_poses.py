@@ -8,6 +8,8 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from mapd import config as configmod
 from mapd.daemon.server import Daemon
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
@@ -111,3 +113,34 @@ def test_poses_travel_signed_and_only_as_themselves(tmp_path: Path, dk: SimpleNa
             await asyncio.gather(*tasks)
 
     asyncio.run(main())
+
+
+def test_a_pose_whose_robot_is_revoked_while_it_is_checked_is_dropped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from mapd.daemon import poses as posesmod
+    from mapd.daemon.poses import PoseRelay
+    from mapd.identity import Identity, Roster
+
+    r0 = Identity.generate("robot0")
+    roster = Roster({"robot0": r0.public_key})
+    relay = PoseRelay(
+        "robot1",
+        "default",
+        identity=None,
+        roster=roster,
+        max_robots=8,
+        frames=dict,
+        publish=lambda a, b: None,
+    )
+    real = posesmod.unpack_pose
+
+    def revoked_meanwhile(*args: object, **kw: object) -> object:
+        msg = real(*args, **kw)  # type: ignore[arg-type]
+        roster.adopt(Roster({}))  # systemctl reload on the loop, while this ran on its worker
+        return msg
+
+    monkeypatch.setattr(posesmod, "unpack_pose", revoked_meanwhile)
+    pose = PoseMessage("default", "robot0", time.time(), Pose2D(1, 2, 0)).signed(r0).pack()
+    asyncio.run(relay.received(PoseReceived("virtual", "robot0", pose)))
+    assert "robot0" not in relay.book.poses and relay.refused == 1
