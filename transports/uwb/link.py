@@ -129,6 +129,7 @@ class UwbLink:
         #: on within the block saved before, then goes quiet until a save goes through.
         self.counter_save_errors = 0
         self._counter_fault = ""
+        self._counter_retry_at = 0.0
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
@@ -268,11 +269,15 @@ class UwbLink:
         upto = self.core.counter_reservation()
         if upto is None:
             return
+        now = asyncio.get_running_loop().time()
+        if self._counter_fault and now < self._counter_retry_at:
+            return  # not a write a frame at a disk that refused the last one
         try:
             self._store.save(upto)
         except StateError as exc:
             if strict:
                 raise
+            self._counter_retry_at = now + COUNTER_RETRY_S
             self.counter_save_errors += 1
             if str(exc) != self._counter_fault:
                 self._counter_fault = str(exc)
