@@ -122,7 +122,8 @@ class RelayDriver:
     async def close(self) -> None:
         if self._task is not None:
             self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
+            # a task that died has said why (logged, and to stopped()): closing is not the place
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._task
 
     async def _run(

@@ -318,3 +318,24 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
     assert sent and all(s == SUMMARY_STREAM for _, _, s in sent) and t.stats()["relays_tx"] == 0
     unsigned = TransportContext("b", "f", 1 << 20, lambda e: None, roster=Roster({}, allow_unsigned=True))
     assert UwbTransport(opts, unsigned)._relay is None
+
+
+def test_a_relay_task_that_dies_says_why_to_its_watcher() -> None:
+    from mapd.errors import TransportError
+    from transports.uwb.relaying import RelayDriver
+
+    def send(data: bytes, dests: list[int], **kw: object) -> int:
+        raise RuntimeError("a bug in the send path")
+
+    async def main() -> str:
+        relay = RelayDriver(B, summary_period_s=0.05, relay_period_s=0.01, stream_of=lambda o: o)
+        relay.held(A, 3, 0, KF)
+        relay.start(send, lambda: [A, C], lambda: [A, C])  # the first summary goes out: it raises
+        try:
+            with pytest.raises(TransportError) as err:
+                await asyncio.wait_for(relay.stopped(), 5)
+            return str(err.value)
+        finally:
+            await relay.close()
+
+    assert asyncio.run(main()) == "uwb: relay stopped: RuntimeError: a bug in the send path"
