@@ -31,6 +31,8 @@ from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
 from mapd.identity import Roster
 
 KEEP_PEER_VERSIONS = 8
+#: Robots refused for want of room whose name is kept, so that each is logged once.
+MAX_OVER_LIMIT_NAMES = 256
 
 
 @dataclass
@@ -130,6 +132,7 @@ class Receiver:
     info: dict[str, PeerInfo] = field(default_factory=dict)
     _history: dict[str, dict[int, OccupancyGrid]] = field(default_factory=dict)
     _held_at: dict[str, float] = field(default_factory=dict)
+    _over_limit: set[str] = field(default_factory=set)
 
     def restore(self, grid: OccupancyGrid) -> None:
         """A peer's map from the state directory."""
@@ -165,7 +168,12 @@ class Receiver:
         held = self.maps.get(env.robot)
         if held is None and len(self.maps) >= self.max_peers:
             self.counters.too_many_robots += 1
-            return Drop(f"already {self.max_peers} robots (limits.max_peers)")
+            # Said once per robot (a fleet larger than max_peers sends every robot's every map);
+            # the counter keeps the count. The names kept are bounded, then all go unsaid.
+            said = env.robot in self._over_limit or len(self._over_limit) >= MAX_OVER_LIMIT_NAMES
+            if not said:
+                self._over_limit.add(env.robot)
+            return Drop(f"already {self.max_peers} robots (limits.max_peers)", routine=said)
         if held is not None and env.version <= held.version:
             self.counters.duplicates += 1
             return Drop(f"v{env.version} is not newer than v{held.version}", routine=True)

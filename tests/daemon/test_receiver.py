@@ -95,4 +95,7 @@ def test_robots_beyond_max_peers_and_off_the_roster_cost_nothing() -> None:
     assert list(r.info) == ["robot1"]
     take(r, make(INC, 1))
     plan = r.plan(env(make(INC, 1), robot="robot2"), "robot2", NOW)
-    assert isinstance(plan, Drop) and "max_peers" in plan.reason
+    assert isinstance(plan, Drop) and "max_peers" in plan.reason and not plan.routine
+    # robot2's next maps are refused the same, but said once (a fleet past max_peers sends many)
+    again = r.plan(env(make(INC, 2), robot="robot2"), "robot2", NOW)
+    assert isinstance(again, Drop) and again.routine and r.counters.too_many_robots == 2
