@@ -157,13 +157,16 @@ def test_a_map_on_its_way_in_when_its_robot_is_revoked_is_dropped(
     path0 = _virtual(dk, tmp_path, "robot0", channel)
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
     d2, s2 = dk.virtual_daemon(tmp_path, "robot2", channel)
-    inside, go_on = threading.Event(), threading.Event()
+    inside, go_on, done = threading.Event(), threading.Event(), threading.Event()
 
     def held_up(real: Callable[..., object]) -> Callable[..., object]:
         def step(*args: object, **kw: object) -> object:
             inside.set()
             go_on.wait(20)
-            return real(*args, **kw)
+            try:
+                return real(*args, **kw)
+            finally:
+                done.set()
 
         return step
 
@@ -180,8 +183,8 @@ def test_a_map_on_its_way_in_when_its_robot_is_revoked_is_dropped(
             _drop_roster_line(path0, "robot2")
             assert await d0.reload()
             go_on.set()
-            await dk.wait_for(lambda: d0.snapshot()["reload"]["count"] == 1, what="reloaded")
-            await asyncio.sleep(0.5)  # the map's way in finishes
+            await dk.wait_for(done.is_set, 20, what=f"{stage} done")
+            await asyncio.sleep(0.3)  # the rest of the map's way in runs on the loop, without a wait
             assert "robot2" not in d0.receiver.maps and "robot2" not in d0.store.data.peers
             assert "robot2" not in d0.fusion.status()["robots"] and "robot2" not in d0.snapshot()["peers"]
         finally:
