@@ -56,6 +56,7 @@ class RelayDriver:
         self.summaries_rx = 0
         self.bad_summaries = 0
         self.relays_tx = 0
+        self.relays_failed = 0
         self.overheard_rx = 0
 
     # --- inputs from the transport ----------------------------------------------------------------
@@ -81,9 +82,11 @@ class RelayDriver:
         self.core.on_summary(src, s, now)
         self._wake.set()
 
-    def closed(self, msg: int) -> None:
+    def closed(self, msg: int, outcome: str = "delivered") -> None:
         """A message left the send queue: if it was the relay in flight, another may start."""
         if msg == self._relay_msg:
+            if outcome == "failed":  # a receiver did not take it by its deadline (or refused it)
+                self.relays_failed += 1
             self._relay_msg = None
             self.core.relay_done()
             self._wake.set()
@@ -183,6 +186,7 @@ class RelayDriver:
             "relay_summaries_rx": self.summaries_rx,
             "relay_bad_summaries": self.bad_summaries,
             "relays_tx": self.relays_tx,
+            "relays_failed": self.relays_failed,
             "relays_overheard": self.overheard_rx,
             "relay_keyframes_asked": self.core.keyframes_asked,
         }

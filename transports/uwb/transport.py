@@ -313,7 +313,7 @@ class UwbTransport(Transport):
                 while len(self._late) > arq.MAX_LATE:
                     self._late.popitem(last=False)
             if self._relay is not None:
-                self._relay.closed(e.msg)
+                self._relay.closed(e.msg, e.outcome)
         elif isinstance(e, arq.PeerUp):
             emit(PeerUp("uwb", self._name(e.peer)))
             core = self._link.core if self._link is not None else None

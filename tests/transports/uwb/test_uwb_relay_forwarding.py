@@ -303,7 +303,11 @@ def test_uwb_transport_sends_summaries_and_relays_a_held_map_on_its_origin_strea
     assert deadlines[t._stream("a")] == pytest.approx(RELAY_FLOOR_S + RELAY_AIRTIMES * 8 * len(data) / share)
     summaries = [unpack_summary(d) for d, _, s in sent if s == SUMMARY_STREAM]
     assert summaries and summaries[-1].holds == {1: 7} and summaries[-1].hears == {1, 3}
-    assert t.stats()["relays_tx"] == 1
+    assert t.stats()["relays_tx"] == 1 and t.stats()["relays_failed"] == 0
+    # c never took it by the relay's deadline: counted, and the next relay may start
+    relay_msg = next(i + 1 for i, (_, _, stream) in enumerate(sent) if stream == t._stream("a"))
+    t._on_event(arq.MessageClosed(relay_msg, "failed"))
+    assert t.stats()["relays_failed"] == 1 and t._relay._relay_msg is None
     assert all(s < SUMMARY_STREAM for s in t._streams.values()) and SUMMARY_STREAM < POSE_STREAM
 
     # The same, but another robot forwarded v7 first: b does not repeat it (for two summary
