@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -39,36 +38,22 @@ StalenessRows = list[tuple[int, int, np.ndarray]]
 
 
 def staleness_rows(
-    made: list[list[float]],
-    accepted: list[tuple[float, int, int, int]],
-    t_end: float,
-    dt: float = 1.0,
-    pairs: np.ndarray | None = None,
+    made: list[list[float]], accepted: list[tuple[float, int, int, int]], t_end: float, dt: float = 1.0
 ) -> StalenessRows:
-    """Each (holder, origin) pair's staleness samples (seconds) over ``[0, t_end]``, origin by
-    origin; only the pairs true in ``pairs[holder, origin]`` when given."""
-    return list(_rows(made, accepted, t_end, dt, pairs))
-
-
-def _rows(
-    made: list[list[float]],
-    accepted: list[tuple[float, int, int, int]],
-    t_end: float,
-    dt: float,
-    pairs: np.ndarray | None,
-) -> Iterator[tuple[int, int, np.ndarray]]:
+    """Each (holder, origin) pair's staleness samples (seconds) over ``[0, t_end]``, origin by origin."""
     n = len(made)
     ts = np.arange(0.0, t_end + 1e-9, dt)
     by_pair: dict[tuple[int, int], list[tuple[float, int]]] = {}
     for t, h, o, v in accepted:
         by_pair.setdefault((h, o), []).append((t, v))
+    rows: StalenessRows = []
     for o in range(n):
         mt = np.asarray(made[o], dtype=np.float64)
         if mt.size == 0:
             continue
         newest = np.searchsorted(mt, ts, side="right")  # versions made by t (the newest's number)
         for h in range(n):
-            if h == o or (pairs is not None and not pairs[h, o]):
+            if h == o:
                 continue
             recs = by_pair.get((h, o), [])
             held = np.zeros(ts.shape, dtype=np.int64)
@@ -79,19 +64,15 @@ def _rows(
                 held = np.where(k > 0, rv[np.maximum(k - 1, 0)], 0)
             behind = held < newest
             first_missing = np.minimum(held, mt.size - 1)  # index of version held + 1
-            yield h, o, np.where(behind, ts - mt[first_missing], 0.0)
+            rows.append((h, o, np.where(behind, ts - mt[first_missing], 0.0)))
+    return rows
 
 
 def staleness_samples(
-    made: list[list[float]],
-    accepted: list[tuple[float, int, int, int]],
-    t_end: float,
-    dt: float = 1.0,
-    pairs: np.ndarray | None = None,
+    made: list[list[float]], accepted: list[tuple[float, int, int, int]], t_end: float, dt: float = 1.0
 ) -> np.ndarray:
-    """Staleness samples (seconds) of every (holder, origin) pair over ``[0, t_end]`` (one flat array);
-    only the pairs true in ``pairs[holder, origin]`` when given."""
-    return _flat(staleness_rows(made, accepted, t_end, dt, pairs))
+    """Staleness samples (seconds) of every (holder, origin) pair over ``[0, t_end]`` (one flat array)."""
+    return _flat(staleness_rows(made, accepted, t_end, dt))
 
 
 def _flat(rows: StalenessRows) -> np.ndarray:
