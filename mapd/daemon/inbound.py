@@ -162,9 +162,9 @@ class Inbound:
         except StateError as exc:
             log.error("%s", exc)
         if not self.roster.admits(env.robot):
-            # Revoked while it was saved: the revocation found nothing in the state to take out.
+            # Revoked while it was saved: the revocation took the map out of the receiver, but the
+            # save has put its record back in the state since.
             self.store.forget_peer(env.robot)
-            rx.forget(env.robot)
             log.info("dropped v%d of %s: revoked while it was saved", env.version, env.robot)
             return
         if env.frame_pose is not None:
