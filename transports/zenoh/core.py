@@ -22,13 +22,16 @@ emit, keyframe queries to send). The rules:
   Anything else newer is a **gap** (a lost update, a late join, an unknown base): it is dropped,
   counted, and the robot's latest keyframe is queried. Versions at or below the last one are stale
   (a duplicate, or a query reply older than what we hold) and are dropped.
-* **Queries** go to ``mapd/<fleet>/<robot>/latest?from=<us>``; at most one per robot is in flight
+* **Queries** go to ``mapd/<fleet>/<robot>/latest?from=<us>;n=<nonce>;sig=<signature>`` (see
+  :mod:`transports.zenoh.queries`); at most one per robot is in flight
   until its replies end or ``query_timeout_s`` passes; a gap seen meanwhile asks once more when it
   ends (the reply may predate the gap). A peer that appears with no map known yet is
   queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
   robot's versions, so the keyframe that answers is accepted whatever its version. A query of our
   own keyframe emits ``KeyframeNeeded`` for its asker only when the roster admits the asker (an
-  unknown name counts in ``unadmitted``; the adapter still answers it).
+  unknown name counts in ``unadmitted``), the asker signed it (else ``bad_signature``, or
+  ``dropped`` with no valid nonce) and its nonce is above the last one heeded from that asker (else
+  ``replayed``). The adapter answers every query all the same.
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
   forgets the robot's versions. Tokens are not signed, so in a signed fleet :meth:`ZenohCore.peers`
   (the robots the daemon waits for) lists only robots that have also shown a verified message.
@@ -49,7 +52,7 @@ from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import SIG_LEN, Identity, Roster
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
 from transports.rtt import RttEstimator
-from transports.zenoh import keys
+from transports.zenoh import keys, queries
 
 NAME = "zenoh"
 _ACK = struct.Struct(">Q")
@@ -119,6 +122,9 @@ class CoreCounters:
     #: Updates, replies and keyframe queries naming a robot the roster does not admit: refused
     #: unread (updates, replies) or answered without a ``KeyframeNeeded`` (queries).
     unadmitted: int = 0
+    #: Keyframe queries answered without a ``KeyframeNeeded`` because their nonce was not above the
+    #: last one heeded from their asker: a recorded query played back.
+    replayed: int = 0
 
 
 @dataclass
@@ -131,6 +137,9 @@ class _Robot:
     query_until: float | None = None
     #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
     regap: bool = False
+    #: The nonce of the last keyframe query heeded from this robot (kept by :meth:`forget`: a
+    #: restarted robot's nonces go on growing, see :class:`~transports.zenoh.queries.NonceClock`).
+    query_nonce: int = 0
 
     def forget(self) -> None:
         self.last = 0
@@ -168,6 +177,7 @@ class ZenohCore:
         # go first; an ack of a forgotten version just gives no sample).
         self._offered_at: dict[int, float] = {}
         self._rtt = RttEstimator()
+        self._nonces = queries.NonceClock()
         self.counters = CoreCounters()
 
     # -- state -------------------------------------------------------------------------------------
@@ -334,17 +344,47 @@ class ZenohCore:
             self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
         return Step(events=[Delivered(transport=NAME, peer=peer, robot=self.robot, version=version)])
 
-    def on_query(self, asker: str | None) -> Step:
-        """A peer queried our latest keyframe; ``asker`` is its ``from`` parameter, if any."""
+    def on_query(self, asker: str | None, nonce: str | None = None, sig: str | None = None) -> Step:
+        """A peer queried our latest keyframe with parameters ``from=asker;n=nonce;sig=sig``.
+
+        ``KeyframeNeeded`` makes the daemon forget the asker's acked base and publish its next map
+        whole, a keyframe's bytes for every robot on the bus, so it is emitted only for a signed,
+        fresh query from a robot the roster admits (:mod:`transports.zenoh.queries`).
+        """
         self.counters.queries_served += 1
         if asker is None or not keys.valid_name(asker) or asker == self.robot:
             return Step()
         if not self.roster.admits(asker):
-            # KeyframeNeeded makes the daemon forget the asker's acked base and send its next map
-            # whole: a name off the roster must not be able to force that on the fleet.
             self.counters.unadmitted += 1
             return Step()
+        try:
+            n = queries.verify(
+                self.roster, fleet=self.fleet, asker=asker, robot=self.robot, nonce=nonce, sig=sig
+            )
+        except SignatureError:
+            self.counters.bad_signature += 1
+            return Step()
+        except EnvelopeError:
+            self.counters.dropped += 1
+            return Step()
+        st = self._state(asker)
+        if st is None:  # no room for another robot (max_peers): it is no peer of ours either
+            return Step()
+        if n <= st.query_nonce:
+            self.counters.replayed += 1
+            return Step()
+        st.query_nonce = n
         return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
+
+    def query_parameters(self, robot: str, wall_ns: int) -> str:
+        """The selector parameters of our next query of ``robot``'s keyframe, signed when we sign.
+
+        ``wall_ns`` is the wall clock now in nanoseconds; nonces grow from it (see
+        :class:`~transports.zenoh.queries.NonceClock`).
+        """
+        return queries.parameters(
+            self.identity, fleet=self.fleet, asker=self.robot, robot=robot, nonce=self._nonces.next(wall_ns)
+        )
 
     def request_keyframe(self, robot: str, now: float) -> Step:
         """The daemon cannot use what it holds of ``robot``: forget it and query a keyframe."""

@@ -25,7 +25,8 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
 * **Keyframes.** The queryable ``mapd/<fleet>/<robot>/latest`` answers with
   ``ctx.latest_keyframe()`` (the daemon's latest keyframe), or else the last keyframe offered here.
   A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one,
-  when the roster admits ``<peer>`` (any asker still gets the reply).
+  when the roster admits ``<peer>``, ``<peer>`` signed the query and it is no replay (any asker
+  still gets the reply; see :mod:`transports.zenoh.queries`).
 * **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
   decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
   ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, HMAC-signed with the fleet key). The robot
@@ -373,8 +374,8 @@ class ZenohTransport(Transport):
         self._apply(self.core.on_presence(key_expr, alive, time.monotonic()))
 
     def _on_query(self, query: Any) -> None:
-        asker = query.parameters.get("from")
-        self._apply(self.core.on_query(asker))
+        params = query.parameters
+        self._apply(self.core.on_query(params.get("from"), params.get("n"), params.get("sig")))
         reply_key = keys.latest_key(self.ctx.fleet, self.ctx.robot)
 
         def job() -> None:
@@ -392,7 +393,8 @@ class ZenohTransport(Transport):
             query.drop()
 
     def _send_query(self, robot: str) -> None:
-        selector = f"{keys.latest_key(self.ctx.fleet, robot)}?from={self.ctx.robot}"
+        params = self.core.query_parameters(robot, time.time_ns())
+        selector = f"{keys.latest_key(self.ctx.fleet, robot)}?{params}"
         timeout = self.opts.query_timeout_s
 
         def job() -> None:

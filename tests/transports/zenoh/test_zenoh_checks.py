@@ -16,7 +16,7 @@ from mapd.envelope import Envelope, unpack
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
 from transports.base import KeyframeNeeded, Received
-from transports.zenoh import keys
+from transports.zenoh import keys, queries
 from transports.zenoh.checks import OVERHEAD, CheckQueue
 from transports.zenoh.core import ZenohCore
 
@@ -81,7 +81,9 @@ def test_unadmitted_robots_are_refused_before_any_verification(zk, monkeypatch) 
 def test_a_query_from_a_robot_off_the_roster_asks_for_no_keyframe() -> None:
     c = signed_core(robot="a")
     assert c.on_query("ghost").events == []
-    assert c.on_query("b").events == [KeyframeNeeded("zenoh", "b", "a")]
+    params = signed_core(robot="b").query_parameters("a", wall_ns=1).split(";")
+    n, sig = (p.split("=", 1)[1] for p in params[1:])
+    assert c.on_query("b", n, sig).events == [KeyframeNeeded("zenoh", "b", "a")]
     assert c.counters.unadmitted == 1 and c.counters.queries_served == 2
 
 
@@ -281,26 +283,39 @@ def test_samples_of_robots_off_the_roster_are_refused_unread(zk, monkeypatch) ->
     run(main())
 
 
-def test_a_keyframe_query_from_a_robot_off_the_roster_is_answered_but_not_heeded(zk) -> None:
+def test_a_keyframe_query_off_the_roster_forged_or_replayed_is_answered_but_not_heeded(zk) -> None:
     async def main() -> None:
         async with zk.pair("a", "b", signed=True) as (a, b):
             kf = zk.envelope("a", 3, signer=zk.ident("a"))
             a.offer(kf)
             with zk.raw_session(a.listen[0], watch="a") as raw:
                 await a.wait(lambda: bool(raw.seen))
-                selector = f"{keys.latest_key(zk.FLEET, 'a')}?from=ghost"
+                latest = keys.latest_key(zk.FLEET, "a")
 
-                def ask() -> list[bytes]:
-                    return [r.ok.payload.to_bytes() for r in raw.session.get(selector, timeout=3) if r.ok]
+                def ask(params: str) -> list[bytes]:
+                    got = raw.session.get(f"{latest}?{params}", timeout=3)
+                    return [r.ok.payload.to_bytes() for r in got if r.ok]
 
-                assert await asyncio.to_thread(ask) == [kf.pack()]
+                assert await asyncio.to_thread(ask, "from=ghost") == [kf.pack()]
                 await a.wait(lambda: a.t.stats()["unadmitted"] == 1)
                 assert KeyframeNeeded("zenoh", "ghost", "a") not in a.events
-                # A robot on the roster that asks still gets a fresh keyframe from the daemon.
+                # A robot on the roster named by someone without its key: answered, not heeded.
+                assert await asyncio.to_thread(ask, "from=b;n=5") == [kf.pack()]
+                await a.wait(lambda: a.t.stats()["bad_signature"] == 1)
+                # b's own signed query, recorded and played back: heeded once (the nonce is above
+                # those of b's daemon so far, which are wall-clock nanoseconds too).
+                signed = queries.parameters(
+                    zk.ident("b"), fleet=zk.FLEET, asker="b", robot="a", nonce=time.time_ns()
+                )
+                for _ in range(2):
+                    assert await asyncio.to_thread(ask, signed) == [kf.pack()]
+                await a.wait(lambda: a.t.stats()["replayed"] == 1)
+                assert a.t.stats()["bad_signature"] == 1  # so the first of the two was heeded
+                # b's daemon asking is heeded.
                 heard = a.events.count(KeyframeNeeded("zenoh", "b", "a"))
                 await b.t.request_keyframe("a")
-                await a.wait(lambda: a.events.count(KeyframeNeeded("zenoh", "b", "a")) == heard + 1)
-                assert a.t.stats()["unadmitted"] == 1
+                await a.wait(lambda: a.events.count(KeyframeNeeded("zenoh", "b", "a")) > heard)
+                assert [a.t.stats()[k] for k in ("unadmitted", "bad_signature", "replayed")] == [1, 1, 1]
 
     run(main())
 

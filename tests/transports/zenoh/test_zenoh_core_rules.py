@@ -253,7 +253,7 @@ def test_acks_become_delivered_only_for_offered_versions(zk) -> None:
 
 def test_queries_name_the_asker() -> None:
     c = core(robot="a")
-    assert c.on_query("b").events == [KeyframeNeeded("zenoh", "b", "a")]
+    assert c.on_query("b", "1").events == [KeyframeNeeded("zenoh", "b", "a")]
     assert c.on_query(None).events == [] and c.on_query("a/*").events == []
     assert c.counters.queries_served == 3
 
