@@ -160,7 +160,8 @@ def encode(
         delta=delta,
         lossy=not impl.lossless,
         base_version=use_base.version if delta and use_base is not None else 0,
-        base_digest=use_base.digest() if delta and use_base is not None else ZERO_DIGEST,
+        # The receiver holds the base as it decoded it (the same grid, unless the codec is lossy).
+        base_digest=impl.held(use_base).digest() if delta and use_base is not None else ZERO_DIGEST,
         check=grid.digest() if impl.lossless else None,
     )
 

@@ -62,6 +62,15 @@ class Codec(ABC):
         """A short id of anything the decoder must share (a model id); empty when none."""
         return ""
 
+    def held(self, grid: OccupancyGrid) -> OccupancyGrid:
+        """The grid a receiver holds once it has decoded ``grid``: its delta base from then on.
+
+        ``grid`` itself for a lossless codec. A lossy codec with ``uses_base`` overrides this, and
+        its decoded cells must depend on ``grid`` alone (not on the base it was coded against), so
+        that the sender can name the receiver's base by its digest.
+        """
+        return grid
+
     @abstractmethod
     def encode_cells(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Encoded:
         """Code ``grid``'s cells; ``base`` is given only when ``uses_base`` and a base exists."""

@@ -209,3 +209,48 @@ def test_a_version_that_cannot_be_saved_is_not_sent_and_the_robot_runs_on(
         assert len(errors) == 1  # one line for the run of failures, not one a version
 
     asyncio.run(main())
+
+
+def test_a_lossy_codec_with_deltas_names_the_base_its_receiver_decoded(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    # The pooled codec is lossy: robot1 holds robot0's v1 as it decoded it, not as robot0 made it.
+    # v2 must go as a delta against that, and decode there; the sender's own PSNR check decodes too.
+    from mapd import config as configmod
+    from mapd.codec.api import get_codec
+
+    channel = dk.channel()
+    daemons = []
+    for robot in ("robot0", "robot1"):
+        path = dk.write_config(
+            tmp_path, robot, codec="pooled", extra='[transports]\nuse = ["virtual"]\n',
+            **{"transports.virtual": f'channel = "{channel}"'},
+        )  # fmt: skip
+        cfg = configmod.load(path)
+        cfg.codec.measure_quality = True
+        daemons.append((Daemon(cfg, source=dk.QueueSource(robot)), robot))
+    (d0, _), (d1, _) = daemons
+    source = d0.source
+    assert isinstance(source, dk.QueueSource)
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d, _ in daemons]
+        try:
+            await dk.wait_for(lambda: d0.transports and d0.transports[0].peers() == ["robot1"], what="peers")
+            for v in (1, 2):
+                await source.queue.put(dk.growing_map(v))
+                await dk.wait_for(
+                    lambda v=v: num(getattr(d1.receiver.maps.get("robot0"), "version", 0)) == v, what=f"v{v}"
+                )
+        finally:
+            for d, _ in daemons:
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+    rows = coded(d0)
+    assert [r["kind"] for r in rows] == ["keyframe", "delta"]
+    assert all(float(r["psnr"]) > 0 for r in rows)  # measured against what the receiver decodes
+    want = get_codec("pooled").held(dk.growing_map(2))
+    assert (d1.receiver.maps["robot0"].data == want.data).all()
+    assert d1.receiver.counters.decode_errors == 0

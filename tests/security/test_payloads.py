@@ -24,7 +24,7 @@ from mapd.errors import CodecError
 from mapd.grid import DEFAULT_MAX_CELLS, MAX_ORIGIN_M, OccupancyGrid, Pose2D
 from mapd.mapping.synthetic import room_grid
 
-CODECS = ["raw", "zstd", "lossless", "paper"]
+CODECS = ["raw", "zstd", "lossless", "pooled", "paper"]
 #: Peak memory a decode may add to a warm process, for a map at the default cell limit (MiB).
 BOUND_MB = 300
 #: The lossless body of a stream of zeros: the arithmetic decoder happily reads it for ever.
@@ -58,7 +58,7 @@ def test_claims_over_the_cell_limit_are_refused_before_allocating(codec: str) ->
             resolution=0.05,
             origin=(0, 0, 0),
             body=bytes(64),
-            lossy=codec == "paper",
+            lossy=not get_codec(codec).lossless,
         )
 
     big, small = claim(16384, 8192), claim(40, 40)
