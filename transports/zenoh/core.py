@@ -59,6 +59,13 @@ _ACK = struct.Struct(">Q")
 _MAX_VERSION = 1 << 63
 #: Own versions whose offer time is kept for RTT samples.
 RTT_VERSIONS = 16
+#: Keyframe queries answered: a burst of this many, then REPLY_RATE_HZ. Anyone may query, and each
+#: answer is a whole keyframe on the uplink and a job ahead of our own map updates; a late-joining
+#: asker that is not answered still gets the keyframe its signed query makes the daemon publish.
+REPLY_BURST = 16
+REPLY_RATE_HZ = 4.0
+#: Answers waiting for the job thread at most (the adapter holds the slots).
+MAX_REPLIES_PENDING = 4
 
 
 def _ack_blob(fleet: str, peer: str, robot: str, body: bytes) -> bytes:
@@ -119,6 +126,9 @@ class CoreCounters:
     stale: int = 0
     acks_rx: int = 0
     queries_served: int = 0
+    #: Keyframe queries left unanswered because answers were coming faster than the budget allows
+    #: (a burst of REPLY_BURST, then REPLY_RATE_HZ; at most MAX_REPLIES_PENDING waiting).
+    queries_shed: int = 0
     #: Updates, replies and keyframe queries naming a robot the roster does not admit: refused
     #: unread (updates, replies) or answered without a ``KeyframeNeeded`` (queries).
     unadmitted: int = 0
@@ -178,6 +188,8 @@ class ZenohCore:
         self._offered_at: dict[int, float] = {}
         self._rtt = RttEstimator()
         self._nonces = queries.NonceClock()
+        self._reply_tokens = float(REPLY_BURST)
+        self._reply_at: float | None = None
         self.counters = CoreCounters()
 
     # -- state -------------------------------------------------------------------------------------
@@ -375,6 +387,22 @@ class ZenohCore:
             return Step()
         st.query_nonce = n
         return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
+
+    def may_reply(self, now: float, slot_free: bool = True) -> bool:
+        """Whether to answer the query that just came (after :meth:`on_query`), or drop it unanswered.
+
+        ``slot_free``: the adapter has room for one more answer waiting (MAX_REPLIES_PENDING).
+        """
+        if self._reply_at is not None and now > self._reply_at:
+            self._reply_tokens = min(
+                float(REPLY_BURST), self._reply_tokens + (now - self._reply_at) * REPLY_RATE_HZ
+            )
+        self._reply_at = now if self._reply_at is None else max(now, self._reply_at)
+        if not slot_free or self._reply_tokens < 1.0:
+            self.counters.queries_shed += 1
+            return False
+        self._reply_tokens -= 1.0
+        return True
 
     def query_parameters(self, robot: str, wall_ns: int) -> str:
         """The selector parameters of our next query of ``robot``'s keyframe, signed when we sign.

@@ -56,7 +56,7 @@ from mapd.identity import SIG_LEN
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
-from transports.zenoh.core import NAME, Step, ZenohCore
+from transports.zenoh.core import MAX_REPLIES_PENDING, NAME, Step, ZenohCore
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
 from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
@@ -138,6 +138,9 @@ class ZenohTransport(Transport):
         self._rx_lock = threading.Lock()
         self._rx = IntakeCounters()
         self._poses = PoseThrottle(self.opts.pose_period_s)
+        # Answers to keyframe queries waiting on the job thread: taken on the loop, given back by the
+        # job thread once the answer is out.
+        self._reply_slots = threading.BoundedSemaphore(MAX_REPLIES_PENDING)
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -376,6 +379,14 @@ class ZenohTransport(Transport):
     def _on_query(self, query: Any) -> None:
         params = query.parameters
         self._apply(self.core.on_query(params.get("from"), params.get("n"), params.get("sig")))
+        # Anyone may query: answers are rationed so that a flood of queries neither crowds our map
+        # updates out of the job queue nor fills the uplink with keyframes.
+        slot = self._reply_slots.acquire(blocking=False)
+        if not self.core.may_reply(time.monotonic(), slot_free=slot):
+            if slot:
+                self._reply_slots.release()
+            query.drop()
+            return
         reply_key = keys.latest_key(self.ctx.fleet, self.ctx.robot)
 
         def job() -> None:
@@ -387,9 +398,11 @@ class ZenohTransport(Transport):
                     query.reply(reply_key, payload)
             finally:
                 query.drop()  # finalizes the query so the asker is not left waiting
+                self._reply_slots.release()
 
         assert self._jobs is not None
         if not self._jobs.submit(("reply", id(query)), job):
+            self._reply_slots.release()
             query.drop()
 
     def _send_query(self, robot: str) -> None:

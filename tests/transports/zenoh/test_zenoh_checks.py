@@ -320,6 +320,36 @@ def test_a_keyframe_query_off_the_roster_forged_or_replayed_is_answered_but_not_
     run(main())
 
 
+def test_a_flood_of_keyframe_queries_is_rationed_and_maps_still_go_out(zk) -> None:
+    from transports.zenoh.core import MAX_REPLIES_PENDING, REPLY_BURST, REPLY_RATE_HZ
+
+    async def main() -> None:
+        async with zk.pair("a", "b", signed=True) as (a, b):
+            a.offer(zk.envelope("a", 3, signer=zk.ident("a")))
+            await b.wait(lambda: ("a", 3, 0) in b.received())
+            with zk.raw_session(a.listen[0], watch="a") as raw:
+                await a.wait(lambda: bool(raw.seen))
+                latest = keys.latest_key(zk.FLEET, "a")
+                before = a.t.stats()  # b's own query when it saw a took an answer already
+                t0 = time.monotonic()
+                asked = await asyncio.to_thread(
+                    lambda: [raw.session.get(latest, timeout=5) for _ in range(300)]
+                )
+                a.offer(zk.envelope("a", 4, signer=zk.ident("a")))  # while the flood is answered
+                await b.wait(lambda: ("a", 4, 0) in b.received())
+                await a.wait(lambda: a.t.stats()["queries_served"] >= before["queries_served"] + 300)
+                elapsed = time.monotonic() - t0
+                answered = await asyncio.to_thread(lambda: sum(1 for h in asked for r in h if r.ok))
+                st = a.t.stats()
+                assert answered == 300 - (st["queries_shed"] - before["queries_shed"])
+                # The first ones find the answer slots free (but one, if b's own query still held
+                # it); then no more than the budget is answered.
+                assert MAX_REPLIES_PENDING - 1 <= answered <= REPLY_BURST + REPLY_RATE_HZ * elapsed + 1
+                assert st["errors"] == 0
+
+    run(main())
+
+
 @pytest.fixture(autouse=True)
 def _no_stray_threads() -> Any:
     yield

@@ -10,6 +10,7 @@ from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
 from transports.base import KeyframeNeeded
 from transports.zenoh import queries
+import transports.zenoh.core as core_mod
 from transports.zenoh.core import ZenohCore
 
 IDS = {n: Identity.generate(n) for n in ("a", "b")}
@@ -106,3 +107,15 @@ def test_the_query_check_takes_any_parameters(nonce: str | None, sig: str | None
         assert "\n" not in str(exc)
     else:
         raise AssertionError(f"a query with n={nonce!r} sig={sig!r} verified ({n})")
+
+
+def test_answers_are_rationed_a_burst_then_a_steady_rate() -> None:
+    a = core()
+    assert all(a.may_reply(now=100.0) for _ in range(core_mod.REPLY_BURST))
+    assert not a.may_reply(now=100.0)  # the burst is spent
+    assert a.may_reply(now=100.0 + 1.0 / core_mod.REPLY_RATE_HZ)  # one more after its share of a second
+    assert not a.may_reply(now=100.0 + 1.0 / core_mod.REPLY_RATE_HZ)
+    assert not a.may_reply(now=1000.0, slot_free=False)  # the adapter has no room for another
+    assert sum(a.may_reply(now=1000.0) for _ in range(100)) == core_mod.REPLY_BURST  # refilled, capped
+    assert a.counters.queries_shed == 2 + 1 + 100 - core_mod.REPLY_BURST
+    assert not a.may_reply(now=5.0)  # a clock that steps back refills nothing
