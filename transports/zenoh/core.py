@@ -31,7 +31,9 @@ emit, keyframe queries to send). The rules:
   own keyframe emits ``KeyframeNeeded`` for its asker only when the roster admits the asker (an
   unknown name counts in ``unadmitted``), the asker signed it (else ``bad_signature``, or
   ``dropped`` with no valid nonce) and its nonce is above the last one heeded from that asker (else
-  ``replayed``). The adapter answers every query all the same.
+  ``replayed``). The adapter answers such queries all the same, as it answers any query while
+  answers stay within their ration (:meth:`ZenohCore.may_reply`: a burst of ``REPLY_BURST``, then
+  ``REPLY_RATE_HZ``; the rest are dropped unanswered and counted in ``queries_shed``).
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
   forgets the robot's versions. Tokens are not signed, so in a signed fleet :meth:`ZenohCore.peers`
   (the robots the daemon waits for) lists only robots that have also shown a verified message.

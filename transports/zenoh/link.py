@@ -26,7 +26,8 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   ``ctx.latest_keyframe()`` (the daemon's latest keyframe), or else the last keyframe offered here.
   A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one,
   when the roster admits ``<peer>``, ``<peer>`` signed the query and it is no replay (any asker
-  still gets the reply; see :mod:`transports.zenoh.queries`).
+  still gets the reply, while answers stay within their ration; see :mod:`transports.zenoh.queries`
+  and :meth:`ZenohCore.may_reply <transports.zenoh.core.ZenohCore.may_reply>`).
 * **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
   decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
   ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, HMAC-signed with the fleet key). The robot

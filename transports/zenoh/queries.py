@@ -15,7 +15,9 @@ or one more than the last when the clock stands still or steps back), and the ro
 query only when ``n`` is above the last it heeded from that asker, so a recorded query played
 back is refused. In a fleet whose config allows unsigned messages, ``sig`` is left out.
 
-A query refused for any of these reasons is still answered: only the ``KeyframeNeeded`` is withheld.
+A query refused for any of these reasons is still answered (within the ration every query is
+answered by, :meth:`~transports.zenoh.core.ZenohCore.may_reply`): only the ``KeyframeNeeded`` is
+withheld.
 """
 
 from __future__ import annotations

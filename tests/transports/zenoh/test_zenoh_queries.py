@@ -6,11 +6,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import transports.zenoh.core as core_mod
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
 from transports.base import KeyframeNeeded
 from transports.zenoh import queries
-import transports.zenoh.core as core_mod
 from transports.zenoh.core import ZenohCore
 
 IDS = {n: Identity.generate(n) for n in ("a", "b")}
