@@ -6,8 +6,8 @@ beside ours, the settings and the command), the figures as PNG files, ``results.
 
 Figure 8a: every robot's map, a snapshot every ``--period`` seconds of log time, is coded by each
 codec: ``paper`` (the paper's CNN + Huffman codec, lossy), ``lossless`` (mapd's, whole map),
-``lossless+delta`` (against the robot's previous snapshot, as a daemon sends it) and ``zstd-19``
-(the raw int8 cells at level 19). Per update: compression ratio (raw cells, one byte each, over
+``lossless+delta`` (against the robot's previous snapshot, as a daemon sends it), ``pooled+delta``
+(mapd's lossy ``pooled`` codec, likewise) and ``zstd-19`` (the raw int8 cells at level 19). Per update: compression ratio (raw cells, one byte each, over
 bytes) and rate (1 - bytes / raw bytes, the paper's "compression rate"); the recovered map's PSNR
 and SSIM against the original (map_server grey levels, data range 255, SSIM 7x7), occupied-cell F1
 and the share of known cells that change class. Payload bytes include mapd's header.
@@ -111,7 +111,7 @@ class Coder:
     ) -> tuple[dict[str, Any], np.ndarray]:
         import numpy as np
 
-        from mapd.codec import decode, encode, read_header
+        from mapd.codec import decode, encode, get_codec, read_header
 
         if row == "zstd-19":
             raw = np.ascontiguousarray(grid.data).tobytes()
@@ -120,10 +120,12 @@ class Coder:
             cells = np.frombuffer(back, np.int8).reshape(grid.data.shape)
             nbytes, delta = len(packed), False
         else:
-            use = base if row == "lossless+delta" else None
+            use = base if row.endswith("+delta") else None
             codec = row.removesuffix("+delta")
+            # The receiver holds the base as it decoded it (a lossy codec's is not the original).
+            held = get_codec(codec).held(use) if use is not None else None
             payload, enc_ms = timed(lambda: encode(grid, codec, base=use))
-            out, dec_ms = timed(lambda: decode(payload, base=use))
+            out, dec_ms = timed(lambda: decode(payload, base=held))
             cells, nbytes, delta = out.data, len(payload), read_header(payload).delta
         exact = bool(np.array_equal(cells, grid.data))
         measured = quality(grid.data, cells, exact)

@@ -83,16 +83,19 @@ def test_fig8_rows(sim_run: tuple[Path, dict[str, Any]]) -> None:
     # 20 s of sim time at one update per 10 s: two updates per robot.
     assert res["run"]["updates_per_robot"] == {"robot0": 2, "robot1": 2}
     rows = {r["row"]: r for r in res["fig8"]["summary"]}
-    assert list(rows) == ["paper", "lossless", "lossless+delta", "zstd-19"]
+    assert list(rows) == ["paper", "lossless", "lossless+delta", "pooled+delta", "zstd-19"]
     for name in ("lossless", "lossless+delta", "zstd-19"):
         r = rows[name]
         assert num(r["psnr"]) == math.inf and r["ssim"] == 1.0 and r["f1"] == 1.0 and r["changed"] == 0.0
         assert r["exact"] is True
-    paper = rows["paper"]
-    assert paper["exact"] is False and math.isfinite(num(paper["psnr"])) and 0.0 < paper["ssim"] < 1.0
-    assert 0.0 < paper["changed"] < 1.0
+    for lossy in ("paper", "pooled+delta"):
+        r = rows[lossy]
+        assert r["exact"] is False and math.isfinite(num(r["psnr"])) and 0.0 < r["ssim"] < 1.0
+        assert 0.0 < r["changed"] < 1.0
+    # pooled: lossy, at fewer bytes than lossless.
+    assert rows["pooled+delta"]["bytes"] < rows["lossless+delta"]["bytes"]
     updates = res["fig8"]["updates"]
-    assert len(updates) == 4 * 4
+    assert len(updates) == 4 * 5
     for u in updates:
         assert u["ratio"] == pytest.approx(u["cells"] / u["bytes"])
         assert u["rate"] == pytest.approx(1.0 - u["bytes"] / u["cells"])
@@ -107,6 +110,7 @@ def test_fig8_rows(sim_run: tuple[Path, dict[str, Any]]) -> None:
         assert d["delta"] is (key[1] > 1)
     assert rows["lossless+delta"]["bytes"] <= rows["lossless"]["bytes"]
     assert rows["lossless+delta"]["deltas"] == 2
+    assert rows["pooled+delta"]["deltas"] == 2  # decoded on the base as the receiver held it
     for r in rows.values():
         assert r["bytes"] == sum(u["bytes"] for u in updates if u["row"] == r["row"])
         per_robot = [
@@ -233,7 +237,7 @@ def test_fig7_global_maps_with_and_without_compression(sim_run: tuple[Path, dict
     assert f7["receiver"] == "robot0" and len(f7["steps"]) == len(robot0)  # one step per receiver snapshot
     assert [s["t"] for s in f7["steps"]] == sorted(s["t"] for s in f7["steps"])
     g = f7["global"]
-    assert set(g) == {"paper", "lossless", "lossless+delta", "zstd-19"}
+    assert set(g) == {"paper", "lossless", "lossless+delta", "pooled+delta", "zstd-19"}
     for exact in ("lossless", "lossless+delta", "zstd-19"):  # exact codecs change nothing in the global map
         assert num(g[exact]["psnr"]) == math.inf and num(g[exact]["ssim"]) == 1.0
     steps = [s for s in f7["steps"] if s["robots"] == 2]
