@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+from transports.uwb.options import UwbOptions
+
 
 @dataclass(frozen=True)
 class Forward:
@@ -71,11 +73,12 @@ class SummaryRelay:
     """The UWB relay (:mod:`transports.uwb.forwarding`): robots broadcast summaries of who holds which
     version every ``summary_period_s`` and forward held maps, unaltered, to neighbours that lack them
     and do not hear their origin, at most one per ``relay_period_s``. The robot adapter drives the
-    real :class:`~transports.uwb.forwarding.ForwardingCore`; this hook only marks the choice."""
+    real :class:`~transports.uwb.forwarding.ForwardingCore`; this hook only marks the choice. The
+    timers are the daemon's defaults (``[transports.uwb]``), so the bench measures what runs."""
 
     name = "summary"
-    summary_period_s = 10.0
-    relay_period_s = 2.0
+    summary_period_s: float = UwbOptions.model_fields["summary_period_s"].default
+    relay_period_s: float = UwbOptions.model_fields["relay_period_s"].default
 
     def on_accept(
         self, holder: int, origin: int, version: int, src: int, now: float, peers_up: list[int]
