@@ -94,6 +94,22 @@ class Placement:
         )
 
 
+def derived_from(placements: Mapping[str, Placement], gone: set[str]) -> set[str]:
+    """Robots whose estimated placement rests on a map of ``gone``: estimated against one of them,
+    or against a robot so placed (chains), not counting ``gone`` itself."""
+    out: set[str] = set()
+    base = set(gone)
+    grew = True
+    while grew:
+        grew = False
+        for robot, p in placements.items():
+            if robot not in base and p.source == "estimate" and p.against in base:
+                base.add(robot)
+                out.add(robot)
+                grew = True
+    return out
+
+
 @dataclass
 class _Track:
     """Per-robot memory between updates."""
@@ -155,15 +171,22 @@ class Placer:
             if p.accepted and p.transform is not None and p.source == "estimate" and robot not in self.poses:
                 self.placements[robot] = replace(p, reason="restored from the state directory")
 
-    def forget(self, robot: str) -> None:
+    def forget(self, robot: str) -> set[str]:
         """Drop all that is held of ``robot``: its placement, its track, a pose its maps reported
-        (a configured pose stays: the config still names it)."""
-        self.placements.pop(robot, None)
-        self._tracks.pop(robot, None)
+        (a configured pose stays: the config still names it).
+
+        Robots placed by estimate against its map, or along a chain through it, are estimated
+        afresh from the maps left (its map may have been forged to misplace them); returns them.
+        """
+        again = derived_from(self.placements, {robot})
+        for r in (robot, *again):
+            self.placements.pop(r, None)
+            self._tracks.pop(r, None)
         if robot in self.reported or robot in self.pinned:
             self.reported.discard(robot)
             self.pinned.discard(robot)
             self.poses.pop(robot, None)
+        return again
 
     def pin(self, robot: str, pose: Pose2D) -> None:
         """Hold ``robot`` at ``pose`` from now on, as a known pose (the fleet frame's own robot left)."""

@@ -49,7 +49,7 @@ from mapd.errors import FusionError, MapdError, StateError
 from mapd.files import WriteOutage, atomic_write_bytes
 from mapd.fusion.estimate import EstimateOptions
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
-from mapd.fusion.placement import Placement, Placer
+from mapd.fusion.placement import Placement, Placer, derived_from
 from mapd.fusion.transforms import transformed_corners
 from mapd.fusion.views import MAX_SIDE
 from mapd.grid import (
@@ -172,9 +172,15 @@ class FusionWorker:
         held = robot in self._latest or robot in self._placements or robot in self._restored_robots
         self._latest.pop(robot, None)
         self._placements.pop(robot, None)
-        self.placer.forget(robot)
+        again = self.placer.forget(robot)
         if robot == self.placer.anchor:
-            self._keep_fleet_frame(robot)
+            self._keep_fleet_frame(robot)  # robots placed in its frame are held where they are
+        elif again:
+            log.warning(
+                "fusion: %s placed against %s's map; estimating afresh from the maps left",
+                ", ".join(sorted(again)),
+                robot,
+            )
         if robot in self._restored_robots:
             self._drop_restored()
         if held:
@@ -457,13 +463,17 @@ class FusionWorker:
         # Robots off the roster since the last run: their placements go, and a global map built
         # with their maps is not restored (its cells are theirs and the others' alike).
         revoked = sorted(r for r in placements if r != self.robot and not self._admits(r))
+        again = sorted(derived_from(placements, set(revoked)))
         in_global = [r for r in revoked if placements.pop(r).accepted]
+        for r in again:  # placed against a revoked robot's map: estimated afresh from the others
+            placements.pop(r)
         if revoked:
             self.forgotten += len(revoked)
             log.warning(
-                "fusion: leaving out %s, no longer on the roster%s",
+                "fusion: leaving out %s, no longer on the roster%s%s",
                 ", ".join(revoked),
                 "; the global map is built afresh" if in_global else "",
+                f"; {', '.join(again)}, placed against it, estimated afresh" if again else "",
             )
         if isinstance(doc, dict) and isinstance(doc.get("robots"), dict):
             self._merges = int(doc.get("version", 0)) if isinstance(doc.get("version"), int) else 0

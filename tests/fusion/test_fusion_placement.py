@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mapd.fusion.placement import Placement, Placer
+from mapd.fusion.placement import Placement, Placer, derived_from
 from mapd.fusion.transforms import compose, inverse, pose_distance
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -134,3 +134,20 @@ def test_restored_placements_are_tracked_from_where_they_were(crops: dict[str, O
         Placement.from_dict({"x": 1.0})
     with pytest.raises(ValueError):
         Placement.from_dict({"robot": "b", "x": float("nan"), "y": 0.0, "yaw": 0.0})
+
+
+def test_forgetting_a_robot_sends_the_robots_placed_against_its_map_back_to_estimation() -> None:
+    # A revoked robot's map may have been forged to misplace others: what rests on it goes too.
+    t = Pose2D(1.0, 2.0, 0.1)
+    placer = Placer({}, "a")
+    placer.placements = {
+        "b": Placement("b", t, "estimate", True, 0.9, 0.95, "", against="a"),
+        "c": Placement("c", t, "estimate", True, 0.9, 0.95, "", against="b"),
+        "f": Placement("f", t, "estimate", True, 0.9, 0.95, "", against="c"),  # a chain through b
+        "d": Placement("d", t, "estimate", True, 0.9, 0.95, "", against="a"),
+        "e": Placement("e", t, "pose", True, 1.0, 0.9, "", against="b"),  # configured: on no map
+    }
+    assert derived_from(placer.placements, {"b"}) == {"c", "f"}
+    assert placer.forget("b") == {"c", "f"}
+    assert set(placer.placements) == {"d", "e"}
+    assert placer.forget("zz") == set()

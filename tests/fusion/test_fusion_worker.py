@@ -12,6 +12,7 @@ import pytest
 
 from mapd.config import FusionSection
 from mapd.errors import FusionError
+from mapd.fusion.placement import Placement
 from mapd.fusion.worker import GLOBAL_YAML, TRANSFORMS_JSON, FusionWorker
 from mapd.grid import OccupancyGrid, Pose2D, load_map
 
@@ -222,3 +223,20 @@ def test_a_base_station_keeps_its_fleet_frame_when_the_robot_that_fixed_it_is_re
         assert g is not None and _known(g) == _known(fleet["b"]) and set(w.status()["robots"]) == {"b"}
 
     asyncio.run(main())
+
+
+def test_placements_that_rest_on_a_revoked_robots_map_are_not_restored(tmp_path: Path) -> None:
+    # Saved by a run that trusted b: c was placed against b's map, d against a's own.
+    t = Pose2D(3.0, -1.0, 0.2)
+    saved = {
+        "a": Placement("a", ZERO, "anchor", True, 1.0, None, "its map frame is the fleet frame"),
+        "b": Placement("b", t, "estimate", True, 0.9, 0.95, "", against="a"),
+        "c": Placement("c", t, "estimate", True, 0.9, 0.95, "", against="b"),
+        "d": Placement("d", t, "estimate", True, 0.9, 0.95, "", against="a"),
+    }
+    doc = {"version": 4, "robots": {r: p.as_dict() for r, p in saved.items()}}
+    (tmp_path / TRANSFORMS_JSON).write_text(json.dumps(doc))
+    w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path, admits=lambda r: r != "b")
+    w._load_state()
+    assert set(w.placements) == {"a", "d"} and set(w.placer.placements) == {"d"}
+    assert w.placer.placements["d"].transform == t and w.forgotten == 1
