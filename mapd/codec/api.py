@@ -305,14 +305,18 @@ def decode(
     if head.delta:
         if base is None:
             raise CodecError(f"payload is a delta against version {head.base_version}, but no base was given")
-        if base.digest() != head.base_digest and impl.held(base).digest() == head.base_digest:
-            base = impl.held(base)  # a lossy codec's base given as the sender's original
-        if base.digest() != head.base_digest:
-            raise CodecError(
-                f"payload is a delta against version {head.base_version} "
-                f"(digest {head.base_digest.hex()[:12]}), but the base given is version {base.version} "
-                f"(digest {base.digest().hex()[:12]})"
-            )
+        given = base.digest()
+        if given != head.base_digest:
+            # A lossy codec's base may be given as the sender's original: the header names the
+            # codec's rendering of it, which is what a receiver holds (for lossless codecs the same).
+            held = impl.held(base)
+            if held is base or held.digest() != head.base_digest:
+                raise CodecError(
+                    f"payload is a delta against version {head.base_version} "
+                    f"(digest {head.base_digest.hex()[:12]}), but the base given is version "
+                    f"{base.version} (digest {given.hex()[:12]})"
+                )
+            base = held
         use_base = base
     target = Target(head.height, head.width, head.resolution, head.origin, head.variant)
     try:

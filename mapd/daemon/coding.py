@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mapd.codec import decode, encode, get_codec, read_header
+from mapd.codec import decode, encode, read_header
 from mapd.codec.base import CodecOptions
 from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
@@ -176,9 +176,7 @@ class Coder:
             "ssim": "",
         }
         if self.measure_quality and not self.lossless:
-            # A delta names the base as its receivers decoded it (a lossy codec's base is not ours).
-            held = get_codec(self.codec, self.options).held(base) if base is not None else None
-            back = decode(payload, held, max_cells=self.max_cells, options=self.options)
+            back = decode(payload, base, max_cells=self.max_cells, options=self.options)
             row["psnr"], row["ssim"] = (
                 round(psnr(grid.data, back.data), 3),
                 round(ssim(grid.data, back.data), 5),
