@@ -158,6 +158,28 @@ class ForwardingCore:
     relays_started: int = 0
     keyframes_asked: int = 0
 
+    @classmethod
+    def for_summaries(
+        cls,
+        me: int,
+        *,
+        summary_period_s: float,
+        relay_period_s: float,
+        share_bps: float | None = None,
+        max_relay_s: float | None = None,
+    ) -> ForwardingCore:
+        """The core for robots that send a summary every ``summary_period_s``: a neighbour is
+        forgotten after three missed summaries, and a relay is not repeated before two have had
+        time to show whether it arrived (the daemon's driver and ``mapd bench swarm`` alike)."""
+        return cls(
+            me,
+            relay_period_s=relay_period_s,
+            summary_timeout_s=3 * summary_period_s,
+            retry_s=2 * summary_period_s,
+            share_bps=share_bps,
+            max_relay_s=max_relay_s,
+        )
+
     # --- inputs ---------------------------------------------------------------------------------
     def on_summary(self, src: int, summary: Summary, now: float) -> None:
         """A neighbour's summary arrived (``src`` is heard directly: it is a neighbour)."""

@@ -271,7 +271,7 @@ class UwbLink:
             return
         now = asyncio.get_running_loop().time()
         if self._counter_fault and now < self._counter_retry_at:
-            return  # not a write a frame at a disk that refused the last one
+            return  # not a write per frame to a disk that refused the last one
         try:
             self._store.save(upto)
         except StateError as exc:

@@ -39,11 +39,10 @@ class RelayDriver:
         share_bps: float | None = None,
         max_relay_s: float | None = None,
     ) -> None:
-        self.core = forwarding.ForwardingCore(
+        self.core = forwarding.ForwardingCore.for_summaries(
             me,
+            summary_period_s=summary_period_s,
             relay_period_s=relay_period_s,
-            summary_timeout_s=3 * summary_period_s,
-            retry_s=2 * summary_period_s,
             share_bps=share_bps,
             max_relay_s=max_relay_s,
         )

@@ -116,11 +116,10 @@ class SwarmRobot:
         self._relay_msg: int | None = None
         if isinstance(relay, SummaryRelay):
             p = self._summary_period = relay.summary_period_s
-            self.fwd = forwarding.ForwardingCore(
+            self.fwd = forwarding.ForwardingCore.for_summaries(
                 self.id,
+                summary_period_s=p,
                 relay_period_s=relay.relay_period_s,
-                summary_timeout_s=3 * p,
-                retry_s=2 * p,
                 share_bps=config.rate_bps / n,  # as the daemon's uwb transport: an equal turn
                 max_relay_s=config.deadline_s,
             )
