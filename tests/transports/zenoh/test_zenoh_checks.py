@@ -331,9 +331,18 @@ def test_a_flood_of_keyframe_queries_is_rationed_and_maps_still_go_out(zk) -> No
                 await a.wait(lambda: bool(raw.seen))
                 latest = keys.latest_key(zk.FLEET, "a")
                 before = a.t.stats()  # b's own query when it saw a took an answer already
+                heard = a.events.count(KeyframeNeeded("zenoh", "b", "a"))
+                # b's own signed query comes last, when the ration is spent: answered or not, it
+                # still makes a publish its next map whole.
+                signed = queries.parameters(
+                    zk.ident("b"), fleet=zk.FLEET, asker="b", robot="a", nonce=time.time_ns()
+                )
                 t0 = time.monotonic()
                 asked = await asyncio.to_thread(
-                    lambda: [raw.session.get(latest, timeout=5) for _ in range(300)]
+                    lambda: (
+                        [raw.session.get(latest, timeout=5) for _ in range(299)]
+                        + [raw.session.get(f"{latest}?{signed}", timeout=5)]
+                    )
                 )
                 a.offer(zk.envelope("a", 4, signer=zk.ident("a")))  # while the flood is answered
                 # Generous waits: a loaded CI machine serves 300 queries slower than a quiet one.
@@ -349,6 +358,7 @@ def test_a_flood_of_keyframe_queries_is_rationed_and_maps_still_go_out(zk) -> No
                 # it); then no more than the budget is answered.
                 assert MAX_REPLIES_PENDING - 1 <= answered <= REPLY_BURST + REPLY_RATE_HZ * elapsed + 1
                 assert st["errors"] == 0
+                assert a.events.count(KeyframeNeeded("zenoh", "b", "a")) == heard + 1
 
     run(main())
 
