@@ -73,7 +73,9 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
         graph = peer.graph(rmw_peer.having("mapd", *want))
         mine = {(t.kind, t.topic) for t in graph if t.node == "mapd"}
         assert set(want) <= mine
-        assert snaps["base"]["outputs"]["ros2"]["maps"] >= 1
+        # The status read before /map arrived may predate the output's first publish (it runs on a
+        # worker thread after the merge): read it again, now that the peer has a map.
+        fk.wait_for(lambda s: s.get("base", {}).get("outputs", {}).get("ros2", {}).get("maps", 0) >= 1, 10, f)
         peer.wait("/map", lambda r: r.seq >= 3, timeout=60)  # updates keep coming
         # stop the robots; once the base station is idle, its last /map is the global map it keeps
         for robot in ("robot0", "robot1"):
