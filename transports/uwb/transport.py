@@ -20,6 +20,7 @@ from typing import Any
 
 from mapd.envelope import Envelope
 from mapd.errors import ConfigError, LimitError, MapdError, TransportError
+from transports import signed_requests
 from transports.base import (
     Arrived,
     Delivered,
@@ -76,6 +77,8 @@ class UwbTransport(Transport):
         self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
+        self._nonces = signed_requests.NonceClock()
+        self._fresh = signed_requests.Freshness()
         self._poses = PoseThrottle(opts.pose_period_s)
         self.control_counters = control.ControlCounters()
         # Multi-hop relay: only in signed fleets, where a relayed map proves its robot by signature.
@@ -263,7 +266,19 @@ class UwbTransport(Transport):
         if not dests:
             return
         try:
-            link.send(control.pack_request(wanted), dests, stream=control.CONTROL_STREAM)
+            robots = control.names(wanted)
+            nonce = self._nonces.next(time.time_ns())
+            sig = signed_requests.sign(
+                self.ctx.identity,
+                control.DOMAIN,
+                fleet=self.ctx.fleet,
+                asker=self.ctx.robot,
+                robots=robots,
+                nonce=nonce,
+            )
+            link.send(
+                control.pack_request(robots, nonce=nonce, sig=sig), dests, stream=control.CONTROL_STREAM
+            )
         except (MapdError, ValueError) as exc:  # ValueError: too many names for one message
             log.info("uwb: keyframe request for %s not sent: %s", robot, exc)
             return
@@ -329,12 +344,34 @@ class UwbTransport(Transport):
             emit(PeerRestarted("uwb", self._name(e.peer)))
 
     def _on_control(self, e: arq.MessageReceived) -> None:
+        asker = self._name(e.src)
+        c = self.control_counters
         try:
-            robots = control.parse_request(e.data)
+            req = control.parse_request(e.data)
         except MapdError as exc:
-            self.control_counters.bad_control += 1
-            log.info("uwb: bad control message from %s: %s", self._name(e.src), exc)
+            c.bad_control += 1
+            log.info("uwb: bad control message from %s: %s", asker, exc)
             return
-        self.control_counters.keyframe_requests_rx += 1
-        if self.ctx.robot in robots:
-            self.ctx.emit(KeyframeNeeded("uwb", self._name(e.src), self.ctx.robot))
+        c.keyframe_requests_rx += 1
+        if self.ctx.robot not in req.robots:
+            return
+        # Heeded only when signed by the robot the link id names, and fresh (keyframe_requests).
+        try:
+            signed_requests.verify(
+                self.ctx.roster,
+                control.DOMAIN,
+                fleet=self.ctx.fleet,
+                asker=asker,
+                robots=req.robots,
+                nonce=req.nonce or 0,
+                sig=req.sig,
+                what="uwb keyframe request",
+            )
+        except MapdError as exc:
+            c.keyframe_requests_forged += 1
+            log.info("uwb: keyframe request not heeded: %s", exc)
+            return
+        if req.nonce is not None and not self._fresh.fresh(asker, req.nonce):
+            c.keyframe_requests_replayed += 1
+            return
+        self.ctx.emit(KeyframeNeeded("uwb", asker, self.ctx.robot))

@@ -52,6 +52,7 @@ from typing import Any
 from mapd.envelope import Envelope, unpack
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import SIG_LEN, Identity, Roster
+from transports import signed_requests
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
 from transports.rtt import RttEstimator
 from transports.zenoh import keys, queries
@@ -150,7 +151,7 @@ class _Robot:
     #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
     regap: bool = False
     #: The nonce of the last keyframe query heeded from this robot (kept by :meth:`forget`: a
-    #: restarted robot's nonces go on growing, see :class:`~transports.zenoh.queries.NonceClock`).
+    #: restarted robot's nonces go on growing, see :class:`~transports.signed_requests.NonceClock`).
     query_nonce: int = 0
 
     def forget(self) -> None:
@@ -189,7 +190,7 @@ class ZenohCore:
         # go first; an ack of a forgotten version just gives no sample).
         self._offered_at: dict[int, float] = {}
         self._rtt = RttEstimator()
-        self._nonces = queries.NonceClock()
+        self._nonces = signed_requests.NonceClock()
         self._reply_tokens = float(REPLY_BURST)
         self._reply_at: float | None = None
         self.counters = CoreCounters()
@@ -410,7 +411,7 @@ class ZenohCore:
         """The selector parameters of our next query of ``robot``'s keyframe, signed when we sign.
 
         ``wall_ns`` is the wall clock now in nanoseconds; nonces grow from it (see
-        :class:`~transports.zenoh.queries.NonceClock`).
+        :class:`~transports.signed_requests.NonceClock`).
         """
         return queries.parameters(
             self.identity, fleet=self.fleet, asker=self.robot, robot=robot, nonce=self._nonces.next(wall_ns)

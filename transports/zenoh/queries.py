@@ -10,10 +10,11 @@ So the name must be the asker's own, and the query fresh::
     mapd/<fleet>/<robot>/latest?from=<asker>;n=<nonce>;sig=<128 hex digits>
 
 ``sig`` is the asker's Ed25519 signature over the fleet, the asker, the robot asked and ``n``.
-``n`` grows with every query the asker sends (:class:`NonceClock`: nanoseconds of its wall clock,
-or one more than the last when the clock stands still or steps back), and the robot asked heeds a
-query only when ``n`` is above the last it heeded from that asker, so a recorded query played
-back is refused. In a fleet whose config allows unsigned messages, ``sig`` is left out.
+``n`` grows with every query the asker sends (:class:`~transports.signed_requests.NonceClock`:
+nanoseconds of its wall clock, or one more than the last when the clock stands still or steps
+back), and the robot asked heeds a query only when ``n`` is above the last it heeded from that
+asker, so a recorded query played back is refused. In a fleet whose config allows unsigned
+messages, ``sig`` is left out.
 
 A query refused for any of these reasons is still answered (within the ration every query is
 answered by, :meth:`~transports.zenoh.core.ZenohCore.may_reply`): only the ``KeyframeNeeded`` is
@@ -22,47 +23,20 @@ withheld.
 
 from __future__ import annotations
 
-import struct
-
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import SIG_LEN, Identity, Roster
+from transports import signed_requests
 
-_NONCE = struct.Struct(">Q")
-_MAX_NONCE = 1 << 63
-_NONCE_DIGITS = len(str(_MAX_NONCE))
-
-
-def _blob(fleet: str, asker: str, robot: str, nonce: int) -> bytes:
-    return b"mapd-query/1\0" + "\0".join((fleet, asker, robot)).encode() + b"\0" + _NONCE.pack(nonce)
-
-
-class NonceClock:
-    """The asker's side: a nonce above every one it gave before, from the wall clock passed in.
-
-    Wall-clock nanoseconds keep nonces growing across restarts of the asker (the robot asked
-    remembers the last one it heeded for as long as it runs); within one run they grow even when
-    the clock stands still or is stepped back.
-    """
-
-    def __init__(self) -> None:
-        self._last = 0
-
-    def next(self, wall_ns: int) -> int:
-        """The nonce for the next query, given the wall clock now in nanoseconds."""
-        self._last = min(max(self._last + 1, wall_ns), _MAX_NONCE - 1)
-        return self._last
+#: What a zenoh query's signature starts with (:func:`transports.signed_requests.blob`).
+DOMAIN = b"mapd-query/1"
+_NONCE_DIGITS = len(str(signed_requests.MAX_NONCE))
 
 
 def parameters(identity: Identity | None, *, fleet: str, asker: str, robot: str, nonce: int) -> str:
     """The selector parameters of ``asker``'s query of ``robot``'s latest keyframe."""
-    if not 0 < nonce < _MAX_NONCE:
-        raise ValueError(f"query nonce {nonce} is out of range")
+    sig = signed_requests.sign(identity, DOMAIN, fleet=fleet, asker=asker, robots=[robot], nonce=nonce)
     params = f"from={asker};n={nonce}"
-    if identity is None:
-        return params
-    if identity.robot != asker:
-        raise ValueError(f"robot '{identity.robot}' cannot sign a query of '{asker}'")
-    return f"{params};sig={identity.sign(_blob(fleet, asker, robot, nonce)).hex()}"
+    return f"{params};sig={sig.hex()}" if sig else params
 
 
 def verify(roster: Roster, *, fleet: str, asker: str, robot: str, nonce: str | None, sig: str | None) -> int:
@@ -76,7 +50,7 @@ def verify(roster: Roster, *, fleet: str, asker: str, robot: str, nonce: str | N
     if nonce is None or not nonce.isdigit() or not nonce.isascii() or len(nonce) > _NONCE_DIGITS:
         raise EnvelopeError(f"keyframe query from '{asker}' has no valid nonce")
     n = int(nonce)
-    if not 0 < n < _MAX_NONCE:
+    if not 0 < n < signed_requests.MAX_NONCE:
         raise EnvelopeError(f"keyframe query from '{asker}' has nonce {n}, out of range")
     raw = b""
     if sig:
@@ -86,5 +60,7 @@ def verify(roster: Roster, *, fleet: str, asker: str, robot: str, nonce: str | N
             raw = bytes.fromhex(sig)
         except ValueError:
             raise SignatureError(f"keyframe query from '{asker}' has a signature that is not hex") from None
-    roster.verify(asker, _blob(fleet, asker, robot, n), raw, "keyframe query")
+    signed_requests.verify(
+        roster, DOMAIN, fleet=fleet, asker=asker, robots=[robot], nonce=n, sig=raw, what="keyframe query"
+    )
     return n

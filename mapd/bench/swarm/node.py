@@ -39,6 +39,7 @@ from mapd.daemon.publisher import INFLIGHT_TIMEOUT_S, PublisherCore
 from mapd.daemon.receiver import KEEP_PEER_VERSIONS
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.identity import SIG_LEN
 from transports.uwb import arq, forwarding
 from transports.uwb import keyframe_requests as control
 
@@ -206,7 +207,10 @@ class SwarmRobot:
         if last is None or now - last >= KEYFRAME_REQUEST_S:
             self._asked[origin] = now
             self.kf_requests += 1
-            req = control.pack_request([self.streams[origin].name])
+            # The signature's bytes as the daemon's: the bench checks no signature, it times them.
+            req = control.pack_request(
+                [self.streams[origin].name], nonce=1 + int(now * 1e9), sig=bytes(SIG_LEN)
+            )
             self.arq.send(req, now, dests=[origin + 1], stream=control.CONTROL_STREAM)
 
     def _peers(self) -> dict[str, list[str]]:

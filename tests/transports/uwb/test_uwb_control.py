@@ -10,23 +10,30 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd.errors import ProtocolError
-from transports.base import TransportContext
+from mapd.identity import Identity, Roster
+from transports.base import KeyframeNeeded, TransportContext
+from transports.uwb import arq
 from transports.uwb import keyframe_requests as control
 from transports.uwb.transport import UwbOptions, UwbTransport
 
 
 def test_request_round_trips_sorted_and_deduplicated() -> None:
-    data = control.pack_request(["robot1", "robot0", "robot1"])
+    data = control.pack_request(["robot1", "robot0", "robot1"], nonce=7, sig=bytes(range(64)))
     assert data.startswith(control.MAGIC)
-    assert control.parse_request(data) == ["robot0", "robot1"]
+    assert control.parse_request(data) == control.Request(["robot0", "robot1"], 7, bytes(range(64)))
+    assert control.parse_request(control.pack_request(["r"], nonce=3)) == control.Request(["r"], 3, b"")
+    # A node from before signatures sends version 1: read, with neither nonce nor signature.
+    assert control.parse_request(b"MKFR\x01robot0\nrobot1") == control.Request(["robot0", "robot1"])
     with pytest.raises(ValueError):
-        control.pack_request([])
+        control.pack_request([], nonce=1)
+    with pytest.raises(ValueError):
+        control.pack_request(["r"], nonce=1, sig=b"short")
 
 
 def test_request_too_large_to_build_is_a_value_error() -> None:
     # Too many names is the caller's problem (nothing was on a link), not a protocol fault.
     with pytest.raises(ValueError, match="over 1024") as info:
-        control.pack_request([f"robot{i:04d}" for i in range(200)])
+        control.pack_request([f"robot{i:04d}" for i in range(200)], nonce=1)
     assert not isinstance(info.value, ProtocolError)
 
 
@@ -45,7 +52,7 @@ def test_transport_drops_a_request_too_large_to_build() -> None:
     sent: list[bytes] = []
     t = _transport_with_stub_link(sent)
     asyncio.run(t.request_keyframe("b"))
-    assert control.parse_request(sent[0]) == ["b"] and t.stats()["keyframe_requests_tx"] == 1
+    assert control.parse_request(sent[0]).robots == ["b"] and t.stats()["keyframe_requests_tx"] == 1
     t = _transport_with_stub_link(sent)
     asyncio.run(t.request_keyframe("x" * 2000))  # logged and dropped, never raised
     assert len(sent) == 1 and t.stats()["keyframe_requests_tx"] == 0
@@ -122,6 +129,10 @@ def test_an_offer_that_goes_to_nobody_is_on_the_air_at_once() -> None:
         b"MKFR\x01robot0\n",
         b"MKFR\x01\xff\xfe",
         b"MKFR\x01" + b"a" * 2000,
+        control.pack_request(["r"], nonce=1)[:-1],  # no name left
+        control.pack_request(["r"], nonce=1, sig=bytes(64))[:-2],  # cut inside the signature
+        b"MKFR\x02" + bytes(8) + b"\x05abcde" + b"robot0",  # a signature of 5 bytes
+        b"MKFR\x03" + bytes(9) + b"robot0",
     ],
 )
 def test_bad_control_messages_raise_protocol_error(data: bytes) -> None:
@@ -133,10 +144,11 @@ def test_bad_control_messages_raise_protocol_error(data: bytes) -> None:
 @given(st.binary(max_size=1100))
 def test_fuzz_parse_only_returns_names_or_raises_protocol_error(data: bytes) -> None:
     try:
-        names = control.parse_request(data)
+        req = control.parse_request(data)
     except ProtocolError:
         return
-    assert names and all(isinstance(n, str) and n for n in names)
+    assert req.robots and all(isinstance(n, str) and n for n in req.robots)
+    assert len(req.sig) in (0, 64) and (req.nonce is None) == (data[4] == 1)
 
 
 def test_throttle_names_every_robot_still_wanted() -> None:
@@ -146,3 +158,75 @@ def test_throttle_names_every_robot_still_wanted() -> None:
     assert r.want("b", 2.0) == ["a", "b"]  # supersedes the first message, so it names both
     assert r.want("a", 5.5) == ["a", "b"]
     assert r.want("c", 11.0) == ["c"]  # a and b expired
+
+
+# --- who may ask: signed, fresh requests (a holder of the link key cannot speak for another robot) --
+
+IDS = {n: Identity.generate(n) for n in ("a", "b", "c")}
+ROSTER = Roster({n: i.public_key for n, i in IDS.items()})
+NODES = {"a": 1, "b": 2, "c": 3}
+
+
+def _asked_robot(roster: Roster = ROSTER) -> tuple[UwbTransport, list[object]]:
+    """Robot a's transport, signed fleet by default, taking control messages off the link."""
+    events: list[object] = []
+    ctx = TransportContext("a", "f", 1 << 20, events.append, identity=IDS["a"], roster=roster)
+    return UwbTransport(UwbOptions(nodes=NODES), ctx), events
+
+
+def _request_of(asker: str, *, signed: bool, nonce: int, fleet: str = "f") -> bytes:
+    """The request ``asker``'s transport sends asking a (its link stubbed), signed or not."""
+    sent: list[bytes] = []
+    ctx = TransportContext(
+        asker, fleet, 1 << 20, lambda e: None,
+        identity=IDS[asker] if signed else None, roster=ROSTER if signed else Roster.open(),
+    )  # fmt: skip
+    t = UwbTransport(UwbOptions(nodes=NODES), ctx)
+    t._link = SimpleNamespace(  # type: ignore[assignment]
+        core=SimpleNamespace(peers_up=lambda: [1]),
+        send=lambda data, dests, stream: sent.append(data),
+        stats=dict,
+    )
+    t._nonces = SimpleNamespace(next=lambda wall_ns: nonce)  # type: ignore[assignment]
+    asyncio.run(t.request_keyframe("a"))
+    assert len(sent) == 1, "the request was not sent"
+    return sent[0]
+
+
+def _feed(t: UwbTransport, src: str, data: bytes) -> None:
+    t._on_event(arq.MessageReceived(NODES[src], control.CONTROL_STREAM, 1, data))
+
+
+def test_a_signed_request_is_heeded_once_and_a_replay_is_not() -> None:
+    t, events = _asked_robot()
+    req = _request_of("b", signed=True, nonce=7 * 10**17)
+    assert len(control.parse_request(req).sig) == 64
+    _feed(t, "b", req)
+    assert events == [KeyframeNeeded("uwb", "b", "a")]
+    _feed(t, "b", req)  # recorded and played back by a holder of the link key
+    assert len(events) == 1 and t.stats()["keyframe_requests_replayed"] == 1
+    _feed(t, "b", _request_of("b", signed=True, nonce=7 * 10**17 + 5))  # b's next request
+    assert len(events) == 2 and t.stats()["keyframe_requests_forged"] == 0
+
+
+def test_a_request_not_signed_by_the_robot_its_link_id_names_is_not_heeded() -> None:
+    t, events = _asked_robot()
+    # c holds the link key and sends from b's link id, but can sign only as itself.
+    _feed(t, "b", _request_of("c", signed=True, nonce=7 * 10**17))
+    _feed(t, "b", _request_of("b", signed=False, nonce=7 * 10**17))
+    _feed(t, "b", b"MKFR\x01a")  # version 1: no signature at all
+    _feed(t, "c", _request_of("c", signed=True, nonce=7 * 10**17, fleet="other"))  # another fleet's
+    assert events == [] and t.stats()["keyframe_requests_forged"] == 4
+    assert t.stats()["keyframe_requests_rx"] == 4
+    # c's own, properly signed request still is heeded: the refusals cost c nothing.
+    _feed(t, "c", _request_of("c", signed=True, nonce=7 * 10**17))
+    assert events == [KeyframeNeeded("uwb", "c", "a")]
+
+
+def test_a_fleet_that_allows_unsigned_messages_heeds_unsigned_requests() -> None:
+    t, events = _asked_robot(Roster.open())
+    _feed(t, "b", _request_of("b", signed=False, nonce=5))
+    _feed(t, "c", b"MKFR\x01a")  # a node from before signatures
+    assert events == [KeyframeNeeded("uwb", "b", "a"), KeyframeNeeded("uwb", "c", "a")]
+    _feed(t, "b", _request_of("b", signed=False, nonce=5))  # still no replay
+    assert len(events) == 2 and t.stats()["keyframe_requests_replayed"] == 1

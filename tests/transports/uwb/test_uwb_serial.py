@@ -23,6 +23,7 @@ from mapd.commands.daemon import render_status
 from mapd.envelope import Envelope
 from mapd.errors import StateError, TransportError
 from mapd.grid import Pose2D
+from mapd.identity import Identity, Roster
 from transports.base import (
     Delivered,
     Failed,
@@ -68,7 +69,15 @@ class Robot:
     """A transport plus the events it emitted."""
 
     def __init__(
-        self, name: str, port: str, *, key: bytes | None = None, state: Path | None = None, **kw: Any
+        self,
+        name: str,
+        port: str,
+        *,
+        key: bytes | None = None,
+        state: Path | None = None,
+        identity: Identity | None = None,
+        roster: Roster | None = None,
+        **kw: Any,
     ):
         self.events: list[TransportEvent] = []
         self.name = name
@@ -79,6 +88,8 @@ class Robot:
             max_message_bytes=1 << 20,
             emit=self.events.append,
             state_dir=state,
+            identity=identity,
+            roster=roster if roster is not None else Roster.open(),
         )
         kw.setdefault("link_rate_bps", RATE)
         names = kw.pop("names", list(NODES))
@@ -310,10 +321,15 @@ def test_mapd_link_send_to_nobody_fails_cleanly(tmp_path: Path) -> None:
 
 
 def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> None:
+    """A signed fleet: beta signs its request with its own key, and alpha checks it."""
+    ids = {n: Identity.generate(n) for n in ("alpha", "beta")}
+    roster = Roster({n: i.public_key for n, i in ids.items()})
+
     async def main() -> None:
         async with FaultRelay(rate_bps=50_000, seed=4) as relay:
-            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"], link_rate_bps=50_000)
-            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], link_rate_bps=50_000)
+            kw: dict[str, Any] = {"names": ["alpha", "beta"], "link_rate_bps": 50_000, "roster": roster}
+            a = Robot("alpha", relay.ports[0], identity=ids["alpha"], **kw)
+            b = Robot("beta", relay.ports[1], identity=ids["beta"], **kw)
             async with started(a, b):
                 await b.t.request_keyframe("alpha")
                 await until(lambda: bool(a.of(KeyframeNeeded)), 10)
@@ -327,6 +343,7 @@ def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> 
                 assert not a.of(Received)
                 assert b.t.stats()["keyframe_requests_tx"] == 1
                 assert a.t.stats()["keyframe_requests_rx"] == 1
+                assert a.t.stats()["keyframe_requests_forged"] == 0
                 assert len(a.of(KeyframeNeeded)) == 1
 
     asyncio.run(main())

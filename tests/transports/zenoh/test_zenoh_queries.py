@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 import transports.zenoh.core as core_mod
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
+from transports import signed_requests
 from transports.base import KeyframeNeeded
 from transports.zenoh import queries
 from transports.zenoh.core import ZenohCore
@@ -89,7 +90,7 @@ def test_an_unsigned_fleet_heeds_unsigned_queries_once_each() -> None:
 
 
 def test_nonces_always_grow() -> None:
-    clock = queries.NonceClock()
+    clock = signed_requests.NonceClock()
     got = [clock.next(t) for t in (10, 10, 3, 50, 0, 1 << 70)]
     assert got == [10, 11, 12, 50, 51, (1 << 63) - 1]
     with pytest.raises(ValueError):
