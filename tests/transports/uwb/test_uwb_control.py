@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapd.commands.daemon import render_status
 from mapd.errors import ProtocolError
 from mapd.identity import Identity, Roster
 from transports.base import KeyframeNeeded, TransportContext
@@ -218,6 +219,9 @@ def test_a_request_not_signed_by_the_robot_its_link_id_names_is_not_heeded() -> 
     _feed(t, "c", _request_of("c", signed=True, nonce=7 * 10**17, fleet="other"))  # another fleet's
     assert events == [] and t.stats()["keyframe_requests_forged"] == 4
     assert t.stats()["keyframe_requests_rx"] == 4
+    # mapd status says so on a line of its own: the sender holds the fleet's link key.
+    shown = render_status({"links": {"uwb": t.stats()}}).splitlines()
+    assert any("FAULTS" in ln and "4 keyframe requests in another robot's name" in ln for ln in shown)
     # c's own, properly signed request still is heeded: the refusals cost c nothing.
     _feed(t, "c", _request_of("c", signed=True, nonce=7 * 10**17))
     assert events == [KeyframeNeeded("uwb", "c", "a")]
