@@ -28,6 +28,8 @@ def test_unit_asks_for_notify_watchdog_directories_and_hardening() -> None:
         assert s[key] == "mapd", key
     assert s["ProtectSystem"] == "strict" and s["NoNewPrivileges"] == "yes" and s["PrivateTmp"] == "yes"
     assert "dialout" in s["SupplementaryGroups"] and s["DevicePolicy"] == "closed"
+    # uwb TDMA counts slots on the wall clock: start once it is synchronized, where that is waited for
+    assert "time-sync.target" in unit()["Unit"]["After"].split()
     env = dict(kv.split("=", 1) for kv in s["Environment"].split())
     # numba may only write below CacheDirectory under ProtectSystem=strict, and install.sh warms it
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/mapd/")

@@ -332,6 +332,17 @@ class ArqEndpoint(SenderSide):
         self.counters.frames_tx += 1
         return out
 
+    def set_clock_offset(self, offset: float) -> None:
+        """The shared (wall) clock is now ``offset`` seconds ahead of the ``now`` passed in.
+
+        TDMA slots and the signing counters' clock check count on the wall clock. The adapter reads
+        it as it runs and passes a change here: NTP stepping the clock after the link started (a
+        robot that booted before it had a time source) would otherwise leave this robot's slots
+        where the old clock put them, over its neighbours'.
+        """
+        self.cfg = dataclasses.replace(self.cfg, clock_offset=offset)
+        self._mac.clock_offset = offset
+
     def get_timer(self) -> float | None:
         """When to call :meth:`handle_timer` (and :meth:`data_to_send`) next; None: only on input."""
         now = self._now

@@ -38,6 +38,13 @@ T = TypeVar("T")
 WRITE_STALL_S = 5.0
 #: How often a signing counter that could not be saved is tried again.
 COUNTER_RETRY_S = 1.0
+#: TDMA: the wall clock is read at least this often, so a step (NTP) moves the slots within it.
+CLOCK_CHECK_S = 1.0
+#: A change of the wall clock against the loop's smaller than this is NTP's slewing or scheduling
+#: jitter: followed, but not counted or logged as a step.
+CLOCK_STEP_S = 0.005
+#: Smaller changes than this are the two clocks read a few microseconds apart: not passed on.
+CLOCK_FOLLOW_S = 1e-4
 
 
 def port_error(port: str, exc: BaseException | None = None) -> TransportError:
@@ -102,8 +109,10 @@ class UwbLink:
         counter_store: CounterStore | None = None,
         reopen_s: float = 1.0,
         session: int | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.port = port
+        self._wall = wall_clock  # the clock TDMA slots are counted on (a test steps its own)
         self.baud = baud
         self.reopen_s = reopen_s
         self._on_event = on_event or (lambda e: None)
@@ -128,13 +137,16 @@ class UwbLink:
         #: Times the signing counter could not be saved (a full or read-only disk): the core signs
         #: on within the block saved before, then goes quiet until a save goes through.
         self.counter_save_errors = 0
+        #: Times the wall clock stepped (NTP) while the link ran; TDMA slots followed each step.
+        self.clock_steps = 0
+        self._clock_known = False
         self._counter_fault = ""
         self._counter_retry_at = 0.0
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
         if self._cfg.key is not None:
-            start = max(self._store.load(), clock_floor(time.time()))
+            start = max(self._store.load(), clock_floor(self._wall()))
             self._cfg = dataclasses.replace(self._cfg, counter_start=start)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
         self._persist_counter(strict=True)  # a state dir that cannot be written fails here
@@ -219,6 +231,7 @@ class UwbLink:
             reconnects=self.reconnects,
             write_stalls=self.write_stalls,
             counter_save_errors=self.counter_save_errors,
+            clock_steps=self.clock_steps,
             write_peak_bps_1s=round(self.write_peak_bps, 1),
         )
         return out
@@ -332,6 +345,18 @@ class UwbLink:
             return
         self._stall_logged = False
 
+    def _follow_clock(self, core: arq.ArqEndpoint, now: float) -> None:
+        """Pass the wall clock's offset from the loop's to the core when it moved (slew or step)."""
+        offset = self._wall() - now
+        moved = offset - core.cfg.clock_offset
+        first, self._clock_known = not self._clock_known, True
+        if abs(moved) < CLOCK_FOLLOW_S:
+            return
+        core.set_clock_offset(offset)
+        if abs(moved) >= CLOCK_STEP_S and not first:  # (a config built without the offset: no step)
+            self.clock_steps += 1
+            log.warning("uwb %s: the wall clock stepped %+.3f s; TDMA slots follow it", self.port, moved)
+
     async def _run(self) -> None:
         core = self.core
         assert core is not None
@@ -339,6 +364,7 @@ class UwbLink:
         while not self._closing:
             self._wake.clear()
             now = loop.time()
+            self._follow_clock(core, now)
             await self._maybe_reopen(now)
             timer = core.get_timer()
             if timer is not None and timer <= now:
@@ -365,6 +391,8 @@ class UwbLink:
                 wait = min(wait if wait is not None else self.reopen_s, self.reopen_s)
             if self._counter_fault:
                 wait = min(wait if wait is not None else COUNTER_RETRY_S, COUNTER_RETRY_S)
+            if self._cfg.mac == "tdma":
+                wait = min(wait if wait is not None else CLOCK_CHECK_S, CLOCK_CHECK_S)
             if self._wake.is_set():
                 continue
             with contextlib.suppress(TimeoutError):

@@ -5,6 +5,7 @@ keep its loop running, say so once, and carry on when the port does."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import os
@@ -542,3 +543,55 @@ def test_waiting_on_a_link_whose_loop_died_is_an_error_not_a_hang() -> None:
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCaptureFixture) -> None:
+    """A robot that booted before it had a time source gets its clock stepped after mapd started.
+    Its TDMA slots must move with the wall clock, or they sit over its neighbours' until a restart."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    step = [0.0]
+
+    def wall() -> float:
+        return time.time() + step[0]
+
+    slot, cycle = 0.2, 0.4  # two slots; ours is the first of each cycle
+    cfg = arq.ArqConfig(node_id=1, rate_bps=100_000.0, mac="tdma", slots=2, slot_s=slot, slot_index=0)
+
+    async def main() -> list[float]:
+        loop = asyncio.get_running_loop()
+        phases: list[float] = []
+        os.set_blocking(master, False)
+
+        def on_readable() -> None:
+            with contextlib.suppress(BlockingIOError):
+                if os.read(master, 1 << 16):
+                    phases.append(wall() % cycle)  # when our frame came out, on the robot's clock
+
+        loop.add_reader(master, on_readable)
+        lk = UwbLink(cfg, path, reopen_s=0.2, wall_clock=wall)
+        await lk.start()
+        try:
+            await asyncio.sleep(0.3)
+            step[0] = 0.1  # NTP steps the clock by half a slot
+            await until(lambda: abs(lk.core.cfg.clock_offset - (wall() - loop.time())) < 0.01, 3.0)
+            assert lk.stats()["clock_steps"] == 1
+            phases.clear()
+            lk.send(os.urandom(8000), [2], deadline_s=5.0)  # nobody acks: the first pass is enough
+            await asyncio.sleep(2.0)
+            return phases
+        finally:
+            loop.remove_reader(master)
+            await lk.close()
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+            phases = asyncio.run(main())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert len(phases) >= 10, phases
+    # Every frame in our slot of the stepped clock (plus a little for the pty and the scheduler).
+    # Counted on the old clock, half of them would fall in the other robot's slot.
+    assert max(phases) < slot + 0.03, sorted(phases)
+    assert any("the wall clock stepped +0.100 s" in r.getMessage() for r in caplog.records)
