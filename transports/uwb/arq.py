@@ -107,6 +107,12 @@ Pacing and access
       chunks still to send (``lending.py``), and sends nothing more in that slot; the peer it named
       may send until the slot's end, if the LEND names the slot it arrived in. So one robot still
       sends per slot, and one with a large map is not held to 1/N of the channel while others idle.
+  R18. With TDMA, a frame of another node that was certainly on the air during this node's own
+      slot (one it did not lend) is counted ``out_of_turn``. Its bytes end at ``now``, at most
+      ``rx_slack_s`` after the frame ended on the air, and it lasted at least its bytes' airtime, so
+      it was on the air throughout ``[now - airtime, now - rx_slack_s]``. Such frames collide with
+      this node's own: the robots' clocks disagree by more than the guard, or two were given one
+      slot. The adapter shows the count on ``mapd status``'s FAULTS line.
 """
 
 from __future__ import annotations
@@ -176,6 +182,7 @@ class ArqEndpoint(SenderSide):
         self._rng = random.Random(seed)
         # A keyed link's frames end with their signature, which is their check too: no CRC.
         self._crc = not config.key
+        self._out_of_turn_from: int | None = None  # R18: the link id last heard in our own slot
         self._reader = FrameReader(config.max_frame, crc=self._crc)
         # Two frames deep, so a late wake-up can catch up; the 1 s window still bounds every second.
         self._pacer = Pacer(config.rate_bps, 2 * config.max_frame)
@@ -453,6 +460,8 @@ class ArqEndpoint(SenderSide):
         out["fec_proactive"] = round(self._proactive, 3)  # parity sent with a first pass, per chunk
         out["peak_bps_1s"] = round(8 * self._pacer.peak_window_bytes / self._pacer.window, 1)
         out["link_rate_bps"] = self.cfg.rate_bps
+        if self._out_of_turn_from is not None:
+            out["out_of_turn_from"] = self._out_of_turn_from  # the link id last heard out of turn
         out["in_flight"] = len(self._out)
         out["rx_held_bytes"] = self._rx_held
         out["peers_up"] = len(self.peers_up())
@@ -482,6 +491,11 @@ class ArqEndpoint(SenderSide):
         if frame.src == self.node:
             self.counters.own_id += 1  # another node uses our id, or the medium echoes
             return
+        if self.cfg.mac == "tdma":  # R18
+            airtime = (len(body) + 2) * self._mac.byte_time  # (the delimiter and COBS add at least 2)
+            if self._mac.in_own_slot(now - airtime, now - self.cfg.rx_slack_s):
+                self.counters.out_of_turn += 1
+                self._out_of_turn_from = frame.src
         peer = self._peer_for(frame, now)
         if peer is None:
             return

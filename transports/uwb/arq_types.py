@@ -57,6 +57,10 @@ class ArqConfig:
     slot_index: int = 0
     guard_s: float = 0.01
     clock_offset: float = 0.0
+    #: TDMA: how late a frame's bytes may reach this node after the frame's end on the air (the
+    #: radio's serial line, at the port's baud): R18 counts a frame out of turn only when it was
+    #: certainly on the air in this node's own slot.
+    rx_slack_s: float = 0.025
     sense_s: float = 0.02
     backoff_min_s: float = 0.0
     backoff_max_s: float = 0.1
@@ -206,6 +210,9 @@ class ArqCounters:
     own_id: int = 0
     rejected: int = 0
     hash_errors: int = 0
+    #: TDMA (R18): frames of others certainly on the air in this node's own slot (clocks disagree,
+    #: or two robots were given one slot).
+    out_of_turn: int = 0
     evicted: int = 0
     superseded: int = 0
     #: COMPLETEs heard for a message after a newer one on its stream superseded it (still delivered).

@@ -184,6 +184,19 @@ class MediumAccess:
             return 0.0
         return max(0.0, (k + 1) * self.slot_s - self.guard_s - (now + self.clock_offset))
 
+    def in_own_slot(self, t0: float, t1: float) -> bool:
+        """Whether the interval ``[t0, t1]`` (loop times) overlaps this robot's own TDMA slot, one
+        it did not lend, before the slot's guard."""
+        if self.mode != "tdma" or not (math.isfinite(t0) and math.isfinite(t1)) or t1 < t0:
+            return False
+        for k in range(self.slot_number(t0), self.slot_number(t1) + 1):
+            if k % self.slots != self.slot_index or k == self._lent:
+                continue
+            start = k * self.slot_s - self.clock_offset
+            if t1 > start and t0 < start + self.slot_s - self.guard_s:
+                return True
+        return False
+
     def lend(self, now: float) -> None:
         """The rest of the own slot at ``now`` is lent: send nothing more in it."""
         self._lent = self.slot_number(now)
