@@ -22,7 +22,6 @@ import resource
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -246,31 +245,28 @@ def _zstd_zeros(n: int) -> bytes:
     return b"".join([c.compress(bytes(1 << 20)) for _ in range(n >> 20)] + [c.flush()])
 
 
-def _peak_of_record_info(path: Path) -> tuple[subprocess.CompletedProcess[str], float]:
-    """``mapd record info PATH`` and that child's own peak resident memory (MiB).
+# Runs a command as its child and writes the child's peak resident memory (KiB) to a file.
+_PEAK = (
+    "import resource, subprocess, sys; p = subprocess.run(sys.argv[2:]); "
+    "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); "
+    "sys.exit(p.returncode)"
+)
 
-    The peak comes from ``wait4`` on the child itself. The children's rusage of this process is the
-    largest of any child reaped so far, and a daemon an earlier test on the same worker started,
-    reaped meanwhile, made that 490 MiB once.
+
+def _peak_of_record_info(path: Path) -> tuple[subprocess.CompletedProcess[str], float]:
+    """``mapd record info PATH`` and its peak resident memory (MiB).
+
+    A process's peak starts from the memory of the process it was forked from: Linux keeps the
+    high-water mark across exec, and a pytest worker is hundreds of MiB by then (490 and 820 MiB
+    were read as mapd's, with the children's rusage and with ``wait4`` alike). So mapd is started
+    by a small Python process of its own, which reports its child's peak.
     """
-    args = [*MAPD, "record", "info", str(path)]
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(args, stdout=out, stderr=err, cwd=ROOT)
-        deadline = time.monotonic() + 60
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.monotonic() > deadline:
-                proc.kill()
-                os.wait4(proc.pid, 0)
-                raise AssertionError("mapd record info did not end within 60 s")
-            time.sleep(0.02)
-        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
-        out.seek(0)
-        err.seek(0)
-        done = subprocess.CompletedProcess(args, proc.returncode, out.read().decode(), err.read().decode())
-    return done, usage.ru_maxrss / 1024.0
+    peak_file = path.with_suffix(".peak")
+    out = subprocess.run(
+        [sys.executable, "-c", _PEAK, str(peak_file), *MAPD, "record", "info", str(path)],
+        capture_output=True, text=True, timeout=60, cwd=ROOT,
+    )  # fmt: skip
+    return out, int(peak_file.read_text()) / 1024.0
 
 
 def test_a_zstd_chunk_declaring_gigabytes_is_refused_unread(tmp_path: Path) -> None:
