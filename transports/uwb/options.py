@@ -82,6 +82,15 @@ class UwbOptions(TransportOptions):
     )
     slot_index: int | None = Field(default=None, ge=0, description="tdma: own slot; default rank of node_id")
     guard_ms: float = Field(default=10.0, ge=0, description="tdma: quiet time at the end of a slot")
+    rx_latency_ms: float | None = Field(
+        default=None,
+        ge=0,
+        le=10_000,
+        description="tdma: longest time from a frame's end on the air to its last byte at the port; "
+        "default 10 bits a byte of max_frame at baud plus 5 ms. Frames of others heard in this "
+        "robot's own slot are counted (out_of_turn) only past it: raise it if a radio that buffers "
+        "makes out_of_turn count while the clocks agree",
+    )
     sense_ms: float = Field(default=20.0, ge=0, description="backoff: channel idle time before a backoff")
     backoff_min_ms: float = Field(default=0.0, ge=0, description="backoff: shortest random wait")
     backoff_max_ms: float = Field(default=100.0, ge=0, description="backoff: longest random wait")
@@ -122,6 +131,13 @@ class UwbOptions(TransportOptions):
         ):
             raise ValueError("tdma: a max_frame frame does not fit in slot_ms - guard_ms at link_rate_bps")
         return self
+
+    @property
+    def rx_latency_s(self) -> float:
+        """``rx_latency_ms`` in seconds, or by default a max_frame frame's time on the serial line."""
+        if self.rx_latency_ms is not None:
+            return self.rx_latency_ms / 1000
+        return 10 * self.max_frame / self.baud + 0.005
 
     @property
     def slot_length_ms(self) -> float:

@@ -128,8 +128,7 @@ class UwbTransport(Transport):
             lend=o.lend,
             guard_s=o.guard_ms / 1000,
             clock_offset=time.time() - loop.time(),
-            # a frame's bytes come over the serial line after it ends on the air: 10 bits a byte
-            rx_slack_s=10 * o.max_frame / o.baud + 0.005,
+            rx_slack_s=o.rx_latency_s,
             check_counter_clock=True,
             sense_s=o.sense_ms / 1000,
             backoff_min_s=o.backoff_min_ms / 1000,

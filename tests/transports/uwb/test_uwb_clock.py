@@ -69,3 +69,23 @@ def test_the_core_follows_a_clock_that_moved() -> None:
     assert e._mac.ready_at(10, 0.7) == pytest.approx(3 * SLOT)  # 0.7 s is robot 2's turn: wait
     e.set_clock_offset(-0.7)  # the wall clock was stepped back: 0.7 s of the loop is now 0.0
     assert e._mac.ready_at(10, 0.7) == 0.7 and e.cfg.clock_offset == -0.7
+
+
+def test_the_rx_latency_is_a_frames_time_on_the_serial_line_unless_configured() -> None:
+    import asyncio
+
+    from transports.base import TransportContext
+    from transports.uwb.transport import UwbOptions, UwbTransport
+
+    def slack(**kw: object) -> float:
+        ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
+        t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}, mac="tdma", **kw), ctx)  # type: ignore[arg-type]
+        loop = asyncio.new_event_loop()
+        try:
+            return t._config(loop).rx_slack_s
+        finally:
+            loop.close()
+
+    assert slack() == pytest.approx(10 * 224 / 115200 + 0.005)  # 24.4 ms at the default baud
+    assert slack(baud=921600) == pytest.approx(10 * 224 / 921600 + 0.005)
+    assert slack(rx_latency_ms=60.0) == pytest.approx(0.060)  # a radio that buffers more
