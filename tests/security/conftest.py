@@ -43,6 +43,16 @@ def measure(code: str, timeout: float = 300) -> dict[str, Any]:
         import json, resource, sys, time
 
         def peak_mb():
+            # VmHWM: this process's own high-water mark since exec. ru_maxrss keeps the one of the
+            # process it was forked from (a pytest worker of hundreds of MiB), which would hide
+            # every peak below it.
+            try:
+                with open("/proc/self/status") as f:
+                    for line in f:
+                        if line.startswith("VmHWM:"):
+                            return int(line.split()[1]) / 1024.0
+            except OSError:
+                pass
             return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
         def report(**kw):
