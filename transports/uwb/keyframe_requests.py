@@ -6,7 +6,7 @@ over UWB it is this small message, sent reliably like any other, to the link ids
 named::
 
     b"MKFR" | version 2 (one byte) | nonce (u64, big-endian) | signature length (one byte: 0 or 64)
-           | signature | robot names, UTF-8, separated by b"\n"
+           | signature | robot names, UTF-8, separated by b"\\n"
 
 A request makes each robot it names forget the asker's delta base and send its next map whole, a
 keyframe's bytes on the shared channel. The frame's link tag proves only that the sender holds the
