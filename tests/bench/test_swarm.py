@@ -36,6 +36,7 @@ def _run(fleet: Fleet, tmp_path: Path, **kw: Any) -> dict[str, Any]:
     row["accepted_log"] = res.accepted
     row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
     row["robot_tx"] = [r.arq.counters.data_tx for r in res.robots]
+    row["out_of_turn"] = sum(r.arq.counters.out_of_turn for r in res.robots)
     return row
 
 
@@ -394,3 +395,17 @@ def test_log_slices_make_streams_with_poses(intel_log: Path, tmp_path: Path) -> 
     assert len(starts) == 3  # each robot starts where its slice of the log does
     again = load_fleet(cache=tmp_path, n=3, period=30.0, duration=90.0, log=intel_log)
     assert again.robots[1].times == fleet.robots[1].times  # from the cache
+
+
+def test_clocks_that_disagree_past_the_guard_collide_and_are_heard_out_of_turn(
+    swarm: SimpleNamespace, tmp_path: Path
+) -> None:
+    """TDMA counts its slots on each robot's clock: within the guard (10 ms) they never overlap;
+    a third of a slot apart they collide, and the robots count frames heard in their own slot (R18)."""
+    robots = [_heavy_stream(0, (0.0, 0.0))] + [swarm.stream(i, (2.0 * i, 0.0)) for i in range(1, 4)]
+    fleet = Fleet(robots, None, "test")
+    rows = {skew: _run(fleet, tmp_path, mac="tdma", clock_skew_s=skew) for skew in (0.0, 0.008, 0.4)}
+    for skew in (0.0, 0.008):
+        assert rows[skew]["collided"] == 0 and rows[skew]["out_of_turn"] == 0, skew
+    assert rows[0.4]["collided"] > 0 and rows[0.4]["out_of_turn"] > 0
+    assert rows[0.4]["stale_p95_s"] > rows[0.0]["stale_p95_s"]

@@ -26,6 +26,7 @@ COLUMNS = [
     ("fec", "fec", ""),
     ("hold", "hold", ""),
     ("arrival", "arrival", ""),
+    ("clock_skew_ms", "skew ms", "g"),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -39,6 +40,7 @@ COLUMNS = [
     ("bps_per_robot", "bit/s/robot", ".0f"),
     ("x_coded", "x coded", ".1f"),
     ("collided", "collided", ""),
+    ("out_of_turn", "out of turn", ""),
     ("lost", "lost", ""),
     ("degree", "hears", ".1f"),
     ("robot_hears_all", "hears all", ".1%"),
@@ -189,6 +191,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "daemon before P6), or nothing",
     )
     p.add_argument(
+        "--clock-skew",
+        type=float,
+        nargs="+",
+        default=[0.0],
+        metavar="MS",
+        help="how far the robots' clocks disagree, in ms: each is off by a seeded draw within half "
+        "of it either way (TDMA counts its slots on them; default 0, one clock); several: a run each",
+    )
+    p.add_argument(
         "--slot-ms",
         type=float,
         default=None,
@@ -259,6 +270,10 @@ def run(args: argparse.Namespace) -> int:
             args.plot.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"{args.plot}: cannot write the plot: {exc.strerror or exc}") from None
+    if not all(0 <= k <= 3_600_000 for k in args.clock_skew):
+        raise SourceError(
+            f"--clock-skew {' '.join(f'{k:g}' for k in args.clock_skew)}: each in 0 .. 3600000 ms"
+        )
     if not all(r > 0 for r in args.range_m):
         raise SourceError(f"--range {' '.join(f'{r:g}' for r in args.range_m)}: each must be above 0 m")
     if args.keyframe_every is not None and args.keyframe_every < 1:
@@ -282,7 +297,7 @@ def run(args: argparse.Namespace) -> int:
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
             combos = [
-                (rg, m, a, le, f, h, ar, sd)
+                (rg, m, a, le, f, h, ar, sk, sd)
                 for rg in dict.fromkeys(args.range_m)
                 for m in args.mac
                 for a in dict.fromkeys(args.ack_mode)
@@ -290,16 +305,17 @@ def run(args: argparse.Namespace) -> int:
                 for f in args.fec
                 for h in args.hold
                 for ar in dict.fromkeys(args.arrival)
+                for sk in dict.fromkeys(args.clock_skew)
                 for sd in dict.fromkeys(args.seed)
             ]
-            for range_m, mac, ack_mode, lend, fec, hold, arrival, seed in combos:
+            for range_m, mac, ack_mode, lend, fec, hold, arrival, skew, seed in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=range_m,
                     mac=mac, signed=not args.unsigned, seed=seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
-                    hold=hold == "on", arrival=arrival,
+                    hold=hold == "on", arrival=arrival, clock_skew_s=skew / 1000.0,
                     **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
@@ -314,16 +330,18 @@ def run(args: argparse.Namespace) -> int:
                 row["hold"] = hold
                 row["arrival"] = arrival
                 row["seed"] = seed
+                row["clock_skew_ms"] = skew
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
+                row["out_of_turn"] = sum(r.arq.counters.out_of_turn for r in res.robots)
                 rows.append(row)
                 print(
                     f"swarm: {n} robots, range {range_m:g} m, {codec}, {mac}, acks {ack_mode}, lend {lend}, "
-                    f"fec {fec}, hold {hold}, arrival {arrival}, seed {seed}: "
+                    f"fec {fec}, hold {hold}, arrival {arrival}, skew {skew:g} ms, seed {seed}: "
                     f"{res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-                if args.bound and (mac, ack_mode, lend, fec, hold, arrival) == combos[0][1:7]:
+                if args.bound and (mac, ack_mode, lend, fec, hold, arrival, skew) == combos[0][1:8]:
                     bounds += _bounds(fleet, payloads, cfg)  # the bound ignores the publisher's settings
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
@@ -367,7 +385,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 #: What sets a row apart, besides its fleet size and seed.
-_SETTINGS = ("range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival")
+_SETTINGS = ("range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival", "clock_skew_ms")
 
 
 def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:

@@ -75,6 +75,9 @@ class SwarmConfig:
     #: Each robot starts at a random moment in [0, start_spread) (default: one period), so robots do
     #: not make versions, or start sending, in lockstep (perfectly equal timers would collide forever).
     start_spread: float | None = None
+    #: How far the robots' clocks may disagree (TDMA counts slots on them): each robot's is off by a
+    #: seeded draw in [-clock_skew_s / 2, clock_skew_s / 2]. 0: one clock, as the daemon assumes.
+    clock_skew_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,8 @@ class Swarm:
         )
         self.accepted: AcceptLog = []
         self.timeline = tl = Timeline.draw(fleet, config)
+        skew = random.Random(f"clock-{config.seed}")  # its own draws: a run without skew is unchanged
+        self._clocks = [skew.uniform(-0.5, 0.5) * config.clock_skew_s for _ in range(n)]
         relay = RELAYS[config.relay]()
         acks = ACK_SCOPES[config.acks]()
         self.robots = [
@@ -198,6 +203,7 @@ class Swarm:
             acks=c.ack_mode,  # type: ignore[arg-type]  # checked by ArqConfig
             lend=c.lend,
             fec=c.fec,
+            clock_offset=self._clocks[i],
         )
 
     # --- the run --------------------------------------------------------------------------------
