@@ -401,7 +401,8 @@ def test_clocks_that_disagree_past_the_guard_collide_and_are_heard_out_of_turn(
     swarm: SimpleNamespace, tmp_path: Path
 ) -> None:
     """TDMA counts its slots on each robot's clock: within the guard (10 ms) they never overlap;
-    a third of a slot apart they collide, and the robots count frames heard in their own slot (R18)."""
+    two thirds of a slot apart they collide, and the robots count frames heard in their own slot
+    (R18)."""
     robots = [_heavy_stream(0, (0.0, 0.0))] + [swarm.stream(i, (2.0 * i, 0.0)) for i in range(1, 4)]
     fleet = Fleet(robots, None, "test")
     rows = {skew: _run(fleet, tmp_path, mac="tdma", clock_skew_s=skew) for skew in (0.0, 0.008, 0.4)}
@@ -409,3 +410,6 @@ def test_clocks_that_disagree_past_the_guard_collide_and_are_heard_out_of_turn(
         assert rows[skew]["collided"] == 0 and rows[skew]["out_of_turn"] == 0, skew
     assert rows[0.4]["collided"] > 0 and rows[0.4]["out_of_turn"] > 0
     assert rows[0.4]["stale_p95_s"] > rows[0.0]["stale_p95_s"]
+    # A guard as long as the disagreement keeps the turns apart again, at the cost of airtime.
+    guarded = _run(fleet, tmp_path, mac="tdma", clock_skew_s=0.4, guard_s=0.45)
+    assert guarded["collided"] == 0 and guarded["out_of_turn"] == 0

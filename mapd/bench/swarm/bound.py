@@ -86,7 +86,11 @@ class Bound:
         n = self.n = len(fleet.robots)
         self.timeline = Timeline.draw(fleet, config)  # the real run's start phases and versions
         self.made = self.timeline.made
-        self.slot_s = config.slot_s if config.slot_s is not None else default_slot_s(config.rate_bps)
+        self.slot_s = (
+            config.slot_s
+            if config.slot_s is not None
+            else default_slot_s(config.rate_bps, guard_s=config.guard_s)
+        )
         probe = arq.ArqEndpoint(
             arq.ArqConfig(node_id=1, rate_bps=config.rate_bps, key=bytes(32) if config.signed else None),
             session=0,

@@ -191,6 +191,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "daemon before P6), or nothing",
     )
     p.add_argument(
+        "--guard-ms",
+        type=float,
+        default=10.0,
+        help="tdma: quiet time at the end of each slot, added to the default slot (default 10, the "
+        "daemon's guard_ms)",
+    )
+    p.add_argument(
         "--clock-skew",
         type=float,
         nargs="+",
@@ -270,6 +277,8 @@ def run(args: argparse.Namespace) -> int:
             args.plot.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"{args.plot}: cannot write the plot: {exc.strerror or exc}") from None
+    if not 0 <= args.guard_ms <= 1000:
+        raise SourceError(f"--guard-ms {args.guard_ms:g}: must be in 0 .. 1000 ms")
     if not all(0 <= k <= 3_600_000 for k in args.clock_skew):
         raise SourceError(
             f"--clock-skew {' '.join(f'{k:g}' for k in args.clock_skew)}: each in 0 .. 3600000 ms"
@@ -316,6 +325,7 @@ def run(args: argparse.Namespace) -> int:
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
                     hold=hold == "on", arrival=arrival, clock_skew_s=skew / 1000.0,
+                    guard_s=args.guard_ms / 1000.0,
                     **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
                 res = Swarm(fleet, payloads, cfg).run()
@@ -367,6 +377,7 @@ def run(args: argparse.Namespace) -> int:
         "relay": args.relay,
         "acks": args.acks,
         "slot_ms": args.slot_ms,
+        "guard_ms": args.guard_ms,
         "inflight_s": args.inflight_s,
         "keyframe_every": args.keyframe_every or SwarmConfig().keyframe_every,
         "wall_s": time.perf_counter() - t_all,

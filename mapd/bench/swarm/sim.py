@@ -78,6 +78,9 @@ class SwarmConfig:
     #: How far the robots' clocks may disagree (TDMA counts slots on them): each robot's is off by a
     #: seeded draw in [-clock_skew_s / 2, clock_skew_s / 2]. 0: one clock, as the daemon assumes.
     clock_skew_s: float = 0.0
+    #: TDMA: the quiet time at the end of each slot (the daemon's ``guard_ms``), which the default
+    #: slot adds to its frames' time.
+    guard_s: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -196,7 +199,8 @@ class Swarm:
             rate_bps=c.rate_bps,
             mac="none" if mac == "none" else "tdma" if mac == "tdma" else "backoff",
             slots=self.n,
-            slot_s=c.slot_s if c.slot_s is not None else default_slot_s(c.rate_bps),
+            slot_s=c.slot_s if c.slot_s is not None else default_slot_s(c.rate_bps, guard_s=c.guard_s),
+            guard_s=c.guard_s,
             slot_index=i,
             key=SIM_KEY if c.signed else None,
             max_peers=max(64, self.n),
