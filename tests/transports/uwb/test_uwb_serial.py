@@ -595,3 +595,25 @@ def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCa
     # Counted on the old clock, half of them would fall in the other robot's slot.
     assert max(phases) < slot + 0.03, sorted(phases)
     assert any("the wall clock stepped +0.100 s" in r.getMessage() for r in caplog.records)
+
+
+def test_two_robots_given_one_tdma_slot_see_each_other_out_of_turn() -> None:
+    """A fleet whose configs disagree (here both robots set slot_index 0) sends over itself. Over the
+    emulated radio each robot hears the other in its own slot (R18) and `mapd status` says so."""
+
+    async def main() -> None:
+        async with FaultRelay(rate_bps=12_500, seed=5) as relay:
+            kw: dict[str, Any] = {
+                "names": ["alpha", "beta"], "link_rate_bps": 12_500, "mac": "tdma", "slot_index": 0,
+            }  # fmt: skip
+            a = Robot("alpha", relay.ports[0], **kw)
+            b = Robot("beta", relay.ports[1], **kw)
+            async with started(a, b):
+                a.t.offer(envelope("alpha", 2, 3000))  # some twenty frames each way
+                b.t.offer(envelope("beta", 2, 3000))
+                await until(lambda: a.t.stats()["out_of_turn"] > 0 and b.t.stats()["out_of_turn"] > 0, 20)
+                assert a.t.stats()["out_of_turn_from"] == NODES["beta"]
+                shown = render_status({"links": {"uwb": a.t.stats()}})
+                assert "FAULTS" in shown and "own TDMA slot (do the clocks agree?)" in shown
+
+    asyncio.run(main())
