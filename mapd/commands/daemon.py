@@ -160,6 +160,7 @@ def _num(v: Any, spec: str = ".1f") -> str:
 #: A link's figures that mean something is wrong when not zero (``port_open``: when false).
 LINK_FAULTS = {
     "port_open": "serial port closed (reopening)",
+    "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
@@ -174,7 +175,7 @@ def _link_faults(st: dict[str, Any]) -> list[str]:
     out = []
     for k, words in LINK_FAULTS.items():
         v = st.get(k)
-        if k == "port_open":
+        if k in ("port_open", "clock_synchronized"):
             if v is False:
                 out.append(words)
         elif isinstance(v, int) and v > 0:

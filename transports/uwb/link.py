@@ -22,7 +22,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 from mapd.errors import MapdError, StateError, TransportError
-from transports.uwb import arq
+from transports.uwb import arq, wallclock
 from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import CounterStore, clock_floor
 
@@ -149,6 +149,12 @@ class UwbLink:
             start = max(self._store.load(), clock_floor(self._wall()))
             self._cfg = dataclasses.replace(self._cfg, counter_start=start)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
+        if self._cfg.mac == "tdma" and wallclock.synchronized() is False:
+            log.warning(
+                "uwb %s: the kernel says the wall clock is not synchronized; TDMA turns need the "
+                "fleet's clocks to agree within guard_ms (run chrony: docs/uwb.md)",
+                self.port,
+            )
         self._persist_counter(strict=True)  # a state dir that cannot be written fails here
         await self._open()
         self.started_at = asyncio.get_running_loop().time()
@@ -225,6 +231,10 @@ class UwbLink:
 
     def stats(self) -> dict[str, Any]:
         out = self.core.stats() if self.core is not None else {}
+        if self._cfg.mac == "tdma":
+            synced = wallclock.synchronized()  # one syscall; status asks now and then
+            if synced is not None:
+                out["clock_synchronized"] = synced
         out.update(
             port=self.port,
             port_open=self._proto is not None and not self._proto.lost,

@@ -89,3 +89,34 @@ def test_the_rx_latency_is_a_frames_time_on_the_serial_line_unless_configured() 
     assert slack() == pytest.approx(10 * 224 / 115200 + 0.005)  # 24.4 ms at the default baud
     assert slack(baud=921600) == pytest.approx(10 * 224 / 921600 + 0.005)
     assert slack(rx_latency_ms=60.0) == pytest.approx(0.060)  # a radio that buffers more
+
+
+def test_the_kernels_word_on_the_clock_is_read_without_changing_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from transports.uwb import wallclock
+
+    got = wallclock.synchronized()  # the real call: asks, changes nothing (no privilege needed)
+    assert isinstance(got, bool) if sys.platform.startswith("linux") else got is None
+    for state, said in ((0, True), (1, True), (wallclock.TIME_ERROR, False), (-1, None)):
+        monkeypatch.setattr(wallclock, "_adjtimex", lambda buf, s=state: s)
+        assert wallclock.synchronized() is said, state
+    monkeypatch.setattr(wallclock, "_adjtimex", None)  # not Linux
+    assert wallclock.synchronized() is None
+
+
+@pytest.mark.parametrize("synced", [True, False])
+def test_a_tdma_link_says_whether_its_clock_is_synchronized(
+    monkeypatch: pytest.MonkeyPatch, synced: bool
+) -> None:
+    from transports.uwb import wallclock
+    from transports.uwb.link import UwbLink
+
+    monkeypatch.setattr(wallclock, "synchronized", lambda: synced)
+    tdma = UwbLink(ArqConfig(node_id=1, mac="tdma", slots=2), "/dev/mapd-test-none").stats()
+    assert tdma["clock_synchronized"] is synced
+    faults = [ln for ln in render_status({"links": {"uwb": tdma}}).splitlines() if "FAULTS" in ln]
+    said = any("wall clock not synchronized (TDMA turns need it: chrony)" in ln for ln in faults)
+    assert said is not synced
+    # A link without TDMA does not count on the clock: nothing said.
+    assert "clock_synchronized" not in UwbLink(ArqConfig(node_id=1), "/dev/mapd-test-none").stats()
