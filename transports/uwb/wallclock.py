@@ -11,7 +11,6 @@ status``, on the FAULTS line when it is no, before the collisions it leads to sh
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import sys
 
 #: adjtimex's return value while the clock is not synchronized (linux/timex.h).
@@ -22,7 +21,8 @@ _TIMEX_BYTES = 512
 _adjtimex = None
 if sys.platform.startswith("linux"):
     try:
-        _libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        # the process's own symbols, libc's among them (find_library would run ldconfig)
+        _libc = ctypes.CDLL(None, use_errno=True)
         _adjtimex = _libc.adjtimex
     except (OSError, AttributeError):
         _adjtimex = None
