@@ -127,6 +127,8 @@ class FusionWorker:
         #: state directory at start are left out, as :meth:`forget` leaves them out later.
         self._admits = admits or (lambda robot: True)
         self.forgotten = 0
+        self._merging = False  # a merge runs on a worker thread (_merge_once)
+        self._forget_later: list[str] = []  # robots revoked meanwhile (forget)
 
     # -- the daemon's side ------------------------------------------------------------------
 
@@ -171,6 +173,21 @@ class FusionWorker:
             raise FusionError("a robot cannot take its own map out of its global map")
         held = robot in self._latest or robot in self._placements or robot in self._restored_robots
         self._latest.pop(robot, None)
+        if self._merging:
+            # A merge that began with its map runs on a worker thread, with the placer: the robot
+            # is forgotten there once it is back, and its result, which still holds the map, is
+            # thrown away (_merge_once), so no global map with it goes out after the revocation.
+            self._forget_later.append(robot)
+        else:
+            self._forget_placement(robot)
+        if held:
+            self.forgotten += 1
+            self._bounds = None
+            self._wake.set()
+        return held
+
+    def _forget_placement(self, robot: str) -> None:
+        """The placement half of :meth:`forget`, on the event loop's thread while no merge runs."""
         self._placements.pop(robot, None)
         again = self.placer.forget(robot)
         if robot == self.placer.anchor:
@@ -183,11 +200,6 @@ class FusionWorker:
             )
         if robot in self._restored_robots:
             self._drop_restored()
-        if held:
-            self.forgotten += 1
-            self._bounds = None
-            self._wake.set()
-        return held
 
     def _keep_fleet_frame(self, anchor: str) -> None:
         """The fleet frame was ``anchor``'s map frame (a base station's first robot, or
@@ -290,6 +302,7 @@ class FusionWorker:
 
     async def _merge_once(self, search: bool) -> None:
         maps = dict(self._latest)
+        self._merging = True
         try:
             fused = await asyncio.to_thread(self._fuse, maps, search)
         except MapdError as exc:
@@ -300,6 +313,13 @@ class FusionWorker:
             self._error = f"internal error: {type(exc).__name__}: {exc}"
             log.exception("fusion: merge failed")
             return
+        finally:
+            self._merging = False
+            revoked, self._forget_later = self._forget_later, []
+            for robot in revoked:
+                self._forget_placement(robot)
+        if revoked:
+            return  # it holds a revoked map: the next merge (woken by forget) goes without it
         self._apply(fused)
 
     def _fuse_and_publish_sync(self, search: bool) -> None:

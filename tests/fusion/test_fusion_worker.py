@@ -172,6 +172,44 @@ def test_a_revoked_robots_map_leaves_the_global_map(tmp_path: Path, fleet: dict[
     asyncio.run(main())
 
 
+def test_a_robot_revoked_while_a_merge_runs_is_in_no_global_map_after(
+    tmp_path: Path, fleet: dict[str, OccupancyGrid]
+) -> None:
+    """A merge runs on a worker thread with the maps it began with. Revoking a robot meanwhile
+    used to let that merge's result, with the revoked map in it, go out and show in the status
+    until the next merge (a SIGHUP test caught it)."""
+    import threading
+
+    cfg = FusionSection(debounce_s=0.0, poses={"a": [0.0, 0.0, 0.0], "b": [30.0, 0.0, 0.0]})
+    published: list[OccupancyGrid] = []
+
+    async def main() -> None:
+        w = FusionWorker("a", cfg, tmp_path, [published.append])
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        started, release = threading.Event(), threading.Event()
+        fuse = w._fuse
+
+        def slow_fuse(maps: dict[str, OccupancyGrid], search: bool):  # type: ignore[no-untyped-def]
+            started.set()
+            release.wait(10)
+            return fuse(maps, search)
+
+        w._fuse = slow_fuse  # type: ignore[method-assign]
+        merging = asyncio.create_task(w.merge_now())
+        await asyncio.to_thread(started.wait, 10)
+        assert w.forget("b")  # revoked while the merge with b's map runs
+        release.set()
+        await merging
+        assert published == [] and "b" not in w.status()["robots"]
+        w._fuse = fuse  # type: ignore[method-assign]
+        await w.merge_now()
+        assert len(published) == 1 and set(w.status()["robots"]) == {"a"}
+        assert _known(published[0]) == _known(fleet["a"])
+
+    asyncio.run(main())
+
+
 def test_a_robot_revoked_across_a_restart_leaves_no_cells_behind(
     tmp_path: Path, fleet: dict[str, OccupancyGrid]
 ) -> None:
