@@ -150,9 +150,6 @@ class _Robot:
     query_until: float | None = None
     #: A gap came while a query was in flight; its reply may predate it, so ask again at the end.
     regap: bool = False
-    #: The nonce of the last keyframe query heeded from this robot (kept by :meth:`forget`: a
-    #: restarted robot's nonces go on growing, see :class:`~transports.signed_requests.NonceClock`).
-    query_nonce: int = 0
 
     def forget(self) -> None:
         self.last = 0
@@ -191,6 +188,8 @@ class ZenohCore:
         self._offered_at: dict[int, float] = {}
         self._rtt = RttEstimator()
         self._nonces = signed_requests.NonceClock()
+        # The last query nonce heeded from each asker, as the uwb transport keeps its requests'.
+        self._fresh = signed_requests.Freshness()
         self._reply_tokens = float(REPLY_BURST)
         self._reply_at: float | None = None
         self.counters = CoreCounters()
@@ -385,10 +384,9 @@ class ZenohCore:
         st = self._state(asker)
         if st is None:  # no room for another robot (max_peers): it is no peer of ours either
             return Step()
-        if n <= st.query_nonce:
+        if not self._fresh.fresh(asker, n):
             self.counters.replayed += 1
             return Step()
-        st.query_nonce = n
         return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
 
     def may_reply(self, now: float, slot_free: bool = True) -> bool:
