@@ -30,7 +30,7 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   and :meth:`ZenohCore.may_reply <transports.zenoh.core.ZenohCore.may_reply>`).
 * **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
   decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
-  ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, HMAC-signed with the fleet key). The robot
+  ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, signed with the acking robot's Ed25519 key). The robot
   that sent it hears the ack and emits ``Delivered(peer=us, robot=it, version)``, which makes that
   version a delta base for us. Acks are only accepted for versions that robot actually offered.
 * **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
