@@ -239,7 +239,9 @@ class FusionWorker:
         """JSON-able state for ``mapd status``."""
         g = self._global
         robots: dict[str, Any] = {}
-        for name in sorted(set(self._latest) | set(self._placements)):
+        # A robot revoked while a merge runs keeps its placement until the merge is back; it is
+        # gone already for everyone who asks.
+        for name in sorted((set(self._latest) | set(self._placements)) - set(self._forget_later)):
             p = self._placements.get(name)
             entry = p.as_dict() if p is not None else Placement(name, reason="not merged yet").as_dict()
             grid = self._latest.get(name)
@@ -303,8 +305,18 @@ class FusionWorker:
     async def _merge_once(self, search: bool) -> None:
         maps = dict(self._latest)
         self._merging = True
+        job = asyncio.ensure_future(asyncio.to_thread(self._fuse, maps, search))
         try:
-            fused = await asyncio.to_thread(self._fuse, maps, search)
+            try:
+                fused = await asyncio.shield(job)
+            except asyncio.CancelledError:
+                # A thread cannot be stopped. Wait for it (once; a second cancel is not waited
+                # out), so that the stop's flush (run) never shares the placer with it, and it
+                # does not save a map after the flush has saved a newer one.
+                with contextlib.suppress(BaseException):
+                    await asyncio.wait({job})
+                    job.exception()  # retrieved: the flush that follows reports its own
+                raise
         except MapdError as exc:
             self._error = str(exc)
             log.warning("fusion: %s", exc)

@@ -187,6 +187,10 @@ def test_a_robot_revoked_while_a_merge_runs_is_in_no_global_map_after(
         w = FusionWorker("a", cfg, tmp_path, [published.append])
         w.submit(fleet["a"])
         w.submit(fleet["b"])
+        await w.merge_now()  # both merged once: b has a placement
+        assert set(w.status()["robots"]) == {"a", "b"}
+        published.clear()
+        w.submit(fleet["b"].replace(version=2))
         started, release = threading.Event(), threading.Event()
         fuse = w._fuse
 
@@ -199,6 +203,7 @@ def test_a_robot_revoked_while_a_merge_runs_is_in_no_global_map_after(
         merging = asyncio.create_task(w.merge_now())
         await asyncio.to_thread(started.wait, 10)
         assert w.forget("b")  # revoked while the merge with b's map runs
+        assert "b" not in w.status()["robots"]  # gone for whoever asks, though the merge still runs
         release.set()
         await merging
         assert published == [] and "b" not in w.status()["robots"]
@@ -208,6 +213,55 @@ def test_a_robot_revoked_while_a_merge_runs_is_in_no_global_map_after(
         assert _known(published[0]) == _known(fleet["a"])
 
     asyncio.run(main())
+
+
+def test_a_stop_during_a_merge_waits_for_it_before_the_last_merge(
+    tmp_path: Path, fleet: dict[str, OccupancyGrid]
+) -> None:
+    """A stop cancels the worker while a merge runs on its thread; the stop then merges what is
+    pending. That last merge used to start at once, beside the thread it could not stop: two merges
+    shared the placer, and the older one saved its global map (here with a revoked robot) after
+    the newer one, so the state directory held the revoked map after the stop."""
+    import threading
+
+    cfg = FusionSection(debounce_s=0.0, poses={"a": [0.0, 0.0, 0.0], "b": [30.0, 0.0, 0.0]})
+    guard = threading.Lock()
+    active = [0, 0]  # merges on threads now, most at once
+
+    async def main() -> FusionWorker:
+        w = FusionWorker("a", cfg, tmp_path)
+        started, release = threading.Event(), threading.Event()
+        fuse = w._fuse
+
+        def slow_fuse(maps: dict[str, OccupancyGrid], search: bool):  # type: ignore[no-untyped-def]
+            with guard:
+                active[0] += 1
+                active[1] = max(active)
+            try:
+                started.set()
+                release.wait(10)
+                return fuse(maps, search)
+            finally:
+                with guard:
+                    active[0] -= 1
+
+        w._fuse = slow_fuse  # type: ignore[method-assign]
+        task = asyncio.create_task(w.run())
+        w.submit(fleet["a"])
+        w.submit(fleet["b"])
+        await asyncio.to_thread(started.wait, 10)
+        assert w.forget("b")  # revoked while the merge with b's map runs; the stop comes next
+        task.cancel()
+        threading.Timer(0.5, release.set).start()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return w
+
+    w = asyncio.run(main())
+    assert active[1] == 1  # never two merges at once
+    assert w.global_map is not None and _known(w.global_map) == _known(fleet["a"])
+    on_disk = load_map(tmp_path / GLOBAL_YAML)
+    assert _known(on_disk) == _known(fleet["a"])  # the last map saved is the one without b
 
 
 def test_a_robot_revoked_across_a_restart_leaves_no_cells_behind(
