@@ -96,10 +96,7 @@ class Inbound:
             if ev.robot == self.me and core.on_air(ev.transport, ev.version, time.monotonic()):
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever
         elif isinstance(ev, KeyframeNeeded | PeerRestarted):
-            # The peer may not hold our base any more: the next update goes out whole.
-            self.store.forget_acked(ev.peer)
-            if core.keyframe_needed(ev.peer):
-                self.wake()
+            self._lost_our_base(ev.peer)
         elif isinstance(ev, PeerUp | PeerDown):
             self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
             if isinstance(ev, PeerDown) and core.peer_gone(ev.transport, ev.peer):
@@ -111,6 +108,12 @@ class Inbound:
             if core.failed(ev.transport, ev.peer, ev.version):
                 self.wake()
             log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
+
+    def _lost_our_base(self, peer: str) -> None:
+        """``peer`` may not hold our base any more: the next update goes out whole (P4)."""
+        self.store.forget_acked(peer)
+        if self.publisher.keyframe_needed(peer):
+            self.wake()
 
     async def _save_base(self) -> None:
         peers = {p for t in self.transports for p in t.peers()}
@@ -132,6 +135,10 @@ class Inbound:
             log.info("dropped envelope from %s: %s", ev.peer, exc)
             return
         plan = rx.plan(env, ev.peer, time.time())
+        if isinstance(plan, Decode | AskKeyframe) and plan.new_incarnation:
+            # Its maps come from a new incarnation: it lost its state, so it lost ours too, also
+            # where its link cannot tell a restart (zenoh within its lease time).
+            self._lost_our_base(env.robot)
         transport = self.transport(ev.transport)
         if transport is not None and env.robot != ev.peer and env.sig:
             transport.relayed(env)  # another robot forwarded it: ours would repeat it

@@ -32,8 +32,9 @@ The rules:
   still keeps; so a peer that missed the last version or two does not turn the next one into a
   keyframe for the whole fleet. Peers with no version in common, or none at all, get a keyframe.
 * **P4 Keyframes on schedule and on demand.** Every ``keyframe_every``-th coded version is whole; a
-  peer that asks for a keyframe or restarts forgets its acks, and the newest version goes out whole
-  on every transport, also those that had it already.
+  peer that asks for a keyframe or restarts (its link says so, or its maps come from a new
+  incarnation: it lost its state) forgets its acks, and the newest version goes out whole on every
+  transport, also those that had it already.
 * **P5 The delta base survives restarts.** When every peer acked the same version, that version is
   the base to persist (:meth:`base_to_save`); it is kept in memory however old it gets.
 * **P6 A peer that comes into reach gets the newest version.** A link whose peers cannot fetch it

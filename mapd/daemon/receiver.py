@@ -76,6 +76,8 @@ class Decode:
     """Decode the envelope against ``base`` (None for a keyframe)."""
 
     base: OccupancyGrid | None
+    #: The robot started a new incarnation (it lost its state): it holds none of our maps either.
+    new_incarnation: bool = False
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,8 @@ class AskKeyframe:
     """A delta whose base is not held: ask ``robot`` for a whole map."""
 
     robot: str
+    #: As :attr:`Decode.new_incarnation`.
+    new_incarnation: bool = False
 
 
 @dataclass(frozen=True)
@@ -192,16 +196,17 @@ class Receiver:
         if cells > allowed:
             self.counters.refused_sizes += 1
             return Drop(f"a map of {env.width} x {env.height} cells is over the {allowed} allowed")
-        if held is not None and split(env.version)[0] != split(held.version)[0]:
+        restarted = held is not None and split(env.version)[0] != split(held.version)[0]
+        if restarted:
             # The robot lost its state and started again: what we hold of it is no base any more.
             self.counters.new_incarnations += 1
             self._history.pop(env.robot, None)
         if env.is_keyframe:
-            return Decode(None)
+            return Decode(None, new_incarnation=restarted)
         base = self._history.get(env.robot, {}).get(env.base_version)
         if base is None:
             self.counters.keyframe_requests += 1
-            return AskKeyframe(env.robot)
+            return AskKeyframe(env.robot, new_incarnation=restarted)
         return Decode(base)
 
     def undecodable(self, env: Envelope, base: OccupancyGrid | None) -> AskKeyframe | None:

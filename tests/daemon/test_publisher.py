@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -12,11 +13,13 @@ from typing import Any
 
 import pytest
 
-from mapd.codec import read_header
+from mapd.codec import encode, read_header
 from mapd.commands.daemon import render_status
 from mapd.daemon import publisher
 from mapd.daemon.server import Daemon
-from mapd.daemon.versions import split
+from mapd.daemon.versions import incarnation_at, make, split
+from mapd.envelope import Envelope
+from mapd.identity import read_identity
 from transports.base import Arrived, OnAir, Received, TransportContext, TransportEvent
 from transports.virtual import VirtualOptions, VirtualTransport
 
@@ -169,6 +172,53 @@ def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path,
                 assert "1 offered again to robots come into range" in line
             finally:
                 await late.close()
+
+    asyncio.run(main())
+
+
+def test_a_peer_that_starts_again_without_its_state_gets_the_next_map_whole(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    # robot1 acked v1, then lost its disk and started again, quicker than its link could tell (zenoh
+    # within its lease). Its maps now come from a new incarnation: it holds none of robot0's maps,
+    # so robot0's next version goes whole, not as a delta against a v1 that robot1 no longer has.
+    def robot1_map(version: int) -> Envelope:
+        grid = dk.growing_map(1).replace(robot="robot1", version=version)
+        env = Envelope(
+            fleet="default", robot="robot1", version=version, base_version=0, codec="raw",
+            width=grid.width, height=grid.height, resolution=grid.resolution,
+            origin=grid.origin, seq=split(version)[1], payload=encode(grid, "raw"),
+        )  # fmt: skip
+        return env.signed(read_identity(tmp_path / "keys" / "robot1.key", "robot1"))
+
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        async with one_peer(d, channel, dk, []) as (link, peer):
+
+            def held() -> int:
+                return int(d.snapshot()["peers"].get("robot1", {}).get("version") or 0)
+
+            before = incarnation_at(time.time()) - 3600
+            peer.offer(robot1_map(make(before, 5)))
+            await dk.wait_for(lambda: held() == make(before, 5), what="robot1's map taken")
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            peer.ack("robot0", link.offers[0].version)
+            await source.queue.put(dk.growing_map(2))
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v2 offered")
+            assert not link.offers[1].is_keyframe  # a delta against v1, which robot1 acked
+            peer.ack("robot0", link.offers[1].version)
+            await settle()
+            assert d.store.acked() == {"robot1": link.offers[1].version}
+            again = make(incarnation_at(time.time()), 1)  # robot1 with a new disk
+            peer.offer(robot1_map(again))
+            await dk.wait_for(lambda: held() == again, what="robot1's new incarnation taken")
+            assert d.store.acked() == {}  # what it acked before is no base any more
+            await source.queue.put(dk.growing_map(3))
+            await dk.wait_for(lambda: len(link.offers) == 3, what="v3 offered")
+            assert link.offers[2].is_keyframe
+            assert [r["kind"] for r in coded(d)] == ["keyframe", "delta", "keyframe"]
 
     asyncio.run(main())
 

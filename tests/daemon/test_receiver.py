@@ -70,10 +70,15 @@ def test_a_new_incarnation_is_taken_at_once_and_forgets_old_bases() -> None:
     r = rx()
     take(r, make(INC, 900))
     restarted = incarnation_at(NOW)
-    assert r.plan(env(make(restarted, 1)), "robot1", NOW) == Decode(None)
+    # said, so that the daemon sends it our next map whole: it lost ours with its state
+    assert r.plan(env(make(restarted, 1)), "robot1", NOW) == Decode(None, new_incarnation=True)
     assert r.counters.new_incarnations == 1
     # a delta of the new incarnation against an old version cannot be decoded: ask for a keyframe
-    assert r.plan(env(make(restarted, 2), base=make(INC, 900)), "robot1", NOW) == AskKeyframe("robot1")
+    assert r.plan(env(make(restarted, 2), base=make(INC, 900)), "robot1", NOW) == AskKeyframe(
+        "robot1", new_incarnation=True
+    )
+    take(r, make(restarted, 2))
+    assert r.plan(env(make(restarted, 3)), "robot1", NOW) == Decode(None)  # the same incarnation
 
 
 def test_an_unsigned_map_must_come_from_its_own_robot_and_sizes_are_bounded() -> None:
