@@ -11,7 +11,13 @@ GIDs, type hashes per ``distro``) are :mod:`mapd.ros2.rmw`'s; the zenoh side is
 With ``tf = true`` (the default) it also publishes, following REP-105 frame names:
 
 * ``/tf_static`` (transient local): ``<frame> -> <robot>/map`` for every placed robot, sent again
-  (all of them, as one latched message) whenever a placement changes;
+  (all of them, as one latched message) whenever a placement changes. A robot that is no longer
+  placed (revoked, or its placement dropped) is moved under ``unplaced_frame`` in that message,
+  off the fleet's tree: tf2 keeps a static transform for as long as it runs and no message removes
+  one, but a frame has one parent, and a newer static transform of the frame replaces the old one,
+  so lookups of the robot's frame in ``frame`` fail from then on instead of using a transform
+  mapd has taken back. The robots whose frames went out are kept in the state directory, so this
+  holds across a restart too;
 * ``/tf``: ``<robot>/map -> <robot>/base_link`` for every robot whose pose is known
   (:meth:`publish_poses`, and the poses a :class:`GlobalUpdate` carries).
 
@@ -31,17 +37,30 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
+import logging
+import re
 import threading
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator
 
+from mapd.config import NAME_PATTERN
+from mapd.errors import MapdError
+from mapd.files import atomic_write_json, read_capped
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.ros2 import rmw
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+#: In the state directory: the robots whose map frames went out on /tf_static.
+FRAMES_FILE = "ros2_frames.json"
+#: Robot names kept there at the most (a fleet's roster is far smaller) and that file's size cap.
+MAX_SHOWN = 4096
+MAX_FRAMES_FILE_BYTES = 1 << 20
+
+log = logging.getLogger(__name__)
 
 
 class Ros2OutputOptions(OutputOptions):
@@ -58,6 +77,11 @@ class Ros2OutputOptions(OutputOptions):
     robot_map_frame: str = Field(
         default="{robot}/map",
         description="each robot's map frame, a child of `frame` on /tf_static; {robot} is its name",
+    )
+    unplaced_frame: str = Field(
+        default="mapd/unplaced",
+        description="where a robot's map frame moves on /tf_static once it is no longer placed "
+        "(revoked, or its placement dropped), off the fleet's tree; empty: left where it was",
     )
     robot_pose_frame: str = Field(
         default="{robot}/base_link",
@@ -96,6 +120,16 @@ class Ros2OutputOptions(OutputOptions):
         rmw.check_name(robot_frame(v, "robot0"), "frame")
         return v
 
+    @field_validator("unplaced_frame")
+    @classmethod
+    def _check_unplaced(cls, v: str, info: ValidationInfo) -> str:
+        if v == "":
+            return v
+        rmw.check_name(v, "frame")
+        if "{robot}" in v or v == info.data.get("frame"):
+            raise ValueError(f"{v!r} must be one frame of its own, not the fleet frame or a robot's")
+        return v
+
     @field_validator("namespace")
     @classmethod
     def _check_ns(cls, v: str) -> str:
@@ -114,6 +148,13 @@ def static_transforms(
 ) -> list[tuple[str, str, Pose2D, float]]:
     """``frame -> <robot>/map`` (``map_frame``) for each placed robot, by name."""
     return [(frame, robot_frame(map_frame, robot), pose, stamp) for robot, pose in sorted(frames.items())]
+
+
+def unplaced_transforms(
+    unplaced: str, robots: list[str], stamp: float, map_frame: str = "{robot}/map"
+) -> list[tuple[str, str, Pose2D, float]]:
+    """``unplaced -> <robot>/map`` (``map_frame``) for each robot no longer placed, by name."""
+    return [(unplaced, robot_frame(map_frame, r), Pose2D(), stamp) for r in sorted(robots)]
 
 
 def pose_transforms(
@@ -154,6 +195,9 @@ class Ros2Output(Output):
         self._tf: Any = None
         self._lock = threading.Lock()
         self._static_sent: dict[str, Pose2D] | None = None
+        #: Robots whose map frame went out under ``frame`` (kept in FRAMES_FILE across restarts).
+        self._shown: set[str] = set()
+        self.unplaced = 0
         self._pose_sent: dict[str, float] = {}
         self.maps = 0
         self.static_msgs = 0
@@ -168,6 +212,7 @@ class Ros2Output(Output):
         from mapd.ros2.node import Ros2Node
 
         o = self.opts
+        self._shown = self._load_shown()
         self._session = cdr.open_session_for(o)
         try:
             rmw_format = o.format == "rmw_zenoh"
@@ -208,16 +253,60 @@ class Ros2Output(Output):
         self._send_poses(update)
 
     def _send_static(self, frames: dict[str, Pose2D], stamp: float) -> None:
+        o = self.opts
         with self._lock:
-            if frames == self._static_sent or not frames:
+            gone = sorted(self._shown - set(frames)) if o.unplaced_frame else []
+            if frames == self._static_sent or not (frames or gone):
                 return
             self._static_sent = dict(frames)
+            grown = not set(frames) <= self._shown
+            self._shown |= set(frames)
+            shown = sorted(self._shown)
         from mapd.ros2 import cdr
 
-        self._tf_static.put(
-            cdr.encode_tf(static_transforms(self.opts.frame, frames, stamp, self.opts.robot_map_frame))
-        )
+        if grown:
+            self._save_shown(shown)  # before the message: a crash after it must not forget one
+        items = static_transforms(o.frame, frames, stamp, o.robot_map_frame)
+        items += unplaced_transforms(o.unplaced_frame, gone, stamp, o.robot_map_frame)
+        self._tf_static.put(cdr.encode_tf(items))
         self.static_msgs += 1
+        self.unplaced = len(gone)
+
+    def _frames_file(self) -> Path | None:
+        d = self.ctx.state_dir
+        return None if d is None or not self.opts.unplaced_frame else d / FRAMES_FILE
+
+    def _load_shown(self) -> set[str]:
+        """The robots whose frames an earlier run sent (none when the file is missing or unreadable)."""
+        path = self._frames_file()
+        if path is None:
+            return set()
+        try:
+            data = read_capped(path, MAX_FRAMES_FILE_BYTES)
+            if len(data) > MAX_FRAMES_FILE_BYTES:
+                raise ValueError(f"over {MAX_FRAMES_FILE_BYTES} bytes")
+            doc = json.loads(data)
+            robots = doc.get("robots") if isinstance(doc, dict) else None
+            if not isinstance(robots, list) or not all(
+                isinstance(r, str) and re.match(NAME_PATTERN, r) for r in robots
+            ):
+                raise ValueError("no list of robot names under 'robots'")
+        except FileNotFoundError:
+            return set()
+        except (OSError, ValueError, RecursionError, MapdError) as exc:
+            # A lost list costs only the moving off of frames an earlier run sent: said, not fatal.
+            log.warning("ros2 output: ignoring %s (%s); frames sent before it are not moved off", path, exc)
+            return set()
+        return set(robots[:MAX_SHOWN])
+
+    def _save_shown(self, robots: list[str]) -> None:
+        path = self._frames_file()
+        if path is None:
+            return
+        try:
+            atomic_write_json(path, {"robots": robots[:MAX_SHOWN]})
+        except OSError as exc:
+            log.warning("ros2 output: cannot write %s: %s", path, exc.strerror or exc)
 
     def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
         from mapd.ros2 import cdr
@@ -256,6 +345,7 @@ class Ros2Output(Output):
             "key": self._map.key if self._map is not None else "",
             "maps": self.maps,
             "tf_static": self.static_msgs,
+            "unplaced": self.unplaced,
             "tf": self.tf_msgs,
             "bytes": self.bytes,
         }

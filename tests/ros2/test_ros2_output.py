@@ -6,6 +6,7 @@ import asyncio
 import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -18,9 +19,10 @@ from mapd.outputs.base import GlobalUpdate, OutputContext, PoseUpdate
 from mapd.outputs.ros2 import Ros2Output, Ros2OutputOptions
 
 
-def _output(endpoint: str, **kw: Any) -> Ros2Output:
+def _output(endpoint: str, state_dir: Path | None = None, **kw: Any) -> Ros2Output:
     out = Ros2Output(
-        Ros2OutputOptions(listen=[endpoint], connect=[], **kw), OutputContext(robot="base", fleet="f")
+        Ros2OutputOptions(listen=[endpoint], connect=[], **kw),
+        OutputContext(robot="base", fleet="f", state_dir=state_dir),
     )
     asyncio.run(out.start())
     return out
@@ -90,6 +92,105 @@ def test_late_subscriber_gets_the_current_map_and_frames(
         assert len(peer.received("/tf_static")) == 2 and out.stats()["tf_static"] == 2
     finally:
         asyncio.run(out.close())
+
+
+def _tf2_static(messages: list[Any]) -> dict[str, str]:
+    """child -> parent as tf2's buffer keeps static transforms: for ever, a newer one of a frame
+    replacing the older (tf2's StaticCache holds one transform, with its parent, per frame)."""
+    parents: dict[str, str] = {}
+    for msg in messages:
+        for t in msg.transforms:
+            parents[t.child_frame_id] = t.header.frame_id
+    return parents
+
+
+def _under(parents: dict[str, str], frame: str, root: str) -> bool:
+    """Whether tf2 could look ``frame`` up in ``root`` (a chain of parents leads there)."""
+    seen = set()
+    while frame != root and frame in parents and frame not in seen:
+        seen.add(frame)
+        frame = parents[frame]
+    return frame == root
+
+
+def test_a_robot_no_longer_placed_leaves_the_fleet_tree_also_after_a_restart(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any], tmp_path: Path
+) -> None:
+    """tf2 keeps static transforms for as long as it runs. A revoked robot's map frame used to stay
+    in the fleet frame for every listener that had heard it once; now the next message moves it off
+    the tree, under ``unplaced_frame``, and a restarted output still knows to."""
+    both = {"robot0": Pose2D(), "robot1": Pose2D(4.0, -1.0, 0.5)}
+    peer = rmw_peer.RmwPeer(endpoint)
+    peers.append(peer)
+    peer.subscribe("/tf_static", rmw_peer.TF, depth=10)
+    out = _output(endpoint, tmp_path)
+    try:
+        out.publish(_update(1, both))
+        peer.wait("/tf_static", lambda r: len(r.msg.transforms) == 2)
+        assert _under(_tf2_static([r.msg for r in peer.received("/tf_static")]), "robot1/map", "map")
+        out.publish(_update(2, {"robot0": Pose2D()}))  # robot1 revoked: the global map goes on without it
+        got = peer.wait("/tf_static", lambda r: len(r.msg.transforms) == 2 and r.seq == 2).msg
+        assert sorted((t.header.frame_id, t.child_frame_id) for t in got.transforms) == [
+            ("map", "robot0/map"),
+            ("mapd/unplaced", "robot1/map"),
+        ]
+        tf2 = _tf2_static([r.msg for r in peer.received("/tf_static")])
+        assert _under(tf2, "robot0/map", "map") and not _under(tf2, "robot1/map", "map")
+        assert out.stats()["unplaced"] == 1
+    finally:
+        asyncio.run(out.close())
+    # A restart, with robot1 still off the roster: the first message moves it off again, for
+    # listeners that heard its frame from the run before and nothing since.
+    again = _output(endpoint, tmp_path)
+    late = rmw_peer.RmwPeer(endpoint)
+    peers.append(late)
+    try:
+        again.publish(_update(3, {"robot0": Pose2D(1.0, 0.0, 0.0)}))
+        late.subscribe("/tf_static", rmw_peer.TF)
+        got = late.wait("/tf_static", lambda r: True).msg
+        assert {t.child_frame_id: t.header.frame_id for t in got.transforms} == {
+            "robot0/map": "map",
+            "robot1/map": "mapd/unplaced",
+        }
+        # placed again (readmitted): back under the fleet frame, and nothing left off the tree
+        again.publish(_update(4, {"robot0": Pose2D(1.0, 0.0, 0.0), "robot1": Pose2D(2.0, 0.0, 0.0)}))
+        got = late.wait("/tf_static", lambda r: all(t.header.frame_id == "map" for t in r.msg.transforms)).msg
+        assert len(got.transforms) == 2 and again.stats()["unplaced"] == 0
+    finally:
+        asyncio.run(again.close())
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        b"",
+        b"{",
+        b"[" * 100_000,
+        b'{"robots": ["ok", "../../x"]}',
+        b'{"robots": 7}',
+        b"\xff" * 10,
+        b" " * (2 << 20),
+    ],
+)
+def test_a_damaged_frames_file_is_said_and_ignored(
+    tmp_path: Path, content: bytes, caplog: pytest.LogCaptureFixture
+) -> None:
+    from mapd.outputs.ros2 import FRAMES_FILE
+
+    (tmp_path / FRAMES_FILE).write_bytes(content)
+    out = Ros2Output(Ros2OutputOptions(), OutputContext(robot="base", fleet="f", state_dir=tmp_path))
+    with caplog.at_level("WARNING"):
+        assert out._load_shown() == set()
+    assert len(caplog.records) == 1 and "frames sent before it are not moved off" in caplog.text
+
+
+def test_unplaced_frame_is_checked() -> None:
+    assert Ros2OutputOptions(unplaced_frame="").unplaced_frame == ""
+    for bad in ("map", "{robot}/gone", "a//b"):
+        with pytest.raises(ValueError):
+            Ros2OutputOptions(unplaced_frame=bad)
+    with pytest.raises(ValueError):
+        Ros2OutputOptions(frame="world", unplaced_frame="world")
 
 
 def test_poses_go_on_tf(
