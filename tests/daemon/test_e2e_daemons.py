@@ -134,8 +134,16 @@ def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None
             stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
             stderr=subprocess.STDOUT,
         )
+        # The peer's map is restored before the status socket opens; the global map by the fusion
+        # task, a little after it: wait for both.
         snaps = fk.wait_for(
-            lambda s: "robot0" in s and s["robot0"]["peers"].get("robot1", {}).get("version", 0) > 0, 60, f
+            lambda s: (
+                "robot0" in s
+                and s["robot0"]["peers"].get("robot1", {}).get("version", 0) > 0
+                and s["robot0"]["fusion"]["global"] is not None
+            ),
+            60,
+            f,
         )
         after = snaps["robot0"]
         # it held the peer's map and the global map from before the crash, and its versions keep rising

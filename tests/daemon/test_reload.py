@@ -108,7 +108,13 @@ def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken
             assert st["reload"]["count"] == 1 and st["reload"]["last_ok"] is True
             assert st["reload"]["last"] == "roster: added robot2"
             await s2.queue.put(dk.growing_map(2).replace(robot="robot2"))
-            await dk.wait_for(lambda: "robot2" in d0.receiver.maps, 20, what="robot2 admitted")
+            # taken in whole: held, then saved, then merged (a revocation while it is saved is
+            # another case, tested in test_fusion_worker)
+            await dk.wait_for(
+                lambda: "robot2" in d0.receiver.maps and "robot2" in d0.fusion.status()["robots"],
+                20,
+                what="robot2 admitted",
+            )
 
             # robot2's key is revoked, and the codec changed too: the roster is taken, the codec waits
             path0.write_text(path0.read_text().replace('use = "lossless"', 'use = "zstd"'))

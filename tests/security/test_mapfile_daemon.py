@@ -76,7 +76,13 @@ def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> Non
         )
     sock = run / "mapd.sock"
     try:
-        first = _wait(proc, sock, lambda s: s["source"]["stats"]["versions"] == 1, "the first map")
+        # The source counts a map on its worker; the daemon takes it (the version shown) a step later.
+        first = _wait(
+            proc,
+            sock,
+            lambda s: s["source"]["stats"]["versions"] == 1 and s["source"]["version"] > 0,
+            "the first map",
+        )
         version = first["source"]["version"]
         bad_files = [
             (".pgm", b"P5\n100 ", "truncated in its PNM header"),
@@ -97,7 +103,12 @@ def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> Non
             path.write_text(whole_yaml)
             path.with_suffix(".pgm").write_bytes(whole_pgm)
         save_map(_map(4), path)  # the writer finishes a new map: it goes out as the next version
-        st = _wait(proc, sock, lambda s: s["source"]["stats"]["versions"] == 2, "the second map")
+        st = _wait(
+            proc,
+            sock,
+            lambda s: s["source"]["stats"]["versions"] == 2 and s["source"]["version"] > version,
+            "the second map",
+        )
         assert st["source"]["version"] > version and st["source"]["stats"]["load_errors"] == len(bad_files)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(15) == 0

@@ -34,7 +34,8 @@ def test_an_update_arrives_and_decodes(zk, room_grid) -> None:
                 payload=payload,
             )
             a.offer(env)
-            await b.wait(lambda: b.received("a"))
+            # a counts the update on its outbox thread once put() returns, which b may beat
+            await b.wait(lambda: bool(b.received("a")) and a.t.stats()["updates_tx"] == 1)
             got = unpack(b.of(Received)[0].data)
             assert got == env
             assert decode(got.payload).digest() == room_grid.digest()
@@ -172,7 +173,14 @@ def test_latest_wins_under_a_burst(zk) -> None:
             n = 60
             for v in range(1, n + 1):  # offered faster than they can be sent
                 a.offer(zk.envelope("a", v, payload=blob))
-            await b.wait(lambda: b.received() and b.received()[-1][1] == n)
+            # a counts each update on its outbox thread once put() returns, which b may beat
+            await b.wait(
+                lambda: (
+                    bool(b.received())
+                    and b.received()[-1][1] == n
+                    and a.t.stats()["updates_tx"] + a.t.stats()["replaced"] == n
+                )
+            )
             got = [v for _, v, _ in b.received()]
             assert got == sorted(set(got))  # in order, never a stale one after a newer one
             st = a.t.stats()
