@@ -23,6 +23,7 @@ import struct
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,24 +38,9 @@ from mapd.keys import read_key_file
 
 MAPD = [sys.executable, "-m", "mapd"]
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def run_mapd(*args: str, timeout: float = 60, **kw: object) -> subprocess.CompletedProcess[str]:
-    """``mapd ARGS`` in a child, as a user runs it (a hang fails the test by TimeoutExpired)."""
-    return subprocess.run(  # type: ignore[call-overload, no-any-return]
-        [*MAPD, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT, **kw
-    )
-
-
-def one_error_line(out: subprocess.CompletedProcess[str], code: int | None = None) -> str:
-    """The command failed with exactly one ``mapd: error:`` line and no traceback; returns it."""
-    assert out.returncode != 0, out.stdout
-    if code is not None:
-        assert out.returncode == code, out.stderr
-    assert "Traceback" not in out.stderr, out.stderr[-2000:]
-    lines = out.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("mapd: error: "), out.stderr[-2000:]
-    return lines[0]
+#: The fixtures of conftest.py that run mapd as a user does and read its one error line.
+Run = Callable[..., subprocess.CompletedProcess[str]]
+OneLine = Callable[..., str]
 
 
 def write_yaml_map(tmp: Path, body: str, name: str = "m.yaml") -> Path:
@@ -75,11 +61,13 @@ def alias_bomb(levels: int = 11) -> str:
 
 
 @pytest.mark.parametrize("key", ["origin", "image", "resolution", "mode"])
-def test_a_yaml_alias_bomb_in_a_map_is_one_short_line(tmp_path: Path, key: str) -> None:
+def test_a_yaml_alias_bomb_in_a_map_is_one_short_line(
+    tmp_path: Path, key: str, mapd_run: Run, one_error_line: OneLine
+) -> None:
     fields = {"image": "m.pgm", "resolution": "0.05", "origin": "[0, 0, 0]", key: "*a11"}
     path = write_yaml_map(tmp_path, alias_bomb() + "".join(f"{k}: {v}\n" for k, v in fields.items()))
     t0 = time.monotonic()
-    line = one_error_line(run_mapd("info", str(path), timeout=30))
+    line = one_error_line(mapd_run("info", str(path), timeout=30))
     assert f"{path}: " in line and len(line) < 250
     assert time.monotonic() - t0 < 30
 
@@ -174,14 +162,16 @@ def fifo(tmp_path: Path) -> Path:
     return path
 
 
-def test_fifos_named_as_inputs_never_block(tmp_path: Path, fifo: Path) -> None:
-    assert "not a regular file" in one_error_line(run_mapd("keygen", "r0", "--public", str(fifo), timeout=30))
+def test_fifos_named_as_inputs_never_block(
+    tmp_path: Path, fifo: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
+    assert "not a regular file" in one_error_line(mapd_run("keygen", "r0", "--public", str(fifo), timeout=30))
     assert f"{fifo}: " in one_error_line(
-        run_mapd("decode", str(fifo), "-o", str(tmp_path / "o.yaml"), timeout=30)
+        mapd_run("decode", str(fifo), "-o", str(tmp_path / "o.yaml"), timeout=30)
     )
-    assert "not an MCAP recording" in one_error_line(run_mapd("record", "info", str(fifo), timeout=30))
+    assert "not an MCAP recording" in one_error_line(mapd_run("record", "info", str(fifo), timeout=30))
     assert "required key is missing" in one_error_line(
-        run_mapd("check-config", str(fifo), timeout=30), code=2
+        mapd_run("check-config", str(fifo), timeout=30), code=2
     )
 
 
@@ -200,11 +190,11 @@ def test_fifos_named_as_inputs_never_block(tmp_path: Path, fifo: Path) -> None:
     ],
 )
 def test_a_fifo_named_as_a_key_or_token_file_never_blocks(
-    tmp_path: Path, fifo: Path, tail: str, match: str
+    tmp_path: Path, fifo: Path, tail: str, match: str, mapd_run: Run, one_error_line: OneLine
 ) -> None:
     path = tmp_path / "config.toml"
     path.write_text('[robot]\nname = "r0"\n' + tail)
-    line = one_error_line(run_mapd("check-config", str(path), timeout=30), code=2)
+    line = one_error_line(mapd_run("check-config", str(path), timeout=30), code=2)
     assert re.search(match, line), line
 
 
@@ -269,7 +259,7 @@ def _peak_of_record_info(path: Path) -> tuple[subprocess.CompletedProcess[str], 
     return out, int(peak_file.read_text()) / 1024.0
 
 
-def test_a_zstd_chunk_declaring_gigabytes_is_refused_unread(tmp_path: Path) -> None:
+def test_a_zstd_chunk_declaring_gigabytes_is_refused_unread(tmp_path: Path, one_error_line: OneLine) -> None:
     path = tmp_path / "bomb.mcap"
     header = _record(1, _text(b"ros2") + _text(b"x"))
     path.write_bytes(_MAGIC + header + _chunk(1 << 30, _zstd_zeros(1 << 30)))
@@ -280,7 +270,9 @@ def test_a_zstd_chunk_declaring_gigabytes_is_refused_unread(tmp_path: Path) -> N
     assert peak_mb < 300, peak_mb
 
 
-def test_a_zstd_chunk_that_inflates_past_what_it_declares_is_refused(tmp_path: Path) -> None:
+def test_a_zstd_chunk_that_inflates_past_what_it_declares_is_refused(
+    tmp_path: Path, one_error_line: OneLine
+) -> None:
     path = tmp_path / "lie.mcap"
     header = _record(1, _text(b"ros2") + _text(b"x"))
     path.write_bytes(_MAGIC + header + _chunk(1 << 20, _zstd_zeros(1 << 30)))
@@ -289,7 +281,9 @@ def test_a_zstd_chunk_that_inflates_past_what_it_declares_is_refused(tmp_path: P
     assert peak_mb < 300, peak_mb
 
 
-def test_chunks_of_millions_of_empty_records_are_refused_quickly(tmp_path: Path) -> None:
+def test_chunks_of_millions_of_empty_records_are_refused_quickly(
+    tmp_path: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
     import zstandard
 
     size = (60 << 20) // 9 * 9  # 7 million records of opcode 0 and length 0, each in 9 bytes
@@ -297,7 +291,7 @@ def test_chunks_of_millions_of_empty_records_are_refused_quickly(tmp_path: Path)
     path = tmp_path / "records.mcap"
     path.write_bytes(_MAGIC + _record(1, _text(b"ros2") + _text(b"x")) + _chunk(size, data) * 4)
     t0 = time.monotonic()
-    line = one_error_line(run_mapd("record", "info", str(path), timeout=30))
+    line = one_error_line(mapd_run("record", "info", str(path), timeout=30))
     assert "a compression bomb, not a recording" in line
     assert time.monotonic() - t0 < 30
 
@@ -346,7 +340,9 @@ def test_a_restarted_recorder_never_truncates_the_last_recording(tmp_path: Path)
 # ------------------------------------------------------------------ map and payload outputs
 
 
-def test_encode_on_a_full_disk_keeps_the_previous_payload(tmp_path: Path) -> None:
+def test_encode_on_a_full_disk_keeps_the_previous_payload(
+    tmp_path: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
     rng = np.random.default_rng(0)
     save_map(
         OccupancyGrid(rng.choice(np.array([-1, 0, 100], np.int8), (100, 100)), 0.05), tmp_path / "m.yaml"
@@ -357,7 +353,7 @@ def test_encode_on_a_full_disk_keeps_the_previous_payload(tmp_path: Path) -> Non
     def small_disk() -> None:  # writes past 4 KiB fail with EFBIG, as on a full disk
         resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
 
-    res = run_mapd(
+    res = mapd_run(
         "encode", str(tmp_path / "m.yaml"), "-o", str(out), "--codec", "raw", preexec_fn=small_disk
     )
     assert "cannot write payload" in one_error_line(res)
@@ -374,8 +370,10 @@ def test_save_map_to_a_directory_writes_nothing_and_says_so(tmp_path: Path) -> N
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no out.pgm beside it
 
 
-def test_decode_names_the_payload_it_cannot_decode(tmp_path: Path) -> None:
+def test_decode_names_the_payload_it_cannot_decode(
+    tmp_path: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
     junk = tmp_path / "junk.mapd"
     junk.write_bytes(os.urandom(500))
-    line = one_error_line(run_mapd("decode", str(junk), "-o", str(tmp_path / "o.yaml")))
+    line = one_error_line(mapd_run("decode", str(junk), "-o", str(tmp_path / "o.yaml")))
     assert line.startswith(f"mapd: error: {junk}: ")
