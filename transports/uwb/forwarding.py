@@ -52,8 +52,10 @@ from mapd.errors import ProtocolError
 CHAIN = 8
 #: Bytes of envelopes kept, all origins together; past it the oldest of the longest chain goes.
 MAX_HELD_BYTES = 8 << 20
-#: A relay's deadline: this floor (a summary period or two, for the acks to come back) ...
-RELAY_FLOOR_S = 15.0
+#: A relay's deadline: this floor (a few TDMA cycles on a fast channel, for the acks to come
+#: back; 15 s made a relay that failed hold the robot's one relay for 21 s at 200 kb/s, and two in
+#: five did fail, their receivers gone; on a slow channel the airtimes below are most of it) ...
+RELAY_FLOOR_S = 5.0
 #: ... plus this many times its airtime at the robot's share of the channel (the air per coded byte
 #: through walls, repairs and acks included, runs 2 to 5 in ``mapd bench swarm``).
 RELAY_AIRTIMES = 4.0
