@@ -50,7 +50,7 @@ lint: $(STAMP)
 	$(BIN)/lint-imports --no-cache
 
 # Three workers on CI's two cores: a third of the suite's time is spent waiting on real clocks (radio
-# turns, daemons' periods), and the third worker fills it (measured: 467 s with two, 360-380 s with three).
+# turns, daemons' periods), and the third worker fills it (measured here: 455-467 s with two, 360-440 s with three).
 test: $(STAMP) socat chromium lint
 	$(BIN)/pytest -n 3 $(PYTEST_ARGS)
 
