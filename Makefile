@@ -49,8 +49,8 @@ lint: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
 
-# Three workers on CI's two cores: a third of the suite's time is spent waiting on real clocks (radio
-# turns, daemons' periods), and the third worker fills it (measured here: 455-467 s with two, 360-440 s with three).
+# Three workers on CI's two cores: many tests wait on real clocks (radio turns, daemons' periods),
+# and a third worker uses time two would leave idle (measured here: 455-467 s with two, 360-440 s with three).
 test: $(STAMP) socat chromium lint
 	$(BIN)/pytest -n 3 $(PYTEST_ARGS)
 

@@ -8,9 +8,10 @@ Figure 8a: every robot's map, a snapshot every ``--period`` seconds of log time,
 codec: ``paper`` (the paper's CNN + Huffman codec, lossy), ``lossless`` (mapd's, whole map),
 ``lossless+delta`` (against the robot's previous snapshot, as a daemon sends it), ``pooled+delta``
 (mapd's lossy ``pooled`` codec, likewise) and ``zstd-19`` (the raw int8 cells at level 19). Per
-update: compression ratio (raw cells, one byte each, over bytes) and rate (1 - bytes / raw bytes, the paper's "compression rate"); the recovered map's PSNR
-and SSIM against the original (map_server grey levels, data range 255, SSIM 7x7), occupied-cell F1
-and the share of known cells that change class. Payload bytes include mapd's header.
+update: compression ratio (raw cells, one byte each, over bytes) and rate (1 - bytes / raw bytes,
+the paper's "compression rate"); the recovered map's PSNR and SSIM against the original
+(map_server grey levels, data range 255, SSIM 7x7), occupied-cell F1 and the share of known cells
+that change class. Payload bytes include mapd's header.
 
 Figure 8b: the bits per second each codec needs if every robot sends one update per period, beside
 the raw map's, against the paper's 12.5 kb/s UWB budget; the transfer time of each update at

@@ -3,9 +3,9 @@
 TDMA cuts time into turns on each robot's wall clock, so the fleet's clocks must agree within the
 guard (docs/uwb.md, *One clock for the fleet*). A robot cannot see another's clock, but it can ask
 its own kernel whether a time service keeps its clock disciplined: ``adjtimex`` with no change
-requested returns the clock's state, ``TIME_ERROR`` while no time service keeps it
-synchronized. The uwb link shows the answer in ``mapd
-status``, on the FAULTS line when it is no, before the collisions it leads to show.
+requested returns the clock's state, ``TIME_ERROR`` while no time service keeps it synchronized.
+The uwb link shows the answer in ``mapd status``, on the FAULTS line when it is no, before the
+collisions it leads to show.
 """
 
 from __future__ import annotations
