@@ -14,6 +14,7 @@ import numpy as np
 
 from mapd.daemon.versions import label, split
 from mapd.errors import MapdError
+from mapd.fusion.store import read_owner
 from mapd.grid import OccupancyGrid, load_map
 from mapd.tables import table
 
@@ -193,9 +194,9 @@ def write_report(
         try:
             g = load_map(gdir / "global.yaml")
             contrib = None
-            if (gdir / "owner.npy").exists() and (gdir / "owner.json").exists():
-                owners = json.loads((gdir / "owner.json").read_text())["robots"]
-                idx = np.load(gdir / "owner.npy")
+            owner = read_owner(gdir)
+            if owner is not None and owner[0].shape == g.data.shape:  # else from another merge
+                idx, owners = owner
                 # owner.npy indexes owner.json's names; colour by the robot's place in the fleet
                 lut = np.array([names.index(r) if r in names else -1 for r in owners] + [-1], dtype=np.int16)
                 contrib = np.where(idx >= 0, lut[np.clip(idx, 0, len(owners))], -1)

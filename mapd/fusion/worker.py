@@ -14,10 +14,10 @@ API for the daemon::
   restart loses neither the map nor the accepted placements), then waits for submissions. After the
   first new map it waits ``cfg.debounce_s`` (collecting whatever else arrives), places every map with
   a :class:`~mapd.fusion.placement.Placer` and merges them in a worker thread (a large merge never
-  stalls the event loop), writes ``global.yaml`` + ``global.pgm`` (map_server files, atomic),
-  ``transforms.json`` (atomic: temp file, fsync, rename) and ``owner.npy`` + ``owner.json`` (which
-  robot weighed most in each cell, for coloured pictures) into the state directory, and calls every
-  ``on_global`` callback with the new grid on the event loop's thread.
+  stalls the event loop), leaving out maps the global map cannot hold (:mod:`~mapd.fusion.limits`),
+  writes ``global.yaml`` + ``global.pgm``, ``transforms.json`` and ``owner.npy`` + ``owner.json``
+  into the state directory (:mod:`~mapd.fusion.store`), and calls every ``on_global`` callback with
+  the new grid on the event loop's thread.
 * The **fleet frame** is the frame the configured poses are given in, or this robot's own map frame
   when no pose is configured (``cfg.poses``: robot -> ``[x m, y m, yaw rad]`` of that robot's map
   frame in the fleet frame, or ``"estimate"``). The global map's origin lies on the fleet frame's
@@ -33,40 +33,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
-import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from mapd.config import FusionSection
-from mapd.errors import FusionError, MapdError, StateError
-from mapd.files import WriteOutage, atomic_write_bytes
+from mapd.errors import FusionError, MapdError
+from mapd.files import WriteOutage
 from mapd.fusion.estimate import EstimateOptions
-from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
+from mapd.fusion.limits import within_cell_limit, within_extent
+from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, merge_with_owner
 from mapd.fusion.placement import Placement, Placer, derived_from
-from mapd.fusion.transforms import transformed_corners
-from mapd.fusion.views import MAX_SIDE
-from mapd.grid import (
-    DEFAULT_MAX_CELLS,
-    UNKNOWN,
-    OccupancyGrid,
-    Pose2D,
-    geometry_problem,
-    load_map,
-    save_map,
-)
+from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON, FusionStore
+from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, geometry_problem
 
 log = logging.getLogger(__name__)
-
-GLOBAL_YAML = "global.yaml"
-TRANSFORMS_JSON = "transforms.json"
-FORMAT = 1
 
 
 @dataclass(frozen=True)
@@ -96,6 +80,7 @@ class FusionWorker:
         self.robot = robot
         self.cfg = cfg
         self.state_dir = state_dir
+        self.store = None if state_dir is None else FusionStore(state_dir, robot=robot, max_cells=max_cells)
         self.on_global: list[Callable[[OccupancyGrid], None]] = list(on_global or [])
         self.max_cells = max_cells
         self.max_robots = max_robots
@@ -347,13 +332,20 @@ class FusionWorker:
         names = sorted(
             r for r, p in placements.items() if p.accepted and p.transform is not None and r in maps
         )
-        names = self._within_extent(maps, placements, names)
+        names = within_extent(maps, placements, names, self.cfg.max_extent_m)
         if self._resolution is None:
             first = next((r for r in names if placements[r].source in ("anchor", "pose")), None)
             if first is None and names:
                 first = names[0]
             self._resolution = maps[first].resolution if first else None
-        names = self._within_cell_limit(maps, placements, names)
+        names = within_cell_limit(
+            maps,
+            placements,
+            names,
+            resolution=self._resolution or 0.05,
+            bounds=self._bounds,
+            max_cells=self.max_cells,
+        )
         result = merge_with_owner(
             [maps[r] for r in names],
             [placements[r].transform for r in names],
@@ -376,63 +368,8 @@ class FusionWorker:
             self._saves.failed(f"fusion: global map not saved (saving again at each merge): {exc}")
         else:
             self._saves.recovered("fusion: global map saved again")
-        self._save_owner(result.owner, names)
+        self._save_owner(result, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
-
-    def _within_extent(
-        self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]
-    ) -> list[str]:
-        """``names`` whose placed maps lie within ``cfg.max_extent_m`` of the fleet frame's origin.
-
-        A map with a corrupt origin (1e6 m) would otherwise make the global map too large to build,
-        and every merge would fail until that robot sent a sane version: the whole fleet's map would
-        freeze. The others are left out with the reason in their placement; the placer keeps its
-        held transform, so the robot's next sane map goes straight back in.
-        """
-        keep = []
-        limit = self.cfg.max_extent_m
-        for r in names:
-            reach = _reach(maps[r], placements[r])
-            if math.isfinite(reach) and reach <= limit:
-                keep.append(r)
-                continue
-            _leave_out(
-                placements,
-                r,
-                f"it reaches {reach:.4g} m from the fleet frame's origin, beyond fusion.max_extent_m = "
-                f"{limit:g} m (a damaged map origin or a wrong pose?)",
-            )
-        return keep
-
-    def _within_cell_limit(
-        self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]
-    ) -> list[str]:
-        """``names`` less the farthest maps, while the global map would exceed the cell limit.
-
-        Within ``max_extent_m`` a map can still make the global grid bigger than ``max_cells`` (10 km
-        at 5 cm is 200,000 cells a side); merging would then fail as a whole, so the maps reaching
-        farthest from the fleet frame's origin are left out, with the reason, until the rest fits.
-        """
-        resolution = self._resolution or 0.05
-        keep = list(names)
-
-        while keep:
-            box = extent([maps[r] for r in keep], [placements[r].transform for r in keep], resolution)
-            if box is not None and self._bounds is not None:
-                box = box.union(self._bounds)
-            if box is None or (
-                box.width * box.height <= self.max_cells and max(box.width, box.height) <= MAX_SIDE
-            ):
-                break
-            far = max(keep, key=lambda r: _reach(maps[r], placements[r]))
-            keep.remove(far)
-            _leave_out(
-                placements,
-                far,
-                f"with it the global map would be {box.width} x {box.height} cells, over the limit of "
-                f"{self.max_cells} cells ({MAX_SIDE} a side)",
-            )
-        return keep
 
     def _apply(self, fused: _Fused, publish: bool = True) -> None:
         self._merges = fused.result.grid.version
@@ -476,22 +413,12 @@ class FusionWorker:
     # -- state directory --------------------------------------------------------------------
 
     def _load_state(self) -> None:
-        if self.state_dir is None:
+        """Take what a previous run left (a worker thread): placements, and the global map unless
+        a robot since revoked is in it."""
+        if self.store is None:
             return
-        tj = self.state_dir / TRANSFORMS_JSON
-        gy = self.state_dir / GLOBAL_YAML
-        try:
-            doc = json.loads(tj.read_text(encoding="utf-8")) if tj.exists() else None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            log.warning("fusion: ignoring unreadable %s: %s", tj, exc)
-            doc = None
-        placements: dict[str, Placement] = {}
-        if isinstance(doc, dict) and isinstance(doc.get("robots"), dict):
-            for name, entry in doc["robots"].items():
-                try:
-                    placements[str(name)] = Placement.from_dict(entry)
-                except (KeyError, TypeError, ValueError) as exc:
-                    log.warning("fusion: ignoring entry '%s' of %s: %s", name, tj, exc)
+        saved = self.store.load_placements()
+        placements = saved.placements
         # Robots off the roster since the last run: their placements go, and a global map built
         # with their maps is not restored (its cells are theirs and the others' alike).
         revoked = sorted(r for r in placements if r != self.robot and not self._admits(r))
@@ -507,104 +434,34 @@ class FusionWorker:
                 "; the global map is built afresh" if in_global else "",
                 f"; {', '.join(again)}, placed against it, estimated afresh" if again else "",
             )
-        if isinstance(doc, dict) and isinstance(doc.get("robots"), dict):
-            self._merges = int(doc.get("version", 0)) if isinstance(doc.get("version"), int) else 0
+        self._merges = saved.version
         self.placer.restore(placements)
-        self._placements = {r: p for r, p in placements.items()}
-        if gy.exists() and not in_global:
-            try:
-                grid = load_map(gy, max_cells=self.max_cells)
-            except MapdError as exc:
-                log.warning("fusion: ignoring unreadable %s: %s", gy, exc)
-                return
-            bounds = Bounds.of_grid(grid)
-            if bounds is None:
-                log.warning("fusion: %s is not on the fleet lattice; starting a new global map", gy)
-                return
-            self._global = grid.replace(robot=self.robot, version=self._merges, frame_id="fleet")
-            self._bounds = bounds
-            self._resolution = grid.resolution
-            self._restored = self._global
-            self._restored_robots = {r for r, p in placements.items() if p.accepted}
-
-    def _save_owner(self, owner: np.ndarray, names: list[str]) -> None:
-        """``owner.npy`` (who contributed each cell, for coloured pictures) and the names it indexes."""
-        if self.state_dir is None:
+        self._placements = dict(placements)
+        grid = None if in_global else self.store.load_global()
+        if grid is None:
             return
-        import io
-
-        buf = io.BytesIO()
-        np.save(buf, _owner_names(owner, names))
-        try:
-            atomic_write_bytes(self.state_dir / "owner.npy", buf.getvalue())
-            write_json_atomic(self.state_dir / "owner.json", {"robots": names})
-        except OSError as exc:
-            log.warning("fusion: cannot write owner map: %s", exc)
+        bounds = Bounds.of_grid(grid)
+        if bounds is None:
+            log.warning(
+                "fusion: %s is not on the fleet lattice; starting a new global map",
+                self.store.directory / GLOBAL_YAML,
+            )
+            return
+        self._global = grid.replace(robot=self.robot, version=self._merges, frame_id="fleet")
+        self._bounds = bounds
+        self._resolution = grid.resolution
+        self._restored = self._global
+        self._restored_robots = {r for r, p in placements.items() if p.accepted}
 
     def _save(self, result: MergeResult, placements: dict[str, Placement], stamp: float) -> None:
-        if self.state_dir is None:
-            return
-        try:
-            self.state_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StateError(f"{self.state_dir}: cannot create the state directory: {exc.strerror}") from None
-        save_map(result.grid, self.state_dir / GLOBAL_YAML)
-        doc = {
-            "format": FORMAT,
-            "robot": self.robot,
-            "fleet_frame": self.placer.fleet_frame,
-            "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
-            "mode": self.cfg.mode,
-            "version": result.grid.version,
-            "stamp": stamp,
-            "resolution": result.grid.resolution,
-            "origin": list(result.grid.origin),
-            "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
-        }
-        write_json_atomic(self.state_dir / TRANSFORMS_JSON, doc)
+        if self.store is not None:
+            self.store.save(
+                result, placements, stamp=stamp, fleet_frame=self.placer.fleet_frame, mode=self.cfg.mode
+            )
+
+    def _save_owner(self, result: MergeResult, names: list[str]) -> None:
+        if self.store is not None:
+            self.store.save_owner(result.owner, names)
 
 
-def _leave_out(placements: dict[str, Placement], robot: str, why: str) -> None:
-    """Mark ``robot``'s placement as left out of the global map, with the reason, and say so once."""
-    placements[robot] = replace(
-        placements[robot], accepted=False, reason=f"left out of the global map: {why}"
-    )
-    log.warning("fusion: %s: %s", robot, placements[robot].reason)
-
-
-def _reach(grid: OccupancyGrid, placement: Placement) -> float:
-    """How far from the fleet frame's origin the placed map's farthest corner lies, in meters."""
-    assert placement.transform is not None
-    c = transformed_corners(grid, placement.transform)
-    return float(np.hypot(c[:, 0], c[:, 1]).max())
-
-
-def _owner_names(owner: np.ndarray, names: list[str]) -> np.ndarray:
-    """Per cell, the index into sorted robot names of the map that weighed most (-1: none)."""
-    out = np.full(owner.shape, -1, dtype=np.int16)
-    valid = owner != NO_OWNER
-    out[valid] = owner[valid]
-    return out
-
-
-def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
-    """Write JSON via a temp file, fsync and rename, so readers never see half a file."""
-    try:
-        payload = (json.dumps(doc, indent=2, allow_nan=False, default=_jsonable) + "\n").encode()
-    except (TypeError, ValueError) as exc:
-        raise StateError(f"{path}: cannot serialise: {exc}") from None
-    try:
-        atomic_write_bytes(path, payload)
-    except OSError as exc:
-        raise StateError(f"{path}: cannot write: {exc.strerror}") from None
-
-
-def _jsonable(v: object) -> object:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    raise TypeError(f"cannot serialise {type(v).__name__}")
-
-
-__all__ = ["GLOBAL_YAML", "NO_OWNER", "TRANSFORMS_JSON", "FusionWorker", "write_json_atomic"]
+__all__ = ["GLOBAL_YAML", "NO_OWNER", "TRANSFORMS_JSON", "FusionWorker"]

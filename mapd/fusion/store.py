@@ -1,0 +1,189 @@
+"""The fusion worker's files in the state directory, so a restart loses neither map nor placements.
+
+Written after every merge (each file atomic: temp file, fsync, rename, so a crash leaves the old
+file or the new one, never half of one):
+
+* ``global.yaml`` + ``global.pgm``: the global map, as map_server files;
+* ``transforms.json``: the placements, per robot the "fleet frame -> robot map" transform (x, y in
+  meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``) with its source,
+  confidence and reason, and the global map's version;
+* ``owner.npy`` + ``owner.json``: per cell, which robot's map weighed most (an index into the
+  names in ``owner.json``; -1 where none knows), for coloured pictures.
+
+Reading is forgiving: an unreadable or damaged file is said in one warning and left out, and the
+worker starts without it (a new global map), never fails. Which restored placements to keep (the
+roster) is the worker's decision, not this module's.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapd.errors import MapdError, StateError
+from mapd.files import atomic_write_bytes
+from mapd.fusion.merge import NO_OWNER, MergeResult
+from mapd.fusion.placement import Placement
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
+
+log = logging.getLogger(__name__)
+
+GLOBAL_YAML = "global.yaml"
+TRANSFORMS_JSON = "transforms.json"
+OWNER_NPY = "owner.npy"
+OWNER_JSON = "owner.json"
+FORMAT = 1
+
+
+@dataclass
+class Saved:
+    """What a previous run left: its placements and the global map's version (0: none)."""
+
+    placements: dict[str, Placement] = field(default_factory=dict)
+    version: int = 0
+
+
+class FusionStore:
+    """Reads and writes the fusion files of one state directory (blocking: call from a worker)."""
+
+    def __init__(self, directory: Path, *, robot: str, max_cells: int = DEFAULT_MAX_CELLS) -> None:
+        self.directory = directory
+        self.robot = robot
+        self.max_cells = max_cells
+
+    # -- reading ----------------------------------------------------------------------------
+
+    def load_placements(self) -> Saved:
+        """The placements and version of ``transforms.json``; entries that do not parse are left out."""
+        path = self.directory / TRANSFORMS_JSON
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8")) if path.exists() else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            log.warning("fusion: ignoring unreadable %s: %s", path, exc)
+            return Saved()
+        if not isinstance(doc, dict) or not isinstance(doc.get("robots"), dict):
+            return Saved()
+        saved = Saved(version=doc["version"] if type(doc.get("version")) is int else 0)
+        for name, entry in doc["robots"].items():
+            try:
+                saved.placements[str(name)] = Placement.from_dict(entry)
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning("fusion: ignoring entry '%s' of %s: %s", name, path, exc)
+        return saved
+
+    def load_global(self) -> OccupancyGrid | None:
+        """The saved global map, or None when there is none or it cannot be read (said once)."""
+        path = self.directory / GLOBAL_YAML
+        if not path.exists():
+            return None
+        try:
+            return load_map(path, max_cells=self.max_cells)
+        except MapdError as exc:
+            log.warning("fusion: ignoring unreadable %s: %s", path, exc)
+            return None
+
+    # -- writing ----------------------------------------------------------------------------
+
+    def save(
+        self,
+        result: MergeResult,
+        placements: dict[str, Placement],
+        *,
+        stamp: float,
+        fleet_frame: str | None,
+        mode: str,
+    ) -> None:
+        """``global.yaml``/``.pgm`` and ``transforms.json``; :class:`StateError` when they cannot be."""
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StateError(f"{self.directory}: cannot create the state directory: {exc.strerror}") from None
+        save_map(result.grid, self.directory / GLOBAL_YAML)
+        doc = {
+            "format": FORMAT,
+            "robot": self.robot,
+            "fleet_frame": fleet_frame,
+            "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
+            "mode": mode,
+            "version": result.grid.version,
+            "stamp": stamp,
+            "resolution": result.grid.resolution,
+            "origin": list(result.grid.origin),
+            "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
+        }
+        write_json_atomic(self.directory / TRANSFORMS_JSON, doc)
+
+    def save_owner(self, owner: np.ndarray, names: list[str]) -> None:
+        """``owner.npy`` and the names it indexes; a failed write is a warning (pictures only)."""
+        buf = io.BytesIO()
+        np.save(buf, _owner_names(owner, names))
+        try:
+            atomic_write_bytes(self.directory / OWNER_NPY, buf.getvalue())
+            write_json_atomic(self.directory / OWNER_JSON, {"robots": names})
+        except (OSError, StateError) as exc:
+            log.warning("fusion: cannot write owner map: %s", exc)
+
+
+def read_owner(directory: Path) -> tuple[np.ndarray, list[str]] | None:
+    """``owner.npy`` and its names from a fusion state directory, or None when absent or unreadable."""
+    try:
+        names = json.loads((directory / OWNER_JSON).read_text(encoding="utf-8"))["robots"]
+        idx = np.load(directory / OWNER_NPY, allow_pickle=False)
+    except (OSError, ValueError, KeyError, TypeError, EOFError):
+        return None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return None
+    if idx.ndim != 2 or not np.issubdtype(idx.dtype, np.integer):
+        return None
+    return idx, names
+
+
+def _owner_names(owner: np.ndarray, names: list[str]) -> np.ndarray:
+    """Per cell, the index into sorted robot names of the map that weighed most (-1: none)."""
+    out = np.full(owner.shape, -1, dtype=np.int16)
+    valid = owner != NO_OWNER
+    out[valid] = owner[valid]
+    return out
+
+
+def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
+    """Write strict JSON (no NaN) via a temp file, fsync and rename, so readers never see half a file.
+
+    :class:`StateError` when ``doc`` cannot be written as JSON or the file cannot be written.
+    """
+    try:
+        payload = (json.dumps(doc, indent=2, allow_nan=False, default=_jsonable) + "\n").encode()
+    except (TypeError, ValueError) as exc:
+        raise StateError(f"{path}: cannot serialise: {exc}") from None
+    try:
+        atomic_write_bytes(path, payload)
+    except OSError as exc:
+        raise StateError(f"{path}: cannot write: {exc.strerror}") from None
+
+
+def _jsonable(v: object) -> object:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    raise TypeError(f"cannot serialise {type(v).__name__}")
+
+
+__all__ = [
+    "FORMAT",
+    "GLOBAL_YAML",
+    "OWNER_JSON",
+    "OWNER_NPY",
+    "TRANSFORMS_JSON",
+    "FusionStore",
+    "Saved",
+    "read_owner",
+    "write_json_atomic",
+]

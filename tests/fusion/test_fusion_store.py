@@ -1,0 +1,130 @@
+"""FusionStore: the fusion files of the state directory, written whole and read forgivingly."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mapd.config import FusionSection
+from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult
+from mapd.fusion.placement import Placement
+from mapd.fusion.store import OWNER_JSON, OWNER_NPY, TRANSFORMS_JSON, FusionStore, Saved, read_owner
+from mapd.fusion.worker import FusionWorker
+from mapd.grid import OccupancyGrid, Pose2D
+
+ZERO = Pose2D(0.0, 0.0, 0.0)
+
+
+def _result(grid: OccupancyGrid) -> MergeResult:
+    bounds = Bounds.of_grid(grid)
+    assert bounds is not None
+    owner = np.full(grid.data.shape, NO_OWNER, dtype=np.int16)
+    owner[: grid.height // 2] = 1  # the top half is the second robot's
+    return MergeResult(grid=grid, bounds=bounds, owner=owner)
+
+
+def test_what_is_saved_is_what_a_restart_reads(tmp_path: Path, building: OccupancyGrid) -> None:
+    store = FusionStore(tmp_path / "global", robot="a")
+    grid = building.replace(origin=ZERO, version=9, frame_id="fleet")
+    placed = {
+        "a": Placement("a", ZERO, "anchor", True, 1.0, None, "its map frame is the fleet frame"),
+        "b": Placement("b", Pose2D(3.0, -1.0, 0.25), "estimate", True, 0.9, 0.95, "", against="a"),
+    }
+    result = _result(grid)
+    store.save(result, placed, stamp=12.5, fleet_frame="a/map", mode="logodds")
+    store.save_owner(result.owner, ["a", "b"])
+
+    saved = store.load_placements()
+    assert saved.version == 9 and saved.placements == placed
+    restored = store.load_global()
+    assert restored is not None and np.array_equal(restored.data, grid.data)
+    doc = json.loads((tmp_path / "global" / TRANSFORMS_JSON).read_text())
+    assert doc["fleet_frame"] == "a/map" and doc["robots"]["b"]["x"] == 3.0
+    owner = read_owner(tmp_path / "global")
+    assert owner is not None
+    idx, names = owner
+    assert names == ["a", "b"] and idx.shape == grid.data.shape
+    assert (idx[: grid.height // 2] == 1).all() and (idx[grid.height // 2 :] == -1).all()
+
+
+def test_a_store_with_nothing_in_it_restores_nothing(tmp_path: Path) -> None:
+    store = FusionStore(tmp_path, robot="a")
+    assert store.load_placements() == Saved() and store.load_global() is None
+    assert read_owner(tmp_path) is None
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    doc=st.recursive(
+        st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+        max_leaves=20,
+    ),
+    robots=st.dictionaries(
+        st.text(max_size=6),
+        st.dictionaries(
+            st.sampled_from(["robot", "x", "y", "yaw", "source", "accepted", "confidence", "against"]),
+            st.none() | st.booleans() | st.floats() | st.text(max_size=5) | st.integers(),
+            max_size=8,
+        ),
+        max_size=3,
+    ),
+    raw=st.binary(max_size=64),
+)
+def test_a_damaged_transforms_file_is_left_out_not_fatal(
+    tmp_path: Path, doc: object, robots: dict[str, object], raw: bytes
+) -> None:
+    store = FusionStore(tmp_path, robot="a")
+    for content in (json.dumps(doc).encode(), json.dumps({"version": 3, "robots": robots}).encode(), raw):
+        (tmp_path / TRANSFORMS_JSON).write_bytes(content)
+        saved = store.load_placements()  # never raises: a bad file costs the placements, not the daemon
+        assert isinstance(saved.version, int)
+        assert all(isinstance(p, Placement) for p in saved.placements.values())
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["truncated", "pickled", "names not a list", "floats", "one axis"],
+)
+def test_a_damaged_owner_map_is_no_owner_map(tmp_path: Path, damage: str) -> None:
+    store = FusionStore(tmp_path, robot="a")
+    store.save_owner(np.zeros((4, 5), dtype=np.int16), ["a"])
+    assert read_owner(tmp_path) is not None
+    npy, names = tmp_path / OWNER_NPY, tmp_path / OWNER_JSON
+    if damage == "truncated":
+        npy.write_bytes(npy.read_bytes()[:-7])
+    elif damage == "pickled":  # np.load would run code from the file if allowed to unpickle
+        npy.write_bytes(pickle.dumps(np.zeros((2, 2), dtype=object)))
+    elif damage == "names not a list":
+        names.write_text(json.dumps({"robots": "a"}))
+    elif damage == "floats":
+        np.save(npy, np.zeros((4, 5), dtype=np.float32))
+    else:
+        np.save(npy, np.zeros(20, dtype=np.int16))
+    assert read_owner(tmp_path) is None
+
+
+def test_an_owner_map_that_cannot_be_written_does_not_cost_the_global_map(
+    tmp_path: Path, building: OccupancyGrid
+) -> None:
+    # owner.json cannot be replaced (a directory stands in its place): the pictures lose their
+    # colours, but the merge is published and the global map saved as always.
+    (tmp_path / OWNER_JSON).mkdir()
+    a = building.replace(origin=ZERO, robot="a")
+
+    async def main() -> FusionWorker:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+        w.submit(a)
+        await w.merge_now()
+        return w
+
+    w = asyncio.run(main())
+    assert w.status()["error"] is None and w.global_map is not None
+    assert FusionStore(tmp_path, robot="a").load_placements().version == 1
