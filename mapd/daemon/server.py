@@ -8,7 +8,9 @@ One update's way through the robot::
         --> Receiver.accept --> save (worker), fusion worker, ack
 
 The decisions live in sans-I/O cores (:mod:`~mapd.daemon.publisher`, :mod:`~mapd.daemon.receiver`);
-this module is the asyncio adapter around them, with :mod:`~mapd.daemon.inbound` for events in. The event loop only moves bytes and decisions:
+their asyncio adapters are :mod:`~mapd.daemon.outbound` (own maps out) and
+:mod:`~mapd.daemon.inbound` (transport events in), and this module starts them, with the
+transports, fusion and outputs, and stops them. The event loop only moves bytes and decisions:
 encode, decode, verify, merge and file writes run in worker threads, so a large map never stalls
 the links, timers or ``mapd status``. Every queue is bounded and latest-wins where order does not
 matter.
@@ -21,7 +23,6 @@ import contextlib
 import logging
 import os
 import signal
-import threading
 import time
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -30,11 +31,11 @@ from pydantic import BaseModel
 from mapd import config as configmod
 from mapd import plugins
 from mapd.codec import get_codec
-from mapd.codec.api import encode_problem
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
 from mapd.daemon.inbound import Inbound
+from mapd.daemon.outbound import Outbound
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import Receiver
@@ -45,9 +46,7 @@ from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
-from mapd.envelope import Envelope
-from mapd.errors import MapdError, StateError
-from mapd.files import WriteOutage
+from mapd.errors import MapdError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
@@ -84,18 +83,12 @@ class Daemon:
         self.store = StateStore(cfg.state.dir, max_cells=cfg.limits.max_cells)
         self.started = time.time()
         self.source = source
-        self.source_finished = False
-        self.own: OccupancyGrid | None = None
         self.transports: list[Transport] = []
         self._stop = asyncio.Event()
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
-        self._saves = WriteOutage(log)  # own versions that could not be saved (a full disk)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
-        self._wake = asyncio.Event()  # the publisher has something to look at
-        self._pending: OccupancyGrid | None = None  # newest own version, not yet saved
         self._events = EventQueue(EVENT_QUEUE, max_peers=EVENT_QUEUE)
-        self._kf_lock = threading.Lock()
         codec_opts = self.options["codec"].get(cfg.codec.use)
         options = codec_opts if isinstance(codec_opts, CodecOptions) else None
         codec = get_codec(cfg.codec.use, options)
@@ -147,6 +140,17 @@ class Daemon:
             frames=lambda: placed_frames(self.fusion.placements),
             publish=self.sinks.poses,
         )
+        self.outbound = Outbound(
+            me=self.me,
+            max_cells=lim.max_cells,
+            publisher=self.publisher,
+            coder=self.coder,
+            store=self.store,
+            fusion=self.fusion,
+            sinks=self.sinks,
+            transport=lambda name: self.inbound.transport(name),
+            peers=lambda: {t.name: t.peers() for t in self.transports},
+        )
         self.inbound = Inbound(
             me=self.me,
             events=self._events,
@@ -160,7 +164,7 @@ class Daemon:
             roster=self.keys.roster,
             max_message_bytes=lim.max_message_bytes,
             max_cells=lim.max_cells,
-            wake=self._wake.set,
+            wake=self.outbound.wake,
         )
         # The live web view ([view] listen): an output like the others, plus the status dict.
         self.view: LiveView | None = None
@@ -170,6 +174,11 @@ class Daemon:
             ctx = OutputContext(robot=self.me, fleet=cfg.robot.fleet, state_dir=cfg.state.dir)
             self.view = LiveView(cfg.view, ctx, token=checked.view_token, snapshot=self.snapshot)
             self.sinks.map_watchers.append(self.view.robot_map)
+
+    @property
+    def own(self) -> OccupancyGrid | None:
+        """This robot's newest map version, or None before the first."""
+        return self.outbound.own
 
     def _own_map_source(self) -> bool:
         """Whether the source yields this robot's own map (not ``none``, nor only other robots' maps)."""
@@ -260,7 +269,7 @@ class Daemon:
                 max_message_bytes=self.cfg.limits.max_message_bytes,
                 emit=self._events.put,
                 state_dir=state_dir,
-                latest_keyframe=self.latest_keyframe,
+                latest_keyframe=self.outbound.latest_keyframe,
             )
             self.transports.append(cls(self._options("transports", name, cls.Options), ctx))
             if cls.paced:
@@ -305,10 +314,11 @@ class Daemon:
         return opts if isinstance(opts, model) else None
 
     async def _run_tasks(self) -> None:
+        assert self.source is not None  # run() made it
         async with asyncio.TaskGroup() as tg:
             tasks = [
-                tg.create_task(self._source_loop(), name="source"),
-                tg.create_task(self._publish_loop(), name="publisher"),
+                tg.create_task(self.outbound.take_source(self.source), name="source"),
+                tg.create_task(self.outbound.run(), name="publisher"),
                 tg.create_task(self.inbound.run(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
@@ -386,7 +396,7 @@ class Daemon:
         """Resume from the state directory: own version, bases, and every peer's last map."""
         own, base, peers = await asyncio.to_thread(self._load_state)
         if own is not None:
-            own = self.own = own.replace(robot=self.me)
+            own = self.outbound.own = own.replace(robot=self.me)
             self.fusion.submit(own)
         self.publisher.restore(own, base, self.store.acked())
         for grid in peers:
@@ -410,111 +420,6 @@ class Daemon:
         while True:
             notify("WATCHDOG=1")
             await asyncio.sleep(interval)
-
-    # ------------------------------------------------------------------ own maps out
-    async def _source_loop(self) -> None:
-        assert self.source is not None
-        async for grid in self.source.maps():
-            if grid.robot and grid.robot != self.me:  # another robot's map, taken on this machine
-                self._local_peer_map(grid)
-                continue
-            if grid.cells > self.cfg.limits.max_cells:
-                log.warning("source map of %d cells is over the limit; skipped", grid.cells)
-                continue
-            problem = encode_problem(grid)
-            if problem is not None:  # no codec could send it: skip it rather than fail on it later
-                log.warning("source map skipped: %s", problem)
-                continue
-            # Versions are the daemon's, so they keep increasing across restarts.
-            own = grid.replace(
-                robot=self.me,
-                version=self.store.next_own_version(time.time()),
-                stamp=grid.stamp or time.time(),
-            )
-            self.own = own
-            self._pending = own  # latest wins: an unsaved older version is simply replaced
-            self.sinks.robot_map(own)
-            self._wake.set()
-            self.fusion.submit(own)
-        self.source_finished = True
-        log.info("source finished; still serving peers")
-
-    def _local_peer_map(self, grid: OccupancyGrid) -> None:
-        """A map of another robot from this daemon's source (ros2 ``discover_robots``, a map_merge
-        drop-in): fused and recorded as a peer's map received over a transport is, placed by the
-        source's known pose of that robot if any; it is neither sent nor kept in the state dir."""
-        assert self.source is not None
-        if grid.cells > self.cfg.limits.max_cells:
-            log.warning(
-                "map of %s from the source (%d cells) is over the limit; skipped", grid.robot, grid.cells
-            )
-            return
-        pose = self.source.robot_poses().get(grid.robot)
-        if pose is not None:
-            self.fusion.known_pose(grid.robot, pose)
-        self.fusion.submit(grid)
-        self.sinks.robot_map(grid)
-
-    def _peers_by_transport(self) -> dict[str, list[str]]:
-        return {t.name: t.peers() for t in self.transports}
-
-    async def _publish_loop(self) -> None:
-        """The publisher core's adapter: save new versions, ask what to code, code it in a worker, offer it.
-
-        A version is coded only when some transport can send it now (rule P1): a busy transport
-        takes the newest version when its current one settles or times out, so the delta is taken
-        against the base acked *by then* (on the 12.5 kb/s link the first keyframe takes seconds).
-        """
-        core = self.publisher
-        while True:
-            deadline = core.next_deadline()
-            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), timeout)
-            self._wake.clear()
-            grid, self._pending = self._pending, None
-            if grid is not None:
-                try:
-                    await asyncio.to_thread(self.store.save_own, grid)
-                except StateError as exc:
-                    # A full disk: the version is not sent unsaved (after a restart its number could
-                    # come again), and the robot runs on; the next version tries again.
-                    self._saves.failed(f"{exc}; new versions are not sent until one is saved")
-                else:
-                    self._saves.recovered("own map saved again")
-                    core.new_version(grid)
-            job = core.poll(time.monotonic(), self._peers_by_transport())
-            if job is None:
-                continue  # every transport is busy or has it: they take the newest when they settle
-            try:
-                env = await asyncio.to_thread(self.coder.envelope, job.grid, job.base)
-            except MapdError as exc:  # one unsendable version must not stop the robot publishing
-                log.error("cannot code v%d: %s", job.grid.version, exc)
-                continue
-            for name in core.encoded(job, env, time.monotonic(), self._peers_by_transport()):
-                transport = self.inbound.transport(name)
-                if transport is not None:
-                    transport.offer(env)
-            if self._pending is not None:
-                self._wake.set()  # a newer version came while coding
-
-    def latest_keyframe(self) -> Envelope | None:
-        """The newest own map as a keyframe, for late joiners.
-
-        Called by transports from worker threads (a zenoh query is answered on its job thread): it
-        may encode, so it must never run on the event loop. One encode per version however many
-        queries wait; the publisher's own keyframes are reused.
-        """
-        own = self.own
-        if own is None:
-            return None
-        with self._kf_lock:
-            cached = self.publisher.cached_keyframe(own.version)
-            if cached is not None:
-                return cached
-            env = self.coder.envelope(own, None)
-            self.publisher.remember_keyframe(env)
-            return env
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """The fusion worker made a new global map: outputs, recording and fused.csv take it."""
@@ -542,7 +447,7 @@ class Daemon:
                 "name": self.cfg.source.use,
                 "version": own.version if own else 0,
                 "size": [own.width, own.height] if own else None,
-                "finished": self.source_finished,
+                "finished": self.outbound.source_finished,
                 "stats": self.source.stats() if self.source else {},
             },
             "codec": {

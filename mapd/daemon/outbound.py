@@ -1,0 +1,170 @@
+"""Own maps out: the source's maps numbered, saved, coded and offered to the transports.
+
+:class:`Outbound` is the daemon's sending half, an asyncio adapter like :mod:`mapd.daemon.inbound`
+around the sans-I/O core it drives: :class:`~mapd.daemon.publisher.PublisherCore` decides what to
+code, against which base, for which free links. Two loops:
+
+* :meth:`Outbound.take_source` numbers each map of the source (versions are the daemon's, so they
+  keep increasing across restarts) and hands it to fusion and the outputs at once; only the newest
+  waits to be saved and sent, so a fast source never queues.
+* :meth:`Outbound.run` saves the newest version (worker thread), asks the core what to code, codes
+  and signs it (worker), and offers it to the transports named (latest wins inside each).
+
+A version is saved before it is sent: after a crash its number never comes again for another map.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from mapd.codec.api import encode_problem
+from mapd.daemon.coding import Coder
+from mapd.daemon.publisher import PublisherCore
+from mapd.daemon.sinks import Sinks
+from mapd.daemon.state import StateStore
+from mapd.envelope import Envelope
+from mapd.errors import MapdError, StateError
+from mapd.files import WriteOutage
+from mapd.fusion.worker import FusionWorker
+from mapd.grid import OccupancyGrid
+from mapd.sources.base import MapSource
+from transports.base import Transport
+
+log = logging.getLogger("mapd.daemon")
+
+
+@dataclass
+class Outbound:
+    """This robot's maps from the source to the transports (see the module docstring)."""
+
+    me: str
+    max_cells: int
+    publisher: PublisherCore
+    coder: Coder
+    store: StateStore
+    fusion: FusionWorker
+    sinks: Sinks
+    #: The transport of a name, once started; None for one that is gone.
+    transport: Callable[[str], Transport | None]
+    #: Each transport's peers now, by transport name (what the core offers to).
+    peers: Callable[[], dict[str, list[str]]]
+    #: The newest own version (numbered), or None before the first.
+    own: OccupancyGrid | None = None
+    #: The source has no more maps (a finished log); the daemon still serves its peers.
+    source_finished: bool = False
+    _pending: OccupancyGrid | None = None  # the newest own version, not yet saved
+    _wake: asyncio.Event = field(default_factory=asyncio.Event)
+    _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))  # a full disk, said once
+    _kf_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def wake(self) -> None:
+        """The publisher has something to look at: a link became free, or a peer needs a keyframe."""
+        self._wake.set()
+
+    async def take_source(self, source: MapSource) -> None:
+        """Take the source's maps until it ends; another robot's map (ros2 ``discover_robots``) is
+        fused and recorded as a peer's is, never sent."""
+        async for grid in source.maps():
+            if grid.robot and grid.robot != self.me:
+                self._local_peer_map(source, grid)
+                continue
+            if grid.cells > self.max_cells:
+                log.warning("source map of %d cells is over the limit; skipped", grid.cells)
+                continue
+            problem = encode_problem(grid)
+            if problem is not None:  # no codec could send it: skip it rather than fail on it later
+                log.warning("source map skipped: %s", problem)
+                continue
+            own = grid.replace(
+                robot=self.me,
+                version=self.store.next_own_version(time.time()),
+                stamp=grid.stamp or time.time(),
+            )
+            self.own = own
+            self._pending = own  # latest wins: an unsaved older version is simply replaced
+            self.sinks.robot_map(own)
+            self._wake.set()
+            self.fusion.submit(own)
+        self.source_finished = True
+        log.info("source finished; still serving peers")
+
+    def _local_peer_map(self, source: MapSource, grid: OccupancyGrid) -> None:
+        """A map of another robot from this daemon's source (a map_merge drop-in): fused and
+        recorded, placed by the source's known pose of that robot if any; neither sent nor kept."""
+        if grid.cells > self.max_cells:
+            log.warning(
+                "map of %s from the source (%d cells) is over the limit; skipped", grid.robot, grid.cells
+            )
+            return
+        pose = source.robot_poses().get(grid.robot)
+        if pose is not None:
+            self.fusion.known_pose(grid.robot, pose)
+        self.fusion.submit(grid)
+        self.sinks.robot_map(grid)
+
+    async def run(self) -> None:
+        """The publisher core's adapter: save new versions, ask what to code, code it in a worker, offer it.
+
+        A version is coded only when some transport can send it now (rule P1): a busy transport
+        takes the newest version when its current one settles or times out, so the delta is taken
+        against the base acked *by then* (on the 12.5 kb/s link the first keyframe takes seconds).
+        """
+        core = self.publisher
+        while True:
+            deadline = core.next_deadline()
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout)
+            self._wake.clear()
+            grid, self._pending = self._pending, None
+            if grid is not None:
+                try:
+                    await asyncio.to_thread(self.store.save_own, grid)
+                except StateError as exc:
+                    # A full disk: the version is not sent unsaved (after a restart its number could
+                    # come again), and the robot runs on; the next version tries again.
+                    self._saves.failed(f"{exc}; new versions are not sent until one is saved")
+                else:
+                    self._saves.recovered("own map saved again")
+                    core.new_version(grid)
+            job = core.poll(time.monotonic(), self.peers())
+            if job is None:
+                continue  # every transport is busy or has it: they take the newest when they settle
+            try:
+                env = await asyncio.to_thread(self.coder.envelope, job.grid, job.base)
+            except MapdError as exc:  # one unsendable version must not stop the robot publishing
+                log.error("cannot code v%d: %s", job.grid.version, exc)
+                continue
+            for name in core.encoded(job, env, time.monotonic(), self.peers()):
+                transport = self.transport(name)
+                if transport is not None:
+                    transport.offer(env)
+            if self._pending is not None:
+                self._wake.set()  # a newer version came while coding
+
+    def latest_keyframe(self) -> Envelope | None:
+        """The newest own map as a keyframe, for late joiners.
+
+        Called by transports from worker threads (a zenoh query is answered on its job thread): it
+        may encode, so it must never run on the event loop. One encode per version however many
+        queries wait; the publisher's own keyframes are reused.
+        """
+        own = self.own
+        if own is None:
+            return None
+        with self._kf_lock:
+            cached = self.publisher.cached_keyframe(own.version)
+            if cached is not None:
+                return cached
+            env = self.coder.envelope(own, None)
+            self.publisher.remember_keyframe(env)
+            return env
+
+
+__all__ = ["Outbound"]
