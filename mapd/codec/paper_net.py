@@ -522,7 +522,7 @@ def load_model(model_dir: Path) -> PaperModel:
         channels = int(meta.get("channels", CHANNELS))
         expect = str(meta["weights_sha256"])
         fmt = int(meta.get("format", MODEL_FORMAT))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
         raise CodecError(f"{meta_path}: unreadable model metadata ({exc})") from None
     if fmt != MODEL_FORMAT:
         raise CodecError(f"{meta_path}: model format {fmt}, this mapd reads {MODEL_FORMAT}")

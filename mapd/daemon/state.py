@@ -27,10 +27,12 @@ from typing import Any
 
 from mapd.daemon.versions import next_version
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_json, remove_stale_temps
+from mapd.files import atomic_write_json, read_capped, remove_stale_temps
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
 
 log = logging.getLogger(__name__)
+#: state.json's largest size read: its records are some 100 bytes a peer, and peers are capped.
+MAX_STATE_JSON = 16 << 20
 _SAFE = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
 
 
@@ -64,22 +66,40 @@ class StateData:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> StateData:
+    def from_json(cls, d: object) -> StateData:
+        """The state a ``to_json`` document holds. A damaged file (it was written whole, but disks
+        fail) raises ValueError or TypeError for the counters, which must be right or start afresh;
+        a record or ack that is not right is left out, costing one whole map on the link."""
+
         def rec(x: Any) -> MapRecord | None:
-            if isinstance(x, dict) and isinstance(x.get("version"), int) and isinstance(x.get("digest"), str):
+            if isinstance(x, dict) and _is_count(x.get("version")) and isinstance(x.get("digest"), str):
                 return MapRecord(x["version"], x["digest"])
             return None
 
-        peers = {str(k): r for k, v in (d.get("peers") or {}).items() if (r := rec(v)) is not None}
-        acked = {str(k): int(v) for k, v in (d.get("acked") or {}).items() if isinstance(v, int)}
+        if not isinstance(d, dict):
+            raise TypeError(f"state.json holds a {type(d).__name__}, not an object")
+        counters = {k: d.get(k, 0) for k in ("own_version", "seq")}
+        for key, value in counters.items():
+            if not _is_count(value):
+                # Out of range, a new incarnation from the clock is right (versions.py); a version
+                # past 2^63 or below 0 would have every map refused by every peer, for ever.
+                raise ValueError(f"{key} {value!r:.40} is not a count below 2^63")
+        peers, acked = d.get("peers") or {}, d.get("acked") or {}
+        if not isinstance(peers, dict) or not isinstance(acked, dict):
+            raise TypeError("state.json: peers and acked must be objects")
         return cls(
-            own_version=int(d.get("own_version", 0)),
+            own_version=counters["own_version"],
             own=rec(d.get("own")),
             base=rec(d.get("base")),
-            peers=peers,
-            acked=acked,
-            seq=int(d.get("seq", 0)),
+            peers={str(k): r for k, v in peers.items() if (r := rec(v)) is not None},
+            acked={str(k): v for k, v in acked.items() if _is_count(v)},
+            seq=counters["seq"],
         )
+
+
+def _is_count(x: object) -> bool:
+    """Whether ``x`` is a version, sequence number or ack as envelopes carry them: 0 <= x < 2^63."""
+    return type(x) is int and 0 <= x < 1 << 63
 
 
 class StateStore:
@@ -116,8 +136,11 @@ class StateStore:
         path = self.root / "state.json"
         if path.exists():
             try:
-                self.data = StateData.from_json(json.loads(path.read_text()))
-            except (OSError, ValueError, TypeError, AttributeError) as exc:
+                raw = read_capped(path, MAX_STATE_JSON)
+                if len(raw) > MAX_STATE_JSON:
+                    raise ValueError(f"over {MAX_STATE_JSON >> 20} MiB")
+                self.data = StateData.from_json(json.loads(raw))
+            except (OSError, ValueError, TypeError, RecursionError) as exc:
                 log.warning("state.json unreadable (%s); starting with empty state", exc)
                 self.data = StateData()
         return self.data

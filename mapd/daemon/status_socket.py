@@ -92,7 +92,7 @@ def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
             raise DaemonError(f"cannot read status from {path}: {exc}") from None
     try:
         doc = json.loads(b"".join(chunks))
-    except ValueError:
+    except (ValueError, RecursionError):
         raise DaemonError(f"daemon at {path} sent malformed status") from None
     if not isinstance(doc, dict):
         raise DaemonError(f"daemon at {path} sent malformed status")

@@ -72,12 +72,15 @@ class Placement:
         }
 
     @staticmethod
-    def from_dict(d: Mapping[str, Any]) -> Placement:
-        """Inverse of :meth:`as_dict` (raises KeyError/TypeError/ValueError on malformed input)."""
+    def from_dict(d: object) -> Placement:
+        """Inverse of :meth:`as_dict`: KeyError, TypeError or ValueError on malformed input (a file
+        read back may be damaged: not a mapping, numbers too large for a float, a text for one)."""
+        if not isinstance(d, Mapping):
+            raise TypeError(f"a placement is a mapping, not {type(d).__name__}")
         xs = (d.get("x"), d.get("y"), d.get("yaw"))
         t = None
         if all(v is not None for v in xs):
-            vals = tuple(float(v) for v in xs)  # type: ignore[arg-type]
+            vals = tuple(_number(v) for v in xs)
             if not all(math.isfinite(v) for v in vals):
                 raise ValueError("transform is not finite")
             t = Pose2D(*vals)
@@ -87,11 +90,22 @@ class Placement:
             transform=t,
             source=str(d.get("source", "estimate")),
             accepted=bool(d.get("accepted", False)) and t is not None,
-            confidence=float(d.get("confidence", 0.0)),
-            agreement=None if agr is None else float(agr),
+            confidence=_number(d.get("confidence", 0.0)),
+            agreement=None if agr is None else _number(agr),
             reason=str(d.get("reason", "")),
             against=None if d.get("against") is None else str(d["against"]),
         )
+
+
+def _number(v: object) -> float:
+    """``v`` as a float; TypeError for what is no number (a text, a list), ValueError for an int too
+    large for a float (JSON allows any)."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise TypeError(f"{v!r:.40} is not a number")
+    try:
+        return float(v)
+    except OverflowError:
+        raise ValueError("a number too large for a float") from None
 
 
 def derived_from(placements: Mapping[str, Placement], gone: set[str]) -> set[str]:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_bytes
+from mapd.files import atomic_write_bytes, read_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
@@ -40,6 +40,8 @@ TRANSFORMS_JSON = "transforms.json"
 OWNER_NPY = "owner.npy"
 OWNER_JSON = "owner.json"
 FORMAT = 1
+#: The largest ``transforms.json`` or ``owner.json`` read: a few hundred bytes a robot, robots capped.
+MAX_JSON = 16 << 20
 
 
 @dataclass
@@ -64,8 +66,11 @@ class FusionStore:
         """The placements and version of ``transforms.json``; entries that do not parse are left out."""
         path = self.directory / TRANSFORMS_JSON
         try:
-            doc = json.loads(path.read_text(encoding="utf-8")) if path.exists() else None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raw = read_capped(path, MAX_JSON) if path.exists() else b"null"
+            if len(raw) > MAX_JSON:
+                raise ValueError(f"over {MAX_JSON >> 20} MiB")
+            doc = json.loads(raw)
+        except (OSError, ValueError, RecursionError) as exc:  # JSON's and Unicode's errors are ValueErrors
             log.warning("fusion: ignoring unreadable %s: %s", path, exc)
             return Saved()
         if not isinstance(doc, dict) or not isinstance(doc.get("robots"), dict):
@@ -134,9 +139,13 @@ class FusionStore:
 def read_owner(directory: Path) -> tuple[np.ndarray, list[str]] | None:
     """``owner.npy`` and its names from a fusion state directory, or None when absent or unreadable."""
     try:
-        names = json.loads((directory / OWNER_JSON).read_text(encoding="utf-8"))["robots"]
-        idx = np.load(directory / OWNER_NPY, allow_pickle=False)
-    except (OSError, ValueError, KeyError, TypeError, EOFError):
+        raw = read_capped(directory / OWNER_JSON, MAX_JSON)
+        names = json.loads(raw)["robots"] if len(raw) <= MAX_JSON else None
+        npy = directory / OWNER_NPY
+        if npy.stat().st_size > 2 * DEFAULT_MAX_CELLS + 4096:  # int16 cells and the header
+            return None
+        idx = np.load(npy, allow_pickle=False)
+    except (OSError, ValueError, KeyError, TypeError, EOFError, RecursionError):
         return None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         return None

@@ -185,6 +185,22 @@ def test_weights_of_the_wrong_shape_are_refused(tmp_path: Path) -> None:
         pn.load_model(tmp_path / "m")
 
 
+@pytest.mark.parametrize(
+    "damage",
+    ['"levels": 1e999', '"levels": "x"', '"channels": [8]', "[" * 100_000],
+)
+def test_damaged_model_metadata_is_one_codec_error(tmp_path: Path, damage: str) -> None:
+    make_model(tmp_path / "m", seed=5)
+    path = tmp_path / "m" / pn.META_FILE
+    text = path.read_text()
+    # 1e999 reads as inf, which int() cannot take (OverflowError); deep nesting, RecursionError
+    path.write_text(
+        damage if damage.startswith("[") else text.rstrip()[:-1] + ", " + damage + "}"
+    )  # last wins
+    with pytest.raises(CodecError, match=r"unreadable model metadata"):
+        pn.load_model(tmp_path / "m")
+
+
 def test_models_root_follows_option_then_environment(
     models: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

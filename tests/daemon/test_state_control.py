@@ -10,8 +10,10 @@ import stat
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from mapd.daemon.state import StateStore
+from mapd.daemon.state import MAX_STATE_JSON, StateStore
 from mapd.daemon.status_socket import StatusServer, query
 from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
@@ -55,6 +57,73 @@ def test_map_not_matching_state_json_is_ignored(tmp_path: Path, room_grid: Occup
 def test_corrupt_state_json_starts_empty(tmp_path: Path) -> None:
     (tmp_path / "state.json").write_text("{not json")
     assert StateStore(tmp_path).open().own_version == 0
+
+
+@pytest.mark.parametrize(
+    "doc",
+    [
+        '{"own_version": 1e999}',  # json reads it as inf, which int() cannot take
+        '{"seq": 1e999}',
+        "[" * 100_000,  # nested past the recursion limit
+        '{"own_version": -7}',  # versions are never negative: every peer would refuse them
+        f'{{"own_version": {1 << 63}}}',  # past what an envelope carries: nothing could be sent
+        '{"own_version": true}',
+        '{"own_version": 5, "peers": [1]}',
+        "7",
+    ],
+)
+def test_a_damaged_state_json_starts_a_new_incarnation(tmp_path: Path, doc: str) -> None:
+    (tmp_path / "state.json").write_text(doc)
+    store = StateStore(tmp_path)
+    assert store.open().own_version == 0  # so the next version is a new incarnation from the clock
+    assert 0 < store.next_own_version(1.8e9) < 1 << 63
+
+
+def test_an_oversized_state_json_is_not_read(tmp_path: Path) -> None:
+    with open(tmp_path / "state.json", "w") as fh:
+        fh.write('{"own_version": 9, "pad": "')
+        fh.write("x" * MAX_STATE_JSON)
+        fh.write('"}')
+    assert StateStore(tmp_path).open().own_version == 0
+
+
+def test_bad_records_and_acks_are_left_out_and_the_rest_kept(tmp_path: Path) -> None:
+    doc = {
+        "own_version": 12,
+        "seq": 40,
+        "peers": {"beta": {"version": -1, "digest": "x"}, "gamma": {"version": 3, "digest": "d"}},
+        "acked": {"beta": 1e999, "gamma": 1 << 64, "delta": 11},
+    }
+    (tmp_path / "state.json").write_text(json.dumps(doc))
+    data = StateStore(tmp_path).open()
+    assert (data.own_version, data.seq, list(data.peers), data.acked) == (12, 40, ["gamma"], {"delta": 11})
+
+
+_VALUES = st.none() | st.booleans() | st.integers(-(1 << 70), 1 << 70) | st.floats() | st.text(max_size=6)
+_RECORD = st.fixed_dictionaries({}, optional={"version": _VALUES, "digest": _VALUES})
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    doc=st.fixed_dictionaries(
+        {},
+        optional={
+            "own_version": _VALUES,
+            "seq": _VALUES,
+            "own": _RECORD | _VALUES,
+            "base": _RECORD | _VALUES,
+            "peers": st.dictionaries(st.text(max_size=4), _RECORD | _VALUES, max_size=3) | _VALUES,
+            "acked": st.dictionaries(st.text(max_size=4), _VALUES, max_size=3) | _VALUES,
+        },
+    )
+    | _VALUES
+)
+def test_any_state_json_opens_with_counters_an_envelope_can_carry(tmp_path: Path, doc: object) -> None:
+    (tmp_path / "state.json").write_text(json.dumps(doc))
+    data = StateStore(tmp_path).open()
+    counts = [data.own_version, data.seq, *data.acked.values()]
+    counts += [r.version for r in (data.own, data.base, *data.peers.values()) if r is not None]
+    assert all(type(c) is int and 0 <= c < 1 << 63 for c in counts)
 
 
 @pytest.mark.parametrize("where", ["proc", "under-a-file"])

@@ -70,10 +70,14 @@ def test_a_store_with_nothing_in_it_restores_nothing(tmp_path: Path) -> None:
     robots=st.dictionaries(
         st.text(max_size=6),
         st.dictionaries(
-            st.sampled_from(["robot", "x", "y", "yaw", "source", "accepted", "confidence", "against"]),
-            st.none() | st.booleans() | st.floats() | st.text(max_size=5) | st.integers(),
+            st.sampled_from(["robot", "x", "y", "yaw", "source", "accepted", "confidence", "agreement"]),
+            # integers past a float's range too: JSON allows them, float() overflows on them
+            st.none() | st.booleans() | st.floats() | st.text(max_size=5) | st.integers(-(10**400), 10**400),
             max_size=8,
-        ),
+        )
+        | st.lists(st.integers(), max_size=2)
+        | st.integers()
+        | st.text(max_size=4),
         max_size=3,
     ),
     raw=st.binary(max_size=64),
@@ -87,6 +91,18 @@ def test_a_damaged_transforms_file_is_left_out_not_fatal(
         saved = store.load_placements()  # never raises: a bad file costs the placements, not the daemon
         assert isinstance(saved.version, int)
         assert all(isinstance(p, Placement) for p in saved.placements.values())
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [[1], "a", 7, {"robot": "b", "x": 10**400, "y": 0, "yaw": 0}, {"robot": "b", "confidence": 10**400},
+     {"robot": "b", "x": "1", "y": 0, "yaw": 0}, {"robot": "b", "agreement": [0.5]}],
+)  # fmt: skip
+def test_a_damaged_placement_is_left_out_and_the_others_kept(tmp_path: Path, entry: object) -> None:
+    good = Placement("a", ZERO, "anchor", True, 1.0, None, "its map frame is the fleet frame")
+    doc = {"version": 2, "robots": {"a": good.as_dict(), "b": entry}}
+    (tmp_path / TRANSFORMS_JSON).write_text(json.dumps(doc))
+    assert FusionStore(tmp_path, robot="a").load_placements() == Saved({"a": good}, 2)
 
 
 @pytest.mark.parametrize(

@@ -6,18 +6,20 @@ restarted it into the same crash for as long as the file stayed that way.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from mapd.daemon.versions import incarnation_at, split
 from mapd.grid import OccupancyGrid, save_map
 from mapd.mapping.synthetic import room_grid
 
@@ -55,11 +57,10 @@ def _map(k: int) -> OccupancyGrid:
     return g.replace(data=data.astype(np.int8))
 
 
-def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> None:
-    path = tmp_path / "map.yaml"
-    save_map(_map(0), path)
-    whole_pgm = path.with_suffix(".pgm").read_bytes()
-    whole_yaml = path.read_text()
+@contextlib.contextmanager
+def _daemon(tmp_path: Path, path: Path) -> Iterator[tuple[subprocess.Popen[bytes], Path, Path]]:
+    """``mapd run`` on the mapfile source of ``path``, state in ``tmp_path/state``: the process,
+    its control socket and its log; killed on the way out if a test did not stop it."""
     run = tmp_path / "run"
     config = tmp_path / "config.toml"
     config.write_text(
@@ -74,8 +75,20 @@ def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> Non
             stdout=out,
             stderr=subprocess.STDOUT,
         )
-    sock = run / "mapd.sock"
     try:
+        yield proc, run / "mapd.sock", log
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
+def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> None:
+    path = tmp_path / "map.yaml"
+    save_map(_map(0), path)
+    whole_pgm = path.with_suffix(".pgm").read_bytes()
+    whole_yaml = path.read_text()
+    with _daemon(tmp_path, path) as (proc, sock, log):
         # The source counts a map on its worker; the daemon takes it (the version shown) a step later.
         first = _wait(
             proc,
@@ -112,11 +125,34 @@ def test_daemon_keeps_its_last_good_map_through_bad_files(tmp_path: Path) -> Non
         assert st["source"]["version"] > version and st["source"]["stats"]["load_errors"] == len(bad_files)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(15) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
     text = log.read_text()
     assert "Traceback" not in text, text
     warned = [line for line in text.splitlines() if "mapd.sources.mapfile" in line]
     assert len(warned) == len(bad_files), text  # one line per fault, not one per poll
+
+
+def test_a_damaged_state_directory_is_warned_and_the_daemon_runs(tmp_path: Path) -> None:
+    # Before: each of these stopped `mapd run` at start with a traceback (OverflowError for JSON's
+    # infinity, AttributeError for a placement that is a list), and systemd restarted it into it.
+    path = tmp_path / "map.yaml"
+    save_map(_map(0), path)
+    state = tmp_path / "state"
+    (state / "global").mkdir(parents=True)
+    (state / "state.json").write_text('{"own_version": 1e999, "seq": 3}')
+    huge = "1" + "0" * 400  # JSON allows it; no float holds it
+    (state / "global" / "transforms.json").write_text(
+        f'{{"version": 3, "robots": {{"r1": [1], "r2": {{"robot": "r2", "x": {huge}, "y": 0, "yaw": 0}}}}}}'
+    )
+    with _daemon(tmp_path, path) as (proc, sock, log):
+        st = _wait(proc, sock, lambda s: s["fusion"]["merges"] >= 1, "the first merge")
+        # A new incarnation from the clock, as after a lost disk: its versions are ones peers take.
+        incarnation = split(st["source"]["version"])[0]
+        assert abs(incarnation - incarnation_at(time.time())) < 120
+        assert set(st["fusion"]["robots"]) == {"r0"}  # the damaged placements left out
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0
+    text = log.read_text()
+    assert "Traceback" not in text, text
+    assert "state.json unreadable (own_version inf" in text, text
+    assert "ignoring entry 'r1'" in text and "ignoring entry 'r2'" in text, text
+    assert json.loads((state / "state.json").read_text())["own_version"] == st["source"]["version"]

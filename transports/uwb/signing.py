@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mapd.errors import StateError
-from mapd.files import atomic_write_bytes
+from mapd.files import atomic_write_bytes, read_capped
 
 COUNTER_LEN = 6
 TAG_LEN = 6
@@ -157,7 +157,8 @@ class CounterStore:
         if self.path is None:
             return self._memory
         try:
-            text = self.path.read_text(encoding="ascii").strip()
+            # a counter is 15 digits: more is a damaged file, not a reason to read it all
+            text = read_capped(self.path, 64).decode("ascii").strip()
         except FileNotFoundError:
             return 0
         except (OSError, UnicodeDecodeError) as exc:

@@ -174,6 +174,9 @@ def test_counter_store_persists_and_never_reuses(tmp_path: Path) -> None:
     path.write_text("garbage")
     with pytest.raises(StateError, match="corrupt"):
         CounterStore(path).load()
+    path.write_text("7" * 10_000_000)  # read no further than a counter can be long
+    with pytest.raises(StateError, match=r"holds 7{65}, out of range"):
+        CounterStore(path).load()
 
 
 def test_clock_floor_rises() -> None:
