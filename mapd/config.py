@@ -96,6 +96,7 @@ class LimitsSection(Strict):
     max_growth: float = Field(
         default=4.0,
         ge=1.0,
+        le=1e6,
         description="a peer's map may grow to this many times its last one's cells (+1 M)",
     )
 
@@ -397,6 +398,10 @@ def _bad_value(data: Any) -> str | None:
             return f"{where}: the string holds a NUL character"
         elif isinstance(node, int) and not _TOML_INT_MIN <= node <= _TOML_INT_MAX:
             return f"{where}: integer out of the 64-bit range TOML allows"
+        elif isinstance(node, float) and not math.isfinite(node):
+            # TOML has inf and nan; no setting means them, and a limit of inf overflowed where it
+            # became a count (limits.max_growth = inf stopped the daemon at its first peer's map)
+            return f"{where}: {node} is not a finite number"
     return None
 
 

@@ -22,7 +22,7 @@ import stat
 from collections.abc import Mapping
 from pathlib import Path
 
-from cryptography.exceptions import InvalidSignature
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
@@ -95,7 +95,8 @@ def read_identity(path: Path, robot: str, option: str = "robot.key_file") -> Ide
         raise ConfigError(f"{option}: {path} is larger than a key file ({MAX_KEY_FILE_BYTES} bytes)")
     try:
         key = serialization.load_pem_private_key(raw, password=None)
-    except (ValueError, TypeError, binascii.Error):
+    except (ValueError, TypeError, binascii.Error, UnsupportedAlgorithm):
+        # UnsupportedAlgorithm: a PEM key of a kind OpenSSL cannot load (an EC key on secp112r1)
         raise ConfigError(
             f"{option}: {path} is not a PEM private key (make one with 'mapd keygen')"
         ) from None

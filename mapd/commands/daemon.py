@@ -293,6 +293,7 @@ def render_status(s: dict[str, Any]) -> str:
 
 def cmd_status(args: argparse.Namespace) -> int:
     from mapd.daemon.status_socket import query
+    from mapd.errors import DaemonError
 
     path = _socket_path(args)
     while True:
@@ -302,7 +303,15 @@ def cmd_status(args: argparse.Namespace) -> int:
         else:
             if args.watch:
                 print("\033[2J\033[H", end="")
-            print(render_status(doc))
+            try:
+                text = render_status(doc)
+            except (AttributeError, TypeError, IndexError, KeyError, ValueError) as exc:
+                # a daemon of another mapd version, most likely: say so, not a traceback
+                raise DaemonError(
+                    f"the daemon at {path} sent a status this mapd cannot show ({type(exc).__name__}: "
+                    f"{exc}); 'mapd status --json' prints it as sent"
+                ) from None
+            print(text)
         if not args.watch:
             return 0
         sys.stdout.flush()

@@ -99,10 +99,15 @@ def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, 
 def cmd_send(args: argparse.Namespace) -> int:
     import asyncio
 
+    from mapd.files import read_capped
+    from transports.uwb.options import MAX_MESSAGE
+
     try:
-        data = args.file.read_bytes()
+        data = read_capped(args.file, MAX_MESSAGE)  # /dev/zero was read until memory ran out
     except OSError as exc:
         raise TransportError(f"{args.file}: cannot read: {exc.strerror}") from None
+    if len(data) > MAX_MESSAGE:
+        raise TransportError(f"{args.file}: over the {MAX_MESSAGE} bytes one message can carry")
     peers = args.peer or [2]
     bad = [p for p in peers if not 1 <= p <= 254 or p == args.node]
     if bad:

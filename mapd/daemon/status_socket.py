@@ -18,6 +18,9 @@ from typing import Any
 
 from mapd.errors import DaemonError
 
+#: The most a status query reads (a status is some kilobytes, a few hundred with many robots).
+MAX_STATUS_BYTES = 64 << 20
+
 log = logging.getLogger(__name__)
 
 
@@ -79,9 +82,12 @@ def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
         try:
             s.connect(str(path))
             s.shutdown(socket.SHUT_WR)
-            chunks = []
+            chunks, size = [], 0
             while chunk := s.recv(65536):
                 chunks.append(chunk)
+                size += len(chunk)
+                if size > MAX_STATUS_BYTES:  # a status is kilobytes: this is no mapd daemon
+                    raise DaemonError(f"{path} sent over {MAX_STATUS_BYTES >> 20} MiB of status")
         except FileNotFoundError:
             raise DaemonError(f"no mapd daemon is running (no control socket at {path})") from None
         except ConnectionRefusedError:

@@ -17,18 +17,20 @@ ignored and counted separately. A log that cannot be opened or read is one :clas
 from __future__ import annotations
 
 import gzip
-import io
 import logging
 import math
 import os
+import stat
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO, cast
 
 import numpy as np
 
 from mapd.errors import SourceError
+from mapd.files import open_for_reading
 from mapd.grid import Pose2D
 
 log = logging.getLogger(__name__)
@@ -40,6 +42,10 @@ MAX_BEAMS = 8192
 #: Largest pose coordinate accepted (m). Beyond it, frame arithmetic on two poses can overflow to
 #: infinity; no building is a thousand kilometres across.
 MAX_COORD_M = 1e6
+#: Largest timestamp accepted (s, either sign), some 300 million years. Far beyond it the time
+#: between two scans overflowed to infinity (1e308 after -1e308), and a replay paced by it slept for
+#: ever (NaN); below it such sums keep to a second.
+MAX_STAMP_S = 1e16
 
 # Message types CARMEN logs define that carry no front-laser scan for the mapper.
 _IGNORED = frozenset(
@@ -99,17 +105,24 @@ class BadLine(ValueError):
         self.key = key
 
 
-def _open(path: Path) -> io.BufferedIOBase:
+def _open(path: Path) -> BinaryIO:
     try:
-        raw = open(path, "rb")  # noqa: SIM115 - returned to the caller, closed there
+        raw = open_for_reading(path)
     except FileNotFoundError:
         raise SourceError(f"{path}: no such log file") from None
     except OSError as exc:
-        raise SourceError(f"{path}: cannot open log: {exc.strerror}") from None
+        raise SourceError(f"{path}: cannot open log: {exc.strerror or exc}") from None
+    try:
+        regular = stat.S_ISREG(os.fstat(raw.fileno()).st_mode)
+    except OSError:
+        regular = False
+    if not regular:  # a FIFO without a writer blocked for ever, and /dev/zero never ended
+        raw.close()
+        raise SourceError(f"{path}: not a regular file")
     magic = raw.read(2)
     raw.seek(0)
     if magic == b"\x1f\x8b":
-        return gzip.GzipFile(fileobj=raw, mode="rb")
+        return cast(BinaryIO, gzip.GzipFile(fileobj=raw, mode="rb"))
     return raw
 
 
@@ -158,9 +171,11 @@ def _check_ranges(ranges: np.ndarray) -> None:
         raise BadLine("negative range")
 
 
-def _check_pose(x: float, y: float) -> None:
+def _check_pose(x: float, y: float, stamp: float) -> None:
     if abs(x) > MAX_COORD_M or abs(y) > MAX_COORD_M:
         raise BadLine(f"pose is more than {MAX_COORD_M:g} m from the origin")
+    if abs(stamp) > MAX_STAMP_S:
+        raise BadLine(f"timestamp {stamp:.3g} is beyond {MAX_STAMP_S:g} s")
 
 
 def _beam_angles(n: int, fov: float) -> np.ndarray:
@@ -188,7 +203,7 @@ def parse_flaser(tokens: list[str], fov: float, line: int) -> LaserScan:
     if not np.isfinite(tail).all():
         raise BadLine("pose or timestamp is not finite")
     x, y, theta, stamp = (float(v) for v in tail)
-    _check_pose(x, y)
+    _check_pose(x, y, stamp)
     return LaserScan(ranges, _beam_angles(n, fov), Pose2D(x, y, theta), stamp, line)
 
 
@@ -224,7 +239,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
     step = fov / (n - 1) if n > 1 else 0.0
     angles = start + step * np.arange(n, dtype=np.float64)
     x, y, theta, stamp = (float(v) for v in tail)
-    _check_pose(x, y)
+    _check_pose(x, y, stamp)
     return LaserScan(ranges, angles, Pose2D(x, y, theta), stamp, line)
 
 

@@ -71,7 +71,8 @@ class SimOptions(FleetSliceOptions, MapperOptions):
     lidar_range: float = Field(default=12.0, gt=0.0, le=100.0, description="lidar max range, m")
     noise_std: float = Field(default=0.01, ge=0.0, le=1.0, description="range noise sigma, m")
     dropout: float = Field(default=0.01, ge=0.0, lt=1.0, description="share of beams with no return")
-    emit_period: float = Field(default=5.0, gt=0.0, description="sim seconds between map versions")
+    # at least 10 ms: a period below the clock's resolution never moved the next emit on (a hang)
+    emit_period: float = Field(default=5.0, ge=0.01, description="sim seconds between map versions")
     realtime: float = Field(
         default=5.0, ge=0.0, description="sim seconds per wall second (1: live-like, 0: flat out)"
     )

@@ -7,6 +7,9 @@ import json
 import os
 import socket
 import stat
+import subprocess
+import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -201,3 +204,36 @@ def test_journal_formatter_priority_prefix() -> None:
     rec = logging.LogRecord("mapd.x", logging.WARNING, __file__, 1, "link down", None, None)
     rec.fields = {"peer": "beta"}
     assert JournalFormatter(journal=True).format(rec) == "<4>mapd.x: link down peer=beta"
+
+
+@pytest.mark.parametrize(
+    ("doc", "said"),
+    [({"security": []}, "AttributeError"), ({"source": {"size": [1]}}, "IndexError")],
+)
+def test_a_status_mapd_cannot_show_is_one_error_line(
+    tmp_path: Path, doc: dict[str, object], said: str
+) -> None:
+    # A daemon of another mapd version may send a status of another shape: `mapd status` said it
+    # with a traceback.
+    path = tmp_path / "s.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(str(path))
+        server.listen(1)
+
+        def answer() -> None:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(json.dumps(doc).encode())
+
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        out = subprocess.run(
+            [sys.executable, "-m", "mapd", "status", "--socket", str(path)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        thread.join(10)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "sent a status this mapd cannot show" in lines[0] and said in lines[0], lines

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mapd.errors import LimitError
+from mapd.errors import LimitError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, replay_log
@@ -45,6 +46,29 @@ def test_a_timestamp_years_ahead_pauses_the_replay_briefly_not_for_ever(
     t0 = time.monotonic()
     maps = _collect(src, timeout=10.0)  # before the fix: asleep for 1e15 s
     assert [g.version for g in maps] == [1, 2, 3, 4]
+    assert time.monotonic() - t0 < 5.0
+
+
+def test_timestamps_whose_difference_overflows_are_skipped_not_a_hang(tmp_path: Path) -> None:
+    # 1e308 after -1e308 is inf seconds later: the pacing went to NaN and slept for ever
+    p = tmp_path / "stamps.log"
+    p.write_text(_flaser(0.0, -1e308) + _flaser(0.1, 1e308) + _flaser(0.2, 1.0) + _flaser(0.3, 1.1))
+    src = LaserLogSource(LaserLogOptions(log=p, every=1, realtime=1.0), SourceContext(robot="r"))
+    maps = _collect(src, timeout=10.0)
+    st = src.stats()
+    assert len(maps) == 2 and st["skipped_lines"] == 2 and "timestamp" in str(st["last_error"])
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_log_that_is_no_regular_file_is_one_source_error_at_once(tmp_path: Path, kind: str) -> None:
+    # A FIFO without a writer blocked the open for ever; /dev/zero was read for ever, line by line.
+    path = Path("/dev/zero")
+    if kind == "fifo":
+        path = tmp_path / "log.fifo"
+        os.mkfifo(path)
+    t0 = time.monotonic()
+    with pytest.raises(SourceError, match="not a regular file"):
+        list(carmen.read_scans(path))
     assert time.monotonic() - t0 < 5.0
 
 

@@ -16,6 +16,9 @@ from transports.uwb.wire import MAX_TOTAL
 
 #: The largest map a uwb link carries: what a DATA frame's 24-bit size field describes.
 MAX_MESSAGE = MAX_TOTAL - HASH_LEN
+#: The shortest timer a setting may give (s): a frame takes milliseconds on the air, and a timer of
+#: 1e-300 s made the link's loop spin, firing on every pass.
+MIN_TIMER_S = 0.01
 
 
 class UwbOptions(TransportOptions):
@@ -42,7 +45,7 @@ class UwbOptions(TransportOptions):
         "out of range), or those of them heard within peer_timeout_s (fleets spread over a building: "
         "the others get it by relay; mapd bench swarm --acks up)",
     )
-    deadline_s: float = Field(default=120.0, gt=0, description="give up on a map after this long")
+    deadline_s: float = Field(default=120.0, ge=MIN_TIMER_S, description="give up on a map after this long")
     max_message_bytes: int | None = Field(
         default=None,
         ge=1024,
@@ -94,11 +97,13 @@ class UwbOptions(TransportOptions):
     sense_ms: float = Field(default=20.0, ge=0, description="backoff: channel idle time before a backoff")
     backoff_min_ms: float = Field(default=0.0, ge=0, description="backoff: shortest random wait")
     backoff_max_ms: float = Field(default=100.0, ge=0, description="backoff: longest random wait")
-    beacon_s: float = Field(default=5.0, gt=0, description="HELLO after this long without sending")
-    peer_timeout_s: float = Field(default=20.0, gt=0, description="a peer silent this long is down")
-    reopen_s: float = Field(default=1.0, gt=0, description="retry a vanished serial port this often")
+    beacon_s: float = Field(default=5.0, ge=MIN_TIMER_S, description="HELLO after this long without sending")
+    peer_timeout_s: float = Field(default=20.0, ge=MIN_TIMER_S, description="a peer silent this long is down")
+    reopen_s: float = Field(
+        default=1.0, ge=MIN_TIMER_S, description="retry a vanished serial port this often"
+    )
     keyframe_request_s: float = Field(
-        default=5.0, gt=0, description="ask a robot for a whole map at most this often"
+        default=5.0, ge=MIN_TIMER_S, description="ask a robot for a whole map at most this often"
     )
     relay: bool = Field(
         default=True,
@@ -107,9 +112,13 @@ class UwbOptions(TransportOptions):
     )
     # The timers mapd bench swarm measured (its tables in the README run with these defaults).
     summary_period_s: float = Field(
-        default=10.0, gt=0, description="relay: broadcast which versions this robot holds this often"
+        default=10.0,
+        ge=MIN_TIMER_S,
+        description="relay: broadcast which versions this robot holds this often",
     )
-    relay_period_s: float = Field(default=2.0, gt=0, description="relay: start at most one relay this often")
+    relay_period_s: float = Field(
+        default=2.0, ge=MIN_TIMER_S, description="relay: start at most one relay this often"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> UwbOptions:
