@@ -253,7 +253,8 @@ class Ros2Source(MapSource):
             raise TransportError(f"ros2 source: cannot subscribe to '{self.key}': {exc}") from None
         log.info("ros2 source: subscribed to %s", self.key)
 
-    def _decode(self, key: str, payload: bytes) -> OccupancyGrid | None:
+    def _decode(self, key: str, payload: bytes) -> tuple[OccupancyGrid, bytes] | None:
+        """The map and its digest (a worker thread: both are a pass over every cell)."""
         where = f"key {key}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {key})"
         try:
             grid = ros2cdr.decode(payload, max_cells=self.ctx.max_cells, where=where)
@@ -262,7 +263,7 @@ class Ros2Source(MapSource):
             self._last_error = str(exc)
             log.warning("%s; waiting for the next map", exc)
             return None
-        return grid
+        return grid, grid.digest()
 
     def _waiting_for_pose(self, robot: str) -> bool:
         o = self.opts
@@ -288,10 +289,10 @@ class Ros2Source(MapSource):
                 for robot, item in sorted(items.items()):
                     if self._waiting_for_pose(robot):
                         continue
-                    grid = await asyncio.to_thread(self._decode, *item)
-                    if grid is None:
+                    decoded = await asyncio.to_thread(self._decode, *item)
+                    if decoded is None:
                         continue
-                    digest = grid.digest()
+                    grid, digest = decoded
                     if digest == self._digests.get(robot):
                         continue
                     self._digests[robot] = digest

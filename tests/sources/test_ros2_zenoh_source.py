@@ -6,6 +6,7 @@ import asyncio
 import math
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -137,8 +138,19 @@ async def _next(it: Any, timeout: float = 10.0) -> OccupancyGrid:
     return grid
 
 
-def test_late_subscriber_gets_the_current_map_then_updates(publisher_session: tuple[Any, str]) -> None:
+def test_late_subscriber_gets_the_current_map_then_updates(
+    publisher_session: tuple[Any, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     session, endpoint = publisher_session
+    # The digest that tells a new map from a repeat is a pass over every cell: never on the loop.
+    hashed_on: list[threading.Thread] = []
+    digest = OccupancyGrid.digest
+
+    def recording(grid: OccupancyGrid) -> bytes:
+        hashed_on.append(threading.current_thread())
+        return digest(grid)
+
+    monkeypatch.setattr(OccupancyGrid, "digest", recording)
     sink = Ros2Sink(session, "/map")
     first, second = _grid(1), _grid(2)
     sink.publish(first)  # before anyone subscribes: transient local
@@ -167,6 +179,7 @@ def test_late_subscriber_gets_the_current_map_then_updates(publisher_session: tu
     assert np.array_equal(b.data, second.data) and b.version == 2
     assert stats["bad_payloads"] == 1 and "topic /map" in str(stats["last_error"])
     assert src._session is None  # closed with the stream
+    assert len(hashed_on) == 3 and threading.main_thread() not in hashed_on  # first, first, second
 
 
 def test_sink_attachment_and_liveliness_follow_rmw_zenoh(

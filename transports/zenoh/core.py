@@ -349,10 +349,14 @@ class ZenohCore:
         if version > self._max_offered:
             self.counters.dropped += 1  # an ack of a version we never sent: not a usable base
             return Step()
-        self.counters.acks_rx += 1
         st = self._state(peer)
-        if st is not None:
-            st.verified = True
+        if st is None:
+            # Past max_peers: in a fleet that allows unsigned acks anyone can ack under a made-up
+            # name, and each Delivered would become a row the publisher and state.json keep for ever.
+            self.counters.dropped += 1
+            return Step()
+        self.counters.acks_rx += 1
+        st.verified = True
         sent = self._offered_at.get(version)
         if now is not None and sent is not None and now >= sent:
             self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
