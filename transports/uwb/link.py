@@ -146,7 +146,7 @@ class UwbLink:
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
         if self._cfg.key is not None:
-            start = max(self._store.load(), clock_floor(self._wall()))
+            start = max(await asyncio.to_thread(self._store.load), clock_floor(self._wall()))
             self._cfg = dataclasses.replace(self._cfg, counter_start=start)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
         if self._cfg.mac == "tdma" and wallclock.synchronized() is False:
@@ -155,7 +155,7 @@ class UwbLink:
                 "fleet's clocks to agree within guard_ms (run chrony: docs/uwb.md)",
                 self.port,
             )
-        self._persist_counter(strict=True)  # a state dir that cannot be written fails here
+        await self._persist_counter(strict=True)  # a state dir that cannot be written fails here
         await self._open()
         self.started_at = asyncio.get_running_loop().time()
         self._task = asyncio.create_task(self._run(), name=f"uwb-{self.port}")
@@ -281,12 +281,14 @@ class UwbLink:
             waiter.cancel()
             stop.cancel()
 
-    def _persist_counter(self, *, strict: bool = False) -> None:
+    async def _persist_counter(self, *, strict: bool = False) -> None:
         """Save the counter bound the core asks for, then let it sign below it.
 
         Only at start (``strict``) does a failed save raise. Later the loop goes on: the core still
         has the rest of the block saved before (half a block, minutes of frames), after which it
-        sends nothing signed; each wake retries, and a save that goes through resumes it.
+        sends nothing signed; each wake retries, and a save that goes through resumes it. The save
+        (two fsyncs, which an SD card under load can take seconds over) runs on a worker thread:
+        this link waits for it, the event loop does not.
         """
         assert self.core is not None
         upto = self.core.counter_reservation()
@@ -296,7 +298,7 @@ class UwbLink:
         if self._counter_fault and now < self._counter_retry_at:
             return  # not a write per frame to a disk that refused the last one
         try:
-            self._store.save(upto)
+            await asyncio.to_thread(self._store.save, upto)
         except StateError as exc:
             if strict:
                 raise
@@ -379,7 +381,7 @@ class UwbLink:
             timer = core.get_timer()
             if timer is not None and timer <= now:
                 core.handle_timer(now)
-            self._persist_counter()
+            await self._persist_counter()
             self._dispatch()
             while not self._closing:
                 now = loop.time()
@@ -392,7 +394,7 @@ class UwbLink:
                     self._record_write(now, len(frame))
                     await self._drain(proto)
                 # else: the line is down; the frame is lost like any other and will be resent
-                self._persist_counter()
+                await self._persist_counter()
                 self._dispatch()
             self._dispatch()
             timer = core.get_timer()

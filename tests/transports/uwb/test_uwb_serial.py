@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -452,6 +453,15 @@ def test_a_signing_counter_that_cannot_be_saved_quiets_the_link_until_it_can(
     # Small blocks, so that a 20 kB map needs many saves (the daemon's block lasts minutes).
     monkeypatch.setattr(arq, "Signer", functools.partial(signing.Signer, block=16))
     key = os.urandom(32)
+    # Each save is a write and two fsyncs (seconds on a loaded SD card): never on the event loop.
+    saved_on: list[threading.Thread] = []
+    save = signing.CounterStore.save
+
+    def recording(store: signing.CounterStore, value: int) -> None:
+        saved_on.append(threading.current_thread())
+        save(store, value)
+
+    monkeypatch.setattr(signing.CounterStore, "save", recording)
 
     async def main() -> None:
         async with FaultRelay(rate_bps=RATE, seed=5) as relay:
@@ -483,6 +493,7 @@ def test_a_signing_counter_that_cannot_be_saved_quiets_the_link_until_it_can(
     assert sum("cannot write signing counter" in m for m in said) == 1  # once, not once a retry
     assert sum("signing counter saved again" in m for m in said) == 1
     assert not [r for r in caplog.records if "stopped" in r.getMessage()]
+    assert len(saved_on) > 10 and threading.main_thread() not in saved_on
 
 
 def test_a_link_whose_loop_dies_says_why_to_its_watcher() -> None:
