@@ -68,6 +68,10 @@ MAX_POSE_BYTES = 512
 #: An ack is an 8-byte version and, in a signed fleet, a signature (``core.pack_ack``); a larger
 #: sample on an ack key is refused before it is read.
 MAX_ACK_BYTES = 8 + SIG_LEN
+#: Acks, poses and keyframe queries waiting for the event loop at most; more are dropped (counted
+#: ``dropped``). Each is checked on the loop (a signature), and anyone on the bus can send them
+#: faster than it checks: unbounded, 273,000 waited after 47 s and every timer ran 16 s late.
+MAX_LOOP_BACKLOG = 1024
 
 
 @dataclass
@@ -93,6 +97,8 @@ class IntakeCounters:
     dropped: int = 0
     #: Updates and replies of a robot the roster does not admit.
     unadmitted: int = 0
+    #: Acks, poses and queries waiting for the loop (at most :data:`MAX_LOOP_BACKLOG`).
+    backlog: int = 0
 
 
 class ZenohTransport(Transport):
@@ -320,17 +326,36 @@ class ZenohTransport(Transport):
         if checks is None or not checks.after(job):
             job()
 
+    def _post_bounded(self, fn: Callable[..., None], *args: Any) -> bool:
+        """:meth:`_post`, unless :data:`MAX_LOOP_BACKLOG` such calls already wait (then counted)."""
+        with self._rx_lock:
+            if self._rx.backlog >= MAX_LOOP_BACKLOG:
+                self._rx.dropped += 1
+                return False
+            self._rx.backlog += 1
+
+        def run(*a: Any) -> None:
+            with self._rx_lock:
+                self._rx.backlog -= 1
+            fn(*a)
+
+        if self._post(run, *args):
+            return True
+        with self._rx_lock:
+            self._rx.backlog -= 1
+        return False
+
     def _cb_pose(self, sample: Any) -> None:
         if len(sample.payload) <= MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
-            self._post(self._on_pose, str(sample.key_expr), sample.payload.to_bytes())
+            self._post_bounded(self._on_pose, str(sample.key_expr), sample.payload.to_bytes())
 
     def _cb_ack(self, sample: Any) -> None:
         if len(sample.payload) > MAX_ACK_BYTES:
             # zenoh takes samples up to max_message_bytes: copying one (8 MiB) and queueing it on the
             # loop only for the core to refuse its length would cost a million times the ack's size.
-            self._post(self._ack_oversize)
+            self._post_bounded(self._ack_oversize)
             return
-        self._post(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
+        self._post_bounded(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
 
     def _cb_presence(self, sample: Any) -> None:
         import zenoh
@@ -338,7 +363,7 @@ class ZenohTransport(Transport):
         self._post(self._on_presence, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
     def _cb_query(self, query: Any) -> None:
-        if not self._post(self._on_query, query):
+        if not self._post_bounded(self._on_query, query):
             query.drop()  # finalize it, so the asker is not left waiting for its timeout
 
     def _cb_reply(self, robot: str, reply: Any) -> None:

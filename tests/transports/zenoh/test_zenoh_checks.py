@@ -368,3 +368,42 @@ def _no_stray_threads() -> Any:
     yield
     # The check threads end when their transport closes (after a check in progress, if any).
     wait_until(lambda: not [t for t in threading.enumerate() if t.name.startswith("mapd-zenoh-check-")])
+
+
+def test_a_flood_of_acks_waits_for_the_loop_in_a_bounded_backlog(zk) -> None:
+    # Anyone on the bus can put acks faster than the loop checks their signatures: each waited on the
+    # loop's queue, unbounded (273,000 after 47 s, every timer 16 s late).
+    from transports.zenoh.core import pack_ack
+    from transports.zenoh.link import MAX_LOOP_BACKLOG
+
+    forged = pack_ack(1, identity=Identity.generate("a"), fleet=zk.FLEET, peer="a", robot="b")
+    flood = 5 * MAX_LOOP_BACKLOG
+
+    async def main() -> None:
+        async with zk.pair("b", "a", signed=True) as (b, _a):
+            with zk.raw_session(b.listen[0], watch="b") as raw:
+                await b.wait(lambda: bool(raw.seen))
+                loop = asyncio.get_running_loop()
+                ready = loop._ready  # type: ignore[attr-defined]  # the callbacks waiting to run
+                peak, done = [0], threading.Event()
+
+                def sample() -> None:
+                    while not done.is_set():
+                        peak[0] = max(peak[0], len(ready))
+                        time.sleep(0.002)
+
+                sampler = threading.Thread(target=sample, daemon=True)
+                sampler.start()
+                key = keys.ack_key(zk.FLEET, "a", "b")
+                dropped = b.t.stats()["dropped"]
+                # The loop is busy (blocked here) while the flood arrives.
+                for _ in range(flood):
+                    raw.put(key, forged)
+                time.sleep(1.0)
+                await b.wait(lambda: b.t.stats()["dropped"] + b.t.stats()["bad_signature"] >= dropped + flood)
+                done.set()
+                sampler.join(5)
+                assert peak[0] <= MAX_LOOP_BACKLOG + 64, peak[0]
+                assert b.t.stats()["dropped"] - dropped >= flood - MAX_LOOP_BACKLOG - 64
+
+    run(main())
