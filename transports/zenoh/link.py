@@ -346,8 +346,17 @@ class ZenohTransport(Transport):
         return False
 
     def _cb_pose(self, sample: Any) -> None:
-        if len(sample.payload) <= MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
-            self._post_bounded(self._on_pose, str(sample.key_expr), sample.payload.to_bytes())
+        if len(sample.payload) > MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
+            return
+        key = str(sample.key_expr)
+        robot = keys.parse_pose(self.ctx.fleet, key)
+        if robot is not None and not self.core.admits(robot):
+            # Its signature could only fail; and each made-up name would take one of the daemon's
+            # event queue's peer slots, which real robots' maps need.
+            with self._rx_lock:
+                self._rx.unadmitted += 1
+            return
+        self._post_bounded(self._on_pose, key, sample.payload.to_bytes())
 
     def _cb_ack(self, sample: Any) -> None:
         if len(sample.payload) > MAX_ACK_BYTES:

@@ -407,3 +407,23 @@ def test_a_flood_of_acks_waits_for_the_loop_in_a_bounded_backlog(zk) -> None:
                 assert b.t.stats()["dropped"] - dropped >= flood - MAX_LOOP_BACKLOG - 64
 
     run(main())
+
+
+def test_poses_of_robots_off_the_roster_are_refused_unread(zk) -> None:
+    # Each made-up name took a slot of the daemon's event queue (256 peers), which real maps need.
+    from mapd.grid import Pose2D
+    from mapd.poses import PoseMessage
+    from transports.base import PoseReceived
+
+    async def main() -> None:
+        async with zk.pair("b", "a", signed=True) as (b, _a):
+            with zk.raw_session(b.listen[0], watch="b") as raw:
+                await b.wait(lambda: bool(raw.seen))
+                for i in range(300):
+                    name = f"ghost{i}"
+                    msg = PoseMessage(zk.FLEET, name, time.time(), Pose2D(1.0, 2.0, 0.5))
+                    raw.put(keys.pose_key(zk.FLEET, name), msg.signed(Identity.generate(name)).pack())
+                await b.wait(lambda: b.t.stats()["unadmitted"] >= 300)
+                assert not [e for e in b.events if isinstance(e, PoseReceived) and e.peer.startswith("ghost")]
+
+    run(main())
