@@ -71,6 +71,9 @@ from mapd.sources.ros2_pose import PoseSubscription
 __all__ = ["Ros2Options", "Ros2Source"]
 
 log = logging.getLogger(__name__)
+#: Robots past ``max_robots`` named in a warning, at most (then quietly ignored): each name is one
+#: line and one entry kept, and anyone on the ROS graph can make up names.
+MAX_IGNORED_SAID = 64
 
 
 class Ros2Source(MapSource):
@@ -163,9 +166,12 @@ class Ros2Source(MapSource):
         o = self.opts
         if not ROBOT_NAME.match(robot) or not robot.startswith(o.robot_namespace):
             return None
-        if robot not in self._robots and len(self._robots) >= o.max_robots:
-            if robot not in self._ignored:
-                self._ignored.add(robot)
+        # A robot counts from its first sample or token, not its first map that decodes: names whose
+        # payloads never decode each held a subscription (and its token) for ever, without bound.
+        taken = self._robots.keys() | self._announced
+        if robot not in taken and len(taken) >= o.max_robots:
+            if robot not in self._ignored and len(self._ignored) < MAX_IGNORED_SAID:
+                self._ignored.add(robot)  # said once a name, for as many names as are worth saying
                 log.warning("ros2 source: already %d robots; ignoring %s", o.max_robots, robot)
             return None
         return robot

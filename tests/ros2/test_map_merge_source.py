@@ -132,3 +132,33 @@ def test_one_robot_mode_announces_its_node_and_subscription(
     sub = next(t for t in mine if t.kind == "MS")
     assert sub.hash == "TypeHashNotSupported" and sub.qos == rmw_peer.qos(True, 1)
     assert sub.type == "nav_msgs::msg::dds_::OccupancyGrid_" and sub.namespace == "/"
+
+
+def test_names_past_max_robots_take_no_subscription(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any]
+) -> None:
+    # A robot counts from its first token, not its first map that decodes: before, every made-up
+    # name on the ROS graph (a publisher that never sends a map that parses) held a subscription.
+    peer = rmw_peer.RmwPeer(endpoint, listen=True)
+    peers.append(peer)
+    opts = Ros2Options(
+        discover_robots=True, known_init_poses=False, mode="peer", connect=[endpoint], max_robots=3
+    )
+    src = Ros2Source(opts, SourceContext(robot="base"))
+
+    async def go() -> None:
+        it = cast(AsyncGenerator[OccupancyGrid, None], src.maps().__aiter__())
+        task = asyncio.ensure_future(it.__anext__())
+        await asyncio.sleep(1.0)
+        for i in range(12):
+            await asyncio.to_thread(peer.publisher, f"/ghost{i}/map")
+        end = asyncio.get_running_loop().time() + 10
+        while len(src._ignored) < 9 and asyncio.get_running_loop().time() < end:
+            await asyncio.sleep(0.05)
+        assert len(src._announced) == 3 and len(src._ignored) == 9
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
+            await task
+        await it.aclose()
+
+    asyncio.run(go())
