@@ -52,7 +52,8 @@ Receiving
       never delivered twice. A chunk of a message older than the newest one seen on its stream is stale.
   R11. A new message on a stream replaces a partial older one of that stream. A peer has at most
       ``max_partials_per_peer`` partial messages, and all peers together at most ``rx_budget_bytes``
-      held; past either, the least recently active partial is dropped. Partials idle for
+      held (each chunk counted with ``CHUNK_COST`` bytes for the memory it takes beyond its own:
+      1-byte chunks cost 100 times their bytes); past either, the least recently active partial is dropped. Partials idle for
       ``partial_ttl_s`` are dropped. So memory stays bounded whatever arrives.
   R12. A complete message is delivered (MessageReceived) only when its length and hash check out; a
       message failing the hash is dropped and its buffer starts over under a new ``gen``.
@@ -144,7 +145,7 @@ from transports.uwb.arq_types import (
 from transports.uwb.framing import MIN_FRAME, FrameReader, encode_frame, max_body
 from transports.uwb.lending import Backlogs
 from transports.uwb.pacing import MediumAccess, Pacer
-from transports.uwb.receiving import PeerState
+from transports.uwb.receiving import CHUNK_COST, PeerState
 from transports.uwb.sending import HASH_LEN, Outgoing
 from transports.uwb.signing import TRAILER_LEN, Signer, Verifier
 
@@ -211,7 +212,10 @@ class ArqEndpoint(SenderSide):
         if self.chunk_size < 8:
             raise ValueError(f"uwb: max_frame {config.max_frame} leaves no room for data")
         self._max_total = config.max_message_bytes + HASH_LEN
-        self._rx_budget = config.rx_budget_bytes or 2 * self._max_total
+        # Room for two messages of the largest size, each chunk with its CHUNK_COST.
+        self._rx_budget = config.rx_budget_bytes or 2 * (
+            self._max_total + CHUNK_COST * -(-self._max_total // self.chunk_size)
+        )
         self._partial_ttl = config.partial_ttl_s or 2 * config.deadline_s
         self._ack_delay = config.ack_delay_s or 4 * 8 * config.max_frame / config.rate_bps
         self._nack_backoff = config.nack_backoff_s or 8 * self._ack_delay

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from transports.uwb import fec, wire
 from transports.uwb.arq_types import ArqConfig, ArqCounters, Event, MessageReceived
 from transports.uwb.framing import check_len, cobs_max_len
-from transports.uwb.receiving import Partial, PeerState
+from transports.uwb.receiving import CHUNK_COST, Partial, PeerState
 
 #: Chunks a message may have (the wire's u16 index; an ACK's base is clamped to it).
 MAX_CHUNKS = 0xFFFF
@@ -123,13 +123,13 @@ class ReceiverSide:
         if part.held - part.parity_held + len(d.payload) > part.total:
             self.counters.bad_frames += 1
             return
-        if not self._make_room(len(d.payload), keep=part):
+        if not self._make_room(len(d.payload) + CHUNK_COST, keep=part):
             self.counters.evicted += 1
             return
         gap = d.index != part.top + 1
         new_hole = d.index > part.top + 1
         part.add(d.index, d.payload, now)
-        self._rx_held += len(d.payload)
+        self._rx_held += len(d.payload) + CHUNK_COST
         if part.parity:  # a chunk that arrives late may be the one a block's parity lacked
             self._recover(part, fec.block_of(part.count, d.index))
         if part.complete():
@@ -155,12 +155,12 @@ class ReceiverSide:
             if part.gaps():
                 peer.owe_ack(d.msg, self._nack_due(now))
             return
-        if not self._make_room(len(d.payload), keep=part):
+        if not self._make_room(len(d.payload) + CHUNK_COST, keep=part):
             self.counters.evicted += 1
             return
         part.add_parity(d.index, d.payload, now)
         self.counters.parity_rx += 1
-        self._rx_held += len(d.payload)
+        self._rx_held += len(d.payload) + CHUNK_COST
         self._recover(part, fec.parity_of(part.count, d.index)[0])
         if part.complete():
             self._complete(peer, part, now, peer.owe_ack)
@@ -168,12 +168,12 @@ class ReceiverSide:
             peer.owe_ack(d.msg, self._nack_due(now))
 
     def _recover(self, part: Partial, block: int) -> None:
-        before = part.held
+        before = part.cost
         try:
             self.counters.recovered += part.recover(block)
         except ValueError:
             self.counters.bad_frames += 1  # parity of the wrong length: dropped with its block's
-        self._rx_held += part.held - before
+        self._rx_held += part.cost - before
 
     def _complete(
         self, peer: PeerState, part: Partial, now: float, owe: Callable[[int, float], None]
@@ -198,7 +198,8 @@ class ReceiverSide:
         owe(part.msg, now)
 
     def _make_room(self, n: int, keep: Partial) -> bool:
-        """Drop the least recently active partials (not ``keep``) until ``n`` more bytes fit."""
+        """Drop the least recently active partials (not ``keep``) until ``n`` more fit (a chunk's
+        bytes and its :data:`~transports.uwb.receiving.CHUNK_COST`)."""
         while self._rx_held + n > self._rx_budget:
             victims = [(p.last, peer, p) for peer in self._peers.values() for p in peer.partials.values()]
             victims = [v for v in victims if v[2] is not keep]

@@ -49,7 +49,7 @@ class ArqConfig:
     peer_timeout_s: float = 20.0
     max_peers: int = 64
     max_partials_per_peer: int = 4
-    rx_budget_bytes: int = 0  # 0: twice max_message_bytes
+    rx_budget_bytes: int = 0  # 0: two of the largest messages, chunks counted with CHUNK_COST
     partial_ttl_s: float = 0.0  # 0: twice deadline_s
     mac: MacMode = "none"
     slot_s: float = 0.25

@@ -16,6 +16,7 @@ from transports.uwb import arq, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import Faults
 from transports.uwb.framing import decode_frame, encode_frame
+from transports.uwb.receiving import CHUNK_COST
 from transports.uwb.signing import Signer
 from transports.uwb.sim import SimNet
 
@@ -338,6 +339,22 @@ def _raw(src: int, frame: wire.Frame) -> bytes:
     return encode_frame(wire.pack(frame))
 
 
+def test_one_byte_chunks_hold_no_more_memory_than_the_budget_says() -> None:
+    # A chunk's dict entry and bytes object take some 100 bytes whatever its length: counted by
+    # payload bytes alone, a forger's 1-byte chunks held 72 times the budget in memory.
+    b = ep(2, max_message_bytes=20_000, max_partials_per_peer=4)
+    budget = b._rx_budget
+    for msg in range(4):
+        for index in range(10_000):  # 1-byte chunks of a 20,000-byte message: consistent lengths
+            b.receive_data(_raw(7, wire.Data(7, 2, 77, msg, 0, index, 20_000, 20_000, b"x")), 0.0)
+    held = [p for peer in b._peers.values() for p in peer.partials.values()]
+    entries = sum(len(p.chunks) for p in held)
+    payload = sum(p.held for p in held)
+    # What the chunks take in memory (their bytes and about CHUNK_COST each) stays within the budget.
+    assert payload + CHUNK_COST * entries <= budget and b.stats()["rx_held_bytes"] <= budget
+    assert entries >= budget // (CHUNK_COST + 1) - 1  # the budget is used, not refused outright
+
+
 def test_hostile_frames_are_counted_and_bounded() -> None:
     b = ep(2, max_message_bytes=50_000, max_partials_per_peer=3)
     now = 0.0
@@ -361,7 +378,7 @@ def test_hostile_frames_are_counted_and_bounded() -> None:
     assert s["oversize"] >= 1
     assert s["unknown_acks"] == 500
     assert s["rejected"] == 1
-    assert s["rx_held_bytes"] <= 3 * 190
+    assert s["rx_held_bytes"] <= 3 * (190 + CHUNK_COST)  # three partials of one chunk each
     assert len(b._peers[7].partials) <= 3
     assert len(b._peers[7].acks_due) <= 16
     # ...and a real peer still gets through afterwards.

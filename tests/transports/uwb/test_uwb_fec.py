@@ -231,7 +231,7 @@ def test_hostile_data_and_parity_never_raise_deliver_or_grow_memory(
         d = wire.Data(1, wire.BROADCAST, 1001, msg, 0, index, count, 40 * count, bytes([byte]) * length)
         rx.receive_data(_frame(d), 0.0)  # an index past the parity is refused as malformed
     assert not [e for e in rx.events() if isinstance(e, arq.MessageReceived)]
-    held = sum(p.held for peer in rx._peers.values() for p in peer.partials.values())
+    held = sum(p.cost for peer in rx._peers.values() for p in peer.partials.values())
     assert rx._rx_held == held <= rx._rx_budget
 
 
