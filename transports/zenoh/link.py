@@ -144,6 +144,8 @@ class ZenohTransport(Transport):
         # Written on zenoh's threads and read on the loop's (stats), hence the lock.
         self._rx_lock = threading.Lock()
         self._rx = IntakeCounters()
+        #: Token key -> its changes not yet seen on the loop (see :meth:`_cb_presence`).
+        self._presence: dict[str, list[bool]] = {}
         self._poses = PoseThrottle(self.opts.pose_period_s)
         # Answers to keyframe queries waiting on the job thread: taken on the loop, given back by the
         # job thread once the answer is out.
@@ -367,9 +369,42 @@ class ZenohTransport(Transport):
         self._post_bounded(self._on_ack, str(sample.key_expr), sample.payload.to_bytes())
 
     def _cb_presence(self, sample: Any) -> None:
+        """Token changes wait for the loop coalesced per token, never dropped for a robot held.
+
+        A token's appearing or vanishing is state, not a message: losing one would leave a robot
+        counted up or down for good. So they are not bounded by dropping, as acks are, but by
+        keeping per token only its last two changes (a vanish then appear is a restart, which the
+        core must see), for at most :data:`MAX_LOOP_BACKLOG` tokens, and only for robots the roster
+        admits: made-up names, which anyone on the bus can declare, are refused here.
+        """
         import zenoh
 
-        self._post(self._on_presence, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+        key = str(sample.key_expr)
+        robot = keys.parse_presence(self.ctx.fleet, key)
+        if robot is not None and not self.core.admits(robot):
+            with self._rx_lock:
+                self._rx.unadmitted += 1
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._rx_lock:
+            waiting = self._presence.get(key)
+            if waiting is None and len(self._presence) >= MAX_LOOP_BACKLOG:
+                self._rx.dropped += 1
+                return
+            first = not self._presence
+            changes = self._presence.setdefault(key, [])
+            if not changes or changes[-1] != alive:
+                changes.append(alive)
+                del changes[:-2]
+        if first:
+            self._post(self._drain_presence)
+
+    def _drain_presence(self) -> None:
+        with self._rx_lock:
+            pending, self._presence = self._presence, {}
+        for key, changes in pending.items():
+            for alive in changes:
+                self._on_presence(key, alive)
 
     def _cb_query(self, query: Any) -> None:
         if not self._post_bounded(self._on_query, query):

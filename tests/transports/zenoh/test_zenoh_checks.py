@@ -427,3 +427,50 @@ def test_poses_of_robots_off_the_roster_are_refused_unread(zk) -> None:
                 assert not [e for e in b.events if isinstance(e, PoseReceived) and e.peer.startswith("ghost")]
 
     run(main())
+
+
+def test_tokens_of_robots_off_the_roster_wait_for_nothing(zk) -> None:
+    # Anyone on the bus can declare liveliness tokens: each change queued a loop callback, unbounded.
+    from transports.base import PeerUp
+
+    async def main() -> None:
+        async with zk.pair("b", "a", signed=True) as (b, _a):
+            with zk.raw_session(b.listen[0], watch="b") as raw:
+                await b.wait(lambda: bool(raw.seen))
+                tokens = [
+                    raw.session.liveliness().declare_token(keys.presence_key(zk.FLEET, f"ghost{i}"))
+                    for i in range(300)
+                ]
+                await b.wait(lambda: b.t.stats()["unadmitted"] >= 300)
+                for token in tokens:
+                    token.undeclare()
+                await b.wait(lambda: b.t.stats()["unadmitted"] >= 600)
+                assert not [e for e in b.events if isinstance(e, PeerUp) and e.peer.startswith("ghost")]
+                assert not b.t._presence and PeerUp("zenoh", "a") in b.events  # the real one still
+
+    run(main())
+
+
+def test_token_changes_wait_coalesced_keeping_a_restart() -> None:
+    # Latest wins per token, but a vanish then appear (a restart) stays two changes for the core.
+    import zenoh
+
+    from transports.base import PeerUp, TransportContext
+    from transports.zenoh.link import ZenohTransport
+    from transports.zenoh.session import ZenohOptions
+
+    events: list[Any] = []
+    ctx = TransportContext(robot="b", fleet="testfleet", max_message_bytes=1 << 20, emit=events.append)
+    t = ZenohTransport(ZenohOptions(multicast_scouting=False), ctx)
+    loop = asyncio.new_event_loop()
+    t._loop = loop
+    key = keys.presence_key("testfleet", "a")
+    put, gone = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
+    try:
+        for kind in (put, gone, put, gone, put):  # five changes before the loop gets to them
+            t._cb_presence(dataclasses.make_dataclass("S", ["key_expr", "kind"])(key, kind))
+        assert t._presence == {key: [False, True]}
+        loop.run_until_complete(asyncio.sleep(0))
+        assert t._presence == {} and events == [PeerUp("zenoh", "a")]
+    finally:
+        loop.close()
