@@ -351,14 +351,18 @@ class ZenohTransport(Transport):
         if len(sample.payload) > MAX_POSE_BYTES:  # a pose is ~100 bytes: drop anything larger unread
             return
         key = str(sample.key_expr)
-        robot = keys.parse_pose(self.ctx.fleet, key)
-        if robot is not None and not self.core.admits(robot):
-            # Its signature could only fail; and each made-up name would take one of the daemon's
-            # event queue's peer slots, which real robots' maps need.
-            with self._rx_lock:
-                self._rx.unadmitted += 1
-            return
-        self._post_bounded(self._on_pose, key, sample.payload.to_bytes())
+        # Its signature could only fail; and each made-up name would take one of the daemon's
+        # event queue's peer slots, which real robots' maps need.
+        if not self._unadmitted(keys.parse_pose(self.ctx.fleet, key)):
+            self._post_bounded(self._on_pose, key, sample.payload.to_bytes())
+
+    def _unadmitted(self, robot: str | None) -> bool:
+        """Whether ``robot`` is one the roster does not admit (then counted ``unadmitted``)."""
+        if robot is None or self.core.admits(robot):
+            return False
+        with self._rx_lock:
+            self._rx.unadmitted += 1
+        return True
 
     def _cb_ack(self, sample: Any) -> None:
         if len(sample.payload) > MAX_ACK_BYTES:
@@ -380,10 +384,7 @@ class ZenohTransport(Transport):
         import zenoh
 
         key = str(sample.key_expr)
-        robot = keys.parse_presence(self.ctx.fleet, key)
-        if robot is not None and not self.core.admits(robot):
-            with self._rx_lock:
-                self._rx.unadmitted += 1
+        if self._unadmitted(keys.parse_presence(self.ctx.fleet, key)):
             return
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._rx_lock:
