@@ -95,7 +95,7 @@ class IntakeCounters:
     #: On an update key that is not a peer's (ours, malformed), or refused by the check queue
     #: (``max_peers`` robots already waiting).
     dropped: int = 0
-    #: Updates and replies of a robot the roster does not admit.
+    #: Updates, replies, poses and liveliness tokens of a robot the roster does not admit.
     unadmitted: int = 0
     #: Acks, poses and queries waiting for the loop (at most :data:`MAX_LOOP_BACKLOG`).
     backlog: int = 0
@@ -605,8 +605,9 @@ class ZenohTransport(Transport):
         """Flat counters: bytes/updates each way, gaps, keyframe queries, bad signatures, drops, peers.
 
         ``superseded``: updates and replies pushed out, unchecked, by newer ones of the same robot
-        (past its byte budget while waiting to be checked); ``unadmitted``: those of robots off the roster, refused unread, and keyframe
-        queries from such robots (answered, but no ``KeyframeNeeded``).
+        (past its byte budget while waiting to be checked); ``unadmitted``: those of robots off the roster, refused unread (and their
+        poses and liveliness tokens), and keyframe queries from such robots (answered, but no
+        ``KeyframeNeeded``); ``dropped`` also counts acks, poses and queries past the loop's backlog.
         """
         with self._tx_lock:
             tx = asdict(self._tx)
