@@ -218,7 +218,7 @@ def test_any_valid_frame_never_raises_and_every_table_stays_bounded(
             if not ep.data_to_send(now):
                 break
         ep.events()
-        held = sum(p.held for peer in ep._peers.values() for p in peer.partials.values())
+        held = sum(p.cost for peer in ep._peers.values() for p in peer.partials.values())
         assert ep._rx_held == held <= ep._rx_budget
         assert len(ep._peers) <= cfg.max_peers
         for peer in ep._peers.values():
@@ -298,7 +298,7 @@ def test_signed_endpoint_takes_only_fresh_authentic_frames_and_never_raises(
             pass
     s = ep.stats()
     assert s["bad_signature"] == bad
-    held = sum(p.held for peer in ep._peers.values() for p in peer.partials.values())
+    held = sum(p.cost for peer in ep._peers.values() for p in peer.partials.values())
     assert ep._rx_held == held <= ep._rx_budget
 
 

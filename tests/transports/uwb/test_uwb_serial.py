@@ -562,9 +562,12 @@ def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCa
     master, slave = os.openpty()
     path = os.ttyname(slave)
     step = [0.0]
+    # The robot's wall clock, stepped by the test alone: counted on the monotonic clock, so that
+    # the host's own clock, slewed now and then (seen here at 500 ppm), adds no step of its own.
+    base = time.time() - time.monotonic()
 
     def wall() -> float:
-        return time.time() + step[0]
+        return time.monotonic() + base + step[0]
 
     slot, cycle = 0.2, 0.4  # two slots; ours is the first of each cycle
     cfg = arq.ArqConfig(node_id=1, rate_bps=100_000.0, mac="tdma", slots=2, slot_s=slot, slot_index=0)
