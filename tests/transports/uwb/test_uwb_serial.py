@@ -563,7 +563,7 @@ def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCa
     path = os.ttyname(slave)
     step = [0.0]
     # The robot's wall clock, stepped by the test alone: counted on the monotonic clock, so that
-    # the host's own clock, slewed now and then (seen here at 500 ppm), adds no step of its own.
+    # the host's own clock, slewed now and then (seen here at 5 ms a second), adds no step of its own.
     base = time.time() - time.monotonic()
 
     def wall() -> float:
