@@ -6,7 +6,8 @@
   left behind, removed at start-up so they never pile up.
 * :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
 * :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
-  map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever.
+  map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever;
+  :func:`read_json_capped`, the same for a JSON file of the state directory.
 * :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open.
 """
 
@@ -133,6 +134,19 @@ def read_capped(path: Path, cap: int) -> bytes:
     """
     with open_for_reading(path) as fh:
         return fh.read(cap + 1)
+
+
+def read_json_capped(path: Path, cap: int) -> Any:
+    """The JSON document in ``path``, read up to ``cap`` bytes.
+
+    Raises OSError as the OS does, ValueError for a file over ``cap`` bytes or one that is not JSON
+    (JSON's and Unicode's decoding errors are ValueErrors), and RecursionError for nesting too deep
+    to parse: a damaged file gives one of those three, which its reader turns into one warning.
+    """
+    raw = read_capped(path, cap)
+    if len(raw) > cap:
+        raise ValueError(f"over {cap >> 20} MiB" if cap >= 1 << 20 else f"over {cap} bytes")
+    return json.loads(raw)
 
 
 def write_new_secret(path: Path, data: bytes) -> None:

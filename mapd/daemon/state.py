@@ -17,7 +17,6 @@ between the two writes) is treated as absent, never as the wrong version.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
@@ -27,7 +26,7 @@ from typing import Any
 
 from mapd.daemon.versions import next_version
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_json, read_capped, remove_stale_temps
+from mapd.files import atomic_write_json, read_json_capped, remove_stale_temps
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
 
 log = logging.getLogger(__name__)
@@ -136,10 +135,7 @@ class StateStore:
         path = self.root / "state.json"
         if path.exists():
             try:
-                raw = read_capped(path, MAX_STATE_JSON)
-                if len(raw) > MAX_STATE_JSON:
-                    raise ValueError(f"over {MAX_STATE_JSON >> 20} MiB")
-                self.data = StateData.from_json(json.loads(raw))
+                self.data = StateData.from_json(read_json_capped(path, MAX_STATE_JSON))
             except (OSError, ValueError, TypeError, RecursionError) as exc:
                 log.warning("state.json unreadable (%s); starting with empty state", exc)
                 self.data = StateData()

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_bytes, read_capped
+from mapd.files import atomic_write_bytes, read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
@@ -66,11 +66,8 @@ class FusionStore:
         """The placements and version of ``transforms.json``; entries that do not parse are left out."""
         path = self.directory / TRANSFORMS_JSON
         try:
-            raw = read_capped(path, MAX_JSON) if path.exists() else b"null"
-            if len(raw) > MAX_JSON:
-                raise ValueError(f"over {MAX_JSON >> 20} MiB")
-            doc = json.loads(raw)
-        except (OSError, ValueError, RecursionError) as exc:  # JSON's and Unicode's errors are ValueErrors
+            doc = read_json_capped(path, MAX_JSON) if path.exists() else None
+        except (OSError, ValueError, RecursionError) as exc:
             log.warning("fusion: ignoring unreadable %s: %s", path, exc)
             return Saved()
         if not isinstance(doc, dict) or not isinstance(doc.get("robots"), dict):
@@ -139,8 +136,7 @@ class FusionStore:
 def read_owner(directory: Path) -> tuple[np.ndarray, list[str]] | None:
     """``owner.npy`` and its names from a fusion state directory, or None when absent or unreadable."""
     try:
-        raw = read_capped(directory / OWNER_JSON, MAX_JSON)
-        names = json.loads(raw)["robots"] if len(raw) <= MAX_JSON else None
+        names = read_json_capped(directory / OWNER_JSON, MAX_JSON)["robots"]
         npy = directory / OWNER_NPY
         if npy.stat().st_size > 2 * DEFAULT_MAX_CELLS + 4096:  # int16 cells and the header
             return None

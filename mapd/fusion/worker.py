@@ -79,7 +79,6 @@ class FusionWorker:
     ) -> None:
         self.robot = robot
         self.cfg = cfg
-        self.state_dir = state_dir
         self.store = None if state_dir is None else FusionStore(state_dir, robot=robot, max_cells=max_cells)
         self.on_global: list[Callable[[OccupancyGrid], None]] = list(on_global or [])
         self.max_cells = max_cells

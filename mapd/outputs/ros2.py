@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import re
 import threading
@@ -48,7 +47,7 @@ from pydantic import Field, ValidationInfo, field_validator
 
 from mapd.config import NAME_PATTERN
 from mapd.errors import MapdError
-from mapd.files import atomic_write_json, read_capped
+from mapd.files import atomic_write_json, read_json_capped
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.ros2 import rmw
@@ -282,10 +281,7 @@ class Ros2Output(Output):
         if path is None:
             return set()
         try:
-            data = read_capped(path, MAX_FRAMES_FILE_BYTES)
-            if len(data) > MAX_FRAMES_FILE_BYTES:
-                raise ValueError(f"over {MAX_FRAMES_FILE_BYTES} bytes")
-            doc = json.loads(data)
+            doc = read_json_capped(path, MAX_FRAMES_FILE_BYTES)
             robots = doc.get("robots") if isinstance(doc, dict) else None
             if not isinstance(robots, list) or not all(
                 isinstance(r, str) and re.match(NAME_PATTERN, r) for r in robots
