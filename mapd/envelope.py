@@ -24,6 +24,9 @@ from mapd.identity import SIG_LEN, Identity, Roster
 
 #: 2: Ed25519 signatures by each robot's own key (1 had a fleet-wide HMAC).
 FORMAT = 2
+#: Versions, bases, sizes and sequence numbers are whole numbers below this: a signed 64-bit int,
+#: what msgpack and every peer's counters hold. The state directory and transports check the same.
+COUNT_LIMIT = 1 << 63
 #: Signatures cover the fields under this domain, so no other signed mapd message can pass for one.
 _DOMAIN = b"mapd-envelope/2\x00"
 _KEYS = {
@@ -170,7 +173,7 @@ def unpack(
         raise EnvelopeError(f"envelope format {obj['f']} is not supported (this mapd reads {FORMAT})")
     strs = {k: _want(obj, k, str) for k in ("fl", "r", "c", "m", "fr")}
     ints = {k: _want(obj, k, int) for k in ("v", "b", "w", "h", "n")}
-    if any(v < 0 or v >= 1 << 63 for v in ints.values()):
+    if any(not 0 <= v < COUNT_LIMIT for v in ints.values()):
         raise EnvelopeError("envelope has a negative or oversized integer field")
     if ints["v"] == 0 or ints["b"] >= ints["v"]:
         raise EnvelopeError(f"envelope version {ints['v']} with base {ints['b']} is inconsistent")

@@ -8,7 +8,8 @@
 * :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
   map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever;
   :func:`read_json_capped`, the same for a JSON file of the state directory.
-* :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open.
+* :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open;
+  :func:`open_regular`, the same refusing anything but a regular file (a FIFO, a device, a directory).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import json
 import logging
 import os
 import re
+import stat
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -114,17 +116,38 @@ def open_for_reading(path: Path) -> BinaryIO:
     pipe with a writer (``--key <(...)``) is read as before, one without any writer reads as empty.
     ValueError (a NUL in the path) is raised as an OSError, so callers have one error to catch.
     """
+    return _open_checked(path, regular=False)
+
+
+def _open_checked(path: Path, *, regular: bool) -> BinaryIO:
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except ValueError:
         raise OSError(22, "the path holds a NUL character") from None
     try:
+        # Checked on the descriptor, before fdopen: that refuses a directory with its own error.
+        if regular and not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise NotRegularFileError(22, "not a regular file", str(path))
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)
         raise
+
+
+class NotRegularFileError(OSError):
+    """Raised by :func:`open_regular` for a FIFO, a device or a directory (``strerror``: "not a regular file")."""
+
+
+def open_regular(path: Path) -> BinaryIO:
+    """``path`` opened by :func:`open_for_reading`, refusing anything but a regular file.
+
+    A file that must be read whole (a key, a map, a log) named as a FIFO would block or read as
+    empty, ``/dev/zero`` would be read for ever, and a directory gives an error of its own: each
+    raises :class:`NotRegularFileError`, an OSError, so callers keep one except clause.
+    """
+    return _open_checked(path, regular=True)
 
 
 def read_capped(path: Path, cap: int) -> bytes:

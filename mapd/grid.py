@@ -38,7 +38,7 @@ from mapd.imaging import MAX_PNM_HEADER as MAX_PNM_HEADER
 from mapd.imaging import PILLOW_FORMATS as PILLOW_FORMATS
 from mapd.imaging import PLAIN_PNM_MAX_CELLS as PLAIN_PNM_MAX_CELLS
 from mapd.imaging import read_pixels
-from mapd.imaging.pixels import one_line, open_regular
+from mapd.imaging.pixels import one_line, open_map_file
 
 UNKNOWN = -1
 FREE = 0
@@ -305,11 +305,11 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     path = Path(yaml_path)
     try:
-        fd = open_regular(path, str(path), "map yaml")
+        fh = open_map_file(path, str(path), "map yaml")
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
     try:
-        with os.fdopen(fd, "rb") as f:
+        with fh as f:
             raw = f.read(MAX_YAML_BYTES + 1)
     except OSError as exc:
         raise MapFileError(f"{path}: cannot read map yaml: {exc.strerror}") from None

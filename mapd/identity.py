@@ -18,7 +18,6 @@ from __future__ import annotations
 import base64
 import binascii
 import os
-import stat
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from mapd.errors import ConfigError, SignatureError
-from mapd.files import open_for_reading, write_new_secret
+from mapd.files import NotRegularFileError, open_regular, write_new_secret
 from mapd.keys import MAX_KEY_FILE_BYTES
 
 SIG_LEN = 64
@@ -82,13 +81,13 @@ def read_identity(path: Path, robot: str, option: str = "robot.key_file") -> Ide
     """
     try:
         # Not open(): that blocks on a FIFO with no writer before the regular-file check can refuse it.
-        with open_for_reading(path) as fh:
+        with open_regular(path) as fh:
             st = os.fstat(fh.fileno())
-            if not stat.S_ISREG(st.st_mode):
-                raise ConfigError(f"{option}: {path} is not a regular file")
             if st.st_mode & 0o077 & ~0o040:  # the daemon's group may read it (install.sh: root:mapd 0640)
                 raise ConfigError(f"{option}: {path} is readable by other users; chmod 600 it")
             raw = fh.read(MAX_KEY_FILE_BYTES + 1)
+    except NotRegularFileError:
+        raise ConfigError(f"{option}: {path} is not a regular file") from None
     except OSError as exc:
         raise ConfigError(f"{option}: cannot read {path}: {exc.strerror}") from None
     if len(raw) > MAX_KEY_FILE_BYTES:

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.daemon.versions import next_version
+from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
 from mapd.files import atomic_write_json, read_json_capped, remove_stale_temps
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
@@ -98,7 +99,7 @@ class StateData:
 
 def _is_count(x: object) -> bool:
     """Whether ``x`` is a version, sequence number or ack as envelopes carry them: 0 <= x < 2^63."""
-    return type(x) is int and 0 <= x < 1 << 63
+    return type(x) is int and 0 <= x < COUNT_LIMIT
 
 
 class StateStore:

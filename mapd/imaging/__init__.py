@@ -21,7 +21,7 @@ import os
 from pathlib import Path
 
 from mapd.errors import MapFileError
-from mapd.imaging.pixels import PILLOW_FORMATS, Pixels, open_regular, pillow_pixels
+from mapd.imaging.pixels import PILLOW_FORMATS, Pixels, open_map_file, pillow_pixels
 from mapd.imaging.png import PNG_SIGNATURE, check_png
 from mapd.imaging.pnm import MAX_PNM_HEADER, PLAIN_PNM_MAX_CELLS, PNM_WS, read_pnm
 
@@ -34,11 +34,11 @@ def read_pixels(image_path: Path, where: str, max_cells: int) -> Pixels:
     ``where`` starts every error message (the map YAML that names the image).
     """
     try:
-        fd = open_regular(image_path, where, "image")
+        fh = open_map_file(image_path, where, "image")
     except FileNotFoundError:
         raise MapFileError(f"{where}: image '{image_path}' does not exist") from None
     try:
-        with os.fdopen(fd, "rb") as f:
+        with fh as f:
             size = os.fstat(f.fileno()).st_size
             magic = f.read(8)
             f.seek(0)

@@ -8,7 +8,7 @@
   and every failure one error.
 * :func:`check_cells`: an empty image, or one over the caller's cell limit, refused from its header
   before a pixel is decoded.
-* :func:`open_regular`: a descriptor of a regular file, opened so that a FIFO or a device named as a
+* :func:`open_map_file`: a regular file, opened so that a FIFO or a device named as a
   map can neither block nor be read for ever.
 * :func:`one_line`: an exception's message on one line, for the errors the readers raise.
 """
@@ -16,16 +16,15 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-import stat
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from mapd.errors import LimitError, MapFileError
+from mapd.files import NotRegularFileError, open_regular
 
 #: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
 #: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.
@@ -52,27 +51,20 @@ def one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def open_regular(path: Path, where: str, what: str) -> int:
-    """An O_RDONLY descriptor of ``path``, refusing anything but a regular file.
+def open_map_file(path: Path, where: str, what: str) -> BinaryIO:
+    """``path`` opened for reading, refusing anything but a regular file (FileNotFoundError as raised).
 
-    O_NONBLOCK so that a FIFO named as a map cannot block the open itself; the fstat then refuses
-    it, like a device (``/dev/zero`` would be read forever) or a directory.
+    A FIFO named as a map cannot block the open, and a device (``/dev/zero`` would be read
+    forever) or a directory is refused: each is one :class:`MapFileError` starting with ``where``.
     """
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+        return open_regular(path)
     except FileNotFoundError:
         raise
+    except NotRegularFileError:
+        raise MapFileError(f"{where}: {what} '{path}' is not a regular file") from None
     except OSError as exc:
         raise MapFileError(f"{where}: cannot open {what} '{path}': {exc.strerror}") from None
-    try:
-        mode = os.fstat(fd).st_mode
-    except OSError as exc:
-        os.close(fd)
-        raise MapFileError(f"{where}: cannot read {what} '{path}': {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise MapFileError(f"{where}: {what} '{path}' is not a regular file")
-    return fd
 
 
 @dataclasses.dataclass

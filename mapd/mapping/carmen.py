@@ -20,7 +20,6 @@ import gzip
 import logging
 import math
 import os
-import stat
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -30,7 +29,7 @@ from typing import BinaryIO, cast
 import numpy as np
 
 from mapd.errors import SourceError
-from mapd.files import open_for_reading
+from mapd.files import NotRegularFileError, open_regular
 from mapd.grid import Pose2D
 
 log = logging.getLogger(__name__)
@@ -107,18 +106,13 @@ class BadLine(ValueError):
 
 def _open(path: Path) -> BinaryIO:
     try:
-        raw = open_for_reading(path)
+        raw = open_regular(path)  # a FIFO without a writer blocked for ever, and /dev/zero never ended
     except FileNotFoundError:
         raise SourceError(f"{path}: no such log file") from None
+    except NotRegularFileError:
+        raise SourceError(f"{path}: not a regular file") from None
     except OSError as exc:
         raise SourceError(f"{path}: cannot open log: {exc.strerror or exc}") from None
-    try:
-        regular = stat.S_ISREG(os.fstat(raw.fileno()).st_mode)
-    except OSError:
-        regular = False
-    if not regular:  # a FIFO without a writer blocked for ever, and /dev/zero never ended
-        raw.close()
-        raise SourceError(f"{path}: not a regular file")
     magic = raw.read(2)
     raw.seek(0)
     if magic == b"\x1f\x8b":

@@ -49,7 +49,7 @@ from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from mapd.envelope import Envelope, unpack
+from mapd.envelope import COUNT_LIMIT, Envelope, unpack
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import SIG_LEN, Identity, Roster
 from transports import signed_requests
@@ -59,7 +59,6 @@ from transports.zenoh import keys, queries
 
 NAME = "zenoh"
 _ACK = struct.Struct(">Q")
-_MAX_VERSION = 1 << 63
 #: Own versions whose offer time is kept for RTT samples.
 RTT_VERSIONS = 16
 #: Keyframe queries answered: a burst of this many, then REPLY_RATE_HZ. Anyone may query, and each
@@ -77,7 +76,7 @@ def _ack_blob(fleet: str, peer: str, robot: str, body: bytes) -> bytes:
 
 def pack_ack(version: int, *, identity: Identity | None, fleet: str, peer: str, robot: str) -> bytes:
     """The payload ``peer`` publishes to say it applied ``robot``'s ``version``, signed by ``peer``."""
-    if not 0 < version < _MAX_VERSION:
+    if not 0 < version < COUNT_LIMIT:
         raise ValueError(f"ack version {version} is out of range")
     body = _ACK.pack(version)
     if identity is None:
@@ -99,7 +98,7 @@ def unpack_ack(data: bytes, *, roster: Roster, fleet: str, peer: str, robot: str
         )
     (version,) = _ACK.unpack_from(data)
     roster.verify(peer, _ack_blob(fleet, peer, robot, data[: _ACK.size]), data[_ACK.size :], "ack")
-    if not 0 < version < _MAX_VERSION:
+    if not 0 < version < COUNT_LIMIT:
         raise EnvelopeError(f"ack from '{peer}' names version {version}")
     return int(version)
 
