@@ -40,9 +40,13 @@ WRITE_STALL_S = 5.0
 COUNTER_RETRY_S = 1.0
 #: TDMA: the wall clock is read at least this often, so a step (NTP) moves the slots within it.
 CLOCK_CHECK_S = 1.0
-#: A change of the wall clock against the loop's smaller than this is NTP's slewing or scheduling
-#: jitter: followed, but not counted or logged as a step.
+#: A change of the wall clock against the loop's smaller than this is scheduling jitter: followed,
+#: but not counted or logged as a step.
 CLOCK_STEP_S = 0.005
+#: The fastest a time service slews the wall clock (chrony's maxslewrate is 83,333 ppm; ntpd's
+#: 500 ppm): a change between two reads within this rate, plus CLOCK_STEP_S, is a slew (followed,
+#: not counted); only a faster one is a step. A host slewing at 5 ms a second was logged as stepping.
+MAX_SLEW_RATE = 0.1
 #: Smaller changes than this are the two clocks read a few microseconds apart: not passed on.
 CLOCK_FOLLOW_S = 1e-4
 
@@ -139,7 +143,9 @@ class UwbLink:
         self.counter_save_errors = 0
         #: Times the wall clock stepped (NTP) while the link ran; TDMA slots followed each step.
         self.clock_steps = 0
-        self._clock_known = False
+        #: The wall clock's offset from the loop's at the last read, and when (loop time): a step is
+        #: told from a slew by how fast the offset moved since.
+        self._clock_read: tuple[float, float] | None = None
         self._counter_fault = ""
         self._counter_retry_at = 0.0
 
@@ -360,14 +366,15 @@ class UwbLink:
     def _follow_clock(self, core: arq.ArqEndpoint, now: float) -> None:
         """Pass the wall clock's offset from the loop's to the core when it moved (slew or step)."""
         offset = self._wall() - now
-        moved = offset - core.cfg.clock_offset
-        first, self._clock_known = not self._clock_known, True
-        if abs(moved) < CLOCK_FOLLOW_S:
+        last, self._clock_read = self._clock_read, (now, offset)
+        if abs(offset - core.cfg.clock_offset) >= CLOCK_FOLLOW_S:
+            core.set_clock_offset(offset)
+        if last is None:  # the first read (a config built without the offset is no step)
             return
-        core.set_clock_offset(offset)
-        if abs(moved) >= CLOCK_STEP_S and not first:  # (a config built without the offset: no step)
+        jump = offset - last[1]
+        if abs(jump) >= CLOCK_STEP_S + MAX_SLEW_RATE * max(0.0, now - last[0]):
             self.clock_steps += 1
-            log.warning("uwb %s: the wall clock stepped %+.3f s; TDMA slots follow it", self.port, moved)
+            log.warning("uwb %s: the wall clock stepped %+.3f s; TDMA slots follow it", self.port, jump)
 
     async def _run(self) -> None:
         core = self.core

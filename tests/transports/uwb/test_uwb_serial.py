@@ -587,7 +587,7 @@ def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCa
         await lk.start()
         try:
             await asyncio.sleep(0.3)
-            step[0] = 0.1  # NTP steps the clock by half a slot
+            step[0] = 0.3  # NTP steps the clock (ntpd steps past 128 ms), here by a slot and a half
             await until(lambda: abs(lk.core.cfg.clock_offset - (wall() - loop.time())) < 0.01, 3.0)
             assert lk.stats()["clock_steps"] == 1
             phases.clear()
@@ -608,7 +608,44 @@ def test_tdma_slots_follow_the_wall_clock_when_ntp_steps_it(caplog: pytest.LogCa
     # Every frame in our slot of the stepped clock (plus a little for the pty and the scheduler).
     # Counted on the old clock, half of them would fall in the other robot's slot.
     assert max(phases) < slot + 0.03, sorted(phases)
-    assert any("the wall clock stepped +0.100 s" in r.getMessage() for r in caplog.records)
+    assert any("the wall clock stepped +0.300 s" in r.getMessage() for r in caplog.records)
+
+
+def test_a_slewed_wall_clock_is_followed_but_not_counted_as_a_step(caplog: pytest.LogCaptureFixture) -> None:
+    """chrony slews a clock up to 83 ms a second; the link follows it but logs no step.
+
+    Between two of the idle link's clock checks (a second apart) such a slew moves the clock 50 ms,
+    which was counted and logged as a step each second (a host slewing 5 ms a second did that too).
+    """
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    t0 = time.monotonic()
+    base = time.time() - t0
+
+    def wall() -> float:  # slewed 50 ms a second (50,000 ppm) from the start
+        return time.monotonic() + base + 0.05 * (time.monotonic() - t0)
+
+    cfg = arq.ArqConfig(node_id=1, rate_bps=100_000.0, mac="tdma", slots=2, slot_s=0.2, slot_index=0)
+
+    async def main() -> tuple[float, float, int]:
+        loop = asyncio.get_running_loop()
+        lk = UwbLink(cfg, path, reopen_s=0.2, wall_clock=wall)
+        await lk.start()
+        try:
+            await asyncio.sleep(3.5)  # the idle link checks the clock every second
+            return lk.core.cfg.clock_offset, wall() - loop.time(), lk.stats()["clock_steps"]
+        finally:
+            await lk.close()
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+            followed, actual, steps = asyncio.run(main())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert abs(followed - actual) < 0.06, (followed, actual)  # followed within a check's slew
+    assert steps == 0
+    assert not [r for r in caplog.records if "stepped" in r.getMessage()]
 
 
 def test_two_robots_given_one_tdma_slot_see_each_other_out_of_turn() -> None:
