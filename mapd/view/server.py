@@ -11,7 +11,11 @@ output thread) or are small (the status); the loop only hands shared ``bytes`` t
 bounded :class:`~mapd.view.queue.ClientQueue` and writes them. At most ``max_viewers`` streams run at
 once; one more gets a 503. At most ``max_connections`` sockets are open at once (one more gets a 503
 and is closed before anything is read), an idle one closes after ``IDLE_TIMEOUT_S`` and a stream
-that takes nothing for ``WRITE_TIMEOUT_S`` is cut, so no client can hold sockets or memory for long.
+that takes nothing for ``WRITE_TIMEOUT_S`` is cut, and so is a client that does not take a page,
+asset or refusal within it (pipelined requests, never read); a stream's frames go out in slices,
+so a stuck viewer holds a slice, not its own copy of the map. The connection cap is fitted to the
+process's open-file limit. A malformed request is counted (``bad_requests``), not logged with a
+traceback, so a client cannot fill the journal.
 Without a token (a loopback listen), only requests naming a loopback host are served: a web page
 that rebinds its own DNS name to 127.0.0.1 still sends its own name as ``Host``.
 """
@@ -22,6 +26,7 @@ import asyncio
 import contextlib
 import hmac
 import logging
+import resource
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -30,6 +35,7 @@ from typing import Any
 from urllib.parse import quote
 
 from aiohttp import hdrs, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from mapd.config import is_loopback
 from mapd.errors import DaemonError
@@ -49,6 +55,13 @@ WRITE_TIMEOUT_S = 30.0
 IDLE_TIMEOUT_S = 15.0
 #: Messages queued per viewer before it is resynced with the full state (see ClientQueue).
 QUEUE_LIMIT = 8
+#: A stream's frames are written this much at a time, each slice drained before the next: the
+#: transport copies what the socket does not take, so a whole map frame written at once was one
+#: copy of the map per stuck viewer (256 viewers of a 4096 x 4096 map: 1 GB).
+WRITE_SLICE = 64 << 10
+#: Open files kept for the rest of the daemon (ports, zenoh, state, the status socket) beside the
+#: view's connections, when the connection cap is fitted to the process's limit (RLIMIT_NOFILE).
+FD_RESERVE = 256
 _HEADERS = {
     "Cache-Control": "no-store",
     "X-Content-Type-Options": "nosniff",
@@ -82,6 +95,45 @@ class _Refused(asyncio.Protocol):
             + _REFUSED
         )
         transport.close()
+
+
+def fit_open_files(need: int) -> int:
+    """How many open files this process may have, raised towards ``need`` when the hard limit allows.
+
+    systemd starts services with a soft limit of 1024 (for select(), which nothing here uses) and
+    a far higher hard one, and asks programs that need more to raise the soft limit themselves.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= need:
+        return need
+    target = need if hard == resource.RLIM_INFINITY else min(need, hard)
+    if target > soft:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            pass
+    return soft
+
+
+class _HttpLog(logging.LoggerAdapter):
+    """aiohttp's server logger: a malformed request is counted, not logged with a traceback.
+
+    aiohttp logs every request it cannot parse (a doubled Host, a bare LF, a NUL in a header) as
+    "Error handling request" with a traceback: 800 bytes of journal each, 1.5 MB a second from one
+    client. A bug in a handler (anything else) is still logged whole.
+    """
+
+    def __init__(self, counters: dict[str, int]) -> None:
+        super().__init__(logging.getLogger("mapd.view.http"), {})
+        self.counters = counters
+
+    def exception(self, msg: object, *args: object, exc_info: Any = True, **kw: Any) -> None:
+        if isinstance(exc_info, HttpProcessingError):
+            self.counters["bad_requests"] += 1
+            self.logger.debug("view: a malformed request (%s)", exc_info.message)
+            return
+        self.logger.error(msg, *args, exc_info=exc_info, **kw)
 
 
 @dataclass(eq=False)
@@ -129,6 +181,8 @@ class ViewServer:
             "refused_host": 0,
             "refused_conns": 0,
             "dropped_msgs": 0,
+            "bad_requests": 0,
+            "write_timeouts": 0,
         }
 
     @property
@@ -149,6 +203,18 @@ class ViewServer:
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
         """Bind and serve; raises :class:`DaemonError` (one line) when the address cannot be used."""
+        allowed = fit_open_files(self.max_connections + FD_RESERVE) - FD_RESERVE
+        if allowed < self.max_connections:
+            log.warning(
+                "view: %d connections (max_viewers = %d) do not fit the open-file limit; serving %d "
+                "(raise LimitNOFILE= in the unit)",
+                self.max_connections,
+                self.max_viewers,
+                max(1, allowed),
+            )
+            self.max_connections = max(1, allowed)
+            # as the default cap: room beside the streams for page loads and viewers reconnecting
+            self.max_viewers = min(self.max_viewers, max(1, (self.max_connections - 16) // 2))
         self._page = _asset("index.html")
         self._assets = {name: _asset(name) for name in ASSETS}
         app = web.Application(middlewares=[self._guard])
@@ -164,6 +230,7 @@ class ViewServer:
             shutdown_timeout=1.0,
             handler_cancellation=True,
             keepalive_timeout=IDLE_TIMEOUT_S,
+            logger=_HttpLog(self.counters),
         )
         await self._runner.setup()
         # Our own listener instead of web.TCPSite, so each new socket is counted against the cap
@@ -289,7 +356,31 @@ class ViewServer:
                     resp.headers[hdrs.ALLOW] = exc.headers[hdrs.ALLOW]
         if not resp.prepared:  # an SSE stream has sent its headers already
             resp.headers.update(_HEADERS)
+            # Sent here, within the write timeout: aiohttp would wait on a client that never
+            # reads (pipelined requests) for ever, holding its socket without even the token.
+            try:
+                await asyncio.wait_for(self._send(request, resp), WRITE_TIMEOUT_S)
+            except TimeoutError:
+                self._cut(request)
         return resp
+
+    @staticmethod
+    async def _send(request: web.Request, resp: web.StreamResponse) -> None:
+        await resp.prepare(request)
+        await resp.write_eof()
+
+    def _cut(self, request: web.Request) -> None:
+        """Drop a client that took nothing for WRITE_TIMEOUT_S (its socket is stuck)."""
+        self.counters["write_timeouts"] += 1
+        if request.transport is not None:
+            request.transport.abort()
+
+    @staticmethod
+    async def _write(resp: web.StreamResponse, frame: bytes) -> None:
+        """One frame, a slice at a time (:data:`WRITE_SLICE`), each within the write timeout."""
+        view = memoryview(frame)
+        for at in range(0, len(view), WRITE_SLICE):
+            await asyncio.wait_for(resp.write(view[at : at + WRITE_SLICE]), WRITE_TIMEOUT_S)
 
     async def _index(self, request: web.Request) -> web.Response:
         # The page passes the token it was opened with on to its assets and its stream.
@@ -325,16 +416,15 @@ class ViewServer:
                 try:
                     await asyncio.wait_for(viewer.wake.wait(), KEEPALIVE_S)
                 except TimeoutError:
-                    await asyncio.wait_for(resp.write(b": keep-alive\n\n"), WRITE_TIMEOUT_S)
+                    await self._write(resp, b": keep-alive\n\n")
                     continue
                 viewer.wake.clear()
                 for msg in viewer.queue.take(self._current):
-                    await asyncio.wait_for(resp.write(msg.frame), WRITE_TIMEOUT_S)
+                    await self._write(resp, msg.frame)
         except TimeoutError:
             # Stuck: cut the socket, or aiohttp's final write_eof() waits on it for ever, holding
             # the connection and the frame buffered for it after the viewer's place is freed.
-            if request.transport is not None:
-                request.transport.abort()
+            self._cut(request)
         except (ConnectionError, RuntimeError):
             pass  # the viewer left: it just stops getting messages
         finally:

@@ -8,8 +8,13 @@ it past a short, fixed time.
 from __future__ import annotations
 
 import asyncio
+import logging
 import socket
+import subprocess
+import sys
+import textwrap
 import time
+from pathlib import Path
 
 import aiohttp
 import pytest
@@ -217,3 +222,129 @@ def test_a_stream_outlives_the_idle_timeout(monkeypatch: pytest.MonkeyPatch) -> 
                     break
 
     serve(body)
+
+
+@pytest.mark.parametrize("token", [None, TOKEN])
+def test_a_client_that_never_reads_its_pages_is_cut(
+    monkeypatch: pytest.MonkeyPatch, token: str | None
+) -> None:
+    """Pipelined requests whose answers are never read (with the token: 401s, without it).
+
+    aiohttp waited on such a socket for ever after the answers filled it, so two dozen of them
+    held every connection the view allows and every viewer got 503s.
+    """
+    monkeypatch.setattr(server_mod, "WRITE_TIMEOUT_S", 0.5)
+
+    async def body(server: ViewServer, url: str) -> None:
+        stuck = socket.socket()
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stuck.connect(("127.0.0.1", server.port))
+        # pipelined: the page, or without the token its 401, until the server stops reading
+        requests = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n" * 100
+        stuck.setblocking(False)
+        sent, blocked = 0, 0
+        try:
+            while blocked < 20 and sent < 50_000_000:  # 0.2 s refused: the server waits on us
+                try:
+                    sent += stuck.send(requests)
+                    blocked = 0
+                except BlockingIOError:
+                    blocked += 1
+                    await asyncio.sleep(0.01)
+            assert blocked == 20
+            for _ in range(100):  # cut after the write timeout (before: held for ever)
+                if server.connections == 0:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.connections == 0
+            assert server.counters["write_timeouts"] == 1
+            assert await closed_by_server(stuck, within=5.0)
+        finally:
+            stuck.close()
+        async with aiohttp.ClientSession() as s, s.get(url, params={"token": token or ""}) as r:
+            assert r.status == 200  # and the view serves others as before
+
+    serve(body, token=token)
+
+
+def test_malformed_requests_are_counted_without_a_traceback(caplog: pytest.LogCaptureFixture) -> None:
+    """aiohttp logged each as "Error handling request" with a traceback: 1.5 MB of log a second."""
+    bad = [
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nHost: 127.0.0.1\r\n\r\n",  # a doubled Host
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX: a\x00b\r\n\r\n",  # a NUL in a header
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: -5\r\n\r\n",
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n folded\r\n\r\n",  # obs-fold
+    ]
+
+    async def body(server: ViewServer, url: str) -> None:
+        for request in bad * 5:
+            answer = await raw(server.port, request)
+            assert answer.split(b"\r\n")[0].endswith(b" 400 Bad Request"), answer[:80]
+        assert server.counters["bad_requests"] == len(bad) * 5
+
+    with caplog.at_level(logging.DEBUG):
+        serve(body)
+    assert not [r for r in caplog.records if r.exc_info or r.levelno >= logging.WARNING]
+
+
+def test_a_stalled_viewer_buffers_a_slice_not_its_own_copy_of_the_map() -> None:
+    async def body(server: ViewServer, url: str) -> None:
+        server.post(sse("status", {"pad": "x" * 8_000_000}))  # a big map's frame
+        stuck = []
+        for _ in range(4):
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect(("127.0.0.1", server.port))
+            sock.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # and never read
+            stuck.append(sock)
+        try:
+            for _ in range(40):
+                if server.viewers == 4:
+                    break
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.5)  # each writes until its socket is full
+            assert server._runner is not None and server._runner.server is not None
+            buffered = [
+                h.transport.get_write_buffer_size() for h in server._runner.server.connections if h.transport
+            ]
+            assert len(buffered) == 4
+            # before: the 8 MB frame less what the socket took, in each
+            assert max(buffered) <= 2 * server_mod.WRITE_SLICE + 4096, buffered
+        finally:
+            for sock in stuck:
+                sock.close()
+
+    serve(body)
+
+
+def test_the_connection_cap_is_fitted_to_the_open_file_limit(tmp_path: Path) -> None:
+    """max_viewers = 1000 wants 2,016 sockets; under systemd's soft limit of 1024 the daemon ran out of
+    files (its map source, `mapd status`, and every accept failed) instead of refusing viewers."""
+    script = textwrap.dedent(
+        """
+        import asyncio, resource, sys
+        from mapd.view.server import ViewServer
+        soft, hard = (int(x) for x in sys.argv[1:3])
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        async def main():
+            s = ViewServer("127.0.0.1", 0, max_viewers=1000)
+            await s.start()
+            await s.close()
+            print(s.max_connections, s.max_viewers, resource.getrlimit(resource.RLIMIT_NOFILE)[0])
+        asyncio.run(main())
+        """
+    )
+    runs = {}
+    for soft, hard in ((1024, 1024), (1024, 4096)):
+        out = subprocess.run(
+            [sys.executable, "-c", script, str(soft), str(hard)], capture_output=True, text=True, timeout=60
+        )
+        assert out.returncode == 0, out.stderr
+        runs[hard] = (tuple(int(x) for x in out.stdout.split()), out.stderr)
+    (conns, viewers, soft_after), stderr = runs[1024]  # no room to raise: fewer connections, said
+    conns_fit = 1024 - server_mod.FD_RESERVE
+    assert (conns, viewers, soft_after) == (conns_fit, (conns_fit - 16) // 2, 1024)
+    assert "do not fit the open-file limit" in stderr and stderr.count("\n") == 1
+    (conns, viewers, soft_after), stderr = runs[4096]  # raised to what the cap needs
+    assert (conns, viewers, soft_after) == (2016, 1000, 2016 + server_mod.FD_RESERVE)
+    assert stderr == ""
