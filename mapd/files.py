@@ -28,9 +28,38 @@ from typing import Any, BinaryIO
 _TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+")
 
 
+class NotRegularFileError(OSError):
+    """Raised by :func:`open_regular` and :func:`atomic_write_bytes` for a FIFO, a device or a
+    directory (``strerror``: "not a regular file").
+    """
+
+
+#: The start of a file's name kept in its temp file's name: a name as long as a directory allows
+#: (255 bytes) is still written, with room for ``.tmp<pid>.<thread id>``.
+_TEMP_STEM = 200
+
+
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Write ``payload`` to a temp file beside ``path``, fsync it, rename it over ``path``, fsync the dir."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.{threading.get_ident()}")
+    """Write ``payload`` to a temp file beside ``path``, fsync it, rename it over ``path``, fsync the dir.
+
+    A symlink is written through (its target is replaced, the link kept); a path that names no
+    file (``.``, ``/``), or an existing device, FIFO, socket or directory, is refused with an
+    OSError, never replaced: ``-o /dev/null`` as root once turned the system's null device into a
+    regular file.
+    """
+    if path.is_symlink():
+        path = path.resolve()
+    if path.name in ("", ".", ".."):
+        raise IsADirectoryError(21, "names a directory, not a file", str(path))
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        pass  # not there yet (or unreadable: the write below says what is wrong)
+    else:
+        if not stat.S_ISREG(mode):
+            raise NotRegularFileError(22, "not a regular file", str(path))
+    stem = os.fsdecode(os.fsencode(path.name)[:_TEMP_STEM])  # bytes: a directory's limit is in bytes
+    tmp = path.with_name(f".{stem}.tmp{os.getpid()}.{threading.get_ident()}")
     try:
         with open(tmp, "wb") as fh:
             fh.write(payload)
@@ -134,10 +163,6 @@ def _open_checked(path: Path, *, regular: bool) -> BinaryIO:
     except BaseException:
         os.close(fd)
         raise
-
-
-class NotRegularFileError(OSError):
-    """Raised by :func:`open_regular` for a FIFO, a device or a directory (``strerror``: "not a regular file")."""
 
 
 def open_regular(path: Path) -> BinaryIO:

@@ -494,11 +494,13 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
     if mode == "trinary" and not grid.is_trinary():
         raise MapFileError(f"{path}: grid has values other than -1/0/100; save it in raw mode")
     pixels = grid.to_image() if mode == "trinary" else np.flipud(grid.data.view(np.uint8))
-    image_path = path.with_suffix(".pgm")
-    header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
-    if path.is_dir():
+    if path.is_dir() or path.name in ("", ".", ".."):
         # Checked first: the image would otherwise be written beside it (DIR.pgm) before the YAML fails.
         raise MapFileError(f"{path}: is a directory; name the map's YAML file")
+    image_path = path.with_suffix(".pgm")
+    if image_path == path:  # the YAML would be written over the image it names: the map lost
+        raise MapFileError(f"{path}: the map's image is written as NAME.pgm; name the YAML NAME.yaml")
+    header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(image_path, header + np.ascontiguousarray(pixels).tobytes())

@@ -80,7 +80,7 @@ def parse_poses(specs: list[str], names: list[str]) -> dict[str, Any]:
         if not sep or not robot:
             raise ConfigError(f"--pose {spec!r}: expected ROBOT=x,y,yaw")
         if robot not in names:
-            if robot.isdigit() and int(robot) < len(names):
+            if robot.isdecimal() and int(robot) < len(names):  # ("²".isdigit(), but int() refuses it)
                 robot = names[int(robot)]
             else:
                 raise ConfigError(
@@ -101,13 +101,19 @@ def parse_poses(specs: list[str], names: list[str]) -> dict[str, Any]:
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
-    from mapd.fusion.merge import merge_with_owner, save_png
+    from mapd.fusion.merge import NO_OWNER, merge_with_owner, save_png
     from mapd.fusion.placement import Placer
     from mapd.fusion.transforms import IDENTITY, compose, inverse
     from mapd.grid import load_map, save_map
 
     if len(args.maps) < 2:
         raise ConfigError("merge needs at least two maps")
+    if len(args.maps) >= NO_OWNER:  # said now, not after every map was placed against the others
+        raise ConfigError(f"merge takes at most {NO_OWNER - 1} maps, not {len(args.maps)}")
+    if args.png is not None:
+        outputs = {args.output.resolve(), args.output.with_suffix(".pgm").resolve()}
+        if args.png.resolve() in outputs:  # the preview would be written over the merged map
+            raise ConfigError(f"--png {args.png}: that is the merged map's own file; name the preview apart")
     for name, v in (("--min-confidence", args.min_confidence), ("--min-agreement", args.min_agreement)):
         if not (0.0 <= v <= 1.0):
             raise ConfigError(f"{name} must lie in [0, 1], got {v}")

@@ -311,17 +311,28 @@ PALETTE = np.array(
 )
 
 
+#: Rows of the preview coloured at a time: the float temporaries of a whole 67 M-cell map took
+#: 80 bytes a cell (5.6 GB); a band keeps them small beside the 3-byte-a-cell image.
+COLOUR_BAND_ROWS = 256
+
+
 def colour_image(result: MergeResult) -> np.ndarray:
     """RGB preview (row 0 at the top, like map_server images): unknown grey, free cells a light tint
     and occupied cells a dark shade of the colour of the map that weighed most there."""
     data, owner = result.grid.data, result.owner
-    colours = PALETTE[np.where(owner == NO_OWNER, 0, owner) % len(PALETTE)]
-    occ = (data.astype(np.float32).clip(0, 100) / 100.0)[..., None]
-    free_tint = 255.0 - 0.25 * (255.0 - colours)
-    wall_shade = 0.45 * colours
-    rgb = free_tint * (1.0 - occ) + wall_shade * occ
-    rgb[data < 0] = 205.0
-    return np.flipud(rgb.round().astype(np.uint8))
+    height = data.shape[0]
+    out = np.empty((*data.shape, 3), dtype=np.uint8)
+    for r0 in range(0, height, COLOUR_BAND_ROWS):
+        r1 = min(height, r0 + COLOUR_BAND_ROWS)
+        band, band_owner = data[r0:r1], owner[r0:r1]
+        colours = PALETTE[np.where(band_owner == NO_OWNER, 0, band_owner) % len(PALETTE)]
+        occ = (band.astype(np.float32).clip(0, 100) / 100.0)[..., None]
+        free_tint = 255.0 - 0.25 * (255.0 - colours)
+        wall_shade = 0.45 * colours
+        rgb = free_tint * (1.0 - occ) + wall_shade * occ
+        rgb[band < 0] = 205.0
+        out[height - r1 : height - r0] = np.flipud(rgb.round().astype(np.uint8))
+    return out
 
 
 def save_png(result: MergeResult, path: str) -> None:
