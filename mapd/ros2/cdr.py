@@ -22,6 +22,7 @@ import numpy as np
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
 from mapd.ros2 import rmw
+from mapd.zenoh_config import zenoh_config_text
 
 MSGTYPE = "nav_msgs/msg/OccupancyGrid"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -199,8 +200,13 @@ def session_config(
     except ModuleNotFoundError:
         raise TransportError("ros2 over zenoh needs eclipse-zenoh, which is not installed") from None
     try:
-        cfg = zenoh.Config.from_file(str(config_file)) if config_file is not None else zenoh.Config()
-    except Exception as exc:  # zenoh.ZError for a missing or malformed file
+        # Read by mapd, not zenoh.Config.from_file: a FIFO or /dev/zero named here hung the daemon.
+        cfg = (
+            zenoh.Config.from_json5(zenoh_config_text(config_file))
+            if config_file is not None
+            else zenoh.Config()
+        )
+    except Exception as exc:  # ValueError from the read, zenoh.ZError for a malformed config
         raise TransportError(f"{config_file}: cannot use zenoh config: {exc}") from None
     settings: dict[str, Any] = {
         "mode": mode,

@@ -19,6 +19,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from mapd.errors import TransportError
+from mapd.zenoh_config import zenoh_config_text
 from transports.base import TransportOptions
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
@@ -91,8 +92,9 @@ def build_config(options: ZenohOptions, max_message_bytes: int) -> object:
     explicit = options.model_fields_set
     if options.config_file is not None:
         try:
-            conf = zenoh.Config.from_file(str(options.config_file))
-        except zenoh.ZError as exc:
+            # Read by mapd, not zenoh.Config.from_file: a FIFO or /dev/zero named here hung the daemon.
+            conf = zenoh.Config.from_json5(zenoh_config_text(options.config_file))
+        except (zenoh.ZError, ValueError) as exc:
             raise TransportError(
                 f"zenoh: cannot use config file {options.config_file}: {zenoh_message(exc)}"
             ) from None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 from pathlib import Path
 
@@ -129,6 +130,43 @@ def test_bad_config_file_is_one_line(tmp_path: Path, content: str | None, match:
     with pytest.raises(TransportError, match=match) as info:
         build_config(ZenohOptions(config_file=f), 1 << 20)
     assert "\n" not in str(info.value) and ".rs:" not in str(info.value)
+
+
+def test_a_fifo_or_device_as_the_config_file_is_one_line_at_once(tmp_path: Path) -> None:
+    """zenoh.Config.from_file blocked for ever on a FIFO without a writer (in a thread that ignored
+    SIGTERM) and read /dev/zero until memory ran out; the ros2 output's config reads the same way."""
+    import time
+
+    from mapd.ros2.cdr import session_config
+
+    fifo = tmp_path / "zenoh.json5"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.json5"
+    big.write_bytes(b" " * (2 << 20))
+    for path, says in (
+        (fifo, "not a regular file"),
+        (Path("/dev/zero"), "not a regular file"),
+        (big, "over 1 MiB"),
+    ):
+        t0 = time.monotonic()
+        with pytest.raises(TransportError, match=says):
+            build_config(ZenohOptions(config_file=path), 1 << 20)
+        with pytest.raises(TransportError, match=says):
+            session_config(config_file=path)
+        assert time.monotonic() - t0 < 5.0
+
+
+def test_a_yaml_config_file_is_read_as_zenoh_reads_it(tmp_path: Path) -> None:
+    import json
+
+    f = tmp_path / "zenoh.yaml"
+    f.write_text("mode: client\nconnect:\n  endpoints: [tcp/127.0.0.1:9]\n")
+    conf = build_config(ZenohOptions(config_file=f), 1 << 20)
+    assert json.loads(conf.get_json("mode")) == "client"  # type: ignore[attr-defined]
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:9"]  # type: ignore[attr-defined]
+    f.write_text("mode: [client\n")
+    with pytest.raises(TransportError, match="malformed YAML"):
+        build_config(ZenohOptions(config_file=f), 1 << 20)
 
 
 def _ctx() -> TransportContext:

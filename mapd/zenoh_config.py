@@ -1,0 +1,51 @@
+"""A zenoh config file read as untrusted input: one error line, never a hang or a huge read.
+
+``zenoh.Config.from_file`` opens whatever the path names: a FIFO without a writer blocked
+``mapd run`` for ever (in a thread that ignored SIGTERM), and ``/dev/zero`` was read until memory
+ran out. Here the file must be a regular file of at most :data:`MAX_ZENOH_CONFIG_BYTES`, is read
+by mapd, and its text handed to zenoh: JSON5 as is, YAML (``.yaml``, ``.yml``) as JSON, which is
+what zenoh's own loader does with those suffixes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from mapd.files import NotRegularFileError, open_regular
+
+#: zenoh's own example config, every option commented, is about 30 KiB.
+MAX_ZENOH_CONFIG_BYTES = 1 << 20
+
+
+def zenoh_config_text(path: Path) -> str:
+    """The config in ``path`` as JSON5 text for ``zenoh.Config.from_json5``.
+
+    Raises ValueError with one line (without the path) for a file that is not a regular file,
+    cannot be read, is too large, not UTF-8, or not YAML when named so.
+    """
+    try:
+        with open_regular(path) as fh:
+            raw = fh.read(MAX_ZENOH_CONFIG_BYTES + 1)
+    except NotRegularFileError:
+        raise ValueError("not a regular file") from None
+    except OSError as exc:
+        raise ValueError(f"cannot read it: {exc.strerror or exc}") from None
+    if len(raw) > MAX_ZENOH_CONFIG_BYTES:
+        raise ValueError(f"over {MAX_ZENOH_CONFIG_BYTES >> 20} MiB; a zenoh config is a few KiB")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError("not UTF-8 text") from None
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        return text
+    import yaml
+
+    try:
+        doc = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as exc:
+        raise ValueError(f"malformed YAML ({type(exc).__name__})") from None
+    try:
+        return json.dumps(doc)
+    except (TypeError, ValueError, RecursionError):  # dates, sets: nothing zenoh reads
+        raise ValueError("YAML that holds no zenoh config") from None
