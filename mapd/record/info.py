@@ -50,12 +50,19 @@ MAX_RECORD_BYTES = 64 << 20
 #: declares: a few KiB of zstd can otherwise stand for gigabytes.
 MAX_CHUNK_BYTES = DEFAULT_MAX_CELLS + (1 << 20)
 
-#: Records parsed out of chunks, at most, per byte of the file read so far (plus
+#: Records parsed out of chunks, at most, per byte of the chunks read so far (plus
 #: :data:`RECORDS_GRACE`). A recorded record is a map, a transform or link counters, 100 bytes or
-#: more that compress a few times, so a real file has well under one record a byte; a zstd chunk of
-#: a few KiB can hold millions of 9-byte records, each a step of the parsing loop.
-RECORDS_PER_FILE_BYTE = 16
-RECORDS_GRACE = 1 << 20
+#: more that compress a few times: 50,000 nearly equal transforms make 0.035 records a byte. A zstd
+#: chunk of a few KiB can hold millions of 9-byte records, each a step of the parsing loop, and
+#: bytes outside chunks (padding in records mapd skips) earn nothing: 1 MB of them bought 16 M
+#: records, 27 s of parsing.
+RECORDS_PER_CHUNK_BYTE = 1
+RECORDS_GRACE = 1 << 16
+#: Names (topics, schemas, encodings) are kept this long: a chunk can inflate one to 64 MiB.
+MAX_NAME = 200
+#: Topics told apart, at most: a recording of mapd has a few; each chunk of a hostile file can
+#: bring a new one (or redefine a channel's), and every one is kept for the summary.
+MAX_TOPICS = 1024
 
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
 _MESSAGE_HEAD = struct.Struct("<H4xQ")  # channel id, (sequence), log time
@@ -109,7 +116,7 @@ def _chunk_records(data: bytes, count: _RecordCount) -> Iterator[Any]:
 
     Messages are not built as objects: a chunk can hold millions of tiny ones. Other records are
     skipped, as the MCAP spec asks of readers. Every record is counted in ``count``; past
-    ``count.allowed`` the file is refused (:data:`RECORDS_PER_FILE_BYTE`).
+    ``count.allowed`` the file is refused (:data:`RECORDS_PER_CHUNK_BYTE`).
     """
     from mcap.data_stream import ReadDataStream
     from mcap.opcode import Opcode
@@ -122,7 +129,7 @@ def _chunk_records(data: bytes, count: _RecordCount) -> Iterator[Any]:
         count.parsed += 1
         if count.parsed > count.allowed:
             raise MapFileError(
-                f"chunks hold more records than {RECORDS_PER_FILE_BYTE} a byte of the file "
+                f"chunks hold more records than {RECORDS_PER_CHUNK_BYTE} a byte of their compressed data "
                 "(a compression bomb, not a recording)"
             )
         if end - pos < head_size:
@@ -153,15 +160,21 @@ def summarize(path: Path) -> RecordingSummary:
     except ModuleNotFoundError:
         raise MapFileError("record info needs mcap (pip install 'mapd[record]')") from None
     summary = RecordingSummary(str(path), complete=False)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    # Only the names are kept, cut to MAX_NAME: a schema's data or a channel's metadata can be
+    # 64 MiB each, and 40 chunks of them held 2.8 GB.
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str, int]] = {}  # id -> topic, message encoding, schema id
 
     def message(channel_id: int, log_time: int) -> None:
         ch = channels.get(channel_id)
         if ch is None:
             return
-        sch = schemas.get(ch.schema_id)
-        t = summary.topics.setdefault(ch.topic, TopicSummary(sch.name if sch else "", ch.message_encoding))
+        topic, encoding, schema_id = ch
+        t = summary.topics.get(topic)
+        if t is None:
+            if len(summary.topics) >= MAX_TOPICS:
+                raise MapFileError(f"more than {MAX_TOPICS} topics (not a recording of mapd)")
+            t = summary.topics[topic] = TopicSummary(schemas.get(schema_id, ""), encoding)
         t.messages += 1
         t.first_ns = log_time if t.first_ns is None else min(t.first_ns, log_time)
         t.last_ns = log_time if t.last_ns is None else max(t.last_ns, log_time)
@@ -169,9 +182,13 @@ def summarize(path: Path) -> RecordingSummary:
 
     def take(record: Any) -> None:
         if isinstance(record, Schema):
-            schemas[record.id] = record
+            schemas[record.id] = record.name[:MAX_NAME]
         elif isinstance(record, Channel):
-            channels[record.id] = record
+            channels[record.id] = (
+                record.topic[:MAX_NAME],
+                record.message_encoding[:MAX_NAME],
+                record.schema_id,
+            )
         elif isinstance(record, tuple):
             message(*record)
 
@@ -182,9 +199,11 @@ def summarize(path: Path) -> RecordingSummary:
             # would decompress whatever size a chunk claims and build every message it holds.
             reader = StreamReader(fh, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)
             count = _RecordCount()
+            chunk_bytes = 0  # (counted here, not by fh.tell(): a pipe cannot tell)
             for record in reader.records:
                 if isinstance(record, Chunk):
-                    count.allowed = RECORDS_GRACE + RECORDS_PER_FILE_BYTE * fh.tell()
+                    chunk_bytes += len(record.data)
+                    count.allowed = RECORDS_GRACE + RECORDS_PER_CHUNK_BYTE * chunk_bytes
                     for item in _chunk_records(_decompress(record), count):
                         take(item)
                 elif isinstance(record, Message):
@@ -204,11 +223,19 @@ def summarize(path: Path) -> RecordingSummary:
     return summary
 
 
+def _printable(text: str) -> str:
+    """``text`` with control characters escaped: a name in a file must not forge a line of the
+    summary or send escape sequences to the terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def render(s: RecordingSummary) -> str:
     lines = [
         f"{s.path}: {s.messages} messages, {'complete' if s.complete else 'no footer: ' + (s.error or 'cut short')}"
     ]
     for topic, t in sorted(s.topics.items()):
         span = ((t.last_ns or 0) - (t.first_ns or 0)) / 1e9
-        lines.append(f"  {topic:<24} {t.schema:<28} {t.messages:>6} msgs over {span:8.1f} s")
+        lines.append(
+            f"  {_printable(topic):<24} {_printable(t.schema):<28} {t.messages:>6} msgs over {span:8.1f} s"
+        )
     return "\n".join(lines)

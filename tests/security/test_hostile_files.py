@@ -317,6 +317,83 @@ def test_recordings_in_every_chunk_compression_are_counted(tmp_path: Path, compr
     assert (t.schema, t.messages, t.first_ns, t.last_ns) == ("mapd.links", 3000, 1000, 3999)
 
 
+def _schema(sid: int, name: bytes, data: bytes) -> bytes:
+    return _record(3, struct.pack("<H", sid) + _text(name) + _text(b"jsonschema") + _text(data))
+
+
+def test_schemas_that_inflate_to_megabytes_are_not_kept(tmp_path: Path, one_error_line: OneLine) -> None:
+    """A 22 KB file of chunks each holding one schema of 60 MB (zeros) kept every schema whole:
+    837 MB for ten, 2.8 GB for forty. Only names are kept now."""
+    import zstandard
+
+    chunks = []
+    for sid in range(1, 13):  # each its own id, so each is kept
+        big = _schema(sid, b"s", bytes(60 << 20))
+        chunks.append(_chunk(len(big), zstandard.ZstdCompressor().compress(big)))
+    path = tmp_path / "schemas.mcap"
+    path.write_bytes(_MAGIC + _record(1, _text(b"ros2") + _text(b"x")) + b"".join(chunks))
+    assert path.stat().st_size < 200 << 10
+    out, peak_mb = _peak_of_record_info(path)
+    assert "not an MCAP recording" in one_error_line(out)  # (no message, no footer)
+    assert peak_mb < 450, peak_mb  # one chunk's schema at a time (before: a GB for twelve)
+
+
+def test_topics_past_the_cap_end_the_summary_with_a_reason(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    from mapd.record.info import MAX_TOPICS, summarize
+
+    path = tmp_path / "topics.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=1 << 16)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        for i in range(MAX_TOPICS + 50):
+            cid = w.register_channel(topic=f"/t{i}", message_encoding="json", schema_id=sid)
+            w.add_message(channel_id=cid, log_time=i, publish_time=i, data=b"{}")
+        w.finish()
+    s = summarize(path)
+    assert len(s.topics) == MAX_TOPICS and s.messages == MAX_TOPICS
+    assert s.error is not None and f"more than {MAX_TOPICS} topics" in s.error
+
+
+def test_bytes_outside_chunks_earn_no_records(tmp_path: Path, mapd_run: Run, one_error_line: OneLine) -> None:
+    """1 MB of records mapd skips bought 16 million records in chunks: 27 s of parsing a MB."""
+    import zstandard
+
+    records = bytes(9 << 20)  # a million records of opcode 0 and length 0
+    data = zstandard.ZstdCompressor().compress(records)
+    padding = _record(0x80, bytes(2 << 20))  # an opcode the spec says readers skip
+    path = tmp_path / "padded.mcap"
+    path.write_bytes(_MAGIC + _record(1, _text(b"ros2") + _text(b"x")) + padding + _chunk(len(records), data))
+    line = one_error_line(mapd_run("record", "info", str(path), timeout=60))
+    assert "a compression bomb, not a recording" in line
+
+
+def test_record_info_reads_a_pipe_and_escapes_control_characters(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    path = tmp_path / "r.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(name="s\x1b[2J", encoding="jsonschema", data=b"{}")
+        cid = w.register_channel(topic="/a\n  /fake 999 msgs", message_encoding="json", schema_id=sid)
+        w.add_message(channel_id=cid, log_time=1, publish_time=1, data=b"{}")
+        w.finish()
+    out = subprocess.run(
+        [*MAPD, "record", "info", "/dev/stdin"],
+        input=path.read_bytes(),
+        capture_output=True,
+        timeout=60,
+        cwd=ROOT,
+    )  # /dev/stdin is a pipe here: it was "cannot read: Illegal seek"
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.decode().splitlines()
+    assert len(lines) == 2 and "1 messages, complete" in lines[0], lines
+    assert "\x1b" not in lines[1] and "\\n  /fake" in lines[1] and "\\x1b[2J" in lines[1], lines
+
+
 def test_a_restarted_recorder_never_truncates_the_last_recording(tmp_path: Path) -> None:
     from mapd.record.info import summarize
     from mapd.record.writer import Recorder
