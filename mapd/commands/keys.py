@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import secrets
 from pathlib import Path
 
@@ -49,6 +50,12 @@ def cmd_keygen(args: argparse.Namespace) -> int:
         return 0
     if not args.robot:
         raise ConfigError("keygen: name the robot (mapd keygen ROBOT -o FILE), or give --link-key FILE")
+    from mapd.config import NAME_PATTERN
+
+    if not re.fullmatch(NAME_PATTERN, args.robot):  # else a roster line the config refuses, or not TOML
+        raise ConfigError(
+            f"keygen: {args.robot!r} is not a robot name (1 to 32 letters, digits, '_' or '-', as the config takes)"
+        )
     if args.public is not None:
         identity = read_identity(args.public, args.robot, "--public")
     else:

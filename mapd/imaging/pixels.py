@@ -163,6 +163,8 @@ def _pillow_array(img: Image.Image, palette: int | None = None) -> Pixels:
         arr = arr[:, :, None]
     if arr.ndim != 3 or arr.dtype.kind not in "uif":
         raise ValueError(f"pixel mode {mode} is not supported")
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():  # a NaN loaded as free space
+        raise ValueError("it holds samples that are not numbers (NaN or infinity)")
     has_alpha = mode in ("LA", "RGBA", "La", "RGBa")
     if mode.startswith("I;16"):
         return Pixels(arr, has_alpha, scale=255.0 / 65535.0)

@@ -351,3 +351,17 @@ def test_bytes_fuzz_of_pgm_and_png_gives_only_mapd_errors(
                 assert "\n" not in str(exc)
                 continue
             assert g.data.dtype == np.int8 and g.cells <= 1 << 20
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_a_float_image_of_nan_or_inf_is_refused_not_loaded_as_free(tmp_path: Path, value: float) -> None:
+    """A 32-bit float TIFF (Pillow's mode F) of NaN loaded as 100 % free in raw mode."""
+    from PIL import Image
+
+    pixels = np.full((10, 10), 200.0, np.float32)
+    pixels[3, 4] = value
+    Image.fromarray(pixels, mode="F").save(tmp_path / "f.tif")
+    y = tmp_path / "f.yaml"
+    y.write_text(YAML.format(image="f.tif") + "mode: raw\n")
+    with pytest.raises(MapFileError, match="not numbers"):
+        load_map(y)

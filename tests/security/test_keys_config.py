@@ -139,3 +139,17 @@ def test_config_size_is_capped(
     line = one_error_line(mapd_run("check-config", "/dev/zero"), code=2)
     assert f"over {config.MAX_CONFIG_BYTES} bytes" in line
     assert time.perf_counter() - t0 < 30
+
+
+@pytest.mark.parametrize("name", ['a"b', "a\nb", "a b", "r" * 33, "é"])
+def test_keygen_refuses_a_name_the_config_would_refuse(
+    tmp_path: Path,
+    name: str,
+    mapd_run: Callable[..., subprocess.CompletedProcess[str]],
+    one_error_line: Callable[..., str],
+) -> None:
+    """It wrote a key and printed a roster line that was not TOML, or that the config refuses."""
+    key = tmp_path / "k.pem"
+    line = one_error_line(mapd_run("keygen", name, "-o", str(key)))
+    assert "is not a robot name" in line
+    assert not key.exists()
