@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -47,6 +48,57 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
     OSError, never replaced: ``-o /dev/null`` as root once turned the system's null device into a
     regular file.
     """
+    atomic_write_files([(path, payload)])
+
+
+def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
+    """:func:`atomic_write_bytes` of files that belong together (a map's image and the YAML naming it).
+
+    Every file is written and fsynced to its temp file before any is renamed, so a full disk
+    fails before anything changed; a rename that fails (an immutable file) puts back the files
+    renamed before it. Only a crash between two renames, microseconds apart, can leave a new
+    file beside an old one.
+    """
+    targets = [_write_target(path) for path, _ in files]
+    temps: list[Path] = []
+    try:
+        for target, (_, payload) in zip(targets, files, strict=True):
+            temps.append(_temp_name(target))
+            with open(temps[-1], "wb") as fh:
+                fh.write(payload)
+                fh.flush()
+                os.fsync(fh.fileno())
+        backups: list[tuple[Path, Path]] = []  # (the file as it was, kept under a temp name; its name)
+        try:
+            for target, tmp in zip(targets, temps, strict=True):
+                if len(targets) > 1 and target.exists():
+                    kept = _temp_name(target, ".old")
+                    try:
+                        os.link(target, kept)  # the old file stays whole until every rename is done
+                    except OSError:
+                        pass  # (a file system without hard links: written without the way back)
+                    else:
+                        backups.append((kept, target))
+                os.replace(tmp, target)
+        except BaseException:
+            for kept, target in backups:
+                with contextlib.suppress(OSError):
+                    os.replace(kept, target)
+            raise
+        finally:
+            for kept, _ in backups:
+                with contextlib.suppress(OSError):
+                    kept.unlink(missing_ok=True)
+    finally:
+        for tmp in temps:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+    for directory in {target.parent for target in targets}:
+        _fsync_dir(directory)  # make the renames themselves durable across a power cut
+
+
+def _write_target(path: Path) -> Path:
+    """What writing ``path`` replaces: a symlink's target; refused when it is not a regular file."""
     if path.is_symlink():
         path = path.resolve()
     if path.name in ("", ".", ".."):
@@ -54,22 +106,16 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        pass  # not there yet (or unreadable: the write below says what is wrong)
+        pass  # not there yet (or unreadable: the write says what is wrong)
     else:
         if not stat.S_ISREG(mode):
             raise NotRegularFileError(22, "not a regular file", str(path))
+    return path
+
+
+def _temp_name(path: Path, kind: str = "") -> Path:
     stem = os.fsdecode(os.fsencode(path.name)[:_TEMP_STEM])  # bytes: a directory's limit is in bytes
-    tmp = path.with_name(f".{stem}.tmp{os.getpid()}.{threading.get_ident()}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)  # make the rename itself durable across a power cut
+    return path.with_name(f".{stem}{kind}.tmp{os.getpid()}.{threading.get_ident()}")
 
 
 def _fsync_dir(directory: Path) -> None:

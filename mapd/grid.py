@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from mapd.errors import MapFileError
-from mapd.files import atomic_write_bytes
+from mapd.files import atomic_write_files
 from mapd.imaging import MAX_PNM_HEADER as MAX_PNM_HEADER
 from mapd.imaging import PILLOW_FORMATS as PILLOW_FORMATS
 from mapd.imaging import PLAIN_PNM_MAX_CELLS as PLAIN_PNM_MAX_CELLS
@@ -484,7 +484,7 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
 
     Trinary grids are saved the way ``map_saver`` does (254 free, 0 occupied, 205 unknown). Grids
     with intermediate values are saved in raw mode, one byte per cell, so that :func:`load_map`
-    gives back exactly the same data. Both files are written atomically (image first).
+    gives back exactly the same data. Both files are written together (:func:`~mapd.files.atomic_write_files`).
     """
     path = Path(yaml_path)
     if mode is None:
@@ -503,7 +503,6 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
     header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(image_path, header + np.ascontiguousarray(pixels).tobytes())
         meta = {
             "image": image_path.name,
             "mode": mode,
@@ -513,7 +512,14 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
             "occupied_thresh": 0.65,
             "free_thresh": 0.196,
         }
-        atomic_write_bytes(path, yaml.safe_dump(meta, sort_keys=False).encode())
+        # Together: a full disk (or an immutable YAML) left the new image beside the old YAML, a
+        # map that loads with another map's size and origin.
+        atomic_write_files(
+            [
+                (image_path, header + np.ascontiguousarray(pixels).tobytes()),
+                (path, yaml.safe_dump(meta, sort_keys=False).encode()),
+            ]
+        )
     except OSError as exc:
         # strerror, not str(exc): that names the hidden temp file, which means nothing to the user.
         raise MapFileError(f"{path}: cannot write map: {exc.strerror or one_line(exc)}") from None

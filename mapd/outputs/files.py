@@ -1,7 +1,7 @@
 """``[output.files]``: the global map as map_server files in a folder (for map_server, nav2, a viewer).
 
 Each update replaces ``<dir>/<name>.yaml`` + ``<dir>/<name>.pgm`` and ``<dir>/transforms.json``
-atomically (the image first, the YAML naming it last), so a reader never sees half a map. The
+atomically (image and YAML written before either is renamed), so a reader never sees half a map. The
 daemon's own state directory keeps its copy regardless (``state/global``); this output is for
 another place, say where a ``map_server`` on the same robot or a web server looks.
 """
@@ -9,15 +9,18 @@ another place, say where a ``map_server`` on the same robot or a web server look
 from __future__ import annotations
 
 import asyncio
+import logging
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field
 
-from mapd.errors import ConfigError
-from mapd.files import atomic_write_json, remove_stale_temps
+from mapd.errors import ConfigError, MapdError
+from mapd.files import WriteOutage, atomic_write_json, remove_stale_temps
 from mapd.grid import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
+
+log = logging.getLogger("mapd.outputs.files")
 
 
 class FilesOptions(OutputOptions):
@@ -38,6 +41,9 @@ class FilesOutput(Output):
             raise TypeError("files output needs FilesOptions")
         self.opts: FilesOptions = self.options
         self.written = 0
+        #: Updates that could not be written (a full or read-only disk, a path that is a folder).
+        self.failures = 0
+        self._outage = WriteOutage(log)
 
     async def start(self) -> None:
         try:
@@ -48,6 +54,19 @@ class FilesOutput(Output):
         await asyncio.to_thread(remove_stale_temps, self.opts.dir)
 
     def publish(self, update: GlobalUpdate) -> None:
+        try:
+            self._write(update)
+        except (MapdError, OSError) as exc:
+            # A full or read-only disk fails every update (about one a second): said once, with
+            # the cause and not the hidden temp file's name, and counted; the next map tries again.
+            self.failures += 1
+            why = str(exc) if isinstance(exc, MapdError) else f"{exc.filename}: {exc.strerror or exc}"
+            self._outage.failed(f"output.files: cannot write the global map ({why}); trying each new map")
+            return
+        self._outage.recovered(f"output.files: writing to {self.opts.dir} again")
+        self.written += 1
+
+    def _write(self, update: GlobalUpdate) -> None:
         save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml")
         doc: dict[str, Any] = {
             "frame_id": self.opts.frame_id,
@@ -58,8 +77,11 @@ class FilesOutput(Output):
                 for robot, p in sorted(update.frames.items())
             },
         }  # fmt: skip
-        atomic_write_json(self.opts.dir / "transforms.json", doc)
-        self.written += 1
+        path = self.opts.dir / "transforms.json"
+        try:
+            atomic_write_json(path, doc)
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror, str(path)) from None  # (not the temp file's name)
 
     def stats(self) -> dict[str, int | float | str]:
-        return {"written": self.written, "dir": str(self.opts.dir)}
+        return {"written": self.written, "failures": self.failures, "dir": str(self.opts.dir)}

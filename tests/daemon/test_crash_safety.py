@@ -105,10 +105,11 @@ def test_temp_files_left_by_kill_9_are_removed_at_start_and_the_state_is_intact(
     for what in ("first", "own", "peer"):
         done = _child(KILLED_MID_WRITE, str(root), what)
         assert done.returncode == -9, done.stderr
-        # Each killed writer leaves a temp file named by its pid, which no later write reuses.
+        # Each killed writer leaves temp files named by its pid, which no later write reuses: the
+        # new image and YAML, written before either is renamed, and the old image kept to go back to.
         assert _temps(root), "the writer was not killed mid-write"
         left |= set(_temps(root))
-    assert len(left) == 3
+    assert len(left) == 9 and len({p.name.split(".tmp")[1].split(".")[0] for p in left}) == 3
     mine = root / "global" / f".global.pgm.tmp{os.getpid()}.1"  # a write of this process: kept
     mine.write_bytes(b"P5")
     other = root / "notes.tmp"  # not a name mapd gives its temps: kept

@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
+import logging
+import os
 import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from mapd import plugins
 from mapd.codec import decode
 from mapd.envelope import unpack
-from mapd.grid import OccupancyGrid, Pose2D, load_map
+from mapd.errors import MapFileError
+from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
 from mapd.identity import Identity, Roster
 from mapd.outputs.base import GlobalUpdate, OutputContext
 from mapd.outputs.files import FilesOptions, FilesOutput
@@ -53,6 +59,64 @@ def test_files_output_writes_map_server_files_and_transforms(
         "child_frame_id": "robot1/map", "x": 4.0, "y": -1.0, "yaw": 0.5, "version": 9
     }  # fmt: skip
     assert out.stats()["written"] == 1
+
+
+def test_files_output_that_cannot_write_says_so_once_and_carries_on(
+    tmp_path: Path, room_grid: OccupancyGrid, caplog: pytest.LogCaptureFixture
+) -> None:
+    """It raised on every update (about one a second), each logged by the daemon, naming the hidden
+    temp file; the map was written while transforms.json stayed stale."""
+    out = FilesOutput(FilesOptions(dir=tmp_path, name="fleet"), OutputContext("base", "f"))
+    asyncio.run(out.start())
+    (tmp_path / "transforms.json").mkdir()  # (as a full or read-only disk would, every time)
+    with caplog.at_level(logging.INFO, logger="mapd.outputs.files"):
+        for version in (3, 4, 5):
+            out.publish(update(room_grid, version))  # never raises
+        assert out.stats()["failures"] == 3 and out.stats()["written"] == 0
+        errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+        assert len(errors) == 1 and f"{tmp_path / 'transforms.json'}: not a regular file" in errors[0], errors
+        assert ".tmp" not in errors[0]
+        (tmp_path / "transforms.json").rmdir()
+        out.publish(update(room_grid, 6))
+    assert out.stats()["written"] == 1 and "writing to" in caplog.records[-1].getMessage()
+    assert json.loads((tmp_path / "transforms.json").read_text())["robots"]["robot1"]["version"] == 9
+
+
+def test_a_map_whose_yaml_cannot_be_written_keeps_its_old_image(
+    tmp_path: Path, room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The image was renamed into place before the YAML was written: a full disk (or an immutable
+    YAML) left the new image beside the old YAML, a map with another map's size and origin."""
+    import mapd.files
+
+    old = OccupancyGrid(np.zeros((20, 30), np.int8), 0.1, (-1.0, -2.0, 0.0))
+    save_map(old, tmp_path / "m.yaml")
+    real_fsync, calls = os.fsync, []
+
+    def fsync_fails_on_the_second_file(fd: int) -> None:
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(mapd.files.os, "fsync", fsync_fails_on_the_second_file)
+    with pytest.raises(MapFileError, match="No space left"):
+        save_map(room_grid, tmp_path / "m.yaml")
+    real_replace = os.replace
+
+    def yaml_is_immutable(src: Any, dst: Any) -> None:
+        if Path(dst).name == "m.yaml" and ".old." not in str(src):
+            raise PermissionError(errno.EPERM, "Operation not permitted")
+        real_replace(src, dst)
+
+    calls.clear()
+    monkeypatch.setattr(mapd.files.os, "fsync", real_fsync)
+    monkeypatch.setattr(mapd.files.os, "replace", yaml_is_immutable)
+    with pytest.raises(MapFileError, match="not permitted"):
+        save_map(room_grid, tmp_path / "m.yaml")
+    monkeypatch.undo()
+    assert load_map(tmp_path / "m.yaml").same_map(old)  # image and YAML both the old map's
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pgm", "m.yaml"]  # no temp file left
 
 
 def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(
