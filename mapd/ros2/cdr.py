@@ -22,7 +22,7 @@ import numpy as np
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
 from mapd.ros2 import rmw
-from mapd.zenoh_config import zenoh_config_text
+from mapd.ros2.zenoh_config import zenoh_config_text
 
 MSGTYPE = "nav_msgs/msg/OccupancyGrid"
 TF_TYPE = "tf2_msgs/msg/TFMessage"

@@ -19,7 +19,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from mapd.errors import TransportError
-from mapd.zenoh_config import zenoh_config_text
+from mapd.ros2.zenoh_config import zenoh_config_text
 from transports.base import TransportOptions
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
