@@ -34,13 +34,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--maps", type=Path, default=None, help="folder of map_server maps (default: the shared data)"
     )
     p.add_argument("--epochs", type=int, default=12, help="passes over --tiles-per-epoch tiles (default 12)")
-    p.add_argument("--tile", type=int, default=64, help="tile side in cells, a multiple of 4 (default 64)")
+    p.add_argument(
+        "--tile", type=int, default=64, help="tile side in cells, a multiple of 4 from 8 to 256 (default 64)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of weights and tile sampler (default 0)")
-    p.add_argument("-o", "--output", type=Path, required=True, help="model folder to write, e.g. models/NAME")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        help="model folder to write, e.g. models/NAME (new, or a model folder it replaces whole)",
+    )
     p.add_argument("--levels", type=int, default=16, help="quantizer levels of m_feature (default 16)")
     p.add_argument("--tiles-per-epoch", type=int, default=2048, help="tiles drawn per epoch (default 2048)")
     p.add_argument("--batch", type=int, default=16, help="tiles per step (default 16)")
-    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate (default 2e-3)")
+    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate, in (0, 1] (default 2e-3)")
     p.add_argument(
         "--edge-weight",
         type=float,
@@ -56,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--threads",
         type=int,
         default=0,
-        help="torch CPU threads (default 0: torch's default); CPU weights are reproducible for one count",
+        help="torch CPU threads, 0 to 256 (default 0: torch's default); CPU weights are reproducible for one count",
     )
     snap = p.add_argument_group("maps in the making (snapshots, as a Gmapping run saves them)")
     snap.add_argument(

@@ -23,10 +23,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid
 from mapd.train.card import evaluate_grids, evaluate_maps, summarize
 from mapd.train.data import split_maps
-from mapd.train.snapshots import _cached, _file_sha256, default_cache
+from mapd.train.snapshots import _cached, _file_sha256, check_cache, default_cache
 
 
 def growing_maps(
@@ -114,6 +115,11 @@ def main(argv: list[str] | None = None) -> int:
     maps = args.maps or (base / "maps" if base else None)
     if log is None or maps is None:
         print("no --log/--maps given and no shared data found (set MAPD_DATA)", file=sys.stderr)
+        return 2
+    try:
+        check_cache(args.cache)  # before the replay, not after it
+    except MapdError as exc:
+        print(exc, file=sys.stderr)
         return 2
     growing = growing_maps(log, robots=args.robots, period=args.period, cache=args.cache)
     finished, root = held_out_finished(maps, args.val_fraction)

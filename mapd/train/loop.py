@@ -22,6 +22,11 @@ stage after it is lossless, so "through Cod(.)" is through the rounding).
   quantizer and the decoder are tuned on the features they will see at inference.
 * **Loss weights.** ``edge_weight`` (default 1, the paper's plain MSE) counts the squared error of
   cells on a class boundary that many times; the loss stays a per-cell MSE on the PSNR's scale.
+* **Bad settings** are refused before any work (:func:`check_settings`, :func:`~mapd.train.install.output_folder`):
+  every size has an upper bound, so memory stays bounded; tiles are drawn a batch at a time.
+* **Output.** The model folder is written and evaluated in a hidden folder beside ``-o`` and then
+  renamed into place (:mod:`mapd.train.install`), so a failure (a full disk, a diverged run: non-finite
+  weights are never saved) leaves a model already there whole.
 
 The whole-map evaluation and the model card live in :mod:`mapd.train.card`.
 """
@@ -55,7 +60,26 @@ from mapd.train.data import (
     sample_tiles,
     split_maps,
 )
+from mapd.train.install import CARD_FILE, install, output_folder, staging
 from mapd.train.snapshots import SnapshotSpec, snapshot_maps
+
+#: Upper bounds of the settings, so that a typo costs one error line instead of the machine's memory
+#: (or a crash inside torch's thread pool). Torch threads: as ``[codec.paper] threads``.
+MAX_THREADS = 256
+#: The codec infers on 96-cell tiles and the shipped model trained on 64-cell ones.
+MAX_TILE = 256
+MAX_BATCH = 1024
+#: Input cells of one step, batch x (tile + 2 MARGIN)²: 28 times the shipped recipe's 16 x 96², so
+#: the activations kept for the backward pass stay within a few GiB whatever --batch and --tile say.
+MAX_STEP_CELLS = 1 << 22
+#: Tiles are drawn a batch at a time, so these bound the time of an epoch, not its memory.
+MAX_TILES_PER_EPOCH = 1 << 20
+MAX_VAL_TILES = 1 << 16
+MAX_EPOCHS = 100_000
+#: Adam's step size; far above this every run diverges.
+MAX_LR = 1.0
+#: Held-out tiles scored at a time.
+VAL_CHUNK = 64
 
 # --------------------------------------------------------------------------------------------
 # The loop
@@ -114,9 +138,16 @@ def _loss(net: pn.PaperNet, batch: TileBatch, device: torch.device) -> torch.Ten
     return ((out - target) ** 2 * lmask).sum() / lmask.sum().clamp_min(1.0)
 
 
-def _chunks(batch: TileBatch, size: int) -> Iterator[TileBatch]:
-    for i in range(0, batch.x.shape[0], size):
-        yield TileBatch(batch.x[i : i + size], batch.fmask[i : i + size], batch.lmask[i : i + size])
+def _batches(
+    maps: list[PreparedMap], n: int, size: int, tile: int, rng: np.random.Generator, edge_weight: float = 1.0
+) -> Iterator[TileBatch]:
+    """``n`` tiles drawn by :func:`sample_tiles`, ``size`` at a time.
+
+    The sampler draws tile after tile from ``rng``, so these are the very tiles (and weights) of
+    one ``sample_tiles(maps, n, ...)`` call, without all ``n`` of them in memory at once.
+    """
+    for i in range(0, n, size):
+        yield sample_tiles(maps, min(size, n - i), tile, rng, edge_weight)
 
 
 def _freeze_bn(net: pn.PaperNet) -> None:
@@ -143,33 +174,64 @@ def _load_maps(paths: list[Path], root: Path, tile: int) -> list[PreparedMap]:
     return [prepare_map(_label(p, root), load_map(p), tile) for p in paths]
 
 
+def check_settings(cfg: TrainConfig) -> None:
+    """Refuse a setting out of range with one line naming the option, before any work is done."""
+    if not 0 <= cfg.threads <= MAX_THREADS:
+        raise ConfigError(f"--threads must be 0 (torch's default) to {MAX_THREADS}, got {cfg.threads}")
+    for option, value, most in (
+        ("--epochs", cfg.epochs, MAX_EPOCHS),
+        ("--tiles-per-epoch", cfg.tiles_per_epoch, MAX_TILES_PER_EPOCH),
+        ("--batch", cfg.batch, MAX_BATCH),
+    ):
+        if not 1 <= value <= most:
+            raise ConfigError(f"{option} must be 1 to {most}, got {value}")
+    if not 0 <= cfg.val_tiles <= MAX_VAL_TILES:
+        raise ConfigError(f"--val-tiles must be 0 to {MAX_VAL_TILES}, got {cfg.val_tiles}")
+    if not (math.isfinite(cfg.lr) and 0.0 < cfg.lr <= MAX_LR):
+        raise ConfigError(f"--lr must be a number in (0, {MAX_LR:g}], got {cfg.lr}")
+    if not 0.0 < cfg.edge_weight <= 1000.0:
+        raise ConfigError(f"--edge-weight must be in (0, 1000], got {cfg.edge_weight}")
+    if not 8 <= cfg.tile <= MAX_TILE or cfg.tile % 4:
+        raise ConfigError(f"--tile must be a multiple of 4 from 8 to {MAX_TILE}, got {cfg.tile}")
+    step = cfg.batch * (cfg.tile + 2 * MARGIN) ** 2
+    if step > MAX_STEP_CELLS:
+        raise ConfigError(
+            f"--batch {cfg.batch} of --tile {cfg.tile} tiles is {step} input cells a step, over the"
+            f" {MAX_STEP_CELLS} allowed: use a smaller --batch or --tile"
+        )
+    if not 2 <= cfg.levels <= 256:
+        raise ConfigError(f"--levels must be 2 to 256, got {cfg.levels}")
+    if not 0 <= cfg.seed < 2**63:  # torch and numpy take seeds in this range
+        raise ConfigError(f"--seed must be 0 to 2**63 - 1, got {cfg.seed}")
+
+
 def train(cfg: TrainConfig) -> dict[str, Any]:
-    """Train, write ``cfg.out`` (weights.npz, model.json, MODEL_CARD.md) and return model.json's content."""
-    if cfg.threads < 0:
-        raise ConfigError(f"--threads must be 0 (torch's default) or more, got {cfg.threads}")
+    """Train, write ``cfg.out`` (weights.npz, model.json, MODEL_CARD.md) and return model.json's content.
+
+    The folder appears whole or not at all; an existing model there stays whole until the new one
+    replaces it, also when the run fails (a full disk, a diverged training).
+    """
+    check_settings(cfg)
+    if cfg.snapshots:
+        cfg.snapshots.check()
+    out = output_folder(cfg.out)
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     was_threads = torch.get_num_threads()
     if cfg.threads:
         # CPU summation order can depend on the thread count, so it is part of the recipe.
         torch.set_num_threads(cfg.threads)
     try:
-        return _train(cfg)
+        return _train(cfg, out)
     finally:
         torch.use_deterministic_algorithms(was_deterministic)
         torch.set_num_threads(was_threads)
 
 
-def _train(cfg: TrainConfig) -> dict[str, Any]:
+def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from tqdm import tqdm
 
     from mapd.data import shared_maps
 
-    if cfg.epochs < 1 or cfg.tiles_per_epoch < 1 or cfg.batch < 1:
-        raise ConfigError("--epochs, --tiles-per-epoch and --batch must be at least 1")
-    if not 0.0 < cfg.edge_weight <= 1000.0:
-        raise ConfigError(f"--edge-weight must be in (0, 1000], got {cfg.edge_weight}")
-    if cfg.tile < 8 or cfg.tile % 4:
-        raise ConfigError(f"--tile must be a multiple of 4 and at least 8, got {cfg.tile}")
     paths = shared_maps(cfg.maps)
     if not paths:
         raise ConfigError(f"--maps {cfg.maps}: no map_server YAML files found")
@@ -199,11 +261,6 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
     if not train_maps:
         raise ConfigError("nothing to train on: --no-finished needs --snapshots-log or --snapshots-sim")
     val_maps = _load_maps(val_paths, root, cfg.tile)
-    val_batch = (
-        sample_tiles(val_maps, cfg.val_tiles, cfg.tile, np.random.default_rng(cfg.seed + 1))
-        if val_maps and cfg.val_tiles > 0
-        else None
-    )
 
     net = pn.PaperNet(cfg.levels).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
@@ -218,9 +275,10 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
         net.train()
         if epoch == cfg.epochs - 1 and cfg.epochs > 1:
             _freeze_bn(net)
-        tiles = sample_tiles(train_maps, steps_per_epoch * cfg.batch, cfg.tile, rng, cfg.edge_weight)
         losses = []
-        for batch in _chunks(tiles, cfg.batch):
+        for batch in _batches(
+            train_maps, steps_per_epoch * cfg.batch, cfg.batch, cfg.tile, rng, cfg.edge_weight
+        ):
             loss = _loss(net, batch, device)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -230,20 +288,36 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.5f}")
         entry = {"epoch": epoch + 1, "train_mse": float(np.mean(losses))}
-        if val_batch is not None:
+        if not math.isfinite(entry["train_mse"]):
+            bar.close()
+            raise MapdError(
+                f"training diverged in epoch {epoch + 1} (loss {entry['train_mse']}): try a lower --lr;"
+                " no model written"
+            )
+        if val_maps and cfg.val_tiles > 0:
             net.eval()
+            # The same held-out tiles every epoch: drawn again from the same seed, a chunk at a time.
+            val_rng = np.random.default_rng(cfg.seed + 1)
             with torch.no_grad():
-                vl = [float(_loss(net, b, device)) * b.x.shape[0] for b in _chunks(val_batch, 64)]
-            entry["val_mse"] = sum(vl) / val_batch.x.shape[0]
+                vl = [
+                    float(_loss(net, b, device)) * b.x.shape[0]
+                    for b in _batches(val_maps, cfg.val_tiles, VAL_CHUNK, cfg.tile, val_rng)
+                ]
+            entry["val_mse"] = sum(vl) / cfg.val_tiles
             bar.set_postfix(epoch=epoch + 1, loss=f"{entry['train_mse']:.5f}", val=f"{entry['val_mse']:.5f}")
         history.append(entry)
     bar.close()
     train_seconds = time.time() - started
 
     net = net.cpu().eval()
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    sha = pn.write_weights(cfg.out / pn.WEIGHTS_FILE, pn.state_arrays(net))
-    name = cfg.name or cfg.out.name
+    arrays = pn.state_arrays(net)
+    bad = sorted(k for k, a in arrays.items() if not np.isfinite(a).all())
+    if bad:
+        raise MapdError(
+            f"training diverged: {len(bad)} weight arrays ({bad[0]}, ...) hold NaN or infinity:"
+            " try a lower --lr; no model written"
+        )
+    name = cfg.name or out.name
     n_params = sum(int(p.numel()) for p in net.parameters())
     meta: dict[str, Any] = {
         "name": name,
@@ -254,7 +328,7 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
         "parameters_feature": sum(int(p.numel()) for p in net.feature.parameters()),
         "parameters_recovery": sum(int(p.numel()) for p in net.recovery.parameters()),
         "weights_file": pn.WEIGHTS_FILE,
-        "weights_sha256": sha,
+        "weights_sha256": "",  # set once the weights are written
         "training": {
             "maps": str(cfg.maps),
             "epochs": cfg.epochs,
@@ -290,17 +364,29 @@ def _train(cfg: TrainConfig) -> dict[str, Any]:
             "groups": {_label(Path(k), root): v for k, v in sorted(groups.items())},
         },
     }
-    (cfg.out / pn.META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
-    if cfg.evaluate:
-        val_rows = evaluate_maps(cfg.out, val_paths, root)
-        train_rows = evaluate_maps(cfg.out, train_paths, root)
-        meta["metrics"] = {
-            "validation": summarize(val_rows),
-            "train": summarize(train_rows),
-            "per_map": {"validation": val_rows, "train": train_rows},
-        }
-        (cfg.out / pn.META_FILE).write_text(json.dumps(meta, indent=2, default=str) + "\n", encoding="utf-8")
-    (cfg.out / "MODEL_CARD.md").write_text(model_card(meta), encoding="utf-8")
+    try:
+        with staging(out) as folder:
+            sha = pn.write_weights(folder / pn.WEIGHTS_FILE, arrays)
+            meta["weights_sha256"] = sha
+            # model.json first without metrics: the evaluation loads the model from the folder.
+            (folder / pn.META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+            if cfg.evaluate:
+                val_rows = evaluate_maps(folder, val_paths, root)
+                train_rows = evaluate_maps(folder, train_paths, root)
+                meta["metrics"] = {
+                    "validation": summarize(val_rows),
+                    "train": summarize(train_rows),
+                    "per_map": {"validation": val_rows, "train": train_rows},
+                }
+                (folder / pn.META_FILE).write_text(
+                    json.dumps(meta, indent=2, default=str) + "\n", encoding="utf-8"
+                )
+            (folder / CARD_FILE).write_text(model_card(meta), encoding="utf-8")
+            install(folder, out)
+    except OSError as exc:
+        raise MapdError(
+            f"-o {out}: cannot write the model ({exc.strerror or exc}); any model there is unchanged"
+        ) from None
     return meta
 
 
@@ -310,8 +396,14 @@ def main_train(cfg: TrainConfig) -> dict[str, Any]:
         return train(cfg)
     except MapdError:
         raise
-    except (RuntimeError, ValueError) as exc:
-        raise MapdError(f"training failed: {exc}") from None
+    except MemoryError:
+        raise MapdError(
+            "training failed: out of memory (try a smaller --batch, --tile or --val-tiles, or fewer maps)"
+        ) from None
+    except (RuntimeError, ValueError, OSError) as exc:
+        # torch's messages can run to many lines; the first says what went wrong.
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise MapdError(f"training failed: {first}") from None
 
 
 __all__ = [

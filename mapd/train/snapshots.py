@@ -21,9 +21,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import sys
+import zipfile
+import zlib
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +39,8 @@ from mapd.grid import OccupancyGrid
 
 #: Bump when the mapper or simulator changes what a snapshot holds; old cache entries are then ignored.
 CACHE_VERSION = 1
+
+logger = logging.getLogger(__name__)
 
 #: How many times a snapshot set was actually replayed (not loaded from the cache) in this process.
 REPLAYS = {"log": 0, "sim": 0}
@@ -61,9 +67,10 @@ class SnapshotSpec:
             raise ConfigError(f"--sim-scans must be at least 1, got {self.sim_scans}")
         if not 0 < self.resolution <= 1.0:
             raise ConfigError(f"snapshot resolution must lie in (0, 1] m, got {self.resolution}")
-        for log in self.logs:
-            if not log.is_file():
-                raise ConfigError(f"--snapshots-log {log}: no such file")
+        for path in self.logs:
+            if not path.is_file():
+                raise ConfigError(f"--snapshots-log {path}: no such file")
+        check_cache(self.cache)
 
 
 def default_cache() -> Path:
@@ -72,6 +79,26 @@ def default_cache() -> Path:
         return Path(os.environ["MAPD_CACHE"])
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "mapd"
+
+
+def check_cache(cache: Path | None) -> Path:
+    """The snapshot cache (``cache``, else :func:`default_cache`) with its folders created.
+
+    Called before any snapshot is made, so a cache that cannot be one (a regular file, a path
+    through one) is one :class:`ConfigError` line, not a failure after minutes of replaying.
+    """
+    root = cache or default_cache()
+    what = f"--cache {root}" if cache else f"snapshot cache {root} (set --cache or $MAPD_CACHE)"
+    try:
+        for folder in (root, root / "snapshots"):
+            if folder.exists() and not folder.is_dir():
+                raise ConfigError(f"{what}: {folder} is not a folder")
+        (root / "snapshots").mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise ConfigError(
+            f"{what}: cannot make the folder ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
+    return root
 
 
 def _file_sha256(path: Path) -> str:
@@ -89,19 +116,57 @@ def _cached(
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     path = cache / "snapshots" / f"{label}-{digest}.npz"
     if path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            res = float(z["resolution"])
-            return [OccupancyGrid(z[f"m{i:04d}"], res) for i in range(int(z["count"]))], path
+        cached = _load(path)
+        if cached is not None:
+            return cached, path
     REPLAYS[kind] += 1
     grids = make()
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
     res = grids[0].resolution if grids else 0.05
     arrays: dict[str, Any] = {f"m{i:04d}": g.data for i, g in enumerate(grids)}
     arrays.update(count=np.int64(len(grids)), resolution=np.float64(res))
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)  # atomic: a concurrent run sees the whole file or none
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(tmp, **arrays)
+        tmp.replace(path)  # atomic: a concurrent run sees the whole file or none
+    except OSError as exc:
+        # The cache only saves time: the snapshots are made, so training goes on without it.
+        with suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        logger.warning(
+            "cannot write the snapshot cache %s (%s); carrying on without it", path, exc.strerror or exc
+        )
     return grids, path
+
+
+def _load(path: Path) -> list[OccupancyGrid] | None:
+    """The snapshots cached in ``path``; None, with one warning, when the file cannot be read whole.
+
+    A cache file can be damaged (a full disk, a crash of an older mapd, a hand edit); it is then a
+    cache miss: the snapshots are made again and the file rewritten.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            count = int(z["count"])
+            res = float(z["resolution"])
+            if not 0 <= count <= len(z.files):
+                raise ValueError(f"count {count} for {len(z.files)} arrays")
+            return [OccupancyGrid(z[f"m{i:04d}"], res) for i in range(count)]
+    except (
+        OSError,
+        EOFError,
+        ValueError,
+        TypeError,
+        KeyError,
+        OverflowError,
+        MemoryError,
+        zipfile.BadZipFile,
+        zlib.error,
+    ) as exc:
+        logger.warning(
+            "snapshot cache %s is damaged (%s: %s); making the snapshots again", path, type(exc).__name__, exc
+        )
+        return None
 
 
 def log_snapshots(
@@ -190,6 +255,7 @@ __all__ = [
     "CACHE_VERSION",
     "REPLAYS",
     "SnapshotSpec",
+    "check_cache",
     "default_cache",
     "describe",
     "log_snapshots",

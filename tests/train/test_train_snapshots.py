@@ -11,10 +11,12 @@ import pytest
 
 from mapd import cli
 from mapd.codec import paper_net as pn
-from mapd.grid import OccupancyGrid, Pose2D, save_map
+from mapd.grid import OccupancyGrid, Pose2D
 from mapd.train import snapshots as sn
 from mapd.train.heldout import growing_maps, table
 from mapd.train.loop import TrainConfig, train
+
+from .conftest import write_rooms
 
 PLACES = ["hall_a", "lab", "office", "store", "yard"]
 
@@ -25,13 +27,7 @@ def _known(g: OccupancyGrid) -> int:
 
 @pytest.fixture(scope="module")
 def map_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("maps")
-    for i, place in enumerate(PLACES):
-        d = np.full((30 + 2 * i, 36), -1, dtype=np.int8)
-        d[3:-3, 4:-4] = 0
-        d[3, 4:-4] = d[-4, 4:-4] = d[3:-3, 4] = d[3:-3, -5] = 100
-        save_map(OccupancyGrid(d, 0.05), root / place / "map.yaml")
-    return root
+    return write_rooms(tmp_path_factory.mktemp("maps"), PLACES, 30, 36)
 
 
 def test_sim_snapshots_grow_and_are_cached(tmp_path: Path) -> None:
