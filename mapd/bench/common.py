@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import time
@@ -26,6 +27,47 @@ UWB_BPS = 12_500.0
 #: The metrics of a map that came back exact: identical images have an infinite PSNR and an SSIM
 #: of exactly 1 by definition, which computing them would only blur with rounding.
 EXACT = {"psnr": math.inf, "ssim": 1.0, "f1": 1.0, "changed": 0.0}
+
+
+def int_arg(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argparse ``type=`` for an integer in [``low``, ``high``]: a bad value is one usage line
+    before any work, where the bench would fail much later (or never stop)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+        if value < low or (high is not None and value > high):
+            bounds = f"at least {low}" if high is None else f"within {low}..{high}"
+            raise argparse.ArgumentTypeError(f"{value} is not {bounds}")
+        return value
+
+    return parse
+
+
+def float_arg(low: float, high: float) -> Callable[[str], float]:
+    """An argparse ``type=`` for a finite number in [``low``, ``high``] (NaN and inf are refused)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+        if not low <= value <= high:  # NaN fails the comparison too
+            raise argparse.ArgumentTypeError(f"{text} is not within [{low:g}, {high:g}]")
+        return value
+
+    return parse
+
+
+def resolution_arg(text: str) -> float:
+    """An argparse ``type=`` for a mapper's ``--resolution`` (see
+    :func:`mapd.mapping.mapper.resolution_arg`), imported only when the option is given: the
+    mapper's import (pydantic) would slow every ``mapd`` command's start by about 0.3 s."""
+    from mapd.mapping.mapper import resolution_arg as parse
+
+    return parse(text)
 
 
 def timed(fn: Callable[[], T], repeat: int = 1) -> tuple[T, float]:

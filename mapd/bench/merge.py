@@ -27,19 +27,29 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mapd.bench.common import int_arg
 from mapd.tables import emit
 
 HELP = "map-merge success rate vs the m-explore baseline, by overlap; merge speed"
 
 BUCKETS = [(0.15, 0.25), (0.25, 0.40), (0.40, 0.60), (0.60, 0.80)]
+#: Largest side of the speed rows' maps: 4 maps of 4096 x 4096 cells are 64 MiB of cells, and turned
+#: and spread over 25 m their global map (about 6800 cells a side) still fits the daemon's
+#: DEFAULT_MAX_CELLS; a larger side only asks for gigabytes.
+MAX_MERGE_SIZE = 4096
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--pairs", type=int, default=60, help="synthetic pairs (default 60)")
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--pairs", type=int_arg(0), default=60, help="synthetic pairs (default 60)")
+    p.add_argument("--seed", type=int_arg(0), default=1, help="random seed, 0 or more (default 1)")
     p.add_argument("--no-real", action="store_true", help="skip the real radish part1/part2 pairs")
-    p.add_argument("--merge-size", type=int, default=2000, help="side of the 4 maps in the speed rows")
-    p.add_argument("--repeat", type=int, default=3, help="timing repeats for the speed rows (median)")
+    p.add_argument(
+        "--merge-size",
+        type=int_arg(16, MAX_MERGE_SIZE),
+        default=2000,
+        help=f"side of the 4 maps in the speed rows, 16 to {MAX_MERGE_SIZE} cells (default 2000)",
+    )
+    p.add_argument("--repeat", type=int_arg(1), default=3, help="timing repeats for the speed rows (median)")
     p.add_argument(
         "--only",
         type=int,
@@ -60,8 +70,9 @@ def run(args: argparse.Namespace) -> int:
         raise FusionError(
             "shared data folder not found: set MAPD_DATA or place ../shared/data beside the checkout"
         )
-    if args.pairs < 0 or args.repeat < 1 or args.merge_size < 16:
-        raise FusionError("--pairs must be >= 0, --repeat >= 1 and --merge-size >= 16")
+    sources = [p for p in shared_maps(root) if "_part" not in p.stem]
+    if not sources:  # the pairs and the speed rows are all drawn from these
+        raise FusionError(f"{root}: no map_server maps to build pairs from")
     pairs = build_pairs(root, args.pairs, args.seed, real=not args.no_real)
     chosen = set(args.only or range(1, len(pairs) + 1))
     if not chosen <= set(range(1, len(pairs) + 1)):
@@ -83,7 +94,6 @@ def run(args: argparse.Namespace) -> int:
             )
     # the speed maps have their own random stream, so --only and --no-real leave them unchanged
     rng = np.random.default_rng(args.seed + 1_000_003)
-    sources = [p for p in shared_maps(root) if "_part" not in p.stem]
     speed = None if args.only else _speed(sources, args.merge_size, args.repeat, rng)
     rows = _rows(records)
     doc = {
@@ -235,7 +245,7 @@ def _speed(sources: list[Path], size: int, repeat: int, rng: Any) -> dict[str, A
         Pose2D(
             float(rng.uniform(-25, 25)), float(rng.uniform(-25, 25)), float(rng.uniform(-math.pi, math.pi))
         )
-        for _ in range(3)
+        for _ in range(len(maps) - 1)  # a data folder may hold fewer than 4 maps
     ]
 
     def timed(fn: Any) -> float:
@@ -247,7 +257,7 @@ def _speed(sources: list[Path], size: int, repeat: int, rng: Any) -> dict[str, A
         return statistics.median(times)
 
     copy_s = timed(lambda: [m.data.copy() for m in maps])
-    out: dict[str, Any] = {"maps": 4, "size": size, "numpy_copy_s": copy_s}
+    out: dict[str, Any] = {"maps": len(maps), "size": size, "numpy_copy_s": copy_s}
     for mode in ("logodds", "occupied_wins"):
         secs = timed(lambda mode=mode: merge_with_owner(maps, poses, mode))
         res = merge_with_owner(maps, poses, mode)
@@ -291,7 +301,7 @@ def _text(doc: dict[str, Any]) -> str:
     s = doc["speed"]
     if s is not None:
         lines.append(
-            f"merge {s['maps']} maps of {s['size']}x{s['size']} cells (baseline: numpy copy of the 4 maps, {1000 * s['numpy_copy_s']:.1f} ms):"
+            f"merge {s['maps']} maps of {s['size']}x{s['size']} cells (baseline: numpy copy of the maps, {1000 * s['numpy_copy_s']:.1f} ms):"
         )
         for mode in ("logodds", "occupied_wins"):
             m = s[mode]

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mapd.bench import paper_global, paper_report
-from mapd.bench.common import UWB_BPS, quality, timed
+from mapd.bench.common import UWB_BPS, int_arg, quality, timed
 from mapd.bench.paper_report import ROWS
 from mapd.tables import emit
 
@@ -51,12 +51,15 @@ HELP = "the paper's Figures 8a, 8b and 9 on a log or a simulation: report.md and
 def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--log", type=Path, default=None, help="CARMEN log (default: the shared intel log)")
-    src.add_argument("--sim", type=int, default=None, metavar="SEED", help="simulate a building instead")
+    src.add_argument(
+        "--sim", type=int_arg(0), default=None, metavar="SEED", help="simulate a building instead (SEED >= 0)"
+    )
     p.add_argument("--robots", type=int, default=2, help="robots sharing the run (default 2, as the paper)")
     p.add_argument("--out", type=Path, required=True, help="folder for report.md and the figures")
     p.add_argument("--period", type=float, default=30.0, help="seconds of log time between updates (30)")
     p.add_argument("--poses", type=int, default=28, help="test poses for Figure 9 (default 28, as the paper)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the perturbed starts (default 0)")
+    # Checked while parsing: numpy refuses a negative seed only after the whole run, at Figure 9.
+    p.add_argument("--seed", type=int_arg(0), default=0, help="seed of the perturbed starts (default 0)")
     p.add_argument("--duration", type=float, default=300.0, help="sim seconds to simulate (--sim; 300)")
     p.add_argument(
         "--limit", type=int, default=None, help="stop each map stream after N updates (quick runs)"
@@ -80,6 +83,7 @@ def command_line(args: argparse.Namespace) -> str:
 def _check(args: argparse.Namespace) -> None:
     from mapd.data import shared_log
     from mapd.errors import ConfigError
+    from mapd.grid import MIN_RESOLUTION
 
     if args.sim is None and args.log is None:
         args.log = shared_log("intel")
@@ -91,7 +95,8 @@ def _check(args: argparse.Namespace) -> None:
         (args.poses >= 1, "--poses must be at least 1"),
         (args.limit is None or args.limit >= 1, "--limit must be at least 1"),
         (math.isfinite(args.duration) and args.duration > 0, "--duration must be positive"),
-        (0 < args.resolution <= 1.0, "--resolution must lie in (0, 1] m"),
+        # The finest cells a map file may hold (and the mapper makes), not just any positive number.
+        (MIN_RESOLUTION <= args.resolution <= 1.0, f"--resolution must lie in [{MIN_RESOLUTION:g}, 1] m"),
     ]
     for ok, message in checks:
         if not ok:
@@ -295,8 +300,7 @@ def run(args: argparse.Namespace) -> int:
     }
     results["date"] = datetime.date.today().isoformat()
     results["wall_s"] = time.perf_counter() - t_start
-    paper_report.write(args.out, results, maps, fig9)
-    paper_global.figure(args.out / "fig7_global.png", global7, ROWS[0])
+    paper_report.write(args.out, results, maps, fig9, global7)
     emit(
         results, args.json, lambda: f"{paper_report.text_summary(results)}\nreport: {args.out / 'report.md'}"
     )

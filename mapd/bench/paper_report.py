@@ -298,18 +298,28 @@ def markdown(results: dict[str, Any], figures: list[Path]) -> str:
     return "\n".join(lines)
 
 
-def write(out: Path, results: dict[str, Any], maps: dict[str, OccupancyGrid], fig9: dict[str, Any]) -> None:
-    """Write results.json, updates.csv, poses.csv, the figures and report.md into ``out``."""
-    from mapd.bench import paper_figures
+def write(
+    out: Path,
+    results: dict[str, Any],
+    maps: dict[str, OccupancyGrid],
+    fig9: dict[str, Any],
+    global7: dict[str, Any],
+) -> None:
+    """Write results.json, updates.csv, poses.csv, the figures (Figure 7's from ``global7``, see
+    :func:`mapd.bench.paper_global.fig7`) and report.md into ``out``."""
+    from mapd.bench import paper_figures, paper_global
 
     try:
         (out / "results.json").write_text(dump_json(results))
         _write_csv(out / "updates.csv", results["fig8"]["updates"])
         _write_csv(out / "poses.csv", results["fig9"]["poses"])
         figures = paper_figures.write_all(out, results, maps, fig9, ROWS)
+        # Inside the try, like every other file: a folder in its way is one error line.
+        paper_global.figure(out / "fig7_global.png", global7, ROWS[0])
         (out / "report.md").write_text(markdown(results, figures))
     except OSError as exc:
-        raise MapdError(f"{out}: cannot write the report: {exc.strerror or exc}") from None
+        where = exc.filename or out  # the file in the way, where the error names one
+        raise MapdError(f"{where}: cannot write the report: {exc.strerror or exc}") from None
 
 
 def text_summary(results: dict[str, Any]) -> str:

@@ -29,7 +29,7 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapd.bench.common import UWB_BPS, timed
+from mapd.bench.common import UWB_BPS, int_arg, resolution_arg, timed
 from mapd.tables import emit, table
 
 if TYPE_CHECKING:
@@ -58,10 +58,12 @@ COLUMNS = [
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", type=Path, default=None, help="CARMEN log (default: the shared intel log)")
-    p.add_argument("--every", type=int, default=10, help="take a snapshot every N scans (default 10)")
+    p.add_argument("--every", type=int_arg(1), default=10, help="take a snapshot every N scans (default 10)")
     p.add_argument("--codec", nargs="+", default=["lossless"], metavar="NAME", help="codecs to measure")
-    p.add_argument("--resolution", type=float, default=0.05, help="map resolution in m (default 0.05)")
-    p.add_argument("--limit", type=int, default=None, help="stop after N snapshots (quick runs)")
+    p.add_argument(
+        "--resolution", type=resolution_arg, default=0.05, help="map resolution in m (default 0.05)"
+    )
+    p.add_argument("--limit", type=int_arg(1), default=None, help="stop after N snapshots (quick runs)")
 
 
 def _aligned_previous(prev: OccupancyGrid, grid: OccupancyGrid) -> np.ndarray | None:
@@ -139,8 +141,6 @@ def run(args: argparse.Namespace) -> int:
     log = args.log if args.log is not None else shared_log("intel")
     if log is None:
         raise SourceError("no log given and no shared intel log found (set MAPD_DATA or pass --log)")
-    if args.every < 1:
-        raise SourceError("--every must be at least 1")
     first = next(iter(mapping.replay_scans(log)), None)
     if first is None:
         raise SourceError(f"{log}: no laser scans")

@@ -7,6 +7,14 @@ import sys
 from pathlib import Path
 
 
+def _resolution(text: str) -> float:
+    """``--resolution``, checked by the mapper's rule; imported when given (numpy and pydantic
+    would otherwise load at every ``mapd`` start)."""
+    from mapd.mapping.mapper import resolution_arg
+
+    return resolution_arg(text)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay",
@@ -21,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("log", type=Path, help="CARMEN log (.log or .log.gz)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     p.add_argument("--every", type=int, default=10, help="a snapshot every N scans (default 10)")
-    p.add_argument("--resolution", type=float, default=0.05, help="meters per cell (default 0.05)")
+    p.add_argument("--resolution", type=_resolution, default=0.05, help="meters per cell (default 0.05)")
     p.add_argument(
         "--max-range",
         type=float,
@@ -40,14 +48,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mapd.errors import ConfigError, MapFileError
+    from mapd.files import atomic_write_bytes
     from mapd.grid import save_map
     from mapd.mapping import carmen
     from mapd.mapping.mapper import first_pose, replay_log, split_range
 
     if args.every < 1:
         raise ConfigError("--every must be at least 1")
-    if not (args.resolution > 0):
-        raise ConfigError("--resolution must be positive")
     if args.max_range is not None and not (args.max_range > 0):
         raise ConfigError("--max-range must be positive")
     if not 1 <= args.robots <= 64:
@@ -96,8 +103,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         text = (
             "# each robot's map frame (its first laser pose) in the log's world frame: [x m, y m, yaw rad]\n"
         )
-        (args.output / "poses.yaml").write_text(
-            text + yaml.safe_dump(poses, sort_keys=True, default_flow_style=None), encoding="utf-8"
+        # Atomic: a full disk leaves the previous poses.yaml whole, never truncated.
+        atomic_write_bytes(
+            args.output / "poses.yaml",
+            (text + yaml.safe_dump(poses, sort_keys=True, default_flow_style=None)).encode("utf-8"),
         )
     except OSError as exc:
         raise MapFileError(f"{args.output}/poses.yaml: cannot write: {exc.strerror}") from None

@@ -22,6 +22,8 @@ and the benches use it); :func:`split_range` is how a log is shared among ``robo
 
 from __future__ import annotations
 
+import argparse
+import decimal
 import itertools
 import math
 import os
@@ -30,14 +32,26 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mapd.errors import LimitError, SourceError
-from mapd.grid import DEFAULT_MAX_CELLS, FREE, OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D, compose, inverse
+from mapd.errors import ConfigError, LimitError, SourceError
+from mapd.grid import (
+    DEFAULT_MAX_CELLS,
+    FREE,
+    MIN_RESOLUTION,
+    OCCUPIED,
+    UNKNOWN,
+    OccupancyGrid,
+    Pose2D,
+    compose,
+    inverse,
+)
 from mapd.mapping import carmen
 
 #: Cells added on each side when the buffer must grow (so growth is rare, not once per scan).
 GROW_MARGIN_CELLS = 160
 #: Most ray samples handled at once; longer scans are cast in several chunks.
 MAX_SAMPLES = 1 << 20
+#: Coarsest cells the mapper makes (m): a 10 m cell no longer shows a building's rooms.
+MAX_MAPPER_RESOLUTION = 10.0
 
 
 def _dda_cells(
@@ -67,7 +81,7 @@ class MapperOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    resolution: float = Field(default=0.05, gt=0.0, le=10.0, description="meters per cell")
+    resolution: float = Field(default=0.05, gt=0.0, le=MAX_MAPPER_RESOLUTION, description="meters per cell")
     hit: float = Field(default=0.85, gt=0.0, description="log-odds added to a cell a beam ends in")
     miss: float = Field(default=-0.4, lt=0.0, description="log-odds added to a cell a beam passes")
     clamp_min: float = Field(default=-2.0, lt=0.0, description="lowest log-odds a cell may hold")
@@ -91,6 +105,37 @@ class MapperOptions(BaseModel):
         if self.clear_no_return and self.max_range is None:
             raise ValueError("clear_no_return needs a finite max_range")
         return self
+
+
+def resolution_problem(resolution: float) -> str | None:
+    """Why a user's ``resolution`` (m/cell) cannot be mapped, in one line; None if it is fine.
+
+    Finer than :data:`mapd.grid.MIN_RESOLUTION` is refused too (beyond :class:`MapperOptions`'s
+    bounds): such a map could not be read back from its own file, and a tiny resolution only ends
+    in a growth error with numbers hundreds of digits long.
+    """
+    if MIN_RESOLUTION <= resolution <= MAX_MAPPER_RESOLUTION:  # NaN fails the comparison
+        return None
+    return f"resolution {resolution:g} m/cell is not within [{MIN_RESOLUTION:g}, {MAX_MAPPER_RESOLUTION:g}]"
+
+
+def resolution_arg(text: str) -> float:
+    """An argparse ``type=`` for a mapper's ``--resolution`` (see :func:`resolution_problem`),
+    checked while parsing so that a bad value is one usage line before any log is read."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number of meters per cell") from None
+    problem = resolution_problem(value)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return value
+
+
+def _compact(n: int) -> str:
+    """``n`` in full while it is short, else as ``1.25e+304``: a runaway pose must not print a
+    number hundreds of digits long (Decimal formats any int; a float would overflow)."""
+    return str(n) if abs(n) < 10**12 else format(decimal.Decimal(n), ".3g")
 
 
 def relative(frame: Pose2D, pose: Pose2D) -> Pose2D:
@@ -151,8 +196,8 @@ class Mapper:
         needed = (r1 - r0) * (c1 - c0)
         if needed > self.max_cells:
             raise LimitError(
-                f"map would grow to {r1 - r0} x {c1 - c0} = {needed} cells, over the limit of "
-                f"{self.max_cells} cells"
+                f"map would grow to {_compact(r1 - r0)} x {_compact(c1 - c0)} = {_compact(needed)} "
+                f"cells, over the limit of {self.max_cells} cells"
             )
         if cells > self.max_cells:
             nr0, nr1, nc0, nc1 = r0, r1, c0, c1
@@ -346,7 +391,8 @@ def replay_log(
     first scan at or past each multiple of ``every_s`` seconds after the robot's first scan (a gap in
     the log longer than that gives one snapshot, not several). The map frame is the robot's first
     laser pose (see :func:`first_pose` for where that sits in the log's world frame). ``options``
-    overrides ``resolution``/``max_range``.
+    overrides ``resolution``/``max_range``; without it, a ``resolution`` :func:`resolution_problem`
+    refuses or a ``max_range`` that is not positive raises ConfigError.
     Bad lines are skipped (logged and counted in ``stats``: pass one to several passes over the same
     log to log each kind of fault once); a log that cannot be read raises SourceError.
     """
@@ -354,6 +400,13 @@ def replay_log(
         raise ValueError("every must be at least 1")
     if every_s is not None and not every_s > 0.0:
         raise ValueError("every_s must be positive")
+    if options is None:
+        # Said as a ConfigError, not pydantic's traceback: callers pass a user's numbers on.
+        problem = resolution_problem(resolution)
+        if problem is None and max_range is not None and not max_range > 0.0:
+            problem = f"max_range {max_range:g} m is not positive"
+        if problem is not None:
+            raise ConfigError(problem)
     opts = options if options is not None else MapperOptions(resolution=resolution, max_range=max_range)
     mapper = Mapper(opts, max_cells=max_cells)
     frame: Pose2D | None = None

@@ -51,7 +51,9 @@ MAX_BEHIND_S = 1.0
 class SimOptions(FleetSliceOptions, MapperOptions):
     """``[source.sim]``: the world, the fleet slot, the robot, its lidar, pacing, and mapper keys."""
 
-    seed: int = Field(default=0, description="world and noise seed; the same seed gives the same building")
+    seed: int = Field(
+        default=0, ge=0, lt=1 << 63, description="world and noise seed; the same seed gives the same building"
+    )
     world: Path | None = Field(
         default=None, description="map_server YAML to use as the world (relative: to the data folder)"
     )

@@ -3,15 +3,26 @@
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd.errors import LimitError
+from mapd.errors import ConfigError, LimitError
 from mapd.grid import Pose2D
-from mapd.mapping.mapper import Mapper, MapperOptions, compose, inverse, relative, split_range
+from mapd.mapping.mapper import (
+    Mapper,
+    MapperOptions,
+    compose,
+    inverse,
+    relative,
+    replay_log,
+    split_range,
+)
 
 ONE = MapperOptions(resolution=1.0)
 
@@ -190,3 +201,26 @@ def test_long_scans_cast_in_chunks_give_the_same_map(monkeypatch: pytest.MonkeyP
         chunked.integrate(r, a, p)
     assert np.array_equal(whole.logodds(), chunked.logodds())
     assert not chunked._seen.any()  # the per-scan marks are cleared again
+
+
+def test_growth_past_the_limit_says_its_sizes_compactly() -> None:
+    m = Mapper(ONE)
+    m.integrate(np.array([3.0]), np.array([0.0]), Pose2D(0.5, 0.5, 0.0))
+    # A pose so far away that the grid spanning both scans has a side hundreds of digits long.
+    with pytest.raises(LimitError) as err:
+        m.integrate(np.array([3.0]), np.array([0.0]), Pose2D(1e300, 0.5, 0.0))
+    message = str(err.value)
+    assert len(message) < 150, message
+    # rows: the first scan's buffer; columns: the distance to the second, 1e300 cells of 1 m
+    assert re.match(r"map would grow to \d+ x 1\.00e\+300 = \d\.\d\de\+30\d cells, over", message), message
+
+
+@pytest.mark.parametrize("resolution", [1e-300, 1e-5, 100.0, math.inf, math.nan])
+def test_replay_log_refuses_a_resolution_the_mapper_cannot_take(
+    box_log: Callable[..., tuple[Path, list[Pose2D]]], resolution: float
+) -> None:
+    log, _poses = box_log(scans=4)
+    # One ConfigError naming the bounds, not pydantic's ValidationError (above 10 m) or a growth
+    # error hundreds of digits long (below the finest cells a map file may hold).
+    with pytest.raises(ConfigError, match=r"m/cell is not within \[0.0001, 10\]"):
+        list(replay_log(log, resolution=resolution))

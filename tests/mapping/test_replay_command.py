@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import builtins
+import errno
+import io
+import os
 import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 
+from mapd.cli import main
 from mapd.grid import Pose2D, load_map
 from mapd.mapping.mapper import replay_log
 
@@ -68,3 +74,68 @@ def test_each_kind_of_bad_line_is_said_once_however_many_robots_read_it(
     assert len(said) == 2, said  # the unknown type once (not per line or robot), the short scan once
     assert sum("unknown message type" in ln for ln in said) == 1
     assert sum(f"{bad}: line 4:" in ln for ln in said) == 1
+
+
+class _FullDisk:
+    """A file opened for writing on a full disk: the open succeeds (and truncates), writes fail."""
+
+    def __init__(self, fh: Any) -> None:
+        self._fh = fh
+
+    def write(self, data: Any) -> int:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __enter__(self) -> _FullDisk:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._fh.close()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._fh, name)
+
+
+def test_a_full_disk_leaves_the_previous_poses_file_whole(
+    box_log: BoxLog, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log, _poses = box_log(scans=12)
+    out = tmp_path / "out"
+    out.mkdir()
+    old = "# the previous run's frames\nrobot0: [1.0, 2.0, 0.5]\n"
+    (out / "poses.yaml").write_text(old)
+    real_open = builtins.open
+
+    def full_disk_open(file: Any, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
+        fh = real_open(file, mode, *args, **kwargs)
+        # poses.yaml itself or a temp file beside it: the disk fills as it is written
+        if not isinstance(file, int) and "poses.yaml" in os.fspath(file) and set(mode) & set("wax"):
+            return _FullDisk(fh)
+        return fh
+
+    monkeypatch.setattr(builtins, "open", full_disk_open)
+    monkeypatch.setattr(io, "open", full_disk_open)  # what Path.write_text opens with
+    rc = main(["replay", str(log), "-o", str(out), "--every", "100"])
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert [ln for ln in err.splitlines() if ln.startswith("mapd: error: ")] == [
+        f"mapd: error: {out}/poses.yaml: cannot write: No space left on device"
+    ]
+    assert (out / "poses.yaml").read_text() == old
+    assert sorted(p.name for p in out.iterdir()) == ["poses.yaml", "robot0"]  # no temp file left
+
+
+@pytest.mark.parametrize("value", ["100", "inf", "1e300", "1e-300", "0", "-0.05", "nan"])
+def test_a_resolution_the_mapper_cannot_take_is_one_usage_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str
+) -> None:
+    # Refused while parsing, before the log is even opened (it does not exist here).
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_:
+        main(["replay", str(tmp_path / "absent.log"), "-o", str(out), "--resolution", value])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.splitlines()[-1].startswith("mapd replay: error: argument --resolution: ")
+    assert len(err.splitlines()[-1]) < 120
+    assert not out.exists()

@@ -191,3 +191,10 @@ def test_driving_and_mapping_run_off_the_event_loop(monkeypatch: pytest.MonkeyPa
     assert len(maps) >= 2
     for name, threads in seen.items():
         assert threads and loop_thread not in threads, name
+
+
+@pytest.mark.parametrize("seed", [-1, 1 << 63])
+def test_a_seed_numpy_refuses_is_refused_by_the_config(seed: int) -> None:
+    """seed = -1 passed check-config, then the source failed with numpy's ValueError traceback."""
+    with pytest.raises(ValueError, match="seed"):
+        SimOptions(seed=seed)
