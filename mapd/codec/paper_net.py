@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mapd.errors import CodecError
+from mapd.files import atomic_write_bytes
 from mapd.grid import GREY_FREE, GREY_OCCUPIED, GREY_UNKNOWN
 
 CHANNELS = 16
@@ -231,7 +232,7 @@ def write_weights(path: Path, arrays: dict[str, np.ndarray]) -> str:
             np.lib.format.write_array(arr_buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
             zf.writestr(info, arr_buf.getvalue())
     data = buf.getvalue()
-    path.write_bytes(data)
+    atomic_write_bytes(path, data)  # a full disk leaves the weights there before whole
     return hashlib.sha256(data).hexdigest()
 
 
