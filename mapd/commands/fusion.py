@@ -123,7 +123,17 @@ def cmd_merge(args: argparse.Namespace) -> int:
     placer = Placer(
         poses, anchor=names[0], min_confidence=args.min_confidence, min_agreement=args.min_agreement
     )
-    placements = placer.update(maps)
+    # Each map is tried against every map placed before it (the best fit wins), so a merge of many
+    # maps takes minutes: a progress bar on a terminal says how far it is.
+    from tqdm import tqdm
+
+    with tqdm(total=len(names) - 1, desc="placing maps", unit=" map", disable=None, leave=False) as bar:
+
+        def tried(p: Any) -> None:
+            bar.set_postfix_str(f"{p.robot}: {'placed' if p.accepted else 'not yet'}")
+            bar.update(1 if p.accepted else 0)
+
+        placements = placer.update(maps, tried=tried)
     merged = [n for n in names if placements[n].accepted and placements[n].transform is not None]
     # The output is in the first map's frame (the fleet frame unless poses define another one);
     # when the first map could not be placed, it stays in the fleet frame.

@@ -24,7 +24,7 @@ Pure logic over :func:`~mapd.fusion.estimate.estimate_transform`: no asyncio, no
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -207,11 +207,18 @@ class Placer:
         self.poses[robot] = pose
         self.pinned.add(robot)
 
-    def update(self, maps: Mapping[str, OccupancyGrid], *, estimate: bool = True) -> dict[str, Placement]:
+    def update(
+        self,
+        maps: Mapping[str, OccupancyGrid],
+        *,
+        estimate: bool = True,
+        tried: Callable[[Placement], None] | None = None,
+    ) -> dict[str, Placement]:
         """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
 
         With ``estimate=False`` nothing is estimated: configured poses and the anchor are placed,
         other robots keep their held placements (a cheap update, e.g. for a last flush).
+        ``tried`` is told each estimate as it is made (each can take seconds: a progress bar).
         """
         out: dict[str, Placement] = {}
         placed: dict[str, Pose2D] = {}
@@ -250,6 +257,8 @@ class Placer:
             progress = False
             for robot in list(pending):
                 p = self._place(robot, maps, placed)
+                if tried is not None:
+                    tried(p)
                 if p.accepted and p.transform is not None:
                     placed[robot] = p.transform
                     pending.remove(robot)
