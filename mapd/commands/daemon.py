@@ -15,6 +15,17 @@ from typing import Any
 DEFAULT_CONFIG = Path(os.environ.get("MAPD_CONFIG", "/etc/mapd/config.toml"))
 
 
+def _watch_seconds(text: str) -> float:
+    """``--watch``: a finite period from 0.1 s (faster only spins on the daemon) to an hour."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number of seconds") from None
+    if not 0.1 <= value <= 3600.0:  # NaN fails too; -1, nan and inf were tracebacks
+        raise argparse.ArgumentTypeError(f"{text} is not within 0.1..3600 seconds")
+    return value
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "run",
@@ -36,7 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, default=None, help="config file, to find the control socket")
     p.add_argument("--socket", type=Path, default=None, help="control socket path (overrides --config)")
     p.add_argument("--json", action="store_true", help="print the raw JSON status")
-    p.add_argument("--watch", nargs="?", const=1.0, type=float, metavar="SECONDS", help="refresh every N s")
+    p.add_argument(
+        "--watch",
+        nargs="?",
+        const=1.0,
+        type=_watch_seconds,
+        metavar="SECONDS",
+        help="refresh every N s (0.1 to 3600)",
+    )
     p.set_defaults(func=cmd_status)
 
     p = sub.add_parser(

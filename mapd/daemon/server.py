@@ -42,7 +42,7 @@ from mapd.daemon.receiver import Receiver
 from mapd.daemon.reload import Reloads
 from mapd.daemon.reload import read as read_reload
 from mapd.daemon.sinks import Sinks, placed_frames
-from mapd.daemon.state import StateStore
+from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
@@ -127,6 +127,8 @@ class Daemon:
             admits=self.keys.roster.admits,
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
+        #: The state directory's lock (lock_state_dir), taken as the state is loaded.
+        self._state_lock: int | None = None
         self.outputs: list[Output] = []
         # Outputs, the MCAP recording and fused.csv, each on a worker thread, never on the loop.
         recorder = Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path else None
@@ -358,6 +360,9 @@ class Daemon:
         await asyncio.to_thread(self.sinks.close)  # queued writes, then the recording's footer
         with contextlib.suppress(MapdError, OSError):
             await asyncio.to_thread(self.store.flush)
+        if self._state_lock is not None:  # state.json written: another daemon may take the directory
+            os.close(self._state_lock)
+            self._state_lock = None
         if self._stopping_at is not None:
             # How long a stop takes, and where: systemd's TimeoutStopSec must cover it.
             done = time.monotonic()
@@ -375,6 +380,7 @@ class Daemon:
 
     def _load_state(self) -> tuple[OccupancyGrid | None, OccupancyGrid | None, list[OccupancyGrid]]:
         """Open the state directory and read what a previous run left (blocking: a worker thread)."""
+        self._state_lock = lock_state_dir(self.cfg.state.dir)  # (held until the process exits)
         self.store.open()
         own = self.store.own_map()
         peers = []

@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from mapd.daemon.coding import CsvLog
+from mapd.files import WriteOutage
 from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
@@ -42,6 +43,9 @@ class Sinks:
         self._out_next: GlobalUpdate | None = None
         self._pose_next: PoseUpdate | None = None
         self._out_lock = threading.Lock()
+        #: Messages the recorder could not write (a full disk): said once until it writes again.
+        self.record_failures = 0
+        self._record_outage = WriteOutage(log)
         #: The latest known robot poses, which every GlobalUpdate carries too.
         self.poses_now: dict[str, StampedPose] = {}
         self._recorded_tf: dict[str, Pose2D] = {}
@@ -140,8 +144,13 @@ class Sinks:
         def call() -> None:
             try:
                 fn(*args)
-            except Exception as exc:  # disk full, a bug: log it and keep the fleet running
-                log.error("recording failed: %s: %s", type(exc).__name__, exc)
+            except Exception as exc:  # disk full, a bug: say it once and keep the fleet running
+                self.record_failures += 1
+                self._record_outage.failed(
+                    f"recording failed: {type(exc).__name__}: {exc}; trying each message"
+                )
+            else:
+                self._record_outage.recovered("recording again")
 
         self._files.submit(call)
 

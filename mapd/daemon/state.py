@@ -17,6 +17,8 @@ between the two writes) is treated as absent, never as the wrong version.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import threading
@@ -100,6 +102,35 @@ class StateData:
 def _is_count(x: object) -> bool:
     """Whether ``x`` is a version, sequence number or ack as envelopes carry them: 0 <= x < 2^63."""
     return type(x) is int and 0 <= x < COUNT_LIMIT
+
+
+def lock_state_dir(root: Path) -> int:
+    """Hold ``root/lock`` (flock, exclusive) for the life of the process; returns its descriptor.
+
+    Two daemons on one state directory (a second started by mistake, or two configs with the same
+    ``state.dir``) numbered maps from the same counter, swept each other's in-flight temp files and
+    wrote each other's state.json. The lock is the kernel's: a daemon killed with -9 releases it.
+    """
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(root / "lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise StateError(f"state directory {root} is not writable: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 32).decode("ascii", "replace").strip()
+        os.close(fd)
+        raise StateError(
+            f"state directory {root} is in use by another mapd{f' (pid {holder})' if holder.isdigit() else ''}"
+        ) from None
+    except OSError as exc:
+        os.close(fd)
+        raise StateError(f"state directory {root}: cannot lock it: {exc.strerror or exc}") from None
+    with contextlib.suppress(OSError):  # the holder's pid, for the message above (a hint only)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
 
 
 class StateStore:

@@ -12,6 +12,7 @@ import json
 import logging
 import os
 import socket
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -31,18 +32,30 @@ class StatusServer:
         self.path = path
         self.snapshot = snapshot
         self._server: asyncio.AbstractServer | None = None
+        self._inode: int | None = None  # of the socket this server made
 
     async def start(self) -> None:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            if self.path.exists() or self.path.is_symlink():
+            try:
+                mode = os.lstat(self.path).st_mode
+            except FileNotFoundError:
+                pass
+            else:
+                # Only a socket (a stale one of a killed daemon) is ours to replace: a file, a FIFO
+                # or a device named here by mistake was deleted (as root, even /dev/null).
+                if not stat.S_ISSOCK(mode):
+                    raise DaemonError(
+                        f"control socket {self.path}: exists and is not a socket; not replacing it"
+                    )
                 if _alive(self.path):
                     raise DaemonError(f"another mapd is already serving {self.path}")
                 self.path.unlink()
             self._server = await asyncio.start_unix_server(self._serve, path=str(self.path))
             os.chmod(self.path, 0o660)
+            self._inode = os.lstat(self.path).st_ino
         except OSError as exc:
-            raise DaemonError(f"cannot create control socket {self.path}: {exc.strerror}") from None
+            raise DaemonError(f"cannot create control socket {self.path}: {exc.strerror or exc}") from None
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -61,8 +74,12 @@ class StatusServer:
             self._server.close()
             await self._server.wait_closed()
             self._server = None
+        # Only the socket this daemon made: a second daemon that failed to start (its socket path
+        # served by the first) removed the first one's, leaving it unreachable by `mapd status`.
         with contextlib.suppress(OSError):
-            self.path.unlink()
+            if self._inode is not None and os.lstat(self.path).st_ino == self._inode:
+                self.path.unlink()
+        self._inode = None
 
 
 def _alive(path: Path) -> bool:

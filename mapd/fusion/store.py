@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_bytes, read_json_capped
+from mapd.files import WriteOutage, atomic_write_bytes, read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
@@ -59,6 +59,7 @@ class FusionStore:
         self.directory = directory
         self.robot = robot
         self.max_cells = max_cells
+        self._owner_outage = WriteOutage(log)
 
     # -- reading ----------------------------------------------------------------------------
 
@@ -129,8 +130,14 @@ class FusionStore:
         try:
             atomic_write_bytes(self.directory / OWNER_NPY, buf.getvalue())
             write_json_atomic(self.directory / OWNER_JSON, {"robots": names})
-        except (OSError, StateError) as exc:
-            log.warning("fusion: cannot write owner map: %s", exc)
+        except OSError as exc:  # said once per outage, naming the file (not its hidden temp)
+            self._owner_outage.failed(
+                f"fusion: cannot write owner map {self.directory / OWNER_NPY}: {exc.strerror or exc}"
+            )
+        except StateError as exc:
+            self._owner_outage.failed(f"fusion: cannot write owner map: {exc}")
+        else:
+            self._owner_outage.recovered("fusion: writing the owner map again")
 
 
 def read_owner(directory: Path) -> tuple[np.ndarray, list[str]] | None:

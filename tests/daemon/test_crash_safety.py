@@ -407,3 +407,30 @@ def test_a_well_formed_palette_png_still_reads(tmp_path: Path) -> None:
     path.write_bytes(_palette_png([[0, 1, 2], [2, 1, 0]], [(b"PLTE", GREYS)]))
     pixels = read_pixels(path, "map.yaml", 1000)
     assert pixels.arr[..., 0].tolist() == [[0, 128, 254], [254, 128, 0]]
+
+
+def test_a_failing_recording_is_said_once_and_its_recovery_too(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full recording disk logged one error a message (99 in 12 s) and nothing when space returned."""
+    import logging
+
+    from mapd.daemon.coding import CsvLog
+    from mapd.daemon.sinks import Sinks
+
+    sinks = Sinks([], None, CsvLog(tmp_path / "fused.csv"))
+    full = [True]
+
+    def write(i: int) -> None:
+        if full[0]:
+            raise OSError(28, "No space left on device")
+
+    with caplog.at_level(logging.INFO, logger="mapd"):
+        for i in range(5):
+            sinks._record(write, i)
+        sinks._files.submit(lambda: full.__setitem__(0, False))
+        sinks._record(write, 5)
+        sinks.close()
+    said = [r.getMessage() for r in caplog.records if "record" in r.getMessage()]
+    assert sinks.record_failures == 5
+    assert len(said) == 2 and "No space left" in said[0] and said[1] == "recording again", said

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mapd.daemon.state import MAX_STATE_JSON, StateStore
+from mapd.daemon.state import MAX_STATE_JSON, StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer, query
 from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
@@ -177,6 +177,54 @@ def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
+def test_the_control_socket_replaces_only_a_stale_socket_and_removes_only_its_own(tmp_path: Path) -> None:
+    """A file, a FIFO or a device at the socket path was deleted (as root, /dev/null would be), and
+    a second daemon refused at start removed the first one's socket on its way out."""
+    note, fifo = tmp_path / "note.txt", tmp_path / "fifo"
+    note.write_text("keep me")
+    os.mkfifo(fifo)
+
+    async def main() -> None:
+        for path in (note, fifo):
+            with pytest.raises(DaemonError, match="exists and is not a socket"):
+                await StatusServer(path, dict).start()
+        path = tmp_path / "mapd.sock"
+        first = StatusServer(path, lambda: {"robot": "first"})
+        await first.start()
+        second = StatusServer(path, lambda: {"robot": "second"})
+        with pytest.raises(DaemonError, match="already serving"):
+            await second.start()
+        await second.close()  # as a daemon that failed to start closes everything
+        assert (await asyncio.to_thread(query, path))["robot"] == "first"
+        await first.close()
+        assert not path.exists()
+        stale = socket.socket(socket.AF_UNIX)  # a killed daemon's socket: nobody listens
+        stale.bind(str(path))
+        stale.close()
+        third = StatusServer(path, lambda: {"robot": "third"})
+        await third.start()
+        assert (await asyncio.to_thread(query, path))["robot"] == "third"
+        await third.close()
+
+    asyncio.run(main())
+    assert note.read_text() == "keep me" and fifo.is_fifo()
+
+
+def test_a_state_directory_is_held_by_one_daemon_at_a_time(tmp_path: Path) -> None:
+    """Two daemons on one state directory numbered maps from one counter and wrote one state.json."""
+    fd = lock_state_dir(tmp_path / "s")
+    try:
+        with pytest.raises(StateError, match=f"in use by another mapd \\(pid {os.getpid()}\\)"):
+            lock_state_dir(tmp_path / "s")
+        # another process too (flock is the kernel's)
+        code = f"from pathlib import Path; from mapd.daemon.state import lock_state_dir; lock_state_dir(Path({str(tmp_path / 's')!r}))"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert out.returncode != 0 and "in use by another mapd" in out.stderr
+    finally:
+        os.close(fd)
+    os.close(lock_state_dir(tmp_path / "s"))  # free once the holder lets go (or dies)
+
+
 def test_query_without_daemon_is_clear(tmp_path: Path) -> None:
     with pytest.raises(DaemonError, match="no mapd daemon is running"):
         query(tmp_path / "none.sock")
@@ -237,3 +285,14 @@ def test_a_status_mapd_cannot_show_is_one_error_line(
     assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and "sent a status this mapd cannot show" in lines[0] and said in lines[0], lines
+
+
+@pytest.mark.parametrize("period", ["-1", "nan", "inf", "1e-9"])
+def test_status_watch_takes_a_sane_period_in_one_usage_line(tmp_path: Path, period: str) -> None:
+    """-1 and nan were a ValueError traceback, inf an OverflowError; 1e-9 polled the daemon in a spin."""
+    out = subprocess.run(
+        [sys.executable, "-m", "mapd", "status", "--socket", str(tmp_path / "s"), "--watch", period],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "not within 0.1..3600 seconds" in out.stderr.splitlines()[-1]

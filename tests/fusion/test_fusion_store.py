@@ -144,3 +144,24 @@ def test_an_owner_map_that_cannot_be_written_does_not_cost_the_global_map(
     w = asyncio.run(main())
     assert w.status()["error"] is None and w.global_map is not None
     assert FusionStore(tmp_path, robot="a").load_placements().version == 1
+
+
+def test_a_failing_owner_map_write_is_said_once_naming_the_file(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full or read-only disk logged a warning on every merge (17 in 20 s), naming the temp file."""
+    import logging
+
+    store = FusionStore(tmp_path, robot="a")
+    (tmp_path / OWNER_NPY).mkdir()  # (every write fails, as on a full disk)
+    owner = np.zeros((4, 4), np.uint8)
+    with caplog.at_level(logging.INFO, logger="mapd"):
+        for _ in range(5):
+            store.save_owner(owner, ["a"])
+        said = [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(said) == 1 and str(tmp_path / OWNER_NPY) in said[0].getMessage(), said
+        assert ".tmp" not in said[0].getMessage()
+        (tmp_path / OWNER_NPY).rmdir()
+        store.save_owner(owner, ["a"])
+    assert "again" in caplog.records[-1].getMessage()
+    assert read_owner(tmp_path) is not None
