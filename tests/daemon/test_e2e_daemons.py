@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from mapd.commands.daemon import render_status
+from mapd.daemon.state import lock_state_dir
 from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
 from mapd.identity import Identity
@@ -169,7 +170,7 @@ def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None
     assert codes["robot1"] == 0
 
 
-@pytest.mark.parametrize("case", ["serial port", "key file", "state dir", "no key"])
+@pytest.mark.parametrize("case", ["serial port", "key file", "state dir", "no key", "state in use"])
 def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     (tmp_path / "file").write_text("x")
     port = "/dev/does-not-exist" if case == "serial port" else str(tmp_path / "file")
@@ -186,12 +187,18 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
         f'[transports.uwb]\nport = "{port}"\n[transports.uwb.nodes]\na = 1\nb = 2\n'
         f'[state]\ndir = "{state}"\nruntime_dir = "{tmp_path / "r"}"\n{fleet}'
     )
-    out = subprocess.run(
-        [sys.executable, "-m", "mapd", "run", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    # another daemon (here this process) holds the state directory
+    held = lock_state_dir(state) if case == "state in use" else None
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "mapd", "run", "--config", str(cfg)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        if held is not None:
+            os.close(held)
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
     expect = {
@@ -199,6 +206,7 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
         "key file": "no-such.key",
         "state dir": "not writable",
         "no key": "a signed fleet needs this robot's key",
+        "state in use": f"is in use by another mapd (pid {os.getpid()})",
     }[case]
     assert len(lines) == 1 and expect in lines[0], out.stderr
     assert "Traceback" not in out.stderr

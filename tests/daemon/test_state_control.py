@@ -222,7 +222,20 @@ def test_a_state_directory_is_held_by_one_daemon_at_a_time(tmp_path: Path) -> No
         assert out.returncode != 0 and "in use by another mapd" in out.stderr
     finally:
         os.close(fd)
-    os.close(lock_state_dir(tmp_path / "s"))  # free once the holder lets go (or dies)
+    os.close(lock_state_dir(tmp_path / "s"))  # free once the holder lets go
+    holder = subprocess.Popen(  # a daemon killed with -9 frees it too (the kernel drops the lock)
+        [sys.executable, "-c", code + "; print('held', flush=True); import time; time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(StateError, match="in use by another mapd"):
+            lock_state_dir(tmp_path / "s")
+        holder.kill()
+        holder.wait(10)
+    finally:
+        holder.kill()
+    os.close(lock_state_dir(tmp_path / "s"))
 
 
 def test_query_without_daemon_is_clear(tmp_path: Path) -> None:
