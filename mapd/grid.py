@@ -370,7 +370,7 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
     image_path = Path(image)
     if not image_path.is_absolute():
         image_path = path.parent / image_path
-    return {
+    fields = {
         "image": image_path,
         "resolution": resolution,
         "origin": Pose2D(ox, oy, oyaw),
@@ -379,6 +379,9 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
         "free_thresh": free,
         "mode": mode,
     }
+    # Keys map_server does not read (a writer's own, as mapd's state keeps its versions), unchecked.
+    fields["extra"] = {str(k): v for k, v in meta.items() if k not in fields}
+    return fields
 
 
 class _BoundedRepr(reprlib.Repr):
@@ -466,7 +469,14 @@ def load_map(
     small multiple of the image: pixels are turned into cells a band of rows at a time.
     """
     path = Path(yaml_path)
-    meta = read_map_yaml(path)
+    return map_from_yaml_fields(read_map_yaml(path), path, max_cells=max_cells, robot=robot)
+
+
+def map_from_yaml_fields(
+    meta: dict[str, Any], yaml_path: Path, *, max_cells: int = DEFAULT_MAX_CELLS, robot: str = ""
+) -> OccupancyGrid:
+    """:func:`load_map` of a YAML already read by :func:`read_map_yaml` (its own keys wanted too)."""
+    path = yaml_path
     pixels = read_pixels(meta["image"], str(path), max_cells)
     height, width = pixels.arr.shape[:2]
     data = np.empty((height, width), dtype=np.int8)
@@ -479,12 +489,21 @@ def load_map(
     return OccupancyGrid(data=data, resolution=meta["resolution"], origin=meta["origin"], robot=robot)
 
 
-def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: str | None = None) -> Path:
+def save_map(
+    grid: OccupancyGrid,
+    yaml_path: str | os.PathLike[str],
+    *,
+    mode: str | None = None,
+    image_name: str | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Path:
     """Write ``grid`` as map_server YAML plus PGM next to it; returns the YAML path.
 
     Trinary grids are saved the way ``map_saver`` does (254 free, 0 occupied, 205 unknown). Grids
     with intermediate values are saved in raw mode, one byte per cell, so that :func:`load_map`
     gives back exactly the same data. Both files are written together (:func:`~mapd.files.atomic_write_files`).
+    The image is ``NAME.pgm`` unless ``image_name`` names another file in the same folder; ``extra``
+    keys are written after map_server's own (which map_server ignores, :func:`read_map_yaml` returns).
     """
     path = Path(yaml_path)
     if mode is None:
@@ -497,7 +516,7 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
     if path.is_dir() or path.name in ("", ".", ".."):
         # Checked first: the image would otherwise be written beside it (DIR.pgm) before the YAML fails.
         raise MapFileError(f"{path}: is a directory; name the map's YAML file")
-    image_path = path.with_suffix(".pgm")
+    image_path = path.with_suffix(".pgm") if image_name is None else path.with_name(image_name)
     if image_path == path:  # the YAML would be written over the image it names: the map lost
         raise MapFileError(f"{path}: the map's image is written as NAME.pgm; name the YAML NAME.yaml")
     header = f"P5\n# CREATOR: mapd {grid.resolution:.3f} m/pix\n{grid.width} {grid.height}\n255\n".encode()
@@ -512,6 +531,7 @@ def save_map(grid: OccupancyGrid, yaml_path: str | os.PathLike[str], *, mode: st
             "occupied_thresh": 0.65,
             "free_thresh": 0.196,
         }
+        meta.update({k: v for k, v in (extra or {}).items() if k not in meta})
         # Together: a full disk (or an immutable YAML) left the new image beside the old YAML, a
         # map that loads with another map's size and origin.
         atomic_write_files(

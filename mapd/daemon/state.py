@@ -11,8 +11,14 @@ Layout::
 
 Every file is replaced atomically (temp file, fsync, rename), map files first and ``state.json``
 last; the temp files a crash mid-write left anywhere in the directory are removed at start-up.
-``state.json`` names each map by version and digest, so a map file that does not match it (a crash
-between the two writes) is treated as absent, never as the wrong version.
+
+A map's YAML is its commit: it names an image written before it under a name of its own
+(``map-<version>.pgm``; the old image is removed only once the new YAML is in place), and it holds
+the map's version and digest (``mapd_version``, ``mapd_digest``). So a crash at any point leaves the
+old map or the new one whole, and a map saved just before a crash that ``state.json`` had not yet
+recorded is restored with its version rather than lost. An image that does not match its YAML's
+digest is treated as absent, never as the wrong version. ``state.json`` also names each map by
+version and digest, which is all that maps saved before versions were kept in the YAML have.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from mapd.daemon.versions import next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
 from mapd.files import atomic_write_json, read_json_capped, remove_stale_temps
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, map_from_yaml_fields, read_map_yaml, save_map
 
 log = logging.getLogger(__name__)
 #: state.json's largest size read: its records are some 100 bytes a peer, and peers are capped.
@@ -97,6 +103,14 @@ class StateData:
             acked={str(k): v for k, v in acked.items() if _is_count(v)},
             seq=counters["seq"],
         )
+
+
+def _saved_record(extra: dict[str, Any]) -> MapRecord | None:
+    """The version and digest a state map's YAML holds, or None (a YAML from before they were kept)."""
+    version, digest = extra.get("mapd_version"), extra.get("mapd_digest")
+    if isinstance(version, int) and _is_count(version) and isinstance(digest, str):
+        return MapRecord(version, digest)
+    return None
 
 
 def _is_count(x: object) -> bool:
@@ -233,32 +247,66 @@ class StateStore:
 
     # ------------------------------------------------------------------ maps
     def _load(self, yaml_path: Path, rec: MapRecord | None) -> OccupancyGrid | None:
-        if rec is None or not yaml_path.exists():
+        """The map at ``yaml_path`` with its version, or None when it is absent, unreadable or not
+        the map its YAML (or, for a YAML without a version, ``state.json``) says it is."""
+        if not yaml_path.exists():
             return None
         try:
-            grid = load_map(yaml_path, max_cells=self.max_cells)
+            meta = read_map_yaml(yaml_path)
+            grid = map_from_yaml_fields(meta, yaml_path, max_cells=self.max_cells)
         except MapdError as exc:
             log.warning("state map %s unreadable: %s", yaml_path, exc)
             return None
-        if grid.digest().hex() != rec.digest:
-            log.warning("state map %s does not match state.json (interrupted write); ignoring it", yaml_path)
+        digest = grid.digest().hex()
+        saved = _saved_record(meta["extra"])
+        if saved is None:  # saved before the YAML held its version: state.json alone says which it is
+            if rec is None or digest != rec.digest:
+                log.warning(
+                    "state map %s does not match state.json (interrupted write); ignoring it", yaml_path
+                )
+                return None
+            return grid.replace(version=rec.version)
+        if saved.digest != digest:
+            log.warning(
+                "state map %s does not match the digest in its YAML (damaged); ignoring it", yaml_path
+            )
             return None
-        return grid.replace(version=rec.version)
+        if rec is None or rec.version != saved.version:
+            log.info(
+                "state map %s is v%d, which state.json had not recorded (a crash between the two "
+                "writes): restored",
+                yaml_path,
+                saved.version,
+            )
+        return grid.replace(version=saved.version)
 
     def own_map(self) -> OccupancyGrid | None:
-        return self._load(self.root / "own" / "map.yaml", self.data.own)
+        """The robot's latest saved map (its record and version counter follow it: never reused)."""
+        grid = self._load(self.root / "own" / "map.yaml", self.data.own)
+        if grid is not None:
+            with self._lock:
+                self.data.own = MapRecord(grid.version, grid.digest().hex())
+                self.data.own_version = max(self.data.own_version, grid.version)
+        return grid
 
     def base_map(self) -> OccupancyGrid | None:
-        return self._load(self.root / "own" / "base.yaml", self.data.base)
+        grid = self._load(self.root / "own" / "base.yaml", self.data.base)
+        if grid is not None:
+            with self._lock:
+                self.data.base = MapRecord(grid.version, grid.digest().hex())
+        return grid
 
     def peer_map(self, robot: str) -> OccupancyGrid | None:
         grid = self._load(self._peer_dir(robot) / "map.yaml", self.data.peers.get(robot))
-        return None if grid is None else grid.replace(robot=robot)
+        if grid is None:
+            return None
+        with self._lock:
+            self.data.peers[robot] = MapRecord(grid.version, grid.digest().hex())
+        return grid.replace(robot=robot)
 
     def save_own(self, grid: OccupancyGrid) -> None:
         with self._io:
-            self._save(grid, self.root / "own" / "map.yaml")
-            record = MapRecord(grid.version, grid.digest().hex())
+            record = self._save(grid, self.root / "own" / "map.yaml")
             with self._lock:
                 self.data.own = record
                 self.data.own_version = max(self.data.own_version, grid.version)
@@ -266,8 +314,7 @@ class StateStore:
 
     def save_base(self, grid: OccupancyGrid) -> None:
         with self._io:
-            self._save(grid, self.root / "own" / "base.yaml")
-            record = MapRecord(grid.version, grid.digest().hex())
+            record = self._save(grid, self.root / "own" / "base.yaml")
             with self._lock:
                 self.data.base = record
             self._write_state()
@@ -276,17 +323,30 @@ class StateStore:
         d = self._peer_dir(grid.robot)
         with self._io:
             d.mkdir(parents=True, exist_ok=True)
-            self._save(grid, d / "map.yaml")
-            record = MapRecord(grid.version, grid.digest().hex())
+            record = self._save(grid, d / "map.yaml")
             with self._lock:
                 self.data.peers[grid.robot] = record
             self._write_state()
 
-    def _save(self, grid: OccupancyGrid, path: Path) -> None:
+    def _save(self, grid: OccupancyGrid, path: Path) -> MapRecord:
+        """Write ``grid`` at ``path`` (its image under a name of its own, then the YAML that commits
+        it), then remove the images no YAML names any more."""
+        record = MapRecord(grid.version, grid.digest().hex())
+        image = f"{path.stem}-{grid.version}.pgm"
         try:
-            save_map(grid, path)
+            save_map(
+                grid,
+                path,
+                image_name=image,
+                extra={"mapd_version": record.version, "mapd_digest": record.digest},
+            )
         except MapdError as exc:
             raise StateError(str(exc)) from None
+        for old in [path.with_suffix(".pgm"), *path.parent.glob(f"{path.stem}-*.pgm")]:
+            if old.name != image:
+                with contextlib.suppress(OSError):
+                    old.unlink(missing_ok=True)
+        return record
 
     def flush(self) -> None:
         """Write ``state.json`` now (blocking)."""

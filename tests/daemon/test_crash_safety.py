@@ -8,6 +8,7 @@ disk. A kill -9 mid-write is the child killing itself between a temp file's fsyn
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import os
 import struct
@@ -106,10 +107,11 @@ def test_temp_files_left_by_kill_9_are_removed_at_start_and_the_state_is_intact(
         done = _child(KILLED_MID_WRITE, str(root), what)
         assert done.returncode == -9, done.stderr
         # Each killed writer leaves temp files named by its pid, which no later write reuses: the
-        # new image and YAML, written before either is renamed, and the old image kept to go back to.
+        # new image and YAML, written before either is renamed (the image has a name of its own,
+        # so no old image is kept aside to go back to).
         assert _temps(root), "the writer was not killed mid-write"
         left |= set(_temps(root))
-    assert len(left) == 9 and len({p.name.split(".tmp")[1].split(".")[0] for p in left}) == 3
+    assert len(left) == 6 and len({p.name.split(".tmp")[1].split(".")[0] for p in left}) == 3
     mine = root / "global" / f".global.pgm.tmp{os.getpid()}.1"  # a write of this process: kept
     mine.write_bytes(b"P5")
     other = root / "notes.tmp"  # not a name mapd gives its temps: kept
@@ -123,6 +125,100 @@ def test_temp_files_left_by_kill_9_are_removed_at_start_and_the_state_is_intact(
     assert own is not None and own.version == 1 and int(own.data.max()) == 0
     assert peer is not None and peer.version == 7 and int(peer.data.max()) == 0
     assert split(data.own_version)[1] == 1
+
+
+KILLED_AT = """
+    import os, signal, sys
+    from pathlib import Path
+    import numpy as np
+    from mapd.daemon.state import StateStore
+    from mapd.grid import OccupancyGrid
+
+    root, what, at = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+    store = StateStore(root)
+    store.open()
+    grid = OccupancyGrid(np.zeros((40, 60), np.int8), 0.05, robot="alpha", version=1)
+    store.save_own(grid)
+    store.save_base(grid)
+    store.save_peer(grid.replace(robot="beta", version=7))
+    real = os.replace
+
+    def replace(src, dst):  # kill -9 just before the rename of the file named by ``at``
+        if str(dst).endswith(at):
+            os.kill(os.getpid(), signal.SIGKILL)
+        real(src, dst)
+
+    os.replace = replace
+    full = np.full((40, 60), 100, np.int8)
+    if what == "peer":
+        store.save_peer(grid.replace(robot="beta", version=8, data=full))
+    elif what == "base":
+        store.save_base(grid.replace(version=2, data=full))
+    else:
+        store.save_own(grid.replace(version=2, data=full))
+"""
+
+
+def _restored(root: Path, what: str) -> tuple[StateStore, OccupancyGrid | None]:
+    store = StateStore(root)
+    store.open()
+    load = {"own": store.own_map, "base": store.base_map, "peer": lambda: store.peer_map("beta")}
+    return store, load[what]()
+
+
+def _record(root: Path, what: str) -> int:
+    doc = json.loads((root / "state.json").read_text())
+    return int((doc["peers"]["beta"] if what == "peer" else doc[what])["version"])
+
+
+@pytest.mark.parametrize("what", ["own", "base", "peer"])
+def test_a_map_saved_just_before_a_kill_9_is_restored_with_its_version(tmp_path: Path, what: str) -> None:
+    # Killed after the map was written whole, before state.json recorded it: state.json names the
+    # old version, the files hold the new one. Its version is in its YAML, so it is not lost.
+    root = tmp_path / "state"
+    done = _child(KILLED_AT, str(root), what, "state.json")
+    assert done.returncode == -9, done.stderr
+    new = 8 if what == "peer" else 2
+    assert _record(root, what) == new - 1  # the kill came before state.json named the new map
+    store, grid = _restored(root, what)
+    assert grid is not None and int(grid.data.min()) == 100 and grid.version == new
+    if what == "own":
+        assert store.next_own_version(0.0) == 3  # the restored version is never given out again
+    store.flush()
+    assert _record(root, what) == new  # and state.json names it from now on
+
+
+@pytest.mark.parametrize("what", ["own", "base", "peer"])
+def test_a_kill_9_between_the_image_and_its_yaml_keeps_the_old_map_whole(tmp_path: Path, what: str) -> None:
+    # The new image is in place under a name of its own; the YAML naming the old image was not
+    # replaced, and the old image is still there: the old version loads, the stray image goes.
+    root = tmp_path / "state"
+    done = _child(KILLED_AT, str(root), what, ".yaml")
+    assert done.returncode == -9, done.stderr
+    store, grid = _restored(root, what)
+    assert grid is not None and int(grid.data.max()) == 0 and grid.version == (7 if what == "peer" else 1)
+    folder = root / "peers" / "beta" if what == "peer" else root / "own"
+    stem = "base" if what == "base" else "map"
+    assert len(list(folder.glob(f"{stem}-*.pgm"))) == 2  # the new image, which no YAML names
+    if what == "peer":
+        store.save_peer(grid.replace(version=9))
+    else:
+        (store.save_base if what == "base" else store.save_own)(grid.replace(version=9))
+    assert [p.name for p in folder.glob(f"{stem}-*.pgm")] == [f"{stem}-9.pgm"]  # one image a map
+
+
+def test_an_image_not_matching_its_yaml_is_ignored(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    store.open()
+    grid = OccupancyGrid(np.zeros((40, 60), np.int8), 0.05, robot="beta", version=5)
+    store.save_peer(grid)
+    image = tmp_path / "peers" / "beta" / "map-5.pgm"
+    raw = bytearray(image.read_bytes())
+    raw[-1] = 0  # one cell flipped from free to occupied (a disk that lies)
+    image.write_bytes(bytes(raw))
+    again = StateStore(tmp_path)
+    again.open()
+    assert again.peer_map("beta") is None
 
 
 # ---------------------------------------------------------------------- a full disk

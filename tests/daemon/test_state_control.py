@@ -20,7 +20,7 @@ from mapd.daemon.state import MAX_STATE_JSON, StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer, query
 from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
-from mapd.grid import OccupancyGrid
+from mapd.grid import OccupancyGrid, save_map
 
 
 def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
@@ -46,15 +46,30 @@ def test_map_not_matching_state_json_is_ignored(tmp_path: Path, room_grid: Occup
     store = StateStore(tmp_path)
     store.open()
     store.save_peer(room_grid.replace(version=2, robot="beta"))
-    # A crash after the map was replaced but before state.json: the map no longer matches.
+    # A map without its version in its YAML (as mapd wrote them before), replaced by another:
+    # state.json alone says which map it should be, and this is not it.
     changed = room_grid.data.copy()
     changed[0, 0] = 100
-    from mapd.grid import save_map
-
     save_map(room_grid.replace(data=changed), tmp_path / "peers" / "beta" / "map.yaml")
     again = StateStore(tmp_path)
     again.open()
     assert again.peer_map("beta") is None
+
+
+def test_a_state_directory_from_before_versions_in_the_yaml_is_read(
+    tmp_path: Path, room_grid: OccupancyGrid
+) -> None:
+    own = room_grid.replace(version=4, robot="alpha")
+    save_map(own, tmp_path / "own" / "map.yaml")  # map.yaml + map.pgm, as earlier releases wrote them
+    (tmp_path / "state.json").write_text(
+        json.dumps({"own_version": 4, "own": {"version": 4, "digest": own.digest().hex()}})
+    )
+    store = StateStore(tmp_path)
+    store.open()
+    back = store.own_map()
+    assert back is not None and back.same_map(own) and back.version == 4
+    store.save_own(own.replace(version=5))
+    assert sorted(p.name for p in (tmp_path / "own").iterdir()) == ["map-5.pgm", "map.yaml"]
 
 
 def test_corrupt_state_json_starts_empty(tmp_path: Path) -> None:
