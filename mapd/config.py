@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mapd import plugins
 from mapd.errors import ConfigError, MapdError
-from mapd.files import open_for_reading, read_capped
+from mapd.files import read_capped
 from mapd.grid import DEFAULT_MAX_CELLS, short_repr
 from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
@@ -413,9 +413,9 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
     """
     p = Path(path)
     try:
-        # open_for_reading: a FIFO named as the config reads as empty instead of blocking for ever.
-        with open_for_reading(p) as f:
-            raw = f.read(MAX_CONFIG_BYTES + 1)
+        # A FIFO named as the config reads as empty, or is given up after a deadline, instead of
+        # blocking for ever (in the daemon's reload thread, which the daemon's exit waits for).
+        raw = read_capped(p, MAX_CONFIG_BYTES)
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such config file") from None
     except OSError as exc:

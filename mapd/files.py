@@ -6,7 +6,8 @@
   left behind, removed at start-up so they never pile up.
 * :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
 * :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
-  map's YAML), so ``/dev/zero`` or a log given by mistake is refused, not read for ever;
+  map's YAML), within a deadline, so ``/dev/zero``, a log or a pipe held open given by mistake is
+  refused, not read for ever;
   :func:`read_json_capped`, the same for a JSON file of the state directory.
 * :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open;
   :func:`open_regular`, the same refusing anything but a regular file (a FIFO, a device, a directory).
@@ -15,12 +16,15 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
 import re
+import select
 import stat
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -221,13 +225,45 @@ def open_regular(path: Path) -> BinaryIO:
     return _open_checked(path, regular=True)
 
 
-def read_capped(path: Path, cap: int) -> bytes:
+#: The longest :func:`read_capped` waits for a file's end: a pipe whose writer holds it open.
+READ_TIMEOUT_S = 30.0
+
+
+def read_capped(path: Path, cap: int, *, timeout_s: float | None = None) -> bytes:
     """Up to ``cap + 1`` bytes of ``path`` (OSError as the OS raises it); the caller refuses more than ``cap``.
 
-    Opened by :func:`open_for_reading`, so a FIFO without a writer reads as empty instead of hanging.
+    A FIFO without a writer reads as empty instead of hanging, and one whose writer holds it open
+    without closing it (``--key <(sleep inf)``, a FIFO put where the config was) raises
+    TimeoutError after ``timeout_s`` (default :data:`READ_TIMEOUT_S`): the daemon's reload thread
+    blocked on it for ever, and the daemon could not exit while it did.
     """
-    with open_for_reading(path) as fh:
-        return fh.read(cap + 1)
+    if timeout_s is None:
+        timeout_s = READ_TIMEOUT_S
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # left non-blocking
+    except ValueError:
+        raise OSError(22, "the path holds a NUL character") from None
+    try:
+        chunks: list[bytes] = []
+        got, deadline = 0, time.monotonic() + timeout_s
+        while got <= cap:
+            try:
+                chunk = os.read(fd, min(1 << 20, cap + 1 - got))
+            except BlockingIOError:  # a pipe with a writer, and nothing in it yet
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(
+                        errno.ETIMEDOUT, f"its writer did not finish it in {timeout_s:g} s", str(path)
+                    ) from None
+                select.select([fd], [], [], left)
+                continue
+            if not chunk:
+                break
+            chunks.append(chunk)
+            got += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def read_json_capped(path: Path, cap: int) -> Any:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import re
 import signal
 import subprocess
@@ -15,6 +16,7 @@ from types import SimpleNamespace
 import pytest
 
 from mapd import config as configmod
+from mapd import files
 from mapd.commands.daemon import render_status
 from mapd.daemon import reload
 from mapd.daemon.server import Daemon
@@ -295,12 +297,30 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
             timeout=30,
         )
         assert json.loads(out.stdout)["security"]["roster"] == ["robot0", "robot1"]
+
+        # The config replaced by a FIFO that a process holds open and never writes: the reload
+        # read it for ever, and SIGTERM could not stop the daemon. It is given up after a deadline.
+        cfg0.unlink()
+        os.mkfifo(cfg0)
+        held = os.open(cfg0, os.O_RDWR)
+        try:
+            f.procs["robot0"].send_signal(signal.SIGHUP)
+            snaps = fk.wait_for(
+                lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 4,
+                files.READ_TIMEOUT_S + 30,
+                f,
+            )
+        finally:
+            os.close(held)
+        assert snaps["robot0"]["reload"]["refused"] == 2
+        assert "did not finish it in" in snaps["robot0"]["reload"]["last"]
     finally:
         codes = f.stop(timeout=10)
     assert codes == {"robot0": 0, "robot1": 0}
     log = (f.run_dir / "robot0" / "daemon.log").read_text()
     refusals = [ln for ln in log.splitlines() if "reload refused" in ln]
-    assert len(refusals) == 1 and str(cfg0) in refusals[0] and "Traceback" not in log
+    assert len(refusals) == 2 and all(str(cfg0) in line for line in refusals) and "Traceback" not in log
+    assert f"did not finish it in {files.READ_TIMEOUT_S:g} s" in refusals[1]
 
 
 def test_a_reload_that_fails_unexpectedly_leaves_the_daemon_running(

@@ -22,8 +22,9 @@ import resource
 import struct
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd import config
+from mapd import config, files
 from mapd.errors import ConfigError, MapFileError
 from mapd.grid import OccupancyGrid, read_map_yaml, save_map, short_repr
 from mapd.keys import read_key_file
@@ -207,6 +208,47 @@ def test_a_pipe_with_a_writer_is_still_read_as_a_key() -> None:
             "00112233445566778899aabbccddeeff"
         )
     finally:
+        os.close(r)
+
+
+@pytest.fixture
+def held_fifo(fifo: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A FIFO whose writer holds it open and writes nothing, and a short read deadline."""
+    monkeypatch.setattr(files, "READ_TIMEOUT_S", 0.5)
+    fd = os.open(fifo, os.O_RDWR)  # a writer that never closes it (O_RDWR opens without waiting)
+    try:
+        yield fifo
+    finally:
+        os.close(fd)
+
+
+def test_a_fifo_held_open_by_its_writer_is_given_up_after_the_deadline(held_fifo: Path) -> None:
+    # The daemon's reload read such a config (or key, or token) for ever, in a thread the
+    # daemon's exit waits for: SIGTERM could not stop it.
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match=r"cannot read config: its writer did not finish it in 0\.5 s"):
+        config.load(held_fifo)
+    with pytest.raises(ConfigError, match=r"--key: cannot read .*: its writer did not finish it in 0\.5 s"):
+        read_key_file(held_fifo, "--key")
+    assert time.monotonic() - t0 < 3.0
+
+
+def test_a_pipe_read_in_pieces_is_read_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(files, "READ_TIMEOUT_S", 5.0)
+    r, w = os.pipe()
+
+    def write() -> None:  # a slow writer that finishes within the deadline
+        for piece in (b"[robot]\n", b'name = "r0"\n'):
+            time.sleep(0.2)
+            os.write(w, piece)
+        os.close(w)
+
+    t = threading.Thread(target=write)
+    t.start()
+    try:
+        assert files.read_capped(Path(f"/dev/fd/{r}"), 1000) == b'[robot]\nname = "r0"\n'
+    finally:
+        t.join()
         os.close(r)
 
 
