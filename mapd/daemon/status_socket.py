@@ -13,6 +13,7 @@ import logging
 import os
 import socket
 import stat
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -93,14 +94,23 @@ def _alive(path: Path) -> bool:
 
 
 def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
-    """Read the daemon's status from ``path``; raises :class:`DaemonError` when none answers."""
+    """Read the daemon's status from ``path``; raises :class:`DaemonError` when none answers whole
+    within ``timeout`` seconds (in all: a socket trickling a byte at a time is given up too)."""
+    deadline = time.monotonic() + timeout
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
         s.settimeout(timeout)
         try:
             s.connect(str(path))
             s.shutdown(socket.SHUT_WR)
             chunks, size = [], 0
-            while chunk := s.recv(65536):
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DaemonError(f"{path} sent no whole status within {timeout:g} s")
+                s.settimeout(left)
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
                 chunks.append(chunk)
                 size += len(chunk)
                 if size > MAX_STATUS_BYTES:  # a status is kilobytes: this is no mapd daemon
@@ -111,6 +121,8 @@ def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
             raise DaemonError(f"no mapd daemon is running (stale control socket at {path})") from None
         except PermissionError:
             raise DaemonError(f"permission denied on {path} (are you in the mapd group?)") from None
+        except TimeoutError:
+            raise DaemonError(f"{path} sent no whole status within {timeout:g} s") from None
         except OSError as exc:
             raise DaemonError(f"cannot read status from {path}: {exc}") from None
     try:

@@ -10,6 +10,7 @@ import stat
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -256,6 +257,35 @@ def test_a_state_directory_is_held_by_one_daemon_at_a_time(tmp_path: Path) -> No
 def test_query_without_daemon_is_clear(tmp_path: Path) -> None:
     with pytest.raises(DaemonError, match="no mapd daemon is running"):
         query(tmp_path / "none.sock")
+
+
+def test_a_socket_that_trickles_bytes_is_given_up_after_the_whole_timeout(tmp_path: Path) -> None:
+    # The timeout was per read: a byte every second kept `mapd status` waiting for ever.
+    path = tmp_path / "s.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(str(path))
+        server.listen(1)
+        stop = threading.Event()
+
+        def trickle() -> None:
+            conn, _ = server.accept()
+            with conn:
+                while not stop.wait(0.2):
+                    try:
+                        conn.sendall(b" ")
+                    except OSError:
+                        return
+
+        t = threading.Thread(target=trickle)
+        t.start()
+        t0 = time.monotonic()
+        try:
+            with pytest.raises(DaemonError, match=r"sent no whole status within 1 s"):
+                query(path, timeout=1.0)
+        finally:
+            stop.set()
+            t.join()
+        assert time.monotonic() - t0 < 3.0
 
 
 def test_sd_notify_and_watchdog(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
