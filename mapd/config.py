@@ -460,7 +460,13 @@ def plugin_options(cfg: MapdConfig, section: str, name: str) -> BaseModel:
         if table:
             raise ConfigError(f"{where}: {section}.{name}: this plugin takes no options")
         return BaseModel()
-    return validate(options_model, table, where, prefix=f"{section}.{name}")
+    options = validate(options_model, table, where, prefix=f"{section}.{name}")
+    # Files an option names beside the config (a zenoh config): relative to it, as key_file is.
+    for field in getattr(options, "beside_config", ()):
+        value = getattr(options, field)
+        if cfg.path is not None and isinstance(value, Path) and not value.is_absolute():
+            setattr(options, field, cfg.path.parent / value)
+    return options
 
 
 def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict[str, BaseModel]]:
@@ -568,6 +574,27 @@ def check(cfg: MapdConfig) -> Checked:
     """The one validation ``mapd run`` and ``mapd check-config`` both do (so they never disagree).
 
     Every plugin table is validated, also those of plugins not chosen (a typo in one is an error,
-    not a table silently ignored), and the key files are read and matched against the roster.
+    not a table silently ignored), the files chosen plugins name are read (zenoh configs), and the
+    key files are read and matched against the roster.
     """
-    return Checked(check_plugins(cfg), read_keys(cfg), read_view_token(cfg))
+    options = check_plugins(cfg)
+    _check_plugin_files(cfg, options)
+    return Checked(options, read_keys(cfg), read_view_token(cfg))
+
+
+def _check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]]) -> None:
+    """Have each chosen plugin read the files its options name (``check_files``), as it will at start."""
+    where = str(cfg.path) if cfg.path else "config"
+    for section, chosen in (
+        ("source", [cfg.source.use]),
+        ("transports", cfg.transports.use),
+        ("output", cfg.output.use),
+    ):
+        for name in chosen:
+            check_files = getattr(options[section].get(name), "check_files", None)
+            if check_files is None:
+                continue
+            try:
+                check_files()
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {section}.{name}.{exc}") from None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -174,3 +175,51 @@ def test_unknown_plugin_and_missing_dependency(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(plugins, "_entry_points", lambda kind: {"fancy": fake})
     with pytest.raises(PluginError, match="codec plugin 'fancy' needs some_missing_lib_xyz"):
         plugins.load("codec", "fancy")
+
+
+ZENOH_FILES = [
+    ("transports", "zenoh", "config_file", '[transports]\nuse = ["zenoh"]\n'),
+    ("output", "zenoh", "config_file", '[output]\nuse = ["zenoh"]\n'),
+    ("output", "ros2", "zenoh_config", '[output]\nuse = ["ros2"]\n'),
+    ("source", "ros2", "zenoh_config", '[source]\nuse = "ros2"\n'),
+]
+
+
+def _zenoh_file_config(tmp: Path, section: str, name: str, field: str, use: str, path: str) -> Path:
+    text = MINIMAL.replace("[codec]", use + "\n[codec]") + "\n[fleet]\nallow_unsigned = true\n"
+    return write(tmp, text + f'\n[{section}.{name}]\n{field} = "{path}"\n')
+
+
+@pytest.mark.parametrize(("section", "name", "field", "use"), ZENOH_FILES)
+def test_a_zenoh_config_file_is_found_beside_the_config_and_read_by_check(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, section: str, name: str, field: str, use: str
+) -> None:
+    # Relative to the config file, as robot.key_file is: under systemd the working directory is /.
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "etc" / "zenoh.json5").write_text("{ scouting: { multicast: { enabled: false } } }\n")
+    monkeypatch.chdir(tmp_path)  # a zenoh.json5 in the working directory is not the one meant
+    (tmp_path / "zenoh.json5").write_text("{ not zenoh")
+    path = _zenoh_file_config(tmp_path / "etc", section, name, field, use, "zenoh.json5")
+    checked = config.check(config.load(path))
+    assert getattr(checked.options[section][name], field) == tmp_path / "etc" / "zenoh.json5"
+
+
+@pytest.mark.parametrize(("section", "name", "field", "use"), ZENOH_FILES)
+def test_check_config_refuses_a_zenoh_config_file_that_mapd_run_would(
+    tmp_path: Path, section: str, name: str, field: str, use: str
+) -> None:
+    # These were caught only by `mapd run`, after the daemon had started its other parts.
+    os.mkfifo(tmp_path / "fifo.json5")
+    (tmp_path / "bad.json5").write_text("{ mode: ")
+    for file, says in (
+        ("fifo.json5", "not a regular file"),
+        ("absent.json5", "cannot read it"),
+        ("bad.json5", ""),
+    ):
+        path = _zenoh_file_config(tmp_path, section, name, field, use, file)
+        with pytest.raises(ConfigError, match=rf"mapd\.toml: {section}\.{name}\.{field}: .*{file}: {says}"):
+            config.check(config.load(path))
+    done = subprocess.run(
+        [sys.executable, "-m", "mapd", "check-config", str(path)], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "bad.json5: " in done.stderr

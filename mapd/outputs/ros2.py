@@ -41,7 +41,7 @@ import logging
 import re
 import threading
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import Field, ValidationInfo, field_validator
 
@@ -51,6 +51,7 @@ from mapd.files import atomic_write_json, read_json_capped
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.ros2 import rmw
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
@@ -62,8 +63,10 @@ MAX_FRAMES_FILE_BYTES = 1 << 20
 log = logging.getLogger(__name__)
 
 
-class Ros2OutputOptions(OutputOptions):
+class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     """``[output.ros2]``: topic, frames, ROS 2 identity, key format and how to reach zenoh."""
+
+    beside_config: ClassVar[tuple[str, ...]] = ("zenoh_config",)
 
     topic: str = Field(default="/map", description="topic of the global nav_msgs/msg/OccupancyGrid")
     frame: str = Field(default="map", description="the fleet frame's name (m-explore's world_frame)")

@@ -23,12 +23,13 @@ from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 from transports.zenoh.keys import global_key
 
 MAX_MESSAGE_BYTES = 64 << 20
 
 
-class ZenohOutputOptions(OutputOptions):
+class ZenohOutputOptions(ZenohConfigFiles, OutputOptions):
     mode: Literal["peer", "client", "router"] = Field(default="peer", description="zenoh mode")
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")

@@ -10,7 +10,9 @@ what zenoh's own loader does with those suffixes.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
+from typing import ClassVar
 
 from mapd.files import NotRegularFileError, open_regular
 
@@ -49,3 +51,46 @@ def zenoh_config_text(path: Path) -> str:
         return json.dumps(doc)
     except (TypeError, ValueError, RecursionError):  # dates, sets: nothing zenoh reads
         raise ValueError("YAML that holds no zenoh config") from None
+
+
+def zenoh_message(exc: BaseException) -> str:
+    """zenoh's error text on one line, without the Rust source location it appends."""
+    text = " ".join(str(exc).split())
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    return text.rstrip(".") or type(exc).__name__
+
+
+def check_zenoh_config(path: Path) -> None:
+    """Read ``path`` as :func:`zenoh_config_text` does and, where zenoh is installed, parse it as
+    zenoh will; ValueError with one line (without the path) for what ``mapd run`` would refuse."""
+    text = zenoh_config_text(path)
+    try:
+        import zenoh
+    except ImportError:  # the optional dependency: the file is read, its keys are zenoh's to judge
+        return
+    try:
+        zenoh.Config.from_json5(text)
+    except zenoh.ZError as exc:
+        raise ValueError(zenoh_message(exc)) from None
+
+
+class ZenohConfigFiles:
+    """For plugin options that name zenoh config files, in the fields ``beside_config`` lists.
+
+    A relative path there is taken from the mapd config's folder, as ``robot.key_file`` is (under
+    systemd the working directory is ``/``), and ``mapd check-config`` reads and parses each file
+    (``check_files``), so a missing, malformed or non-regular one is caught before ``mapd run``.
+    """
+
+    beside_config: ClassVar[tuple[str, ...]] = ("config_file",)
+
+    def check_files(self) -> None:
+        """ValueError naming the option and the file, for a file ``mapd run`` would refuse."""
+        for name in self.beside_config:
+            path = getattr(self, name)
+            if path is None:
+                continue
+            try:
+                check_zenoh_config(path)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {path}: {exc}") from None

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 from mapd.sources.base import SourceOptions, check_start_pose, is_pose
 from mapd.sources.ros2_pose import PoseType
 
@@ -22,8 +23,10 @@ from mapd.sources.ros2_pose import PoseType
 ROBOT_NAME = re.compile(NAME_PATTERN)
 
 
-class Ros2Options(SourceOptions):
+class Ros2Options(ZenohConfigFiles, SourceOptions):
     """``[source.ros2]``: which topic, which key format, and how to reach the zenoh network."""
+
+    beside_config: ClassVar[tuple[str, ...]] = ("zenoh_config",)
 
     topic: str = Field(default="/map", description="ROS 2 topic of the nav_msgs/msg/OccupancyGrid")
     key_format: Literal["rmw_zenoh", "ros2dds"] = Field(

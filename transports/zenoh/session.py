@@ -19,7 +19,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from mapd.errors import TransportError
-from mapd.ros2.zenoh_config import zenoh_config_text
+from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text, zenoh_message
 from transports.base import TransportOptions
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
@@ -28,7 +28,7 @@ _ENDPOINT = re.compile(r"[a-z][a-z0-9+\-]*/[^\s]+")
 _RX_MARGIN = 64 * 1024
 
 
-class ZenohOptions(TransportOptions):
+class ZenohOptions(ZenohConfigFiles, TransportOptions):
     """Options of the ``zenoh`` transport."""
 
     mode: Literal["peer", "client", "router"] = Field(
@@ -76,13 +76,6 @@ class ZenohOptions(TransportOptions):
                     f"'{ep}' is not a zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
                 )
         return v
-
-
-def zenoh_message(exc: BaseException) -> str:
-    """zenoh's error text on one line, without the Rust source location it appends."""
-    text = " ".join(str(exc).split())
-    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text)
-    return text.rstrip(".") or type(exc).__name__
 
 
 def build_config(options: ZenohOptions, max_message_bytes: int) -> object:
