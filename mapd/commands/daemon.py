@@ -182,6 +182,7 @@ LINK_FAULTS = {
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
+    "replay_save_errors": "replay marks not saved {} times (disk full or read-only?)",
     "out_of_turn": "{} frames of others on the air in this robot's own TDMA slot (do the clocks agree?)",
     # The frame's link tag was good but the robot key was not: whoever sent it holds the link key.
     "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",

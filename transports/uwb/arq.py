@@ -11,7 +11,8 @@ Framing and trust
   R1. Every frame is COBS-encoded with a 0x00 delimiter (``framing.py``), at most ``max_frame`` bytes
       on the wire, and checked: by a CRC-32 without a key, by its signature with one. Frames failing
       COBS, the check or parsing are counted and dropped.
-  R2. With a key, frames without a valid signature or with a replayed counter are counted and dropped
+  R2. With a key, frames without a valid signature or with a replayed counter (one seen already,
+      or at or below the sender's mark from before a restart: ``replay_marks``) are counted and dropped
       before anything else looks at them (``signing.py``); so is a counter far ahead of this node's
       clock (``check_counter_clock``), which a key holder could send to make the real sender's later
       frames look replayed. Without a key, signed frames are dropped (counted ``signed_no_key``):
@@ -201,7 +202,7 @@ class ArqEndpoint(SenderSide):
             rng=self._rng,
         )
         self._signer = Signer(config.key, config.counter_start) if config.key else None
-        self._verifier = Verifier(config.key) if config.key else None
+        self._verifier = Verifier(config.key, config.replay_marks) if config.key else None
         self._trailer = TRAILER_LEN if config.key else 0
         # A frame size that divides the 1 s byte budget evenly: 7 frames of 223 bytes fit in the
         # 1562 bytes of 12.5 kb/s, where frames of 224 would leave room for only 6.
@@ -434,6 +435,10 @@ class ArqEndpoint(SenderSide):
         """The adapter has persisted ``upto`` (from :meth:`counter_reservation`): sign below it."""
         if self._signer is not None:
             self._signer.confirm(upto)
+
+    def replay_marks(self) -> dict[int, int]:
+        """Sender id -> the highest signed counter accepted: for the adapter to keep across restarts."""
+        return self._verifier.marks() if self._verifier is not None else {}
 
     def peers_up(self) -> list[int]:
         """Link ids of the peers heard within ``peer_timeout_s``."""

@@ -73,6 +73,8 @@ class ArqConfig:
     fec: bool = False
     key: bytes | None = field(default=None, repr=False)
     counter_start: int = 0
+    #: Sender id -> the highest signed counter accepted from it before a restart (never again).
+    replay_marks: dict[int, int] = field(default_factory=dict, repr=False)
     #: Refuse signed frames whose counter runs ahead of this node's wall clock (``now`` plus
     #: ``clock_offset``); off for simulations whose clock is not the wall clock.
     check_counter_clock: bool = False

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 from mapd.errors import MapdError, StateError, TransportError
 from transports.uwb import arq, wallclock
 from transports.uwb.pacing import ByteWindow
-from transports.uwb.signing import CounterStore, clock_floor
+from transports.uwb.signing import CounterStore, ReplayStore, clock_floor
 
 #: The stream robot poses travel on (255 is control, 253 relay summaries; maps use 0..252).
 POSE_STREAM = 254
@@ -38,6 +38,9 @@ T = TypeVar("T")
 WRITE_STALL_S = 5.0
 #: How often a signing counter that could not be saved is tried again.
 COUNTER_RETRY_S = 1.0
+#: Seconds between saves of the replay marks: frames a sender signed in the last few seconds
+#: before a kill -9 are all a restart could take again (a clean close saves them all).
+REPLAY_SAVE_S = 5.0
 #: TDMA: the wall clock is read at least this often, so a step (NTP) moves the slots within it.
 CLOCK_CHECK_S = 1.0
 #: A change of the wall clock against the loop's smaller than this is scheduling jitter: followed,
@@ -111,6 +114,7 @@ class UwbLink:
         baud: int = 115200,
         on_event: Callable[[arq.Event], None] | None = None,
         counter_store: CounterStore | None = None,
+        replay_store: ReplayStore | None = None,
         reopen_s: float = 1.0,
         session: int | None = None,
         wall_clock: Callable[[], float] = time.time,
@@ -121,6 +125,11 @@ class UwbLink:
         self.reopen_s = reopen_s
         self._on_event = on_event or (lambda e: None)
         self._store = counter_store or CounterStore(None)
+        self._replay = replay_store or ReplayStore(None)
+        self._replay_saved: dict[int, int] = {}
+        self._replay_save_at = 0.0
+        #: Times the replay marks could not be saved (a full disk): said once, retried.
+        self.replay_save_errors = 0
         self._cfg = config
         self._session = (
             session if session is not None else int.from_bytes(os.urandom(3), "little")
@@ -153,7 +162,8 @@ class UwbLink:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
         if self._cfg.key is not None:
             start = max(await asyncio.to_thread(self._store.load), clock_floor(self._wall()))
-            self._cfg = dataclasses.replace(self._cfg, counter_start=start)
+            self._replay_saved = await asyncio.to_thread(self._replay.load)
+            self._cfg = dataclasses.replace(self._cfg, counter_start=start, replay_marks=self._replay_saved)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
         if self._cfg.mac == "tdma" and wallclock.synchronized() is False:
             log.warning(
@@ -203,7 +213,8 @@ class UwbLink:
         self._proto = proto
 
     async def close(self) -> None:
-        """Stop at once: cancel the loop, drop the port (unsent frames are abandoned)."""
+        """Stop at once: cancel the loop, drop the port (unsent frames are abandoned), save the
+        replay marks."""
         self._closing = True
         self._wake.set()
         if self._task is not None:
@@ -213,6 +224,28 @@ class UwbLink:
         if self._proto is not None and self._proto.transport is not None:
             self._proto.transport.abort()
         self._proto = None
+        await self._save_replay(force=True)
+
+    async def _save_replay(self, *, force: bool = False) -> None:
+        """Save the highest counter accepted from each sender, at most every :data:`REPLAY_SAVE_S`
+        (on a worker thread), when it changed."""
+        if self.core is None:
+            return
+        now = asyncio.get_running_loop().time()
+        if not force and now < self._replay_save_at:
+            return
+        marks = self.core.replay_marks()
+        if marks == self._replay_saved:
+            return
+        self._replay_save_at = now + REPLAY_SAVE_S
+        try:
+            await asyncio.to_thread(self._replay.save, marks)
+        except StateError as exc:
+            self.replay_save_errors += 1
+            if self.replay_save_errors == 1:
+                log.warning("%s; frames from before a restart may be taken again after it", exc)
+            return
+        self._replay_saved = marks
 
     def send(
         self,
@@ -247,6 +280,7 @@ class UwbLink:
             reconnects=self.reconnects,
             write_stalls=self.write_stalls,
             counter_save_errors=self.counter_save_errors,
+            replay_save_errors=self.replay_save_errors,
             clock_steps=self.clock_steps,
             write_peak_bps_1s=round(self.write_peak_bps, 1),
         )
@@ -389,6 +423,7 @@ class UwbLink:
             if timer is not None and timer <= now:
                 core.handle_timer(now)
             await self._persist_counter()
+            await self._save_replay()
             self._dispatch()
             while not self._closing:
                 now = loop.time()

@@ -11,20 +11,27 @@ clock-derived floor (10 µs ticks since 2015, as MAVLink's timestamp), so a node
 directory still never reuses a counter unless its clock runs backwards.
 
 Receivers keep, per sender id, the highest counter seen and a 64-frame window below it (as IPsec
-does), so reordered frames are accepted once and replayed or duplicated frames are dropped.
+does), so reordered frames are accepted once and replayed or duplicated frames are dropped. The
+highest counters are kept across restarts as well (:class:`ReplayStore`, saved every few seconds
+and at close): a receiver that forgot them took every frame recorded before its restart once more.
 
-:class:`Signer` and :class:`Verifier` are pure; only :class:`CounterStore` touches files.
+:class:`Signer` and :class:`Verifier` are pure; only :class:`CounterStore` and :class:`ReplayStore`
+touch files.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 from mapd.errors import StateError
-from mapd.files import atomic_write_bytes, read_capped
+from mapd.files import atomic_write_bytes, atomic_write_json, read_capped, read_json_capped
+
+log = logging.getLogger(__name__)
 
 COUNTER_LEN = 6
 TAG_LEN = 6
@@ -99,10 +106,18 @@ class VerifyStats:
 class Verifier:
     """Checks signed bodies and drops replays; bounded state (one window per sender id)."""
 
-    def __init__(self, key: bytes) -> None:
+    def __init__(self, key: bytes, marks: Mapping[int, int] | None = None) -> None:
+        """``marks``: sender id -> the highest counter a previous run accepted from it (:meth:`marks`);
+        that counter and every one below it are refused."""
         self._mac = _Mac(key)
-        self._windows: dict[int, tuple[int, int]] = {}  # src -> (highest counter, bitmask below it)
+        full = (1 << REPLAY_WINDOW) - 1  # every counter below the mark taken: none comes again
+        # src -> (highest counter, bitmask below it)
+        self._windows: dict[int, tuple[int, int]] = {src: (top, full) for src, top in (marks or {}).items()}
         self.stats = VerifyStats()
+
+    def marks(self) -> dict[int, int]:
+        """Sender id -> the highest counter accepted from it: what a restart must not accept again."""
+        return {src: top for src, (top, _) in self._windows.items()}
 
     def check(self, body: bytes, signed: bool, wall_now: float | None = None) -> bytes | None:
         """The body without its trailer when it is signed, authentic and fresh; else None (counted).
@@ -182,3 +197,49 @@ class CounterStore:
             atomic_write_bytes(self.path, f"{value}\n".encode("ascii"))
         except OSError as exc:
             raise StateError(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None
+
+
+#: A replay file holds at most one mark a sender id (256), about 30 bytes each.
+MAX_REPLAY_FILE = 16 << 10
+
+
+class ReplayStore:
+    """The highest counter accepted from each sender, kept across restarts (a small JSON file).
+
+    A file that cannot be read or is damaged costs what it held (one warning; frames recorded
+    before the restart are refused again from each sender's first frame heard after it), never the
+    start.
+    """
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+
+    def load(self) -> dict[int, int]:
+        if self.path is None:
+            return {}
+        try:
+            doc = read_json_capped(self.path, MAX_REPLAY_FILE)
+        except FileNotFoundError:
+            return {}
+        except (OSError, ValueError, RecursionError) as exc:
+            log.warning("uwb: replay marks %s unreadable (%s); starting without them", self.path, exc)
+            return {}
+        marks = {}
+        if isinstance(doc, dict):
+            for key, value in doc.items():
+                if key.isdigit() and int(key) < 256 and type(value) is int and 0 <= value <= COUNTER_MAX:
+                    marks[int(key)] = value
+        if not isinstance(doc, dict) or len(marks) != len(doc):
+            log.warning(
+                "uwb: replay marks %s are damaged; keeping the %d that are not", self.path, len(marks)
+            )
+        return marks
+
+    def save(self, marks: Mapping[int, int]) -> None:
+        """Write ``marks`` atomically; StateError when the disk refuses."""
+        if self.path is None:
+            return
+        try:
+            atomic_write_json(self.path, {str(src): top for src, top in sorted(marks.items())})
+        except OSError as exc:
+            raise StateError(f"uwb: cannot write replay marks {self.path}: {exc.strerror}") from None

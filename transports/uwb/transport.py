@@ -42,7 +42,7 @@ from transports.uwb import keyframe_requests as control
 from transports.uwb.link import POSE_STREAM, UwbLink
 from transports.uwb.options import MAX_MESSAGE, UwbOptions, resolve_peer
 from transports.uwb.relaying import RelayDriver
-from transports.uwb.signing import CounterStore
+from transports.uwb.signing import CounterStore, ReplayStore
 
 log = logging.getLogger("mapd.uwb")
 
@@ -140,12 +140,14 @@ class UwbTransport(Transport):
         loop = asyncio.get_running_loop()
         state = self.ctx.state_dir
         store = CounterStore(Path(state) / f"uwb-{self.node_id}.counter" if state is not None else None)
+        replay = ReplayStore(Path(state) / f"uwb-{self.node_id}.replay" if state is not None else None)
         self._link = UwbLink(
             self._config(loop),
             self.opts.port,
             baud=self.opts.baud,
             on_event=self._on_event,
             counter_store=store,
+            replay_store=replay,
             reopen_s=self.opts.reopen_s,
         )
         await self._link.start()

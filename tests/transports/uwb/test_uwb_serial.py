@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+import tty
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -255,6 +256,66 @@ def test_signed_link_persists_counter_and_detects_restart(tmp_path: Path) -> Non
                 assert [r.data for r in b.of(Received)][-1] == env.pack()
                 assert b.t.stats()["replayed"] == 0
                 await a2.t.close()
+
+    asyncio.run(main())
+
+
+class Eavesdropper:
+    """A radio of an attacker's on the medium: it records every byte on the air, and plays it back."""
+
+    def __init__(self, port: str) -> None:
+        self.fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(self.fd)
+        self.heard = bytearray()
+
+    def listen(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            while chunk := os.read(self.fd, 65536):
+                self.heard += chunk
+
+    async def replay(self) -> None:
+        for i in range(0, len(self.heard), 256):  # at about the medium's rate
+            os.write(self.fd, self.heard[i : i + 256])
+            await asyncio.sleep(256 * 8 / RATE)
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+@pytest.mark.parametrize("how", ["close", "kill"])
+def test_frames_recorded_before_a_restart_are_not_taken_again_after_it(tmp_path: Path, how: str) -> None:
+    # Each receiver kept its replay windows in memory only: after a restart, every signed frame an
+    # attacker had recorded off the air was taken once more (here: a whole old map, delivered as
+    # new). The highest counter from each sender is now kept in the state directory: saved at a
+    # clean close, and every few seconds for a kill -9.
+    key = os.urandom(32)
+
+    async def main() -> None:
+        async with MediumRelay(robots=3, rate_bps=RATE, seed=4) as relay:
+            a, b = signed_pair(relay.ports[:2], tmp_path, key)
+            spy = Eavesdropper(relay.ports[2])
+            loop = asyncio.get_running_loop()
+            loop.add_reader(spy.fd, spy.listen)
+            try:
+                async with started(a, b):
+                    a.t.offer(envelope("alpha", 1, 5000))
+                    await until(lambda: bool(b.of(Received)) and bool(a.of(Delivered)), 10)
+                    if how == "kill":
+                        await asyncio.sleep(link.REPLAY_SAVE_S + 1.0)  # a periodic save since the map
+                        assert (tmp_path / "b" / "uwb-2.replay").exists()
+                        b.t._link._replay = signing.ReplayStore(None)  # type: ignore[union-attr]  # dies: no more saves
+                    loop.remove_reader(spy.fd)
+                assert len(spy.heard) > 5000  # the map, recorded off the air
+                b2 = Robot("beta", relay.ports[1], key=key, state=tmp_path / "b", names=["alpha", "beta"])
+                async with started(b2):
+                    await spy.replay()
+                    await asyncio.sleep(1.0)
+                    assert b2.of(Received) == []
+                    assert b2.t.stats()["replayed"] > 0
+                    if how == "close":  # every frame heard before it is refused, beacons too
+                        assert b2.of(PeerUp) == []
+            finally:
+                spy.close()
 
     asyncio.run(main())
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from mapd.errors import ProtocolError, StateError
 from transports.uwb import wire
 from transports.uwb.pacing import ByteWindow, MediumAccess, Pacer
-from transports.uwb.signing import COUNTER_MAX, CounterStore, Signer, Verifier, clock_floor
+from transports.uwb.signing import COUNTER_MAX, CounterStore, ReplayStore, Signer, Verifier, clock_floor
 
 KEY = bytes(range(32))
 
@@ -177,6 +177,37 @@ def test_counter_store_persists_and_never_reuses(tmp_path: Path) -> None:
     path.write_text("7" * 10_000_000)  # read no further than a counter can be long
     with pytest.raises(StateError, match=r"holds 7{65}, out of range"):
         CounterStore(path).load()
+
+
+def test_marks_from_a_previous_run_refuse_every_frame_up_to_them(tmp_path: Path) -> None:
+    s, v = _signer(), Verifier(KEY)
+    body = wire.pack(wire.Hello(1, 2, 3), signed=True)
+    frames = [s.sign(body) for _ in range(10)]
+    assert all(v.check(f, True) is not None for f in frames[:6])  # frames 6..9 never heard
+    store = ReplayStore(tmp_path / "uwb-2.replay")
+    store.save(v.marks())
+    again = Verifier(KEY, store.load())  # a restart
+    assert all(again.check(f, True) is None for f in frames[:6])  # nothing heard before comes again
+    assert all(again.check(f, True) is not None for f in frames[6:])  # what came after is taken
+    assert again.check(s.sign(body), True) is not None and again.stats.replayed == 6
+
+
+@pytest.mark.parametrize(
+    ("text", "kept"),
+    [
+        ("{not json", {}),
+        ('{"1": 5, "2": -1, "300": 7, "x": 1, "3": 1e3, "4": 281474976710656}', {1: 5}),
+        ("[1, 2]", {}),
+        ("7" * 100_000, {}),
+    ],
+)
+def test_damaged_replay_marks_cost_what_they_held_not_the_start(
+    tmp_path: Path, text: str, kept: dict[int, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "uwb-2.replay"
+    path.write_text(text)
+    assert ReplayStore(path).load() == kept
+    assert "replay marks" in caplog.text and len(caplog.records) == 1
 
 
 def test_clock_floor_rises() -> None:
