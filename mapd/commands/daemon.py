@@ -304,6 +304,12 @@ def render_status(s: dict[str, Any]) -> str:
         fleet = p.get("fleet")
         in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
         out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}")
+    rec = s.get("recording")
+    if rec and (rec.get("failures") or rec.get("dropped")):
+        out.append(
+            f"record  FAULTS {rec.get('failures', 0)} messages not written (disk full?), "
+            f"{rec.get('dropped', 0)} left out behind a slow disk ({rec.get('queued_bytes', 0) >> 20} MiB waiting)"
+        )
     bad = {k: v for k, v in s.get("counters", {}).items() if v}
     if bad:
         out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))

@@ -466,6 +466,7 @@ class Daemon:
             "peers": self.receiver.status(now, self.store.acked()),
             "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
             "outputs": self.sinks.status(),
+            "recording": self.sinks.recording(),
             "fusion": self.fusion.status(),
             "poses": self.poses.status(now),
             "counters": {

@@ -24,6 +24,11 @@ from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
 
 log = logging.getLogger("mapd.daemon")
+#: The most the file thread may have waiting, in bytes of the maps it holds: a disk that is slow
+#: rather than full (an SD card stalling, a network share) held every map the fleet made meanwhile.
+MAX_QUEUED_BYTES = 256 << 20
+#: What a message without a map is counted as (a pose, the links' counters, CSV rows).
+_SMALL = 4096
 
 
 def placed_frames(placements: dict[str, Placement]) -> dict[str, Pose2D]:
@@ -46,6 +51,11 @@ class Sinks:
         #: Messages the recorder could not write (a full disk): said once until it writes again.
         self.record_failures = 0
         self._record_outage = WriteOutage(log)
+        #: Messages not recorded because the file thread was :data:`MAX_QUEUED_BYTES` behind.
+        self.record_dropped = 0
+        self._queued = 0  # bytes the file thread holds (changed on the loop and in that thread)
+        self._queued_lock = threading.Lock()
+        self._behind = WriteOutage(log)
         #: The latest known robot poses, which every GlobalUpdate carries too.
         self.poses_now: dict[str, StampedPose] = {}
         self._recorded_tf: dict[str, Pose2D] = {}
@@ -115,6 +125,16 @@ class Sinks:
     def status(self) -> dict[str, Any]:
         return {o.name: o.stats() for o in self.outputs}
 
+    def recording(self) -> dict[str, int] | None:
+        """The recording's faults and backlog for ``mapd status``; None without one."""
+        if self.recorder is None:
+            return None
+        return {
+            "failures": self.record_failures,
+            "dropped": self.record_dropped,
+            "queued_bytes": self._queued,
+        }
+
     # ------------------------------------------------------------------ worker side
     def _to_outputs(self, update: GlobalUpdate | None = None, poses: PoseUpdate | None = None) -> None:
         """Hand the output thread the newest global map and/or poses (latest wins, one drain queued)."""
@@ -141,6 +161,20 @@ class Sinks:
                 log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
 
     def _record(self, fn: Callable[..., None], *args: Any) -> None:
+        size = sum(a.cells for a in args if isinstance(a, OccupancyGrid)) or _SMALL
+        with self._queued_lock:
+            # One message is always taken (a map over the budget on its own), more only within it.
+            behind = self._queued > 0 and self._queued + size > MAX_QUEUED_BYTES
+            if not behind:
+                self._queued += size
+        if behind:
+            self.record_dropped += 1
+            self._behind.failed(
+                f"recording is {self._queued >> 20} MiB behind the disk; messages are left out until it catches up"
+            )
+            return
+        self._behind.recovered(f"recording caught up ({self.record_dropped} messages left out so far)")
+
         def call() -> None:
             try:
                 fn(*args)
@@ -151,6 +185,9 @@ class Sinks:
                 )
             else:
                 self._record_outage.recovered("recording again")
+            finally:
+                with self._queued_lock:
+                    self._queued -= size
 
         self._files.submit(call)
 

@@ -530,3 +530,47 @@ def test_a_failing_recording_is_said_once_and_its_recovery_too(
     said = [r.getMessage() for r in caplog.records if "record" in r.getMessage()]
     assert sinks.record_failures == 5
     assert len(said) == 2 and "No space left" in said[0] and said[1] == "recording again", said
+
+
+def test_a_slow_recording_disk_holds_a_bounded_backlog_and_says_so_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A disk that is slow rather than full (an SD card stalling): the file thread's queue held
+    every map the fleet made meanwhile, without bound."""
+    import logging
+    import threading
+
+    from mapd.commands.daemon import render_status
+    from mapd.daemon import sinks as sinksmod
+    from mapd.daemon.coding import CsvLog
+
+    monkeypatch.setattr(sinksmod, "MAX_QUEUED_BYTES", 10_000)
+    sinks = sinksmod.Sinks([], None, CsvLog(tmp_path / "fused.csv"))
+    sinks.recorder = object()  # type: ignore[assignment]  # (only for recording(): none is written here)
+    stalled, written = threading.Event(), []
+    high = [0]
+
+    def write(grid: OccupancyGrid) -> None:
+        stalled.wait(30)
+        written.append(grid.version)
+
+    big = OccupancyGrid(np.zeros((200, 200), np.int8), 0.05, version=0)  # over the budget on its own
+    with caplog.at_level(logging.INFO, logger="mapd"):
+        sinks._record(write, big)  # taken: the queue was empty
+        for v in range(1, 41):
+            sinks._record(write, OccupancyGrid(np.zeros((50, 80), np.int8), 0.05, version=v))
+            high[0] = max(high[0], sinks._queued)
+        assert sinks.record_dropped == 40 and high[0] == 40_000  # the big map alone, nothing more
+        stalled.set()
+        sinks._files.submit(lambda: None).result(10)
+        for v in range(41, 44):  # the disk keeps up again
+            sinks._record(write, OccupancyGrid(np.zeros((50, 80), np.int8), 0.05, version=v))
+            sinks._files.submit(lambda: None).result(10)
+        rec = sinks.recording()
+        assert rec is not None and rec["dropped"] == 40
+        assert "40 left out behind a slow disk" in render_status({"recording": rec})
+        sinks.recorder = None
+        sinks.close()
+    assert written == [0, 41, 42, 43]
+    said = [r.getMessage() for r in caplog.records if "recording" in r.getMessage()]
+    assert len(said) == 2 and "behind the disk" in said[0] and said[1].startswith("recording caught up"), said
