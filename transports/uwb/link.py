@@ -103,6 +103,22 @@ class _Proto(asyncio.Protocol):
             await self._writable
 
 
+def _discard_on_close(port: Any) -> None:
+    """Make the transport's close drop the bytes ``port`` still holds instead of waiting for them.
+
+    serial_asyncio closes a port with ``Serial.flush()``, a tcdrain, on the event loop: a USB
+    radio that takes no bytes (hung, or holding flow control) never drains, so closing it (at a
+    stall's reopen, or at stop) froze the daemon for ever. Unsent frames are abandoned at a close
+    anyway (the ARQ resends what matters), so they are discarded (tcflush), which never waits.
+    """
+
+    def discard() -> None:
+        with contextlib.suppress(Exception):  # a port unplugged meanwhile: nothing left to drop
+            port.reset_output_buffer()
+
+    port.flush = discard
+
+
 class UwbLink:
     """A serial port driving one :class:`~transports.uwb.arq.ArqEndpoint`; raw byte messages."""
 
@@ -205,11 +221,12 @@ class UwbLink:
             raise port_error(self.port)
         loop = asyncio.get_running_loop()
         try:
-            _, proto = await serial_asyncio.create_serial_connection(
+            transport, proto = await serial_asyncio.create_serial_connection(
                 loop, lambda: _Proto(self), self.port, baudrate=self.baud
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise port_error(self.port, exc) from None
+        _discard_on_close(transport.serial)
         self._proto = proto
 
     async def close(self) -> None:
