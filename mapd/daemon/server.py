@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import faulthandler
 import logging
 import os
 import signal
@@ -490,7 +491,11 @@ class Daemon:
 
 def run_daemon(cfg: configmod.MapdConfig) -> int:
     """Run the daemon with signal handling: SIGTERM/SIGINT drain, a second SIGINT forces exit, SIGHUP
-    reloads the roster."""
+    reloads the roster, SIGUSR1 writes every thread's stack to stderr (the journal)."""
+    # For a daemon that hangs (in a stop that never ends, or stuck in a driver): `systemctl kill
+    # -s USR1 mapd` shows where, without stopping it. Written by the interpreter itself, so it
+    # works when the event loop is the thing that is stuck.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     async def main() -> None:
         daemon = Daemon(cfg)

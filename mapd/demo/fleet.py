@@ -310,8 +310,19 @@ class Fleet:
             try:
                 codes[name] = p.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
+                # Where it hangs, in its log (every thread's stack), before it is killed.
+                p.send_signal(signal.SIGUSR1)
+                time.sleep(1.0)
                 p.kill()
                 codes[name] = None
+                log = self.run_dir / name / "daemon.log"
+                tail = log.read_text(errors="replace").splitlines()[-60:]
+                print(
+                    f"{name} did not stop within {timeout:g} s; the end of {log}:",
+                    *tail,
+                    sep="\n",
+                    file=sys.stderr,
+                )
         if self.router is not None and self.router.poll() is None:
             self.router.send_signal(signal.SIGTERM)
             try:

@@ -228,6 +228,30 @@ def test_second_sigint_forces_exit(tmp_path: Path, fk: SimpleNamespace) -> None:
         f.stop()
 
 
+def test_sigusr1_writes_every_thread_stack_and_the_daemon_runs_on(
+    tmp_path: Path, fk: SimpleNamespace
+) -> None:
+    # A daemon that hangs (in a stop that never ends, or in a driver) shows where with
+    # `systemctl kill -s USR1 mapd`; the fleet harness does it to a daemon that will not stop.
+    f = fleet(tmp_path, "zenoh")
+    f.start()
+    try:
+        fk.wait_for(lambda s: len(s) == 2, 60, f)
+        log = f.run_dir / "robot0" / "daemon.log"
+        f.procs["robot0"].send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + 10
+        while "mapd/daemon/server.py" not in log.read_text(errors="replace") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        text = log.read_text(errors="replace")
+        assert "Current thread" in text
+        assert text.count("Thread 0x") >= 2 and "mapd/daemon/server.py" in text
+        before = fk.held(f.status(), "robot0", "robot1")
+        fk.wait_for(lambda s: fk.held(s, "robot0", "robot1") > before, 60, f)  # still at work
+    finally:
+        codes = f.stop()
+    assert codes == {"robot0": 0, "robot1": 0}
+
+
 def _final_maps(f: Fleet) -> dict[str, Any]:
     """Each robot's last map, from its own deterministic sim run flat out (no daemon, no link)."""
     import asyncio
