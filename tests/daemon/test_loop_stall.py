@@ -1,4 +1,10 @@
-"""Nothing CPU-heavy on the event loop: a 4 M-cell map and a zenoh keyframe query never stall it 50 ms."""
+"""Nothing CPU-heavy on the event loop: a 4 M-cell map and a zenoh keyframe query never stall it.
+
+Two measures: the CPU time of each callback the loop runs (``time.thread_time``, which neither
+the scheduler's preemption nor a wait for the GIL counts, so three test processes on two cores do
+not move it), held under 50 ms; and the wall time the loop took to come back to a 5 ms sleep, held
+under a looser bound, which a blocking call on the loop (a file write, a lock) would pass.
+"""
 
 from __future__ import annotations
 
@@ -20,7 +26,10 @@ from mapd.grid import OccupancyGrid
 
 pytest.importorskip("zenoh")
 
-MAX_STALL_S = 0.050
+#: CPU time of one callback on the loop: encoding or decoding the 4 M-cell map takes seconds.
+MAX_CALLBACK_CPU_S = 0.050
+#: Wall time the loop may be away (includes preemption by the other test processes).
+MAX_STALL_S = 0.250
 
 
 def big_map(side: int = 2000, seed: int = 0) -> OccupancyGrid:
@@ -54,7 +63,29 @@ class LagMonitor:
         self.task = asyncio.create_task(self._run())
 
 
-def test_loop_never_stalls_on_a_4m_cell_map_and_a_keyframe_query(tmp_path: Path, dk: SimpleNamespace) -> None:
+class CallbackCpu:
+    """The most CPU time any one callback of the event loop took, and which one it was."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.worst, self.which = 0.0, ""
+        run = asyncio.events.Handle._run
+
+        def timed(handle: asyncio.events.Handle) -> None:
+            t0 = time.thread_time()
+            try:
+                run(handle)
+            finally:
+                spent = time.thread_time() - t0
+                if spent > self.worst:  # named by its task (a coroutine's step), else by itself
+                    owner = getattr(getattr(handle, "_callback", None), "__self__", handle)
+                    self.worst, self.which = spent, repr(owner)[:300]
+
+        monkeypatch.setattr(asyncio.events.Handle, "_run", timed)
+
+
+def test_loop_never_stalls_on_a_4m_cell_map_and_a_keyframe_query(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import zenoh
 
     grid = big_map()
@@ -94,12 +125,16 @@ def test_loop_never_stalls_on_a_4m_cell_map_and_a_keyframe_query(tmp_path: Path,
             await dk.wait_for(lambda: daemon.status_server._server is not None, what="daemon started")
             monitor = LagMonitor()
             monitor.start()
+            cpu = CallbackCpu(monkeypatch)
             await asyncio.sleep(0.2)
             await source.queue.put(grid)
             reply = await asyncio.to_thread(query)  # while the publisher still encodes v1
             await dk.wait_for(lambda: daemon.publisher.counters.keyframes_sent >= 1, 60.0, "v1 coded")
             await dk.wait_for(lambda: daemon.fusion.global_map is not None, 60.0, "global map")
             await asyncio.sleep(0.2)
+            assert cpu.worst < MAX_CALLBACK_CPU_S, (
+                f"{1000 * cpu.worst:.0f} ms of CPU on the loop in {cpu.which}"
+            )
             assert monitor.worst < MAX_STALL_S, f"event loop stalled {1000 * monitor.worst:.0f} ms"
             env = unpack(reply)
             assert (env.robot, split(env.version)[1], env.is_keyframe) == ("robot0", 1, True)
