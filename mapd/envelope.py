@@ -48,7 +48,8 @@ _KEYS = {
     "fp": "frame_pose",
     "s": "sig",
 }
-_MAX_STR = 64
+#: The longest string an envelope field holds (robot, fleet, codec, frame_id), in characters.
+MAX_STR = 64
 
 
 @dataclass(frozen=True)
@@ -152,7 +153,7 @@ def unpack(
             raw=False,
             strict_map_key=True,
             max_bin_len=max_bytes,
-            max_str_len=_MAX_STR,
+            max_str_len=MAX_STR,
             max_array_len=8,
             max_map_len=len(_KEYS),
             max_ext_len=0,

@@ -61,6 +61,13 @@ _RATES = build_rates(QUIET_LIMIT)
 _EMPTY = np.zeros(0, np.uint8)
 
 
+def _writable(cells: np.ndarray) -> np.ndarray:
+    """``cells`` as the kernels take them: contiguous int8, and writable (one kernel both codes and
+    decodes, so numba refuses a read-only view, as a map decoded in place from a message's bytes is)."""
+    out = np.ascontiguousarray(cells, dtype=np.int8)
+    return out if out.flags.writeable else out.copy()
+
+
 class LosslessOptions(CodecOptions):
     """Options of the ``[codec.lossless]`` table."""
 
@@ -135,7 +142,7 @@ class LosslessCodec(Codec):
 
     def encode_cells(self, grid: OccupancyGrid, base: OccupancyGrid | None) -> Encoded:
         assert isinstance(self.options, LosslessOptions)
-        data = np.ascontiguousarray(grid.data, dtype=np.int8)
+        data = _writable(grid.data)
         trinary = bool(_is_trinary(data))
         flags = (MODEL_VERSION << VERSION_SHIFT) | (FLAG_TRINARY if trinary else 0)
         hbits = hash_bits(data.size)
@@ -143,7 +150,7 @@ class LosslessCodec(Codec):
         if base is not None and self.options.delta != "never":
             off = alignment(grid.resolution, grid.origin, base)
             if off is not None:
-                bdata = np.ascontiguousarray(base.data, dtype=np.int8)
+                bdata = _writable(base.data)
                 buf, n = code_delta(
                     False, data, bdata, off[0], off[1], trinary, _EMPTY, hbits, _SQ, _ST, _RATES
                 )

@@ -102,6 +102,10 @@ class Outbound:
                 "map of %s from the source (%d cells) is over the limit; skipped", grid.robot, grid.cells
             )
             return
+        problem = encode_problem(grid)
+        if problem is not None:  # as for its own maps: a resolution of 1e-30 froze the global map
+            log.warning("map of %s from the source skipped: %s", grid.robot, problem)
+            return
         pose = source.robot_poses().get(grid.robot)
         if pose is not None:
             self.fusion.known_pose(grid.robot, pose)

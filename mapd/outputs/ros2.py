@@ -287,7 +287,7 @@ class Ros2Output(Output):
             doc = read_json_capped(path, MAX_FRAMES_FILE_BYTES)
             robots = doc.get("robots") if isinstance(doc, dict) else None
             if not isinstance(robots, list) or not all(
-                isinstance(r, str) and re.match(NAME_PATTERN, r) for r in robots
+                isinstance(r, str) and re.fullmatch(NAME_PATTERN, r) for r in robots
             ):
                 raise ValueError("no list of robot names under 'robots'")
         except FileNotFoundError:

@@ -19,8 +19,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from mapd.envelope import MAX_STR
 from mapd.errors import CodecError, LimitError, TransportError
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
+from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem, short_repr
 from mapd.ros2 import rmw
 from mapd.ros2.zenoh_config import zenoh_config_text
 
@@ -82,6 +83,19 @@ def encode(grid: OccupancyGrid, *, frame_id: str | None = None, stamp: float | N
     return bytes(ts.serialize_cdr(msg, MSGTYPE))
 
 
+def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
+    """The rotation about z (REP-103) of a finite quaternion, of any length; 0 for a zero one.
+
+    Normalized first (hypot does not overflow): components of 1e200 made the products inf and the
+    yaw NaN.
+    """
+    norm = math.hypot(x, y, z, w)
+    if norm == 0:
+        return 0.0
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def decode(
     payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS, where: str = "CDR payload"
 ) -> OccupancyGrid:
@@ -106,6 +120,8 @@ def decode(
         raise LimitError(f"{where}: {w} x {h} grid is over the limit of {max_cells} cells")
     if w < 1 or h < 1:
         raise CodecError(f"{where}: empty grid ({w} x {h})")
+    if max(w, h) > MAX_GRID_SIDE:
+        raise CodecError(f"{where}: {w} x {h} grid is over {MAX_GRID_SIDE} cells a side")
     data = np.asarray(msg.data)
     if data.size != w * h:
         raise CodecError(f"{where}: {data.size} cells for a {w} x {h} grid")
@@ -115,14 +131,27 @@ def decode(
     nums = (res, p.x, p.y, q.x, q.y, q.z, q.w)
     if not all(math.isfinite(v) for v in nums) or res <= 0:
         raise CodecError(f"{where}: resolution or origin is not a finite number (resolution {res})")
-    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-    yaw = 0.0 if norm == 0 else math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    origin = Pose2D(float(p.x), float(p.y), quaternion_yaw(q.x, q.y, q.z, q.w))
+    # The bounds every map file and payload keeps: a resolution of 1e-30 was taken, and froze the
+    # global map at it until a restart.
+    problem = geometry_problem(res, origin)
+    if problem is not None:
+        raise CodecError(f"{where}: {problem}")
+    frame_id = str(msg.header.frame_id) or "map"
+    if len(frame_id) > MAX_STR or not frame_id.isprintable():
+        # An envelope's fields hold 64 characters: every peer refused the robot's maps, unsaid.
+        raise CodecError(
+            f"{where}: frame_id {short_repr(frame_id)} ({len(frame_id)} characters) is not a frame"
+            f" name of at most {MAX_STR} printable characters"
+        )
     stamp = float(msg.header.stamp.sec) + float(msg.header.stamp.nanosec) * 1e-9
     return OccupancyGrid(
-        data=np.ascontiguousarray(data.astype(np.int8, copy=False).reshape(h, w)),
+        # A copy the grid owns: the message's array is a read-only view of the payload's bytes,
+        # which numba's kernels refuse (the lossless codec's failure stopped the daemon).
+        data=np.array(data, dtype=np.int8).reshape(h, w),
         resolution=res,
-        origin=Pose2D(float(p.x), float(p.y), yaw),
-        frame_id=str(msg.header.frame_id) or "map",
+        origin=origin,
+        frame_id=frame_id,
         stamp=stamp,
     )
 

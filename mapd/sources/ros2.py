@@ -61,7 +61,7 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 from mapd.errors import CodecError, LimitError, TransportError
-from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
@@ -121,6 +121,8 @@ class Ros2Source(MapSource):
         self._robots: dict[str, int] = {}  # robot -> versions yielded
         self._digests: dict[str, bytes] = {}
         self._announced: set[str] = set()
+        #: The robots counted against ``max_robots`` (a sample or a publisher's token seen).
+        self._taken: set[str] = set()
         self._waiting_pose: set[str] = set()
         self._ignored: set[str] = set()
         self._versions = 0
@@ -164,16 +166,24 @@ class Ros2Source(MapSource):
 
     def _accept_robot(self, robot: str) -> str | None:
         o = self.opts
-        if not ROBOT_NAME.match(robot) or not robot.startswith(o.robot_namespace):
+        # fullmatch: the pattern's $ let "robot1\n" through, a robot and a TF frame with a newline.
+        if not ROBOT_NAME.fullmatch(robot) or not robot.startswith(o.robot_namespace):
             return None
-        # A robot counts from its first sample or token, not its first map that decodes: names whose
-        # payloads never decode each held a subscription (and its token) for ever, without bound.
-        taken = self._robots.keys() | self._announced
-        if robot not in taken and len(taken) >= o.max_robots:
+        if robot == self.ctx.robot:
+            # Its maps would be taken as this robot's own, signed and sent to the fleet as such.
+            if robot not in self._ignored:
+                self._ignored.add(robot)
+                log.warning("ros2 source: ignoring a robot named %s, as this robot is", robot)
+            return None
+        # A robot counts from its first sample or token, not its first map that decodes (nor its
+        # init pose): names whose payloads never decode, or that wait for a pose, were kept for
+        # ever without bound, in every key format.
+        if robot not in self._taken and len(self._taken) >= o.max_robots:
             if robot not in self._ignored and len(self._ignored) < MAX_IGNORED_SAID:
                 self._ignored.add(robot)  # said once a name, for as many names as are worth saying
                 log.warning("ros2 source: already %d robots; ignoring %s", o.max_robots, robot)
             return None
+        self._taken.add(robot)
         return robot
 
     # -- zenoh side (runs on zenoh threads) ------------------------------------------------------------
@@ -190,16 +200,15 @@ class Ros2Source(MapSource):
     def _on_token(self, loop: asyncio.AbstractEventLoop, sample: Any) -> None:
         import zenoh
 
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
         try:
             entity = rmw.parse_token(str(sample.key_expr))
         except ValueError:
             return
         if entity.kind != "MP" or entity.topic is None or entity.type != rmw.dds_type(ros2cdr.MSGTYPE):
             return
+        gone = sample.kind != zenoh.SampleKind.PUT
         with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(self._discovered, entity.topic)
+            loop.call_soon_threadsafe(self._publisher_gone if gone else self._discovered, entity.topic)
 
     # -- asyncio side ----------------------------------------------------------------------------------
     def _offer(self, key: str, payload: bytes) -> None:
@@ -218,6 +227,15 @@ class Ros2Source(MapSource):
         robot = self.robot_of_topic(topic)
         if robot is not None:
             self._announce(robot, topic)
+
+    def _publisher_gone(self, topic: str) -> None:
+        """A robot's map publisher left: a robot that never sent a map no longer holds a place
+        (tokens made up and withdrawn held every place for ever, the real robots refused)."""
+        parts = topic.strip("/").split("/")
+        robot = parts[0] if len(parts) == 2 else ""
+        if robot in self._taken and robot not in self._robots and robot not in self._pending:
+            self._taken.discard(robot)
+            self._waiting_pose.discard(robot)
 
     def _announce(self, robot: str, topic: str) -> None:
         """Declare mapd's subscription to a robot's topic (once), off the loop."""
@@ -261,7 +279,10 @@ class Ros2Source(MapSource):
 
     def _decode(self, key: str, payload: bytes) -> tuple[OccupancyGrid, bytes] | None:
         """The map and its digest (a worker thread: both are a pass over every cell)."""
-        where = f"key {key}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {key})"
+        # The key as its repr, cut short: a publisher's key is anyone's text (a newline and a forged
+        # log line in it, 4 kB of it).
+        shown = short_repr(key, 120)
+        where = f"key {shown}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {shown})"
         try:
             grid = ros2cdr.decode(payload, max_cells=self.ctx.max_cells, where=where)
         except (CodecError, LimitError) as exc:

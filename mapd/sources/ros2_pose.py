@@ -25,7 +25,8 @@ import time
 from typing import Any, Literal
 
 from mapd.errors import CodecError, TransportError
-from mapd.grid import Pose2D, StampedPose
+from mapd.grid import MAX_ORIGIN_M, Pose2D, StampedPose
+from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
 
 log = logging.getLogger(__name__)
@@ -67,9 +68,12 @@ def decode_pose(payload: bytes, msgtype: str, *, distro: rmw.Distro = "jazzy") -
         raise CodecError("pose is not finite")
     if q.x == q.y == q.z == q.w == 0:
         raise CodecError("pose has a zero quaternion")
-    # Yaw about z (REP-103) in a form that holds for a quaternion that is not quite unit length.
-    yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), q.w * q.w + q.x * q.x - q.y * q.y - q.z * q.z)
-    return str(msg.header.frame_id), Pose2D(float(p.x), float(p.y), yaw)
+    if abs(p.x) > MAX_ORIGIN_M or abs(p.y) > MAX_ORIGIN_M:
+        # What every peer refuses in a pose message: sent on, each would have been dropped, unsaid.
+        raise CodecError(f"pose ({p.x:.6g}, {p.y:.6g}) is over {MAX_ORIGIN_M:g} m from the origin")
+    return str(msg.header.frame_id), Pose2D(
+        float(p.x), float(p.y), ros2cdr.quaternion_yaw(q.x, q.y, q.z, q.w)
+    )
 
 
 def _same_frame(a: str, b: str) -> bool:

@@ -134,6 +134,12 @@ def test_decode_pose_refuses_bad_payloads(rmw_peer: ModuleType) -> None:
         decode_pose(_pose_msg(rmw_peer, rmw_peer.POSE, math.nan, 0.0, 0.0), rmw_peer.POSE)
     with pytest.raises(CodecError, match="zero quaternion"):
         decode_pose(_pose_msg(rmw_peer, rmw_peer.POSE, 0.0, 0.0, 0.0, scale=0.0), rmw_peer.POSE)
+    # what every peer's unpack_pose refuses: it was sent on, and dropped by each of them, unsaid
+    with pytest.raises(CodecError, match="from the origin"):
+        decode_pose(_pose_msg(rmw_peer, rmw_peer.POSE, 2e7, 0.0, 0.0), rmw_peer.POSE)
+    # components that overflow when multiplied: a yaw all the same, not NaN
+    _, pose = decode_pose(_pose_msg(rmw_peer, rmw_peer.POSE, 0.0, 0.0, 0.3, scale=1e200), rmw_peer.POSE)
+    assert pose.yaw == pytest.approx(0.3, abs=1e-9)
 
 
 # -- over zenoh, with the independent peer --------------------------------------------------------------

@@ -233,3 +233,99 @@ def test_bridge_key_format_with_namespace(publisher_session: tuple[Any, str]) ->
 
     g = asyncio.run(go())
     assert np.array_equal(g.data, _grid(5).data)
+
+
+# -- what a misbehaving ROS graph sends (found by an audit against the real code) ------------------
+
+
+def _payload(**fields: Any) -> bytes:
+    """A valid map's CDR with ``info``/``header`` fields changed (``resolution=1e-30``, ...)."""
+    msg = ros2cdr._typestore().deserialize_cdr(ros2cdr.encode(_grid()), ros2cdr.MSGTYPE)
+    for name, value in fields.items():
+        if name == "frame_id":
+            msg.header.frame_id = value
+        elif name == "q":
+            o = msg.info.origin.orientation
+            o.x, o.y, o.z, o.w = value
+        else:
+            setattr(msg.info, name, value)
+    if "width" in fields:
+        msg.data = np.zeros(fields["width"] * msg.info.height, np.int8)
+    return bytes(ros2cdr._typestore().serialize_cdr(msg, ros2cdr.MSGTYPE))
+
+
+def test_a_decoded_map_is_one_the_lossless_codec_codes() -> None:
+    # The message's cells were a read-only view of the payload: numba's kernel refused them with a
+    # TypingError, no MapdError, and the daemon stopped at the first map it sent (default codec).
+    from mapd.codec import decode, encode
+
+    grid = ros2cdr.decode(ros2cdr.encode(_grid(3)))
+    assert grid.data.flags.writeable
+    assert decode(encode(grid, "lossless"), None).same_map(grid)
+    frozen = _grid(4)
+    frozen.data.flags.writeable = False  # any read-only grid, whoever made it
+    assert decode(encode(frozen, "lossless", base=_grid(4)), _grid(4)).same_map(frozen)
+
+
+@pytest.mark.parametrize(
+    ("fields", "says"),
+    [
+        ({"resolution": 1e-30}, "resolution"),  # took, and froze the global map at 1e-30 until a restart
+        ({"resolution": 1e6}, "resolution"),
+        ({"width": 70_000}, "over 65536 cells a side"),
+        ({"frame_id": "m" * 65}, "65 characters"),  # every peer refused its envelopes, unsaid
+        ({"frame_id": "map\n03:00:00 ERROR forged"}, "printable"),
+    ],
+)
+def test_a_map_no_envelope_or_map_file_could_hold_is_refused(fields: dict[str, Any], says: str) -> None:
+    with pytest.raises(CodecError, match=says) as err:
+        ros2cdr.decode(_payload(**fields), where="topic /map")
+    assert "\n" not in str(err.value)
+
+
+def test_a_quaternion_of_huge_numbers_is_a_yaw_not_nan() -> None:
+    g = ros2cdr.decode(_payload(q=(1e200, -1e200, 1e200, 1e200)))  # the products overflowed: NaN
+    assert math.isfinite(g.origin.yaw)
+    assert ros2cdr.decode(_payload(q=(0.0, 0.0, 0.0, 0.0))).origin.yaw == 0.0
+
+
+def _discovering(robot: str = "base", **kw: Any) -> Ros2Source:
+    return Ros2Source(Ros2Options(discover_robots=True, **kw), SourceContext(robot=robot))
+
+
+def test_a_ros_robot_named_as_this_robot_or_with_a_newline_is_not_taken(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # "base/map" was taken as the base station's own map: signed and sent to the fleet as its own.
+    src = _discovering()
+    assert src.robot_of_topic("/base/map") is None
+    assert src.robot_of_topic("/robot1\n/map") is None and src.robot_of_key("0/robot1\n/map/x/y") is None
+    assert src.robot_of_topic("/robot1/map") == "robot1"
+    assert sum("as this robot is" in r.getMessage() for r in caplog.records) == 1
+
+
+@pytest.mark.parametrize("key_format", ["rmw_zenoh", "ros2dds"])
+def test_robot_names_are_bounded_in_every_key_format(key_format: str) -> None:
+    # ros2dds has no node and no tokens: every made-up name was kept (17,940 of them in an audit).
+    src = _discovering(max_robots=4, key_format=key_format, known_init_poses=True)
+    keys = [f"0/r{i}/map/t/h" if key_format == "rmw_zenoh" else f"r{i}/map" for i in range(1000)]
+    taken = {src.robot_of_key(k) for k in keys} - {None}
+    assert taken == {"r0", "r1", "r2", "r3"} and len(src._taken) == 4 and len(src._ignored) <= 64
+
+
+def test_a_publisher_that_leaves_without_a_map_frees_its_place() -> None:
+    # Four made-up publisher tokens, withdrawn a second later, held every place for ever.
+    src = _discovering(max_robots=4)
+    assert all(src.robot_of_topic(f"/robotx{i}/map") for i in range(4))
+    assert src.robot_of_topic("/robot1/map") is None
+    for i in range(4):
+        src._publisher_gone(f"/robotx{i}/map")
+    assert src.robot_of_topic("/robot1/map") == "robot1"
+
+
+def test_a_key_is_logged_as_one_short_line(caplog: pytest.LogCaptureFixture) -> None:
+    src = _discovering()
+    key = "0/robot1/map/x\n03:00:00 ERROR mapd.daemon: forged " + "A" * 4000
+    assert src._decode(key, b"junk") is None
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "\n" not in said[0] and len(said[0]) < 400
