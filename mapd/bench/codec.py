@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mapd.bench.common import int_arg
+from mapd.bench.common import MAX_REPEAT, int_arg
 from mapd.tables import emit, table
 
 HELP = "codec size, speed and quality on the shared maps, beside zstd -19 and brotli -11"
@@ -33,7 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps", type=Path, default=None, help="folder of map_server maps (default: shared data)")
     p.add_argument("--limit", type=int_arg(1), default=None, help="only the first N maps")
     p.add_argument(
-        "--repeat", type=int_arg(1), default=1, help="time each call this many times, keep the best"
+        "--repeat",
+        type=int_arg(1, MAX_REPEAT),
+        default=1,
+        help="time each call this many times, keep the best",
     )
     p.add_argument("--summary", action="store_true", help="print only the aggregate table")
 

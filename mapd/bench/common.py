@@ -24,6 +24,25 @@ T = TypeVar("T")
 #: The paper's UWB link budget (Zhang & Deng 2024): 12.5 kb/s.
 UWB_BPS = 12_500.0
 
+#: The link rates a UWB link may be given (``[transports.uwb] link_rate_bps``): at least two
+#: 224-byte frames (the default ``max_frame``) a second, the pacer's burst, and at most 10 Mb/s.
+UWB_MIN_BPS = 2 * 224 * 8
+UWB_MAX_BPS = 10_000_000
+
+#: The largest seed taken anywhere: numpy, torch and the simulator's ``[source.sim] seed`` take
+#: seeds below 2**63.
+MAX_SEED = 2**63 - 1
+
+#: The most robots one simulated building (or shared log) is split among: ``[source.sim] robots``.
+MAX_SIM_ROBOTS = 64
+
+#: The most timing repeats a bench takes: its run grows with them, and a best (or median) of
+#: a thousand is as good as any.
+MAX_REPEAT = 1000
+
+#: The longest a command may be asked to run for, in wall seconds: a day; longer is a typo.
+DAY_S = 86_400.0
+
 #: The metrics of a map that came back exact: identical images have an infinite PSNR and an SSIM
 #: of exactly 1 by definition, which computing them would only blur with rounding.
 EXACT = {"psnr": math.inf, "ssim": 1.0, "f1": 1.0, "changed": 0.0}

@@ -18,16 +18,31 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mapd.bench.common import DAY_S, MAX_SEED, MAX_SIM_ROBOTS, float_arg, int_arg
 from mapd.tables import emit, table
 
 HELP = "N daemons over zenoh on loopback (peers, or clients of one router): latency, bytes, CPU, memory"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8], help="fleet sizes (default 2 4 8)")
-    p.add_argument("--duration", type=float, default=40.0, help="seconds per fleet size (default 40)")
+    # A fleet is 2 robots at least (the latencies are between robots), at most what mapd demo runs.
+    p.add_argument(
+        "--robots",
+        type=int_arg(2, MAX_SIM_ROBOTS),
+        nargs="+",
+        default=[2, 4, 8],
+        help=f"fleet sizes, 2 to {MAX_SIM_ROBOTS} (default 2 4 8)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float_arg(1.0, DAY_S),
+        default=40.0,
+        help="seconds per fleet size, 1 to 86400 (default 40)",
+    )
     p.add_argument("--codec", default="lossless", help="codec (default lossless)")
-    p.add_argument("--seed", type=int, default=7)
+    p.add_argument(
+        "--seed", type=int_arg(0, MAX_SEED), default=7, help="building seed, 0 or more (default 7)"
+    )
     p.add_argument("--out", type=Path, default=Path("out/bench-fleet"), help="work folder")
     p.add_argument(
         "--router",

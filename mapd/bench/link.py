@@ -23,6 +23,7 @@ import argparse
 import os
 from typing import Any
 
+from mapd.bench.common import DAY_S, MAX_SEED, UWB_MAX_BPS, UWB_MIN_BPS, float_arg, int_arg
 from mapd.tables import emit, table
 
 HELP = "UWB transport goodput through the fault relay at 12.5 kb/s: clean, faulty, vs the raw line"
@@ -53,10 +54,23 @@ COLUMNS = [
 ]
 
 
+def _size_arg(text: str) -> int:
+    """``--size``: 1 byte to the most one uwb message carries (at 12.5 kb/s, three hours); the
+    bound is imported when the option is given, as it comes with pydantic."""
+    from transports.uwb.options import MAX_MESSAGE
+
+    return int_arg(1, MAX_MESSAGE)(text)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--size", type=int, default=50_000, help="message size in bytes (default 50000)")
-    p.add_argument("--rate-bps", type=float, default=12500.0, help="emulated link rate (default 12500)")
-    p.add_argument("--seed", type=int, default=1, help="fault seed (default 1)")
+    p.add_argument("--size", type=_size_arg, default=50_000, help="message size in bytes (default 50000)")
+    p.add_argument(
+        "--rate-bps",
+        type=float_arg(UWB_MIN_BPS, UWB_MAX_BPS),
+        default=12500.0,
+        help=f"emulated link rate, {UWB_MIN_BPS} to {UWB_MAX_BPS} (default 12500)",
+    )
+    p.add_argument("--seed", type=int_arg(0, MAX_SEED), default=1, help="fault seed, 0 or more (default 1)")
     p.add_argument(
         "--scenarios",
         nargs="+",
@@ -64,9 +78,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=["line", "clean", "signed", "faulty"],
         help="which to run (default: line clean signed faulty)",
     )
-    p.add_argument("--outage-at", type=float, default=5.0, help="faulty: outage start, s (default 5)")
-    p.add_argument("--pose-period", type=float, default=5.0, help="poses: seconds between poses (default 5)")
-    p.add_argument("--idle", type=float, default=60.0, help="poses: idle seconds measured (default 60)")
+    p.add_argument(
+        "--outage-at", type=float_arg(0.0, DAY_S), default=5.0, help="faulty: outage start, s (default 5)"
+    )
+    # Faster than ten poses a second only floods the link (and 0 was a busy loop).
+    p.add_argument(
+        "--pose-period",
+        type=float_arg(0.1, 3600.0),
+        default=5.0,
+        help="poses: seconds between poses, 0.1 to 3600 (default 5)",
+    )
+    p.add_argument(
+        "--idle", type=float_arg(1.0, DAY_S), default=60.0, help="poses: idle seconds measured (default 60)"
+    )
 
 
 async def _line(size: int, rate: float, seed: int) -> dict[str, Any]:

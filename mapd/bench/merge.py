@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mapd.bench.common import int_arg
+from mapd.bench.common import MAX_REPEAT, int_arg
 from mapd.tables import emit
 
 HELP = "map-merge success rate vs the m-explore baseline, by overlap; merge speed"
@@ -37,10 +37,17 @@ BUCKETS = [(0.15, 0.25), (0.25, 0.40), (0.40, 0.60), (0.60, 0.80)]
 #: and spread over 25 m their global map (about 6800 cells a side) still fits the daemon's
 #: DEFAULT_MAX_CELLS; a larger side only asks for gigabytes.
 MAX_MERGE_SIZE = 4096
+#: Most synthetic pairs: each takes a second or two to build and place (the docs' runs use 200).
+MAX_PAIRS = 10_000
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--pairs", type=int_arg(0), default=60, help="synthetic pairs (default 60)")
+    p.add_argument(
+        "--pairs",
+        type=int_arg(0, MAX_PAIRS),
+        default=60,
+        help=f"synthetic pairs, 0 to {MAX_PAIRS} (default 60)",
+    )
     p.add_argument("--seed", type=int_arg(0), default=1, help="random seed, 0 or more (default 1)")
     p.add_argument("--no-real", action="store_true", help="skip the real radish part1/part2 pairs")
     p.add_argument(
@@ -49,10 +56,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=2000,
         help=f"side of the 4 maps in the speed rows, 16 to {MAX_MERGE_SIZE} cells (default 2000)",
     )
-    p.add_argument("--repeat", type=int_arg(1), default=3, help="timing repeats for the speed rows (median)")
+    p.add_argument(
+        "--repeat",
+        type=int_arg(1, MAX_REPEAT),
+        default=3,
+        help="timing repeats for the speed rows (median)",
+    )
     p.add_argument(
         "--only",
-        type=int,
+        type=int_arg(1),  # pair numbers count from 1; the top is checked once the pairs are built
         nargs="+",
         metavar="N",
         help="evaluate only these pairs (numbered as the progress lines print them) and skip the speed rows",

@@ -12,6 +12,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+# Light (no pydantic), and loaded by ``mapd bench``'s options at every start anyway.
+from mapd.bench.common import DAY_S, MAX_SEED, MAX_SIM_ROBOTS, float_arg, int_arg
+
 DEFAULT_CONFIG = Path(os.environ.get("MAPD_CONFIG", "/etc/mapd/config.toml"))
 
 
@@ -64,12 +67,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "maps over socat pty pairs through an emulated 12.5 kb/s radio (or zenoh), then write the "
         "global map, bandwidth and quality figures and a metrics table.",
     )
-    p.add_argument("--robots", type=int, default=2, help="fleet size (default 2)")
+    p.add_argument(
+        "--robots",
+        type=int_arg(2, MAX_SIM_ROBOTS),  # "the demo needs at least 2 robots", said while parsing
+        default=2,
+        help=f"fleet size, 2 to {MAX_SIM_ROBOTS} (default 2)",
+    )
     p.add_argument("--transport", choices=["uwb", "zenoh"], default="uwb", help="link between robots")
     p.add_argument("--codec", default="lossless", help="codec the robots use (default lossless)")
     p.add_argument("--log", type=Path, default=None, help="replay a CARMEN log instead of the simulator")
-    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
-    p.add_argument("--seed", type=int, default=7, help="building and robots seed")
+    p.add_argument(
+        "--duration", type=float_arg(1.0, DAY_S), default=60.0, help="seconds to run, 1 to 86400 (default 60)"
+    )
+    p.add_argument("--seed", type=int_arg(0, MAX_SEED), default=7, help="building and robots seed, 0 or more")
     p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
     p.add_argument(
         "--record",
@@ -80,7 +90,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--view",
-        type=int,
+        type=int_arg(1, 65535),
         default=None,
         metavar="PORT",
         help="serve robot0's live web view on http://127.0.0.1:PORT/ while the demo runs",
@@ -93,8 +103,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "zenoh endpoint, e.g. tcp/127.0.0.1:7447",
     )
     faults = p.add_argument_group("faults on the emulated UWB link (--transport uwb)")
-    faults.add_argument("--drop", type=float, default=0.0, metavar="P", help="frame loss probability")
-    faults.add_argument("--flip", type=float, default=0.0, metavar="P", help="bit-flip probability per byte")
+    probability = float_arg(0.0, 1.0)
+    faults.add_argument("--drop", type=probability, default=0.0, metavar="P", help="frame loss probability")
+    faults.add_argument(
+        "--flip", type=probability, default=0.0, metavar="P", help="bit-flip probability per byte"
+    )
     faults.add_argument(
         "--outage",
         action="append",
@@ -129,8 +142,10 @@ def _outage_arg(text: str) -> str:
         start, seconds = (float(x) for x in text.split(":"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"outage '{text}' is not START:SECONDS") from None
-    if start < 0 or seconds <= 0:
-        raise argparse.ArgumentTypeError(f"outage '{text}': START must be >= 0 and SECONDS > 0")
+    if not (0.0 <= start <= DAY_S and 0.0 < seconds <= DAY_S):  # NaN fails too
+        raise argparse.ArgumentTypeError(
+            f"outage '{text}': START must be 0 to {DAY_S:g} s and SECONDS above 0, at most {DAY_S:g}"
+        )
     return text
 
 

@@ -16,8 +16,25 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mapd.bench.common import DAY_S, UWB_MAX_BPS, float_arg, int_arg
 from mapd.errors import ConfigError, TransportError
 from mapd.keys import read_key_file
+
+#: The largest frame ``[transports.uwb] max_frame`` takes.
+MAX_FRAME = 4096
+#: A link id on the air.
+LINK_ID = int_arg(1, 254)
+#: A wait in seconds: at least a tenth of a second (a frame's time), at most a day.
+SECONDS = float_arg(0.1, DAY_S)
+
+
+def _max_frame(text: str) -> int:
+    """``--max-frame``, from the framing's shortest frame to :data:`MAX_FRAME`; transports is
+    imported only when the option is given, as the handlers do, never at every ``mapd`` start."""
+    from transports.uwb.framing import MIN_FRAME
+
+    return int_arg(MIN_FRAME, MAX_FRAME)(text)
+
 
 _SHOWN = (
     "bytes_tx",
@@ -36,11 +53,24 @@ _SHOWN = (
 
 def _common(p: argparse.ArgumentParser, node: int) -> None:
     p.add_argument("--port", required=True, help="serial device of the UWB radio (e.g. /dev/ttyUSB0)")
-    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-    p.add_argument("--rate-bps", type=int, default=12500, help="link rate to pace at, bits/s (default 12500)")
-    p.add_argument("--max-frame", type=int, default=224, help="largest frame on the wire (default 224)")
+    # The bounds of [transports.uwb] baud, link_rate_bps and max_frame; the pair's rule is _config's.
+    p.add_argument(
+        "--baud", type=int_arg(1200, 4_000_000), default=115200, help="serial baud rate (default 115200)"
+    )
+    p.add_argument(
+        "--rate-bps",
+        type=int_arg(2000, UWB_MAX_BPS),
+        default=12500,
+        help="link rate to pace at, bits/s (default 12500)",
+    )
+    p.add_argument(
+        "--max-frame",
+        type=_max_frame,
+        default=224,
+        help=f"largest frame on the wire, at most {MAX_FRAME} (default 224)",
+    )
     p.add_argument("--key", type=Path, help="fleet key file (hex or raw, 16+ bytes): sign and verify frames")
-    p.add_argument("--node", type=int, default=node, help=f"this end's link id (default {node})")
+    p.add_argument("--node", type=LINK_ID, default=node, help=f"this end's link id (default {node})")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
 
 
@@ -55,15 +85,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = lsub.add_parser("send", help="send FILE and wait until the peer has verified it")
     s.add_argument("file", type=Path, help="file to send")
     _common(s, node=1)
+    # Checked by cmd_send together with --node (a peer must not be this end): one line either way.
     s.add_argument("--peer", type=int, action="append", help="receiver link id (repeatable; default 2)")
-    s.add_argument("--deadline", type=float, default=300.0, help="give up after this many seconds (300)")
+    s.add_argument("--deadline", type=SECONDS, default=300.0, help="give up after this many seconds (300)")
     s.set_defaults(func=cmd_send)
     r = lsub.add_parser("recv", help="receive one message, verify it, write it to -o FILE")
     r.add_argument("-o", "--output", type=Path, required=True, help="file to write")
     _common(r, node=2)
-    r.add_argument("--peer", type=int, help="accept only from this link id (default: any)")
-    r.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (600)")
-    r.add_argument("--linger", type=float, default=3.0, help="keep answering acks this long after (3 s)")
+    # An id no sender can have would wait out the whole --timeout for nothing.
+    r.add_argument("--peer", type=LINK_ID, help="accept only from this link id (default: any)")
+    r.add_argument("--timeout", type=SECONDS, default=600.0, help="give up after this many seconds (600)")
+    r.add_argument(
+        "--linger", type=float_arg(0.0, 60.0), default=3.0, help="keep answering acks this long after (3 s)"
+    )
     r.set_defaults(func=cmd_recv)
     p.set_defaults(func=lambda args: p.print_help() or 2)
 

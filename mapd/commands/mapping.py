@@ -6,6 +6,11 @@ import argparse
 import sys
 from pathlib import Path
 
+from mapd.bench.common import float_arg
+
+#: The longest usable lidar range (m) --max-range takes; ``inf`` is what leaving it out means.
+MAX_RANGE_M = 1000.0
+
 
 def _resolution(text: str) -> float:
     """``--resolution``, checked by the mapper's rule; imported when given (numpy and pydantic
@@ -32,9 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=_resolution, default=0.05, help="meters per cell (default 0.05)")
     p.add_argument(
         "--max-range",
-        type=float,
+        type=float_arg(0.01, MAX_RANGE_M),
         default=None,
-        help="usable range in m; longer beams only clear (default: all)",
+        help=f"usable range in m, 0.01 to {MAX_RANGE_M:g}; longer beams only clear (default: all)",
     )
     p.add_argument("--robots", type=int, default=1, help="split the log into K overlapping parts (default 1)")
     p.add_argument(
@@ -55,8 +60,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     if args.every < 1:
         raise ConfigError("--every must be at least 1")
-    if args.max_range is not None and not (args.max_range > 0):
-        raise ConfigError("--max-range must be positive")
     if not 1 <= args.robots <= 64:
         raise ConfigError("--robots must lie in 1..64")
     if not 0.0 <= args.overlap < 1.0:

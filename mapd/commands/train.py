@@ -5,6 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mapd.bench.common import MAX_SEED, int_arg
+
+#: Most scans of one simulated run: 20,000 sim seconds at 5 Hz, about 70 times the default.
+MAX_SIM_SCANS = 100_000
+
 EPILOG = """\
 example (the shipped model):
   mapd train --maps ../shared/data/maps --epochs 200 --tile 64 --seed 0 --levels 16 \\
@@ -33,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--maps", type=Path, default=None, help="folder of map_server maps (default: the shared data)"
     )
+    # --epochs to --threads: mapd.train.loop.check_settings bounds them, one line before any work.
     p.add_argument("--epochs", type=int, default=12, help="passes over --tiles-per-epoch tiles (default 12)")
     p.add_argument(
         "--tile", type=int, default=64, help="tile side in cells, a multiple of 4 from 8 to 256 (default 64)"
@@ -77,7 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     snap.add_argument(
         "--snapshots-sim",
-        type=int,
+        type=int_arg(0, MAX_SEED),
         nargs="+",
         default=[],
         metavar="SEED",
@@ -87,7 +93,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--snapshot-every", type=int, default=100, metavar="N", help="scans between snapshots (default 100)"
     )
     snap.add_argument(
-        "--sim-scans", type=int, default=1500, metavar="N", help="scans per simulated run (default 1500)"
+        "--sim-scans",
+        type=int_arg(1, MAX_SIM_SCANS),
+        default=1500,
+        metavar="N",
+        help=f"scans per simulated run, 1 to {MAX_SIM_SCANS} (default 1500)",
     )
     snap.add_argument(
         "--no-finished",

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from mapd.bench.common import MAX_SEED, UWB_MAX_BPS, UWB_MIN_BPS, float_arg, int_arg
 from mapd.tables import emit, table
 
 if TYPE_CHECKING:
@@ -72,11 +73,25 @@ BOUND_COLUMNS = [
 ]
 
 
+#: Sim seconds a run makes versions (or drains) for at most: 64 robots take minutes for the default
+#: 600, and each robot's streams are simulated ahead for all of it.
+MAX_SIM_S = 3600.0
+#: A building's sides (m), as ``[source.sim] width_m`` and ``height_m`` take them.
+BUILDING_M = (6.0, 500.0)
+#: Fleet sizes one channel holds: link ids 1..254, two robots at least to share anything.
+ROBOTS = int_arg(2, 254)
+PROBABILITY = float_arg(0.0, 1.0)
+SEED = int_arg(0, MAX_SEED)
+
+
 def _size(text: str) -> tuple[float, float]:
     try:
         w, h = (float(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not WxH in metres (e.g. 60x40)") from None
+    low, high = BUILDING_M
+    if not (low <= w <= high and low <= h <= high):  # NaN fails too
+        raise argparse.ArgumentTypeError(f"'{text}': each side must be {low:g} to {high:g} m")
     return w, h
 
 
@@ -89,14 +104,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument(
         "--sim",
-        type=int,
+        type=SEED,
         metavar="SEED",
         default=None,
         help="drive the simulator's building (default seed 7)",
     )
     src.add_argument("--log", type=Path, default=None, help="robots replay slices of this CARMEN log")
     p.add_argument(
-        "--robots", type=int, nargs="+", default=[2, 4, 8, 16, 32, 64], help="fleet sizes (default 2 .. 64)"
+        "--robots",
+        type=ROBOTS,
+        nargs="+",
+        default=[2, 4, 8, 16, 32, 64],
+        help="fleet sizes (default 2 .. 64)",
     )
     p.add_argument(
         "--codec",
@@ -112,16 +131,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="medium access (default tdma)",
     )
     p.add_argument(
-        "--period", type=float, default=30.0, help="seconds between map versions (default 30, as the paper)"
+        "--period",
+        type=float_arg(1.0, MAX_SIM_S),
+        default=30.0,
+        help="seconds between map versions (default 30, as the paper)",
     )
     p.add_argument(
-        "--duration", type=float, default=600.0, help="seconds during which versions are made (default 600)"
+        "--duration",
+        type=float_arg(1.0, MAX_SIM_S),
+        default=600.0,
+        help=f"seconds during which versions are made, 1 to {MAX_SIM_S:g} (default 600)",
     )
     p.add_argument(
-        "--drain", type=float, default=300.0, help="then at most this long to converge (default 300)"
+        "--drain",
+        type=float_arg(0.0, MAX_SIM_S),
+        default=300.0,
+        help="then at most this long to converge (default 300)",
     )
-    p.add_argument("--rate", type=float, default=12_500.0, help="channel bit/s (default 12500)")
-    p.add_argument("--loss", type=float, default=0.0, help="per-frame loss probability (default 0)")
+    p.add_argument(
+        "--rate",
+        type=float_arg(UWB_MIN_BPS, UWB_MAX_BPS),
+        default=12_500.0,
+        help=f"channel bit/s, {UWB_MIN_BPS} to {UWB_MAX_BPS} (default 12500)",
+    )
+    p.add_argument("--loss", type=PROBABILITY, default=0.0, help="per-frame loss probability (default 0)")
     p.add_argument(
         "--range",
         dest="range_m",
@@ -130,7 +163,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=[math.inf],
         help="radio range in m of line-of-sight distance; several: a run each (default: all in range)",
     )
-    p.add_argument("--wall-loss", type=float, default=0.0, help="extra loss per wall crossed (default 0)")
+    p.add_argument(
+        "--wall-loss", type=PROBABILITY, default=0.0, help="extra loss per wall crossed (default 0)"
+    )
     p.add_argument(
         "--building",
         type=_size,
@@ -138,7 +173,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="WxH",
         help="sim building size in m (default 30x20)",
     )
-    p.add_argument("--scan-rate", type=float, default=1.0, help="sim lidar scans per second (default 1)")
+    p.add_argument(
+        "--scan-rate",
+        type=float_arg(0.1, 50.0),  # [source.sim] scan_rate's top; 0 divided by zero
+        default=1.0,
+        help="sim lidar scans per second, 0.1 to 50 (default 1)",
+    )
     p.add_argument(
         "--unsigned",
         action="store_true",
@@ -192,14 +232,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--guard-ms",
-        type=float,
+        type=float_arg(0.0, 1000.0),
         default=10.0,
         help="tdma: quiet time at the end of each slot, added to the default slot (default 10, the "
         "daemon's guard_ms)",
     )
     p.add_argument(
         "--clock-skew",
-        type=float,
+        type=float_arg(0.0, 3_600_000.0),
         nargs="+",
         default=[0.0],
         metavar="MS",
@@ -208,19 +248,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--slot-ms",
-        type=float,
+        type=float_arg(1.0, 60_000.0),  # 0 divided by zero; each slot is simulated, so not much finer
         default=None,
         help="tdma slot per robot (default the daemon's: 4 full frames + 10 ms guard, 583 ms at 12.5 kb/s)",
     )
     p.add_argument(
         "--inflight-s",
-        type=float,
+        type=float_arg(1.0, MAX_SIM_S),
         default=30.0,
         help="publisher's in-flight timeout (default 30, the daemon's; 5 s per peer if longer)",
     )
     p.add_argument(
         "--keyframe-every",
-        type=int,
+        type=int_arg(1),
         default=None,
         metavar="K",
         help="a keyframe every K coded versions at least (default: the daemon's [codec] keyframe_every)",
@@ -234,7 +274,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--seed",
-        type=int,
+        type=SEED,
         nargs="+",
         default=[0],
         help="radio, backoff, session and start-phase seed; several: a row each, then their mean "
@@ -250,7 +290,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--target",
-        type=float,
+        type=float_arg(0.0, 1000.0),
         default=None,
         metavar="PERIODS",
         help="with --plot: the goal, as a horizontal line",
@@ -277,16 +317,9 @@ def run(args: argparse.Namespace) -> int:
             args.plot.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"{args.plot}: cannot write the plot: {exc.strerror or exc}") from None
-    if not 0 <= args.guard_ms <= 1000:
-        raise SourceError(f"--guard-ms {args.guard_ms:g}: must be in 0 .. 1000 ms")
-    if not all(0 <= k <= 3_600_000 for k in args.clock_skew):
-        raise SourceError(
-            f"--clock-skew {' '.join(f'{k:g}' for k in args.clock_skew)}: each in 0 .. 3600000 ms"
-        )
+    # The other numbers are bounded while parsing; --range keeps inf (all in range, the default).
     if not all(r > 0 for r in args.range_m):
         raise SourceError(f"--range {' '.join(f'{r:g}' for r in args.range_m)}: each must be above 0 m")
-    if args.keyframe_every is not None and args.keyframe_every < 1:
-        raise SourceError(f"--keyframe-every {args.keyframe_every}: must be 1 or more")
     sim_seed = 7 if args.sim is None and args.log is None else args.sim
     rows: list[dict[str, Any]] = []
     bounds: list[dict[str, Any]] = []
@@ -294,8 +327,6 @@ def run(args: argparse.Namespace) -> int:
     for name in dict.fromkeys(args.codec):
         warm_up(name)
     for n in args.robots:
-        if not 2 <= n <= 254:
-            raise SourceError(f"--robots {n}: a channel holds 2 to 254 robots")
         t0 = time.perf_counter()
         fleet = load_fleet(
             cache=args.cache, n=n, period=args.period, duration=args.duration,
