@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import io
 import json
 import logging
 import os
@@ -25,6 +26,7 @@ import select
 import stat
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -53,6 +55,14 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
     regular file.
     """
     atomic_write_files([(path, payload)])
+
+
+def atomic_write_via(path: Path, write: Callable[[io.BytesIO], object]) -> None:
+    """:func:`atomic_write_bytes` of what ``write`` puts in a buffer (a figure's ``savefig``, a CSV
+    writer): a report written again never leaves half a file where the last one was whole."""
+    buf = io.BytesIO()
+    write(buf)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
@@ -112,6 +122,8 @@ def _write_target(path: Path) -> Path:
     except OSError:
         pass  # not there yet (or unreadable: the write says what is wrong)
     else:
+        if stat.S_ISDIR(mode):  # the same refusal, said as the OS says it
+            raise NotRegularFileError(errno.EISDIR, "Is a directory", str(path))
         if not stat.S_ISREG(mode):
             raise NotRegularFileError(22, "not a regular file", str(path))
     return path
@@ -225,8 +237,14 @@ def open_regular(path: Path) -> BinaryIO:
     return _open_checked(path, regular=True)
 
 
-#: The longest :func:`read_capped` waits for a file's end: a pipe whose writer holds it open.
-READ_TIMEOUT_S = 30.0
+#: The longest :func:`read_capped` waits for a file's end: a pipe whose writer holds it open. Small
+#: files (a config, a key, a token) are written at once; the daemon's stop (systemd gives it 10 s)
+#: must not wait long on a reload stuck on one. Data a command reads from a pipe gets longer
+#: (:data:`DATA_READ_TIMEOUT_S`).
+READ_TIMEOUT_S = 5.0
+#: The deadline of a payload or message a command reads (``mapd decode``, ``mapd link send``),
+#: which may come through a pipe from a slow producer (``ssh robot cat ...``).
+DATA_READ_TIMEOUT_S = 60.0
 
 
 def read_capped(path: Path, cap: int, *, timeout_s: float | None = None) -> bytes:

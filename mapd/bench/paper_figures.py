@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mapd.demo.report import COLOURS
+from mapd.files import atomic_write_via
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -73,7 +74,7 @@ def fig8a(path: Path, results: dict[str, Any], rows: tuple[str, ...]) -> None:
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic_write_via(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
 
@@ -125,7 +126,7 @@ def fig8b(path: Path, results: dict[str, Any], rows: tuple[str, ...]) -> None:
     a2.legend(fontsize=7)
     a2.grid(alpha=0.3, axis="y")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic_write_via(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
 
@@ -164,7 +165,7 @@ def fig9_poses(path: Path, grid: OccupancyGrid, fig9: dict[str, Any], lossy: str
     ax.set_title(f"Figure 9 equivalent: {len(truth)} test poses on the global map")
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic_write_via(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
 
@@ -200,7 +201,7 @@ def fig9_errors(path: Path, fig9: dict[str, Any], paper: dict[str, Any]) -> None
         "Figure 9 equivalent: localization error per test pose (box: quartiles, range; triangle: mean)"
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic_write_via(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
 

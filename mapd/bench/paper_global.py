@@ -16,6 +16,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
+from mapd.files import atomic_write_via
+
 if TYPE_CHECKING:
     from pathlib import Path
 
@@ -113,5 +115,5 @@ def figure(path: Path, fig7_result: dict[str, Any], lossy: str, columns: int = 6
         fontsize=9,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic_write_via(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)

@@ -7,12 +7,14 @@ states the command, the settings and the choices the evaluation makes.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from pathlib import Path
 from typing import Any
 
 from mapd.errors import MapdError
+from mapd.files import atomic_write_bytes
 from mapd.grid import OccupancyGrid
 from mapd.tables import dump_json, md_table, table
 
@@ -165,10 +167,11 @@ FIG9_COLS = [
 
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     fields: list[str] = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=fields)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(path, text.getvalue().encode())
 
 
 def markdown(results: dict[str, Any], figures: list[Path]) -> str:
@@ -310,13 +313,14 @@ def write(
     from mapd.bench import paper_figures, paper_global
 
     try:
-        (out / "results.json").write_text(dump_json(results))
+        # Each file whole or as it was: a run stopped mid-write left the last run's results cut short.
+        atomic_write_bytes(out / "results.json", dump_json(results).encode())
         _write_csv(out / "updates.csv", results["fig8"]["updates"])
         _write_csv(out / "poses.csv", results["fig9"]["poses"])
         figures = paper_figures.write_all(out, results, maps, fig9, ROWS)
         # Inside the try, like every other file: a folder in its way is one error line.
         paper_global.figure(out / "fig7_global.png", global7, ROWS[0])
-        (out / "report.md").write_text(markdown(results, figures))
+        atomic_write_bytes(out / "report.md", markdown(results, figures).encode())
     except OSError as exc:
         where = exc.filename or out  # the file in the way, where the error names one
         raise MapdError(f"{where}: cannot write the report: {exc.strerror or exc}") from None

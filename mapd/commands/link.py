@@ -133,11 +133,12 @@ def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, 
 def cmd_send(args: argparse.Namespace) -> int:
     import asyncio
 
-    from mapd.files import read_capped
+    from mapd.files import DATA_READ_TIMEOUT_S, read_capped
     from transports.uwb.options import MAX_MESSAGE
 
     try:
-        data = read_capped(args.file, MAX_MESSAGE)  # /dev/zero was read until memory ran out
+        # /dev/zero was read until memory ran out
+        data = read_capped(args.file, MAX_MESSAGE, timeout_s=DATA_READ_TIMEOUT_S)
     except OSError as exc:
         raise TransportError(f"{args.file}: cannot read: {exc.strerror}") from None
     if len(data) > MAX_MESSAGE:

@@ -180,10 +180,11 @@ def cmd_decode(args: argparse.Namespace) -> int:
     # Read at most what the largest payload decode accepts (a raw map at the cell limit plus its
     # header), so that /dev/zero or a wrong file is refused instead of read into memory.
     limit = DEFAULT_MAX_CELLS + (1 << 16)
-    from mapd.files import read_capped
+    from mapd.files import DATA_READ_TIMEOUT_S, read_capped
 
     try:
-        payload = read_capped(args.payload, limit)  # a FIFO with no writer reads as empty, never blocks
+        # a FIFO with no writer reads as empty, one held open without data is given up
+        payload = read_capped(args.payload, limit, timeout_s=DATA_READ_TIMEOUT_S)
     except OSError as exc:
         raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
     if len(payload) > limit:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import shutil
@@ -14,6 +15,7 @@ import numpy as np
 
 from mapd.daemon.versions import label, split
 from mapd.errors import MapdError
+from mapd.files import atomic_write_bytes, atomic_write_via
 from mapd.fusion.store import read_owner
 from mapd.grid import OccupancyGrid, load_map
 from mapd.tables import table
@@ -131,7 +133,7 @@ def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
     ax.legend(fontsize=7, ncol=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "bandwidth.png", dpi=110)
+    atomic_write_via(out / "bandwidth.png", lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -167,7 +169,7 @@ def _plots(out: Path, series: dict[str, list[dict[str, Any]]]) -> None:
     a2.set_xlabel("time (s)")
     a2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "quality.png", dpi=110)
+    atomic_write_via(out / "quality.png", lambda fh: fig.savefig(fh, format="png", dpi=110))
     plt.close(fig)
 
 
@@ -179,13 +181,14 @@ def write_report(
 
     out.mkdir(parents=True, exist_ok=True)
     series = {n: _updates(run_dir / n / "state") for n in names}
-    with open(out / "metrics.csv", "w", newline="") as fh:
-        fields = ["robot", "time", "version", "kind", "cells", "bytes", "ratio", "encode_ms", "psnr", "ssim"]
-        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
-        w.writeheader()
-        for n, rows in series.items():
-            for r in rows:
-                w.writerow({"robot": n, **r})
+    text = io.StringIO(newline="")
+    fields = ["robot", "time", "version", "kind", "cells", "bytes", "ratio", "encode_ms", "psnr", "ssim"]
+    w = csv.DictWriter(text, fieldnames=fields, extrasaction="ignore")
+    w.writeheader()
+    for n, rows in series.items():
+        for r in rows:
+            w.writerow({"robot": n, **r})
+    atomic_write_bytes(out / "metrics.csv", text.getvalue().encode())
     _plots(out, series)
 
     gdir = run_dir / names[0] / "state" / "global"
@@ -205,7 +208,8 @@ def write_report(
             seen = (snaps.get(names[0], {}).get("poses") or {}).get("robots") or {}
             where = {r: p["fleet"] for r, p in seen.items() if isinstance(p, dict) and p.get("fleet")}
             pic = mark_robots(pic, g, where, names)
-            Image.fromarray(with_legend(pic, names)).save(out / "global_map.png")
+            image = Image.fromarray(with_legend(pic, names))
+            atomic_write_via(out / "global_map.png", lambda fh: image.save(fh, format="PNG"))
             for f in gdir.iterdir():
                 if f.suffix in (".yaml", ".pgm", ".json"):
                     shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)
@@ -263,8 +267,9 @@ def write_report(
         ("peers", "holds peers", ""),
         ("conf", "fusion conf", ".2f"),
     ]
-    (out / "summary.json").write_text(
-        json.dumps({"robots": rows, "global": global_note}, indent=2, default=str)
+    atomic_write_bytes(
+        out / "summary.json",
+        json.dumps({"robots": rows, "global": global_note}, indent=2, default=str).encode(),
     )
     return "\n".join(
         [

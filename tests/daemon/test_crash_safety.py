@@ -17,6 +17,7 @@ import sys
 import textwrap
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -574,3 +575,20 @@ def test_a_slow_recording_disk_holds_a_bounded_backlog_and_says_so_once(
     assert written == [0, 41, 42, 43]
     said = [r.getMessage() for r in caplog.records if "recording" in r.getMessage()]
     assert len(said) == 2 and "behind the disk" in said[0] and said[1].startswith("recording caught up"), said
+
+
+def test_a_report_written_again_is_whole_or_as_it_was(tmp_path: Path) -> None:
+    """Reports (the paper bench's results.json and figures, the demo's) were written in place: a run
+    stopped mid-write left the last run's results cut short."""
+    from mapd.files import atomic_write_via
+
+    path = tmp_path / "results.json"
+    atomic_write_via(path, lambda fh: fh.write(b'{"run": 1}'))
+
+    def fails_half_way(fh: Any) -> None:
+        fh.write(b'{"run": 2, "rows": [')
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        atomic_write_via(path, fails_half_way)
+    assert path.read_bytes() == b'{"run": 1}' and _temps(tmp_path) == []
