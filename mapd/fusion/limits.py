@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from mapd.fusion.merge import Bounds, extent
+from mapd.fusion.merge import NO_OWNER, Bounds, extent
 from mapd.fusion.placement import Placement
 from mapd.fusion.transforms import transformed_corners
 from mapd.fusion.views import MAX_SIDE
@@ -38,7 +38,7 @@ def within_extent(
         if math.isfinite(reach) and reach <= limit_m:
             keep.append(r)
             continue
-        _leave_out(
+        leave_out(
             placements,
             r,
             f"it reaches {reach:.4g} m from the fleet frame's origin, beyond fusion.max_extent_m = "
@@ -72,7 +72,7 @@ def within_cell_limit(
             break
         far = max(keep, key=lambda r: _reach(maps[r], placements[r]))
         keep.remove(far)
-        _leave_out(
+        leave_out(
             placements,
             far,
             f"with it the global map would be {box.width} x {box.height} cells, over the limit of "
@@ -81,7 +81,29 @@ def within_cell_limit(
     return keep
 
 
-def _leave_out(placements: dict[str, Placement], robot: str, why: str) -> None:
+def within_merge_limits(
+    maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str], *, resolution: float
+) -> list[str]:
+    """``names`` less the maps one merge cannot take: a map over :data:`MAX_SIDE` cells a side at
+    the resolution it is merged at (OpenCV's warp refuses sources past 32,767, and the whole merge
+    failed with it), and the maps past the :data:`NO_OWNER` the owner grid can name (a fleet of
+    255 robots failed every merge). The others are marked left out, with the reason.
+    """
+    keep: list[str] = []
+    for r in names:
+        g = maps[r]
+        pooled = resolution / g.resolution >= 1.5  # merge._at_most_as_fine
+        side = max(g.width, g.height) * (g.resolution / resolution if pooled else 1.0)
+        if side > MAX_SIDE:
+            leave_out(placements, r, f"it is {g.width} x {g.height} cells, over {MAX_SIDE} a side merged")
+        elif len(keep) >= NO_OWNER - 1:
+            leave_out(placements, r, f"at most {NO_OWNER - 1} maps are merged at once")
+        else:
+            keep.append(r)
+    return keep
+
+
+def leave_out(placements: dict[str, Placement], robot: str, why: str) -> None:
     """Mark ``robot``'s placement as left out of the global map, with the reason, and say so once."""
     placements[robot] = replace(
         placements[robot], accepted=False, reason=f"left out of the global map: {why}"
@@ -96,4 +118,4 @@ def _reach(grid: OccupancyGrid, placement: Placement) -> float:
     return float(np.hypot(c[:, 0], c[:, 1]).max())
 
 
-__all__ = ["within_cell_limit", "within_extent"]
+__all__ = ["leave_out", "within_cell_limit", "within_extent", "within_merge_limits"]

@@ -119,6 +119,8 @@ class MergeResult:
     grid: OccupancyGrid
     bounds: Bounds
     owner: np.ndarray
+    #: Maps OpenCV refused, left out of this merge: (index in the maps given, why).
+    left_out: tuple[tuple[int, str], ...] = ()
 
 
 def extent(
@@ -221,10 +223,15 @@ def merge_with_owner(
         strength = np.zeros((h, w), dtype=np.uint16)
     else:
         best = np.full((h, w), UNKNOWN, dtype=np.int8)
+    left_out: list[tuple[int, str]] = []
     for i in placed:
         t = transforms[i]
         assert t is not None
-        src = _at_most_as_fine(maps[i], resolution)
+        try:
+            src = _at_most_as_fine(maps[i], resolution)
+        except cv2.error as exc:
+            left_out.append((i, " ".join(str(exc).split())[-160:]))
+            continue
         roi = _roi(src, t, box, resolution)
         if roi is None:
             continue
@@ -233,14 +240,18 @@ def merge_with_owner(
         g_roi[0, 2] += c0 * resolution
         g_roi[1, 2] += r0 * resolution
         m = warp_matrix(src, t, g_roi)
-        warped = cv2.warpAffine(
-            src.data.view(np.uint8),
-            m,
-            (c1 - c0, r1 - r0),
-            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=255,
-        )
+        try:
+            warped = cv2.warpAffine(
+                src.data.view(np.uint8),
+                m,
+                (c1 - c0, r1 - r0),
+                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=255,
+            )
+        except cv2.error as exc:  # one map OpenCV cannot take must not stop the fleet's map
+            left_out.append((i, " ".join(str(exc).split())[-160:]))
+            continue
         sl = (slice(r0, r1), slice(c0, c1))
         if mode == "logodds":
             total[sl] += _LUT[warped]
@@ -260,7 +271,7 @@ def merge_with_owner(
     else:
         data = np.where(best < 0, UNKNOWN, best).astype(np.int8)
     grid = OccupancyGrid(data=data, resolution=resolution, origin=origin, frame_id=frame_id)
-    return MergeResult(grid=grid, bounds=box, owner=owner)
+    return MergeResult(grid=grid, bounds=box, owner=owner, left_out=tuple(left_out))
 
 
 def _to_occupancy(total: np.ndarray, known: np.ndarray) -> np.ndarray:

@@ -63,7 +63,9 @@ def resample_classes(grid: OccupancyGrid, res: float) -> np.ndarray:
 def _pool(img: np.ndarray, k: float) -> np.ndarray:
     """Area-average by a factor ``k``: output cell j covers input cells [j k, (j + 1) k) exactly."""
     h, w = img.shape
-    if round(w / k) < 1 or round(h / k) < 1:
+    # The output size as OpenCV rounds it (w * (1 / k), not w / k): at k = 5.999999999999999 a map 3
+    # cells wide rounds to 1 one way and to 0 the other, and OpenCV refused it (!dsize.empty()).
+    if round(w * (1.0 / k)) < 1 or round(h * (1.0 / k)) < 1:
         return np.full((1, 1), float(img.mean()), dtype=np.float32)
     # with fx/fy (no dsize) OpenCV keeps the exact scale and only rounds the output size
     return cv2.resize(img, None, fx=1.0 / k, fy=1.0 / k, interpolation=cv2.INTER_AREA)

@@ -44,7 +44,7 @@ from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError
 from mapd.files import WriteOutage
 from mapd.fusion.estimate import EstimateOptions
-from mapd.fusion.limits import within_cell_limit, within_extent
+from mapd.fusion.limits import leave_out, within_cell_limit, within_extent, within_merge_limits
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, merge_with_owner
 from mapd.fusion.placement import Placement, Placer, derived_from
 from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON, FusionStore
@@ -337,6 +337,7 @@ class FusionWorker:
             if first is None and names:
                 first = names[0]
             self._resolution = maps[first].resolution if first else None
+        names = within_merge_limits(maps, placements, names, resolution=self._resolution or 0.05)
         names = within_cell_limit(
             maps,
             placements,
@@ -354,6 +355,8 @@ class FusionWorker:
             frame_id="fleet",
             max_cells=self.max_cells,
         )
+        for i, why in result.left_out:
+            leave_out(placements, names[i], f"the merge could not take it ({why})")
         result = self._fill_from_restored(result, set(maps))
         stamp = time.time()
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)

@@ -144,3 +144,61 @@ def test_a_damaged_start_pose_is_ignored_and_the_fleet_keeps_merging(
         assert g.data[int(rows[0]), int(cols[0])] == 100
 
     asyncio.run(main())
+
+
+# -- maps OpenCV cannot take: one robot's map must not stop the fleet's (found by an audit) ---------
+
+
+def _fused_with(peer: OccupancyGrid, *more: OccupancyGrid) -> tuple[OccupancyGrid, dict[str, object]]:
+    from mapd.mapping.synthetic import building as make_building
+
+    own = make_building(seed=3).replace(robot="a", origin=Pose2D(0.0, 0.0, 0.0))
+    w = FusionWorker("a", FusionSection(debounce_s=0.0), None)
+    w.known_pose("a", Pose2D(0.0, 0.0, 0.0))
+    maps = {"a": own, peer.robot: peer, **{g.robot: g for g in more}}
+    for g in (peer, *more):
+        w.known_pose(g.robot, Pose2D(2.0, 2.0, 0.0))
+    fused = w._fuse(maps, True)  # raised cv2.error before: every merge failed while the map was held
+    return fused.result.grid, {r: p.reason for r, p in fused.placements.items() if not p.accepted}
+
+
+def test_a_fine_map_opencv_would_pool_to_nothing_is_pooled_to_one_cell() -> None:
+    # k = 5.999999999999999: 3 / k rounds to 1, 3 * (1 / k), as OpenCV computes it, to 0.
+    d = np.zeros((100, 3), np.int8)
+    d[:, 1] = 100
+    grid, out = _fused_with(OccupancyGrid(d, 0.05 / 5.999999999999999, robot="b"))
+    assert out == {} and grid.cells > 0
+
+
+def test_a_map_over_the_side_opencv_warps_is_left_out_alone() -> None:
+    d = np.zeros((8, 40_000), np.int8)  # 1.4 times finer: merged as it is, 40,000 cells wide
+    d[0, :] = 100
+    grid, out = _fused_with(OccupancyGrid(d, 0.0345, robot="b"))
+    assert set(out) == {"b"} and "over 32000 a side" in str(out["b"])
+    assert grid.cells > 0  # a's map is merged all the same
+
+
+def test_a_fleet_past_what_the_owner_grid_names_merges_the_first_254() -> None:
+    # 255 robots failed every merge: "at most 254 maps can be merged at once".
+    peers = [OccupancyGrid(np.zeros((4, 4), np.int8), 0.05, robot=f"r{i:03d}") for i in range(254)]
+    grid, out = _fused_with(*peers)
+    assert list(out) == ["r253"] and "at most 254 maps" in str(out["r253"]) and grid.cells > 0
+
+
+def test_an_opencv_refusal_in_the_merge_leaves_out_that_map_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    import cv2
+
+    from mapd.fusion import merge as merge_mod
+
+    real = cv2.warpAffine
+
+    def refuses_small(src: np.ndarray, *args: object, **kw: object) -> np.ndarray:
+        # the merge's warp (unknown outside: 255) of the peer's map, whatever OpenCV finds wrong next
+        if src.shape == (4, 4) and kw.get("borderValue") == 255:
+            raise cv2.error("OpenCV(4.x) error: (-215:Assertion failed) something in function 'warpAffine'")
+        return real(src, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(merge_mod.cv2, "warpAffine", refuses_small)
+    grid, out = _fused_with(OccupancyGrid(np.zeros((4, 4), np.int8), 0.05, robot="b"))
+    assert set(out) == {"b"} and "could not take it" in str(out["b"]) and "Assertion failed" in str(out["b"])
+    assert grid.cells > 0
