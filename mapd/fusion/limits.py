@@ -61,7 +61,7 @@ def within_cell_limit(
     Within ``max_extent_m`` a map can still make the global grid bigger than ``max_cells`` (10 km at
     5 cm is 200,000 cells a side); merging would then fail as a whole, so the maps reaching farthest
     from the fleet frame's origin are left out, with the reason, until the rest fits. ``bounds``
-    (the previous global map's, which never shrinks) counts toward the size.
+    (the previous global map's, kept unless far larger than its maps) counts toward the size.
     """
     keep = list(names)
     while keep:

@@ -182,7 +182,7 @@ def merge_with_owner(
     """Merge, and say which map weighed most in each cell (``owner``; NO_OWNER where none knows).
 
     ``resolution`` defaults to the first placed map's; ``bounds`` (the previous global map's) is
-    kept inside the result so the global map never shrinks. Raises :class:`FusionError` for an
+    kept inside the result so the global map keeps its cells where they were. Raises :class:`FusionError` for an
     unknown mode or mismatched lists and :class:`LimitError` when the result would exceed
     ``max_cells``.
     """

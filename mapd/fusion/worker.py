@@ -45,12 +45,14 @@ from mapd.errors import FusionError, MapdError
 from mapd.files import WriteOutage
 from mapd.fusion.estimate import EstimateOptions
 from mapd.fusion.limits import leave_out, within_cell_limit, within_extent, within_merge_limits
-from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, merge_with_owner
+from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
 from mapd.fusion.placement import Placement, Placer, derived_from
 from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON, FusionStore
 from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, geometry_problem
 
 log = logging.getLogger(__name__)
+#: How many times the area its maps now cover the global map may keep (see FusionWorker._kept_bounds).
+SHRINK_AREA = 4
 
 
 @dataclass(frozen=True)
@@ -338,12 +340,13 @@ class FusionWorker:
                 first = names[0]
             self._resolution = maps[first].resolution if first else None
         names = within_merge_limits(maps, placements, names, resolution=self._resolution or 0.05)
+        bounds = self._kept_bounds(maps, placements, names)
         names = within_cell_limit(
             maps,
             placements,
             names,
             resolution=self._resolution or 0.05,
-            bounds=self._bounds,
+            bounds=bounds,
             max_cells=self.max_cells,
         )
         result = merge_with_owner(
@@ -351,7 +354,7 @@ class FusionWorker:
             [placements[r].transform for r in names],
             self.cfg.mode,
             resolution=self._resolution,
-            bounds=self._bounds,
+            bounds=bounds,
             frame_id="fleet",
             max_cells=self.max_cells,
         )
@@ -372,6 +375,32 @@ class FusionWorker:
             self._saves.recovered("fusion: global map saved again")
         self._save_owner(result, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
+
+    def _kept_bounds(
+        self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]
+    ) -> Bounds | None:
+        """The previous global map's bounds, which the next one keeps (its cells stay where they
+        were as maps come and go), unless they are over :data:`SHRINK_AREA` times what the maps
+        now cover: one map placed far off by a wrong pose kept the global map 65 M cells large
+        after the pose was put right, and across restarts. Kept while a restored global map still
+        stands in for robots not heard since the restart (its cells are theirs).
+        """
+        if self._bounds is None or self._restored is not None or self._resolution is None:
+            return self._bounds
+        now = extent([maps[r] for r in names], [placements[r].transform for r in names], self._resolution)
+        if now is None:
+            return self._bounds
+        both = now.union(self._bounds)
+        if both.width * both.height <= SHRINK_AREA * now.width * now.height:
+            return self._bounds
+        log.info(
+            "fusion: the global map shrinks from %d x %d to the %d x %d cells its maps now cover",
+            self._bounds.width,
+            self._bounds.height,
+            now.width,
+            now.height,
+        )
+        return None
 
     def _apply(self, fused: _Fused, publish: bool = True) -> None:
         self._merges = fused.result.grid.version

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,3 +203,31 @@ def test_an_opencv_refusal_in_the_merge_leaves_out_that_map_only(monkeypatch: py
     grid, out = _fused_with(OccupancyGrid(np.zeros((4, 4), np.int8), 0.05, robot="b"))
     assert set(out) == {"b"} and "could not take it" in str(out["b"]) and "Assertion failed" in str(out["b"])
     assert grid.cells > 0
+
+
+def test_a_global_map_grown_by_a_wrong_pose_shrinks_once_the_pose_is_right(tmp_path: Path) -> None:
+    # The bounds only grew: 385 m off once kept the global map 8064 x 8064 cells (65 M, 2-3 s and
+    # 195 MB written a merge) after the pose was put right, and across restarts.
+    from mapd.mapping.synthetic import building as make_building
+
+    state = tmp_path
+    a = make_building().replace(robot="a", origin=Pose2D(0.0, 0.0, 0.0))
+    b = make_building(seed=1).replace(robot="b", origin=Pose2D(0.0, 0.0, 0.0))
+
+    def merged(w: FusionWorker, maps: dict[str, OccupancyGrid]) -> OccupancyGrid:
+        fused = w._fuse(maps, False)
+        w._apply(fused, publish=False)
+        return fused.result.grid
+
+    w = FusionWorker("a", FusionSection(debounce_s=0.0), state)
+    w.known_pose("a", Pose2D(0.0, 0.0, 0.0))
+    w.known_pose("b", Pose2D(385.0, 385.0, 0.0))
+    assert merged(w, {"a": a, "b": b}).cells > 50_000_000
+    w.known_pose("b", Pose2D(20.0, 0.0, 0.0))
+    right = merged(w, {"a": a, "b": b.replace(version=2)})
+    assert right.cells < 4 * (a.cells + b.cells)
+    grown = merged(w, {"a": a, "b": b.replace(version=3, origin=Pose2D(-1.0, 0.0, 0.0))})
+    assert grown.width >= right.width and grown.height >= right.height  # small moves: cells stay put
+    again = FusionWorker("a", FusionSection(debounce_s=0.0), state)  # a restart restores the right size
+    again._load_state()
+    assert again.global_map is not None and again.global_map.cells == grown.cells
