@@ -334,11 +334,13 @@ class FusionWorker:
             r for r, p in placements.items() if p.accepted and p.transform is not None and r in maps
         )
         names = within_extent(maps, placements, names, self.cfg.max_extent_m)
-        if self._resolution is None:
-            first = next((r for r in names if placements[r].source in ("anchor", "pose")), None)
-            if first is None and names:
-                first = names[0]
-            self._resolution = maps[first].resolution if first else None
+        if self._resolution is None and names:
+            # This robot's own map's, else the median of the maps placed: the first placed robot
+            # by name set it before, and one at 1e-4 m a cell left every normal map out for good.
+            if self.robot in names:
+                self._resolution = maps[self.robot].resolution
+            else:
+                self._resolution = sorted(maps[r].resolution for r in names)[(len(names) - 1) // 2]
         names = within_merge_limits(maps, placements, names, resolution=self._resolution or 0.05)
         bounds = self._kept_bounds(maps, placements, names)
         names = within_cell_limit(

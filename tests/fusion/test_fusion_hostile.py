@@ -231,3 +231,18 @@ def test_a_global_map_grown_by_a_wrong_pose_shrinks_once_the_pose_is_right(tmp_p
     again = FusionWorker("a", FusionSection(debounce_s=0.0), state)  # a restart restores the right size
     again._load_state()
     assert again.global_map is not None and again.global_map.cells == grown.cells
+
+
+def test_a_peer_at_a_far_finer_resolution_does_not_set_the_global_one() -> None:
+    # The first robot placed by its pose, by name, set the global resolution for good: a peer
+    # named "0b" at 1e-4 m a cell left every normal map out ("180032 x 160000 cells").
+    from mapd.mapping.synthetic import building as make_building
+
+    own = make_building(seed=3).replace(robot="a", origin=Pose2D(0.0, 0.0, 0.0))
+    fine = OccupancyGrid(np.zeros((400, 400), np.int8), 1e-4, robot="0b")
+    w = FusionWorker("a", FusionSection(debounce_s=0.0), None)
+    w.known_pose("a", Pose2D(0.0, 0.0, 0.0))
+    w.known_pose("0b", Pose2D(1.0, 1.0, 0.0))
+    fused = w._fuse({"a": own, "0b": fine}, True)
+    assert fused.result.grid.resolution == own.resolution
+    assert fused.placements["a"].accepted and fused.result.grid.counts()["free"] > 0
