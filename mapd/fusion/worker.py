@@ -34,6 +34,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -53,6 +54,10 @@ from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, geometr
 log = logging.getLogger(__name__)
 #: How many times the area its maps now cover the global map may keep (see FusionWorker._kept_bounds).
 SHRINK_AREA = 4
+
+
+class _Stopped(Exception):
+    """Raised in a merge's thread, between two estimates, when the daemon stops (see ``_merge_once``)."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,8 @@ class FusionWorker:
         self._global: OccupancyGrid | None = None
         self._placements: dict[str, Placement] = {}
         self._bounds: Bounds | None = None
+        #: Set when the daemon stops during a merge: its thread gives up at the next estimate.
+        self._stop_merge = threading.Event()
         self._resolution: float | None = None
         self._restored: OccupancyGrid | None = None
         self._restored_robots: set[str] = set()
@@ -291,14 +298,18 @@ class FusionWorker:
     async def _merge_once(self, search: bool) -> None:
         maps = dict(self._latest)
         self._merging = True
+        self._stop_merge.clear()
         job = asyncio.ensure_future(asyncio.to_thread(self._fuse, maps, search))
         try:
             try:
                 fused = await asyncio.shield(job)
             except asyncio.CancelledError:
-                # A thread cannot be stopped. Wait for it (once; a second cancel is not waited
-                # out), so that the stop's flush (run) never shares the placer with it, and it
-                # does not save a map after the flush has saved a newer one.
+                # A thread cannot be stopped, but it gives up at its next estimate: a merge with
+                # robots that do not place takes minutes, past systemd's stop timeout. Wait for it
+                # (once; a second cancel is not waited out), so that the stop's flush (run) never
+                # shares the placer with it, and it does not save a map after the flush has saved
+                # a newer one.
+                self._stop_merge.set()
                 with contextlib.suppress(BaseException):
                     await asyncio.wait({job})
                     job.exception()  # retrieved: the flush that follows reports its own
@@ -327,7 +338,7 @@ class FusionWorker:
     def _fuse(self, maps: dict[str, OccupancyGrid], search: bool) -> _Fused:
         """Place, merge and persist (runs in a worker thread)."""
         t0 = time.perf_counter()
-        self.placer.update(maps, estimate=search)
+        self.placer.update(maps, estimate=search, tried=self._give_up_if_stopping)
         # every robot the placer knows, also those restored but not heard from since the restart
         placements = dict(self.placer.placements)
         names = sorted(
@@ -377,6 +388,10 @@ class FusionWorker:
             self._saves.recovered("fusion: global map saved again")
         self._save_owner(result, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
+
+    def _give_up_if_stopping(self, _placement: Placement) -> None:
+        if self._stop_merge.is_set():
+            raise _Stopped
 
     def _kept_bounds(
         self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]

@@ -246,3 +246,43 @@ def test_a_peer_at_a_far_finer_resolution_does_not_set_the_global_one() -> None:
     fused = w._fuse({"a": own, "0b": fine}, True)
     assert fused.result.grid.resolution == own.resolution
     assert fused.placements["a"].accepted and fused.result.grid.counts()["free"] > 0
+
+
+def test_stopping_during_a_long_merge_waits_one_estimate_not_the_merge(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The stop waited for the whole merge: with robots that do not place, minutes, past systemd's
+    # TimeoutStopSec (10 s), which then kills the daemon before its state is flushed.
+    import time
+
+    from mapd.fusion import placement as placement_mod
+    from mapd.mapping.synthetic import building as make_building
+
+    real = placement_mod.estimate_transform
+    calls: list[float] = []
+
+    def slow(*args: object, **kw: object) -> object:
+        calls.append(time.monotonic())
+        time.sleep(0.5)  # a hard pair of maps takes seconds
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(placement_mod, "estimate_transform", slow)
+    maps = [make_building(seed=3).replace(robot="a")]
+    maps += [OccupancyGrid(np.full((40, 40), 100, np.int8), 0.05, robot=f"u{j}") for j in range(20)]
+
+    async def main() -> float:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), None)
+        task = asyncio.create_task(w.run())
+        for g in maps:
+            w.submit(g)
+        while len(calls) < 2:
+            await asyncio.sleep(0.05)
+        t0 = time.monotonic()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return time.monotonic() - t0
+
+    waited = asyncio.run(main())
+    assert waited < 2.0, f"the stop waited {waited:.1f} s for the merge"
+    assert len(calls) < 10  # 20 robots to search: it gave up early
