@@ -174,6 +174,13 @@ class FusionSection(Strict):
         description="a map placed with any corner farther than this from the fleet frame's origin (m) "
         "is left out of the global map (the others keep merging)",
     )
+    search_budget_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=3600.0,
+        description="seconds of placement searches one merge spends at most; robots not searched "
+        "by then keep their placements and go first at the next merge",
+    )
 
     @field_validator("poses")
     @classmethod

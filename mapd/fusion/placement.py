@@ -170,6 +170,8 @@ class Placer:
         #: Robots held where they were placed when the robot whose map frame was the fleet frame
         #: was forgotten (see :meth:`pin`).
         self.pinned: set[str] = set()
+        #: Robots the last update left unestimated for want of time (``enough``): first next time.
+        self._deferred: set[str] = set()
 
     @property
     def fleet_frame(self) -> str:
@@ -213,12 +215,17 @@ class Placer:
         *,
         estimate: bool = True,
         tried: Callable[[Placement], None] | None = None,
+        enough: Callable[[], bool] | None = None,
     ) -> dict[str, Placement]:
         """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
 
         With ``estimate=False`` nothing is estimated: configured poses and the anchor are placed,
         other robots keep their held placements (a cheap update, e.g. for a last flush).
         ``tried`` is told each estimate as it is made (each can take seconds: a progress bar).
+        ``enough`` is asked after each robot: once it says so, the robots not yet estimated keep
+        what they held, and go first at the next update. A robot that places against no map was
+        searched against every placed one at each new version, so one merge of a fleet with a
+        few of them took minutes, and the placed robots' maps waited as long.
         """
         out: dict[str, Placement] = {}
         placed: dict[str, Pose2D] = {}
@@ -245,17 +252,26 @@ class Placer:
                 )
             self.placements.update(out)
             return out
-        # Held robots first, so chains form in a stable order; then the rest by name.
-        pending = sorted((r for r in maps if r not in placed), key=lambda r: (r not in self.placements, r))
+        # Held robots first, so chains form in a stable order; then those an earlier update left
+        # for later (so none waits for ever behind the others); then the rest by name.
+        pending = sorted(
+            (r for r in maps if r not in placed),
+            key=lambda r: (r not in self.placements, r not in self._deferred, r),
+        )
         if not estimate:
             for robot in pending:
                 out[robot] = self.placements.get(robot) or Placement(robot, reason="not estimated yet")
             self.placements.update(out)
             return out
+        self._deferred = set()
         progress = True
         while pending and progress:
             progress = False
             for robot in list(pending):
+                if enough is not None and enough():
+                    self._defer([r for r in pending if r not in out], out)
+                    self.placements.update(out)
+                    return out
                 p = self._place(robot, maps, placed)
                 if tried is not None:
                     tried(p)
@@ -266,6 +282,14 @@ class Placer:
                 out[robot] = p
         self.placements.update(out)
         return out
+
+    def _defer(self, robots: list[str], out: dict[str, Placement]) -> None:
+        """Leave ``robots`` to the next update, holding what they had."""
+        self._deferred = set(robots)
+        for robot in robots:
+            out[robot] = self.placements.get(robot) or Placement(
+                robot, reason="not estimated yet (this merge's search time was spent)"
+            )
 
     # -----------------------------------------------------------------------------------------
 

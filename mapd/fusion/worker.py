@@ -338,7 +338,13 @@ class FusionWorker:
     def _fuse(self, maps: dict[str, OccupancyGrid], search: bool) -> _Fused:
         """Place, merge and persist (runs in a worker thread)."""
         t0 = time.perf_counter()
-        self.placer.update(maps, estimate=search, tried=self._give_up_if_stopping)
+        budget = t0 + self.cfg.search_budget_s
+        self.placer.update(
+            maps,
+            estimate=search,
+            tried=self._give_up_if_stopping,
+            enough=lambda: time.perf_counter() >= budget,
+        )
         # every robot the placer knows, also those restored but not heard from since the restart
         placements = dict(self.placer.placements)
         names = sorted(

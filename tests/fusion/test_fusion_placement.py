@@ -151,3 +151,20 @@ def test_forgetting_a_robot_sends_the_robots_placed_against_its_map_back_to_esti
     assert placer.forget("b") == {"c", "f"}
     assert set(placer.placements) == {"d", "e"}
     assert placer.forget("zz") == set()
+
+
+def test_a_merge_spends_its_search_budget_and_the_robots_left_go_first_next_time(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    # Robots that place against no map were each searched against every placed one at every new
+    # version: one merge of a fleet with a few of them took minutes (an audit: 25 s with one).
+    lone = {f"u{i}": OccupancyGrid(np.full((30, 30), 100, np.int8), 0.05, robot=f"u{i}") for i in range(5)}
+    maps = {"a": crops["a"], **lone}
+    placer = Placer({}, anchor="a")
+    searched: list[str] = []
+    out = placer.update(maps, tried=lambda p: searched.append(p.robot), enough=lambda: len(searched) >= 2)
+    assert searched == ["u0", "u1"]
+    assert all("search time was spent" in out[r].reason for r in ("u2", "u3", "u4"))
+    searched.clear()
+    placer.update({**maps, "u0": lone["u0"].replace(version=2)}, tried=lambda p: searched.append(p.robot))
+    assert searched[:3] == ["u2", "u3", "u4"]  # none waits for ever behind the others
