@@ -23,6 +23,7 @@ from mapd.fusion.views import MAX_SIDE
 from mapd.grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
+LEFT_OUT = "left out of the global map: "
 
 
 def within_extent(
@@ -104,11 +105,24 @@ def within_merge_limits(
 
 
 def leave_out(placements: dict[str, Placement], robot: str, why: str) -> None:
-    """Mark ``robot``'s placement as left out of the global map, with the reason, and say so once."""
-    placements[robot] = replace(
-        placements[robot], accepted=False, reason=f"left out of the global map: {why}"
-    )
-    log.warning("fusion: %s: %s", robot, placements[robot].reason)
+    """Mark ``robot``'s placement as left out of the global map, with the reason (which the
+    fusion worker says once, not at every merge: :func:`say_left_out`)."""
+    placements[robot] = replace(placements[robot], accepted=False, reason=f"{LEFT_OUT}{why}")
+
+
+def say_left_out(placements: dict[str, Placement], said: dict[str, str]) -> None:
+    """Warn of each map left out, once for as long as it is left out for the same reason.
+
+    ``said`` (robot -> the reason last said) is the caller's memory across merges: a map left out
+    was said again at every merge, a line a second from one robot's map.
+    """
+    for robot in list(said):
+        if not placements.get(robot, Placement(robot)).reason.startswith(LEFT_OUT):
+            del said[robot]  # merged again: said again if it is left out again
+    for robot, p in placements.items():
+        if p.reason.startswith(LEFT_OUT) and said.get(robot) != p.reason:
+            said[robot] = p.reason
+            log.warning("fusion: %s: %s", robot, p.reason)
 
 
 def _reach(grid: OccupancyGrid, placement: Placement) -> float:
@@ -118,4 +132,4 @@ def _reach(grid: OccupancyGrid, placement: Placement) -> float:
     return float(np.hypot(c[:, 0], c[:, 1]).max())
 
 
-__all__ = ["leave_out", "within_cell_limit", "within_extent", "within_merge_limits"]
+__all__ = ["leave_out", "say_left_out", "within_cell_limit", "within_extent", "within_merge_limits"]

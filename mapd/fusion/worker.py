@@ -45,7 +45,7 @@ from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError
 from mapd.files import WriteOutage
 from mapd.fusion.estimate import EstimateOptions
-from mapd.fusion.limits import leave_out, within_cell_limit, within_extent, within_merge_limits
+from mapd.fusion.limits import leave_out, say_left_out, within_cell_limit, within_extent, within_merge_limits
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
 from mapd.fusion.placement import Placement, Placer, derived_from
 from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON, FusionStore
@@ -105,6 +105,8 @@ class FusionWorker:
         self._bounds: Bounds | None = None
         #: Set when the daemon stops during a merge: its thread gives up at the next estimate.
         self._stop_merge = threading.Event()
+        #: robot -> why its map is left out, as last said (the merge thread's; merges never overlap)
+        self._said_left_out: dict[str, str] = {}
         self._resolution: float | None = None
         self._restored: OccupancyGrid | None = None
         self._restored_robots: set[str] = set()
@@ -379,6 +381,7 @@ class FusionWorker:
         )
         for i, why in result.left_out:
             leave_out(placements, names[i], f"the merge could not take it ({why})")
+        say_left_out(placements, self._said_left_out)
         result = self._fill_from_restored(result, set(maps))
         stamp = time.time()
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)

@@ -112,3 +112,24 @@ def test_the_extent_is_configurable(fleet: dict[str, OccupancyGrid]) -> None:
     for bad in (0.0, -1.0, 1e9):
         with pytest.raises(ValidationError):
             FusionSection(max_extent_m=bad)
+
+
+def test_a_map_left_out_is_said_once_while_it_stays_out(
+    fleet: dict[str, OccupancyGrid], caplog: pytest.LogCaptureFixture
+) -> None:
+    # It was said again at every merge: a warning a merge for as long as the robot sent such maps.
+    async def main() -> None:
+        w = FusionWorker("a", FusionSection(debounce_s=0.0, poses=_poses()), None)
+        w.submit(fleet["b"].replace(version=1, origin=Pose2D(1e6, 0.0, 0.0)))
+        for v in range(1, 5):
+            w.submit(_changed(fleet["a"], v))
+            await w.merge_now()
+        w.submit(fleet["b"].replace(version=2))  # back in
+        await w.merge_now()
+        w.submit(fleet["b"].replace(version=3, origin=Pose2D(1e6, 0.0, 0.0)))  # out again: said again
+        await w.merge_now()
+
+    with caplog.at_level("WARNING", logger="mapd.fusion"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records if "left out of the global map" in r.getMessage()]
+    assert len(said) == 2 and all(m.startswith("fusion: b: ") for m in said), said
