@@ -74,7 +74,7 @@ def test_files_output_that_cannot_write_says_so_once_and_carries_on(
             out.publish(update(room_grid, version))  # never raises
         assert out.stats()["failures"] == 3 and out.stats()["written"] == 0
         errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
-        assert len(errors) == 1 and f"{tmp_path / 'transforms.json'}: not a regular file" in errors[0], errors
+        assert len(errors) == 1 and f"{tmp_path / 'transforms.json'}: Is a directory" in errors[0], errors
         assert ".tmp" not in errors[0]
         (tmp_path / "transforms.json").rmdir()
         out.publish(update(room_grid, 6))
