@@ -54,6 +54,8 @@ class Outbound:
     transport: Callable[[str], Transport | None]
     #: Each transport's peers now, by transport name (what the core offers to).
     peers: Callable[[], dict[str, list[str]]]
+    #: Whether a name is a fleet robot's (on the roster, or heard from): not the source's to give.
+    fleet_robot: Callable[[str], bool] = lambda robot: False
     #: The newest own version (numbered), or None before the first.
     own: OccupancyGrid | None = None
     #: The source has no more maps (a finished log); the daemon still serves its peers.
@@ -62,6 +64,7 @@ class Outbound:
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))  # a full disk, said once
     _kf_lock: threading.Lock = field(default_factory=threading.Lock)
+    _refused: set[str] = field(default_factory=set)  # fleet robots' names from the source, said once
 
     def wake(self) -> None:
         """The publisher has something to look at: a link became free, or a peer needs a keyframe."""
@@ -97,6 +100,16 @@ class Outbound:
     def _local_peer_map(self, source: MapSource, grid: OccupancyGrid) -> None:
         """A map of another robot from this daemon's source (a map_merge drop-in): fused and
         recorded, placed by the source's known pose of that robot if any; neither sent nor kept."""
+        if self.fleet_robot(grid.robot):
+            # Fused under the fleet robot's name, its map and this one took turns in the global map.
+            if grid.robot not in self._refused:
+                self._refused.add(grid.robot)
+                log.warning(
+                    "map of %s from the source skipped: %s is a fleet robot's name, whose own maps count",
+                    grid.robot,
+                    grid.robot,
+                )
+            return
         if grid.cells > self.max_cells:
             log.warning(
                 "map of %s from the source (%d cells) is over the limit; skipped", grid.robot, grid.cells

@@ -153,6 +153,7 @@ class Daemon:
             sinks=self.sinks,
             transport=lambda name: self.inbound.transport(name),
             peers=lambda: {t.name: t.peers() for t in self.transports},
+            fleet_robot=lambda r: r in self.keys.roster.robots or r in self.receiver.maps,
         )
         self.inbound = Inbound(
             me=self.me,

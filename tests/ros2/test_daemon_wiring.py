@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mapd import config as configmod
 from mapd.daemon.server import Daemon
@@ -74,3 +76,33 @@ def test_other_robots_maps_are_fused_as_peers_and_never_sent(tmp_path: Path, bas
     assert daemon.own is None and daemon.publisher.counters.keyframes_sent == 0
     g = daemon.fusion.global_map
     assert g is not None and g.width >= 60 and g.resolution == 0.1  # robot2's 3 m to the right of robot1
+
+
+def test_a_source_robot_named_as_a_fleet_robot_is_left_to_the_fleet(
+    tmp_path: Path, base_config: BaseConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    # robot2 runs mapd and is on the roster; its map on the ROS graph too was fused under the same
+    # name, and the two took turns in the global map. Its own (signed) maps count.
+    from mapd.identity import Identity
+
+    path = base_config(tmp_path, {"source.ros2": {"discover_robots": True}, "fusion": {"debounce_s": 0.05}})
+    other = Identity.generate("robot2").public_text
+    path.write_text(path.read_text().replace("[fleet.roster]\n", f'[fleet.roster]\nrobot2 = "{other}"\n'))
+    daemon = Daemon(configmod.load(path), source=TwoRobots())
+
+    async def go() -> dict[str, object]:
+        task = asyncio.ensure_future(daemon.run())
+        end = time.monotonic() + 20
+        while daemon.fusion.status()["maps"] < 1 and time.monotonic() < end:
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)
+        status = daemon.fusion.status()
+        daemon.request_stop()
+        await asyncio.wait_for(task, 20)
+        return status
+
+    with caplog.at_level(logging.WARNING, logger="mapd"):
+        status = asyncio.run(go())
+    assert list(status["robots"]) == ["robot1"]  # type: ignore[call-overload]
+    said = [r.getMessage() for r in caplog.records if "fleet robot's name" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("map of robot2 from the source skipped")
