@@ -353,15 +353,19 @@ class FusionWorker:
             r for r, p in placements.items() if p.accepted and p.transform is not None and r in maps
         )
         names = within_extent(maps, placements, names, self.cfg.max_extent_m)
-        if self._resolution is None and names:
-            # This robot's own map's, else the median of the maps placed: the first placed robot
-            # by name set it before, and one at 1e-4 m a cell left every normal map out for good.
-            if self.robot in names:
-                self._resolution = maps[self.robot].resolution
-            else:
-                self._resolution = sorted(maps[r].resolution for r in names)[(len(names) - 1) // 2]
+        kept = self._resolution
+        if self.robot in names:
+            # This robot's own map's, whatever set it before: the first placed robot by name once
+            # did, and one at 1e-4 m a cell left every normal map out, for good (restored from
+            # global.yaml too). A new resolution of its own map is taken the same way.
+            self._resolution = maps[self.robot].resolution
+        elif self._resolution is None and names:  # a base station: the median of the maps placed
+            self._resolution = sorted(maps[r].resolution for r in names)[(len(names) - 1) // 2]
+        if kept is not None and self._resolution != kept:
+            log.info("fusion: the global map is now at %g m a cell (it was %g m)", self._resolution, kept)
         names = within_merge_limits(maps, placements, names, resolution=self._resolution or 0.05)
-        bounds = self._kept_bounds(maps, placements, names)
+        # Bounds on another resolution's lattice mean nothing on this one.
+        bounds = self._kept_bounds(maps, placements, names) if self._resolution == kept else None
         names = within_cell_limit(
             maps,
             placements,

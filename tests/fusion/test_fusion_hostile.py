@@ -286,3 +286,21 @@ def test_stopping_during_a_long_merge_waits_one_estimate_not_the_merge(
     waited = asyncio.run(main())
     assert waited < 2.0, f"the stop waited {waited:.1f} s for the merge"
     assert len(calls) < 10  # 20 robots to search: it gave up early
+
+
+def test_the_global_resolution_follows_the_robots_own_map_across_a_restart(tmp_path: Path) -> None:
+    # It was restored from global.yaml for good: a global map once set by a peer's resolution (or
+    # by the robot's mapping at another resolution) stayed at it after a restart.
+    from mapd.mapping.synthetic import building as make_building
+
+    own = make_building(seed=3).replace(robot="a", origin=Pose2D(0.0, 0.0, 0.0))
+    coarse = own.replace(data=np.ascontiguousarray(own.data[::2, ::2]), resolution=own.resolution * 2)
+    first = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+    fused = first._fuse({"a": coarse}, True)
+    first._apply(fused, publish=False)
+    assert fused.result.grid.resolution == coarse.resolution
+    again = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+    again._load_state()
+    assert again.global_map is not None and again.global_map.resolution == coarse.resolution
+    grid = again._fuse({"a": own}, True).result.grid
+    assert grid.resolution == own.resolution and grid.counts()["free"] > 0
