@@ -329,3 +329,32 @@ def test_a_key_is_logged_as_one_short_line(caplog: pytest.LogCaptureFixture) -> 
     assert src._decode(key, b"junk") is None
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and "\n" not in said[0] and len(said[0]) < 400
+
+
+def test_samples_arriving_while_the_loop_is_busy_are_held_one_per_key() -> None:
+    # One callback a sample was queued on the loop, each holding its payload: a 16 MiB map at
+    # 100 Hz while the loop was busy held a gigabyte within seconds.
+    class Sample:
+        def __init__(self, data: bytes) -> None:
+            self.key_expr = "0/map/nav_msgs::msg::dds_::OccupancyGrid_/x"
+            self.payload = type("P", (), {"to_bytes": lambda _self: data})()
+
+    src = Ros2Source(Ros2Options(), SourceContext(robot="r2"))
+    loop = asyncio.new_event_loop()
+    try:
+        big = b"\x00" * (1 << 20)
+        threads = [
+            threading.Thread(target=lambda: [src._on_sample(loop, Sample(big)) for _ in range(250)])
+            for _ in range(4)
+        ]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert len(src._inbox) == 1 and len(loop._ready) == 1  # type: ignore[attr-defined]
+        src._on_sample(loop, Sample(b"newest"))
+        loop.run_until_complete(asyncio.sleep(0))
+        assert src._pending == {"r2": (Sample(b"").key_expr, b"newest")} and src._inbox == {}
+        assert src.stats()["replaced_before_decode"] == 1000 and src.stats()["received"] == 1
+    finally:
+        loop.close()
