@@ -223,3 +223,22 @@ def test_every_default_is_within_its_own_bounds(prog: str, action: argparse.Acti
 def test_a_command_with_its_defaults_parses(argv: list[str]) -> None:
     args = build_parser().parse_args(argv)
     assert callable(args.func)
+
+
+@pytest.mark.parametrize(
+    ("option", "field"), [("--baud", "baud"), ("--rate-bps", "link_rate_bps"), ("--max-frame", "max_frame")]
+)
+def test_mapd_link_takes_what_the_uwb_config_takes(option: str, field: str) -> None:
+    # The CLI's bounds are written beside the config's (the CLI does not import transports at
+    # start): each end of the config's range parses, one past either end is refused.
+    from transports.uwb.options import UwbOptions
+
+    bounds = {type(m).__name__: m for m in UwbOptions.model_fields[field].metadata}
+    low, high = bounds["Ge"].ge, bounds["Le"].le  # type: ignore[attr-defined]
+    parser = build_parser()
+    base = ["link", "send", "f", "--port", "/dev/null"]
+    for ok in (low, high):
+        assert getattr(parser.parse_args([*base, option, str(ok)]), field.replace("link_", "")) == ok
+    for bad in (low - 1, high + 1):
+        with pytest.raises(SystemExit):
+            parser.parse_args([*base, option, str(bad)])
