@@ -88,3 +88,15 @@ def test_every_package_has_an_init_and_transports_is_importable_at_the_top() -> 
     for pkg in [*(ROOT / "mapd").rglob("__init__.py"), *(ROOT / "transports").rglob("__init__.py")]:
         assert pkg.read_text().startswith('"""'), f"{pkg} has no docstring saying what the package holds"
     assert importlib.util.find_spec("transports.base") is not None
+
+
+def test_the_license_is_an_spdx_expression_with_its_text_beside_it() -> None:
+    # The table form (license = {text = ...}) is deprecated and stops building with setuptools in 2027.
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert isinstance(project["license"], str), "license must be an SPDX expression (PEP 639)"
+    assert project["license"] == "Apache-2.0"
+    text = (ROOT / "LICENSE").read_text()
+    assert "Apache License" in text and "Version 2.0, January 2004" in text
+    assert project["license-files"] == ["LICENSE"]
