@@ -327,6 +327,11 @@ class MapdConfig(Strict):
     def path(self) -> Path | None:
         return self._path
 
+    @property
+    def folder(self) -> Path | None:
+        """The config file's folder, absolute: relative paths in the config are taken from it."""
+        return Path(os.path.abspath(self._path)).parent if self._path is not None else None
+
     def control_socket(self) -> Path:
         return self.control.socket or (self.state.runtime_dir / "mapd.sock")
 
@@ -443,17 +448,26 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
         raise ConfigError(f"{p}: {problem}")
     cfg = validate(MapdConfig, data, str(p))
     cfg._path = p
-    # Relative paths in a config are relative to the file, like systemd drop-ins expect.
-    base = p.parent
-    if cfg.robot.key_file is not None and not cfg.robot.key_file.is_absolute():
-        cfg.robot.key_file = base / cfg.robot.key_file
-    if cfg.record.path is not None and not cfg.record.path.is_absolute():
-        cfg.record.path = base / cfg.record.path
-    if cfg.fleet.link_key_file is not None and not cfg.fleet.link_key_file.is_absolute():
-        cfg.fleet.link_key_file = base / cfg.fleet.link_key_file
-    if cfg.view.token_file is not None and not cfg.view.token_file.is_absolute():
-        cfg.view.token_file = base / cfg.view.token_file
+    # Relative paths in a config are relative to the file, like systemd drop-ins expect: the
+    # daemon runs with cwd "/" under systemd, and `mapd status` must find the socket from anywhere.
+    for section, field in _PATHS_BESIDE_CONFIG:
+        table = getattr(cfg, section)
+        value = getattr(table, field)
+        if value is not None and not value.is_absolute():
+            setattr(table, field, Path(os.path.abspath(p)).parent / value)
     return cfg
+
+
+#: (section, field) of every path in the main tables; plugin options name theirs in ``beside_config``.
+_PATHS_BESIDE_CONFIG = (
+    ("robot", "key_file"),
+    ("fleet", "link_key_file"),
+    ("state", "dir"),
+    ("state", "runtime_dir"),
+    ("control", "socket"),
+    ("record", "path"),
+    ("view", "token_file"),
+)
 
 
 def plugin_options(cfg: MapdConfig, section: str, name: str) -> BaseModel:
@@ -471,8 +485,8 @@ def plugin_options(cfg: MapdConfig, section: str, name: str) -> BaseModel:
     # Files an option names beside the config (a zenoh config): relative to it, as key_file is.
     for field in getattr(options, "beside_config", ()):
         value = getattr(options, field)
-        if cfg.path is not None and isinstance(value, Path) and not value.is_absolute():
-            setattr(options, field, cfg.path.parent / value)
+        if cfg.folder is not None and isinstance(value, Path) and not value.is_absolute():
+            setattr(options, field, cfg.folder / value)
     return options
 
 

@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -70,8 +70,11 @@ class PaperOptions(CodecOptions):
         pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,40}$",
         description="model folder name (weights.npz + model.json)",
     )
+    beside_config: ClassVar[tuple[str, ...]] = ("model_dir",)
+
     model_dir: Path | None = Field(
-        default=None, description="folder holding model folders (default: $MAPD_MODELS, else <repo>/models)"
+        default=None,
+        description="folder holding model folders (relative: to the config's; default: $MAPD_MODELS, else <repo>/models)",
     )
     # One thread by default: a robot's CPU has other work (SLAM, planning), and two OpenMP threads
     # on two busy cores measured 2-5x slower than one (docs/paper.md, "Speed").

@@ -47,6 +47,7 @@ from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
+from mapd.data import data_dir
 from mapd.errors import MapdError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
@@ -251,7 +252,12 @@ class Daemon:
             source_cls = plugins.load("source", self.cfg.source.use)
             self.source = source_cls(
                 self._options("source", self.cfg.source.use, source_cls.Options),
-                SourceContext(robot=self.me, max_cells=self.cfg.limits.max_cells),
+                SourceContext(
+                    robot=self.me,
+                    max_cells=self.cfg.limits.max_cells,
+                    data_dir=data_dir(),
+                    config_dir=self.cfg.folder,
+                ),
             )
         # Where this robot's map frame lies in the fleet frame, when the source knows (a simulated
         # or logged robot's start, or start_pose in its config): fused as a known pose here, and

@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from pydantic import Field
 
@@ -24,7 +24,12 @@ log = logging.getLogger("mapd.outputs.files")
 
 
 class FilesOptions(OutputOptions):
-    dir: Path = Field(description="folder to write the map_server files and transforms.json into")
+    #: A relative ``dir`` is taken from the config's folder (the daemon's cwd is "/" under systemd).
+    beside_config: ClassVar[tuple[str, ...]] = ("dir",)
+
+    dir: Path = Field(
+        description="folder to write the map_server files and transforms.json into (relative: to the config's)"
+    )
     name: str = Field(default="map", pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="file name stem")
     frame_id: str = Field(default="map", description="the fleet frame's name (REP-105), in transforms.json")
 

@@ -59,6 +59,19 @@ class SourceContext:
     max_cells: int = DEFAULT_MAX_CELLS
     #: Folder of shared data (MAPD_DATA), for sources that read logs or maps by relative path.
     data_dir: Path | None = None
+    #: Folder of the config file: a relative path not found in ``data_dir`` is taken from here.
+    config_dir: Path | None = None
+
+    def resolve(self, p: Path) -> Path:
+        """A path an option names: as is when absolute, else in the data folder when it is there,
+        else beside the config (the daemon's cwd is "/" under systemd), else from the cwd."""
+        if p.is_absolute():
+            return p
+        if self.data_dir is not None and (self.data_dir / p).exists():
+            return self.data_dir / p
+        if self.config_dir is not None:
+            return self.config_dir / p
+        return p
 
 
 class MapSource(ABC):

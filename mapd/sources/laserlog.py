@@ -55,7 +55,7 @@ class LaserLogOptions(FleetSliceOptions, MapperOptions):
 
     log: Path = Field(
         default=Path("logs/intel-corrected.log.gz"),
-        description="CARMEN log, gzip or plain (relative: to the shared data folder, then the cwd)",
+        description="CARMEN log, gzip or plain (relative: to the shared data folder, else the config's)",
     )
     every: int | None = Field(default=10, ge=1, description="emit a snapshot every N scans")
     every_s: float | None = Field(default=None, gt=0.0, description="emit a snapshot every T s of log time")
@@ -91,11 +91,8 @@ class LaserLogSource(MapSource):
 
     @property
     def path(self) -> Path:
-        """The log file, resolved against the shared data folder when relative and found there."""
-        p = self.opts.log
-        if not p.is_absolute() and self.ctx.data_dir is not None and (self.ctx.data_dir / p).exists():
-            return self.ctx.data_dir / p
-        return p
+        """The log file, a relative one resolved by :meth:`SourceContext.resolve`."""
+        return self.ctx.resolve(self.opts.log)
 
     def start_pose(self) -> Pose2D | None:
         """Robot's map frame (its first laser pose) in the log's world frame, the fleet frame."""

@@ -45,7 +45,9 @@ Signature = tuple[tuple[int, int, int], tuple[int, int, int]]
 class MapFileOptions(SourceOptions):
     """``[source.mapfile]``: the YAML to watch and how often."""
 
-    path: Path = Field(description="map_server YAML to watch (relative: to the data folder, then the cwd)")
+    path: Path = Field(
+        description="map_server YAML to watch (relative: to the data folder, else the config's)"
+    )
     poll_s: float = Field(default=1.0, gt=0.0, le=3600.0, description="seconds between checks")
     settle_s: float = Field(
         default=0.3, ge=0.0, le=60.0, description="files must be unchanged this long before loading"
@@ -92,10 +94,7 @@ class MapFileSource(MapSource):
 
     @property
     def path(self) -> Path:
-        p = self.opts.path
-        if not p.is_absolute() and self.ctx.data_dir is not None and (self.ctx.data_dir / p).exists():
-            return self.ctx.data_dir / p
-        return p
+        return self.ctx.resolve(self.opts.path)
 
     def start_pose(self) -> Pose2D | None:
         return Pose2D(*self.opts.start_pose) if self.opts.start_pose is not None else None

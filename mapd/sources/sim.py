@@ -55,7 +55,8 @@ class SimOptions(FleetSliceOptions, MapperOptions):
         default=0, ge=0, lt=1 << 63, description="world and noise seed; the same seed gives the same building"
     )
     world: Path | None = Field(
-        default=None, description="map_server YAML to use as the world (relative: to the data folder)"
+        default=None,
+        description="map_server YAML to use as the world (relative: to the data folder, else the config's)",
     )
     width_m: float = Field(default=30.0, ge=6.0, le=500.0, description="generated building width")
     height_m: float = Field(default=20.0, ge=6.0, le=500.0, description="generated building depth")
@@ -113,11 +114,8 @@ class SimSource(MapSource):
 
     # -- construction --------------------------------------------------------------------------------
     def _world_path(self) -> Path:
-        p = self.opts.world
-        assert p is not None
-        if not p.is_absolute() and self.ctx.data_dir is not None and (self.ctx.data_dir / p).exists():
-            return self.ctx.data_dir / p
-        return p
+        assert self.opts.world is not None
+        return self.ctx.resolve(self.opts.world)
 
     def _build(self) -> SimRobot:
         from mapd.mapping import worldgen
