@@ -20,6 +20,9 @@ from mapd.fusion.transforms import to_matrix
 from mapd.grid import OCCUPIED_AT, OccupancyGrid
 
 FREE_C, OCC_C, UNK_C = 0, 1, 2
+#: SIFT draws a map of at most this many cells (a bigger one shrunk by a whole factor): its
+#: pyramid costs about 250 bytes a cell, so this bounds it near 250 MB.
+FEATURE_CELLS = 1 << 20
 #: OpenCV's remap and warp work on images up to this many cells a side.
 MAX_SIDE = 32000
 #: Evidence weights: the log-likelihood ratio of a wall that meets / misses the other map's walls
@@ -273,16 +276,31 @@ def orientation(walls: np.ndarray, bins: int = 180) -> tuple[np.ndarray, tuple[n
     return np.convolve(padded, k, mode="valid"), (c2, s2)
 
 
-def sift_features(cls: np.ndarray, n: int = 1500) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT keypoints and descriptors of the map drawn as an image (walls dark, unknown grey)."""
+def sift_features(
+    cls: np.ndarray, n: int = 1500, max_cells: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints and descriptors of the map drawn as an image (walls dark, unknown grey).
+
+    A map of more than ``max_cells`` (default :data:`FEATURE_CELLS`) cells is drawn shrunk by a whole factor first: SIFT doubles
+    the image and keeps a float pyramid of it, about 250 bytes a cell (a 2048 x 2048 map took
+    1 GB). Features only propose placements, which are refined on the whole map, so a coarser
+    drawing costs no accuracy. Keypoints are given in ``cls``'s pixel index either way.
+    """
     img: np.ndarray = np.full(cls.shape, 128, dtype=np.uint8)
     img[cls == FREE_C] = 255
     img[cls == OCC_C] = 0
+    cap = FEATURE_CELLS if max_cells is None else max_cells
+    k = max(1, math.ceil(math.sqrt(cls.size / max(1, cap)) - 1e-9))
+    if k > 1:
+        h, w = (cls.shape[0] // k) * k, (cls.shape[1] // k) * k
+        img = cv2.resize(img[:h, :w], (w // k, h // k), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), 1.0)
     kps, desc = cv2.SIFT.create(nfeatures=n).detectAndCompute(img, None)
     if desc is None or len(kps) == 0:
         return np.zeros((0, 2)), np.zeros((0, 128), dtype=np.float32)
-    return np.array([kp.pt for kp in kps], dtype=np.float64), desc
+    # a shrunk pixel j covers pixels jk .. jk + k - 1: its centre is at jk + (k - 1) / 2
+    pts = np.array([kp.pt for kp in kps], dtype=np.float64) * k + (k - 1) / 2.0
+    return pts, desc
 
 
 _CACHE: OrderedDict[tuple[bytes, float], MapView] = OrderedDict()

@@ -20,7 +20,7 @@ from mapd.fusion import estimate as estimate_mod
 from mapd.fusion import synth, views
 from mapd.fusion.estimate import check_transform, estimate_transform
 from mapd.fusion.options import EstimateOptions
-from mapd.fusion.transforms import pose_distance
+from mapd.fusion.transforms import from_matrix, pose_distance
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -304,3 +304,56 @@ def test_the_global_resolution_follows_the_robots_own_map_across_a_restart(tmp_p
     assert again.global_map is not None and again.global_map.resolution == coarse.resolution
     grid = again._fuse({"a": own}, True).result.grid
     assert grid.resolution == own.resolution and grid.counts()["free"] > 0
+
+
+def test_sift_draws_a_big_map_shrunk_and_gives_its_keypoints_in_the_maps_cells(
+    building: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # SIFT's pyramid costs about 250 bytes a drawn cell: a 2048 x 2048 view took 1 GB before.
+    drawn: list[tuple[int, ...]] = []
+    real_create = views.cv2.SIFT.create
+
+    class Recording:
+        def __init__(self, **kw: int) -> None:
+            self.sift = real_create(**kw)
+
+        def detectAndCompute(self, img: np.ndarray, mask: None) -> tuple[object, object]:
+            drawn.append(img.shape)
+            return self.sift.detectAndCompute(img, mask)
+
+    monkeypatch.setattr(views.cv2.SIFT, "create", Recording)
+    cls = views.resample_classes(building, building.resolution)
+    cap = cls.size // 5  # a shrink by 3 (the whole factor whose square reaches 5)
+    pts, desc = views.sift_features(cls, max_cells=cap)
+    assert drawn and drawn[0][0] * drawn[0][1] <= cap
+    assert drawn[0] == (cls.shape[0] // 3, cls.shape[1] // 3)
+    assert len(pts) >= 50 and len(desc) == len(pts)
+    # in the map's cells: the map moved by 12 cells (4 drawn pixels) moves its keypoints by 12
+    moved = np.pad(cls, ((12, 0), (12, 0)), constant_values=views.UNK_C)
+    pts2, _ = views.sift_features(moved, max_cells=cap)
+    assert drawn[-1] == (moved.shape[0] // 3, moved.shape[1] // 3)
+    from scipy.spatial import cKDTree
+
+    near, _ = cKDTree(pts + 12.0).query(pts2)
+    assert float(np.mean(near <= 0.5)) >= 0.8, np.percentile(near, [50, 80, 90])
+
+
+def test_features_drawn_shrunk_still_propose_the_true_placement(
+    building: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mapd.fusion import candidates as cand
+
+    pair = synth.make_pair(building, 0.6, np.random.default_rng(4), size=(300, 380))
+    assert pair is not None
+    monkeypatch.setattr(views, "_CACHE", type(views._CACHE)())
+    monkeypatch.setattr(views, "FEATURE_CELLS", min(pair.a.cells, pair.b.cells) // 3)  # shrunk by 2
+    va, vb = views.view(pair.a, pair.a.resolution), views.view(pair.b, pair.b.resolution)
+    hyps = cand.feature_hyps(va, vb, np.random.default_rng(0))
+    x, y = pair.b.cell_to_world(np.array([pair.b.height / 2]), np.array([pair.b.width / 2]))
+    errors = []
+    for h in hyps:
+        t = from_matrix(va.g @ h.matrix() @ np.linalg.inv(vb.g))
+        d, yaw = pose_distance(t, pair.truth, (float(x[0]), float(y[0])))
+        errors.append((d / pair.b.resolution, math.degrees(yaw)))
+    # a proposal within a few cells and a degree or two: refinement takes it the rest of the way
+    assert any(d <= 3.0 and yaw <= 2.0 for d, yaw in errors), errors
