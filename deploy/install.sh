@@ -29,15 +29,12 @@ links=""; [ -d /opt/wheels ] && links="--find-links /opt/wheels"
 /opt/mapd/venv/bin/pip install -q -c constraints.txt $links .
 rm -rf /opt/mapd/models && cp -r models /opt/mapd/models
 cp README.md /opt/mapd/README.md
+# `mapd status` and the rest on the PATH, as the README types them
+ln -sfn /opt/mapd/venv/bin/mapd /usr/local/bin/mapd
 
 install -d -m 0750 -o root -g mapd /etc/mapd
 if [ ! -f /etc/mapd/config.toml ]; then
-  sed -e "s/^name = \"alpha\"/name = \"$robot\"/" -e "s/^fleet = \"demo\"/fleet = \"$fleet\"/" \
-      -e 's#^dir = .*#dir = "/var/lib/mapd"#' -e 's#^runtime_dir = .*#runtime_dir = "/run/mapd"#' \
-      -e 's#^key_file = .*#key_file = "/etc/mapd/robot.key"#' \
-      -e 's#^link_key_file = .*#link_key_file = "/etc/mapd/link.key"#' \
-      -e '/^[A-Za-z0-9_-]* = "ed25519:A*="/d' \
-      config.toml > /etc/mapd/config.toml
+  deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml
   chgrp mapd /etc/mapd/config.toml && chmod 0640 /etc/mapd/config.toml
   echo "wrote /etc/mapd/config.toml for robot '$robot' (edit it, then: systemctl restart mapd)"
 fi
@@ -66,4 +63,4 @@ install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
 udevadm control --reload 2>/dev/null || true
 systemctl daemon-reload
 systemd-analyze verify /etc/systemd/system/mapd.service || true
-echo "installed. start with: systemctl enable --now mapd; check with: /opt/mapd/venv/bin/mapd status"
+echo "installed. start with: systemctl enable --now mapd; check with: mapd status"

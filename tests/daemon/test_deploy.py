@@ -69,3 +69,41 @@ def test_warmup_command_compiles_the_lossless_kernels(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[0].startswith("lossless: ready in")
     assert any((tmp_path / "numba").rglob("*.nbi")), "numba wrote no cache index under NUMBA_CACHE_DIR"
+
+
+def test_the_robot_config_install_writes_keeps_the_examples_folders(tmp_path: Path) -> None:
+    # install.sh once rewrote every line starting "dir = ": [output.files] dir went to the state dir.
+    from mapd import config as configmod
+
+    example = DEPLOY.parent / "config.toml"
+    out = subprocess.run(
+        ["bash", str(DEPLOY / "robot-config.sh"), "robot7", "lab"],
+        input=example.read_text(),
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert out.returncode == 0, out.stderr
+    (tmp_path / "config.toml").write_text(out.stdout)
+    cfg, orig = configmod.load(tmp_path / "config.toml"), configmod.load(example)
+    assert cfg.robot.name == "robot7" and cfg.robot.fleet == "lab"
+    assert cfg.robot.key_file == Path("/etc/mapd/robot.key")
+    assert cfg.fleet.link_key_file == Path("/etc/mapd/link.key")
+    assert cfg.fleet.roster == {}, "the example's placeholder keys are dropped"
+    assert cfg.state == orig.state and cfg.output.table("files") == orig.output.table("files")
+    # what the unit lets the daemon write (ProtectSystem=strict): its state directory
+    s = unit()["Service"]
+    for folder in (cfg.state.dir, Path(cfg.output.table("files")["dir"])):
+        assert folder.is_relative_to(Path("/var/lib") / s["StateDirectory"]), folder
+    assert cfg.state.runtime_dir == Path("/run") / s["RuntimeDirectory"]
+    # names go into sed and TOML: anything but a plain name is refused
+    bad = subprocess.run(
+        ["bash", str(DEPLOY / "robot-config.sh"), 'r"; x', "lab"], input="", capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "letters, digits" in bad.stderr
+
+
+def test_install_puts_mapd_on_the_path_and_writes_the_config_with_robot_config() -> None:
+    install = (DEPLOY / "install.sh").read_text()
+    assert "ln -sfn /opt/mapd/venv/bin/mapd /usr/local/bin/mapd" in install
+    assert 'deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml' in install
