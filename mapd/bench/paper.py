@@ -1,4 +1,4 @@
-"""Paper benchmark: the Zhang & Deng (2024) evaluation, Figures 8a, 8b and 9, on a log or a simulation.
+"""Paper benchmark: the Zhang & Deng (2024) evaluation, Figures 7, 8a, 8b and 9, on a log or a simulation.
 
 ``mapd bench paper --log LOG | --sim SEED --out DIR`` writes ``DIR/report.md`` (the paper's numbers
 beside ours, the settings and the command), the figures as PNG files, ``results.json``,
@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from mapd.bench.paper_global import Recovered
     from mapd.grid import OccupancyGrid
 
-HELP = "the paper's Figures 8a, 8b and 9 on a log or a simulation: report.md and PNG figures"
+HELP = "the paper's Figures 7, 8a, 8b and 9 on a log or a simulation: report.md and PNG figures"
 #: Most robots sharing the run.
 MAX_ROBOTS = 16
 #: Longest simulation (sim seconds): the default 300 takes about 2 minutes, an hour about 25.

@@ -1,4 +1,4 @@
-"""The figures of ``mapd bench paper``: Figure 8a, 8b and 9 equivalents, as PNG files (matplotlib, Agg).
+"""The figures of ``mapd bench paper``: Figure 8a, 8b and 9 equivalents (Figure 7: paper_global), as PNG files (matplotlib, Agg).
 
 Colours are the demo's (:data:`mapd.demo.report.COLOURS`), one per codec; line styles tell robots
 apart. The paper's reported values are drawn as dotted reference lines where a figure has one.

@@ -186,7 +186,7 @@ def markdown(results: dict[str, Any], figures: list[Path]) -> str:
         f"# `mapd bench paper`: {results['source']}",
         "",
         'The evaluation of Zhang & Deng, "Deep Compressed Communication and Application in Multi-Robot',
-        '2D-Lidar SLAM: An Intelligent Huffman Algorithm" (Sensors 2024), Figures 8a, 8b and 9, redone',
+        '2D-Lidar SLAM: An Intelligent Huffman Algorithm" (Sensors 2024), Figures 7, 8a, 8b and 9, redone',
         "with mapd's implementation of their codec (`paper`, model in `models/`) beside mapd's own codecs.",
         "",
         f"Made by `{results['command']}`",

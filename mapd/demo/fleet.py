@@ -382,6 +382,14 @@ def run_demo(args: argparse.Namespace) -> int:
         f"{args.duration:.0f} s",
         flush=True,
     )
+    # Each robot would compile the codec's numba kernels at start (about 30 s the first time) inside
+    # the demo's window, and one stopped mid-compile outlasts its stop timeout: compile once here,
+    # into the on-disk cache every robot then reads.
+    from mapd.codec.api import warm_up
+
+    took = warm_up(args.codec)
+    if took > 2.0:
+        print(f"codec {args.codec} ready in {took:.0f} s (compiled once, cached for the robots)", flush=True)
     fleet.prepare()
     fleet.start()
     if fleet.base is not None:

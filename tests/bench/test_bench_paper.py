@@ -1,4 +1,4 @@
-"""``mapd bench paper``: the paper's Figures 8a, 8b and 9 end to end on a short simulation and the log."""
+"""``mapd bench paper``: the paper's Figures 7, 8a, 8b and 9 end to end on a short simulation and the log."""
 
 from __future__ import annotations
 

@@ -106,3 +106,29 @@ def test_demo_refuses_a_bad_out_of_range_pair_in_one_line(
     # one clear line, last (argparse's own errors print the usage above it)
     assert r.returncode != 0 and says in r.stderr.strip().splitlines()[-1]
     assert "Traceback" not in r.stderr
+
+
+def test_demo_readies_the_codec_once_before_any_robot_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A first demo on a fresh machine spent its window compiling numba kernels in every robot, and
+    # one stopped mid-compile outlasted its stop timeout ("robot0 did not stop within 10 s").
+    import mapd.codec.api
+    from mapd.cli import build_parser
+    from mapd.demo import fleet
+
+    calls: list[str] = []
+
+    class Started(Exception):
+        pass
+
+    def prepare(self: object) -> None:
+        calls.append("prepare")
+        raise Started
+
+    monkeypatch.setattr(mapd.codec.api, "warm_up", lambda name: calls.append(f"warm_up {name}") or 0.0)
+    monkeypatch.setattr(fleet.Fleet, "prepare", prepare)
+    args = build_parser().parse_args(["demo", "--out", str(tmp_path), "--codec", "pooled"])
+    with pytest.raises(Started):
+        fleet.run_demo(args)
+    assert calls == ["warm_up pooled", "prepare"]
