@@ -190,35 +190,9 @@ def _num(v: Any, spec: str = ".1f") -> str:
     return format(v, spec) if isinstance(v, int | float) else "-"
 
 
-#: A link's figures that mean something is wrong when not zero (``port_open``: when false).
-LINK_FAULTS = {
-    "port_open": "serial port closed (reopening)",
-    "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
-    "reconnects": "port reopened {} times",
-    "write_stalls": "port took no bytes {} times",
-    "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
-    "replay_save_errors": "replay marks not saved {} times (disk full or read-only?)",
-    "out_of_turn": "{} frames of others on the air in this robot's own TDMA slot (do the clocks agree?)",
-    # The frame's link tag was good but the robot key was not: whoever sent it holds the link key.
-    "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",
-}
-
-
-def _link_faults(st: dict[str, Any]) -> list[str]:
-    """The link's faults worth a line in ``mapd status``, in words."""
-    out = []
-    for k, words in LINK_FAULTS.items():
-        v = st.get(k)
-        if k in ("port_open", "clock_synchronized"):
-            if v is False:
-                out.append(words)
-        elif isinstance(v, int) and v > 0:
-            out.append(words.format(v))
-    return out
-
-
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
+    from mapd.daemon.headline import LINK_FAULTS, link_faults
     from mapd.daemon.versions import label
 
     out = []
@@ -283,7 +257,7 @@ def render_status(s: dict[str, Any]) -> str:
             "rtt_ms",
         )
         parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st]
-        faults = _link_faults(st)
+        faults = link_faults(st)
         others = [
             f"{k}={v}"
             for k, v in st.items()

@@ -35,6 +35,7 @@ from mapd.codec import get_codec
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
+from mapd.daemon.headline import status_line
 from mapd.daemon.inbound import Inbound
 from mapd.daemon.outbound import Outbound
 from mapd.daemon.poses import PoseRelay
@@ -64,6 +65,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("mapd.daemon")
 EVENT_QUEUE = 256
+#: seconds between looks at whether the systemd Status line changed
+STATUS_PERIOD_S = 2.0
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -332,6 +335,7 @@ class Daemon:
                 tg.create_task(self.inbound.run(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
                 tg.create_task(self._watchdog(), name="watchdog"),
+                tg.create_task(self._systemd_status(), name="systemd-status"),
                 tg.create_task(self._record_links(), name="record"),
                 tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
                 tg.create_task(self._reload_loop(), name="reload"),
@@ -434,6 +438,19 @@ class Daemon:
         while True:
             notify("WATCHDOG=1")
             await asyncio.sleep(interval)
+
+    async def _systemd_status(self) -> None:
+        """Keep the Status line of ``systemctl status mapd`` current (sd_notify STATUS=): the map,
+        the peers', the global map and any fault, said again only when it changes."""
+        if not os.environ.get("NOTIFY_SOCKET"):
+            return
+        said = "running"
+        while True:
+            await asyncio.sleep(STATUS_PERIOD_S)
+            line = status_line(self.snapshot())
+            if line != said:
+                notify(f"STATUS={line}")
+                said = line
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """The fusion worker made a new global map: outputs, recording and fused.csv take it."""

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
+import subprocess
+import sys
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -100,6 +103,28 @@ async def wait_for(cond: Callable[[], bool], timeout: float = 10.0, what: str = 
         await asyncio.sleep(0.01)
 
 
+@contextlib.contextmanager
+def mapd_run(
+    config: Path, log: Path, *, cwd: Path | None = None, env: dict[str, str] | None = None
+) -> Iterator[subprocess.Popen[bytes]]:
+    """``mapd run --config config`` as a process, its output in ``log``; killed on the way out if
+    the test did not stop it."""
+    with log.open("wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mapd", "run", "--config", str(config)],
+            cwd=cwd,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
 @pytest.fixture
 def dk() -> SimpleNamespace:
     """The helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
@@ -110,5 +135,6 @@ def dk() -> SimpleNamespace:
         virtual_daemon=virtual_daemon,
         growing_map=growing_map,
         wait_for=wait_for,
+        mapd_run=mapd_run,
         channel=lambda: f"test-{next(_channels)}",
     )

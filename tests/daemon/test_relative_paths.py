@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -73,7 +74,9 @@ def test_a_source_file_is_looked_up_in_the_data_folder_then_beside_the_config(tm
 
 
 @pytest.mark.slow
-def test_a_daemon_started_elsewhere_keeps_everything_beside_its_config(tmp_path: Path) -> None:
+def test_a_daemon_started_elsewhere_keeps_everything_beside_its_config(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
     conf, cwd, other = tmp_path / "etc", tmp_path / "cwd", tmp_path / "elsewhere"
     for d in (conf, cwd, other):
         d.mkdir()
@@ -85,14 +88,7 @@ def test_a_daemon_started_elsewhere_keeps_everything_beside_its_config(tmp_path:
         '[output]\nuse = ["files"]\n[output.files]\ndir = "out"\n'
     )
     log = tmp_path / "daemon.log"
-    with log.open("wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mapd", "run", "--config", "../etc/config.toml"],
-            cwd=cwd,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    try:
+    with dk.mapd_run(Path("../etc/config.toml"), log, cwd=cwd) as proc:
         deadline = time.monotonic() + 60
         status = None
         while time.monotonic() < deadline:
@@ -117,7 +113,3 @@ def test_a_daemon_started_elsewhere_keeps_everything_beside_its_config(tmp_path:
         assert sorted(p.name for p in cwd.iterdir()) == [], "nothing is written in the daemon's cwd"
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)

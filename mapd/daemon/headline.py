@@ -1,0 +1,80 @@
+"""The daemon's state in one line, and the link faults worth saying: for ``systemctl status`` and
+``mapd status``.
+
+Under systemd the daemon sends this line as ``STATUS=`` (sd_notify), so ``systemctl status mapd``
+shows what the robot is doing (its map, its peers', the global map, and any fault) without
+``mapd status``; the fault words are the ones ``mapd status`` prints on its ``FAULTS`` lines.
+Pure functions of a status document (:meth:`Daemon.snapshot`), so both read the same facts.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mapd.daemon.versions import label
+
+#: A link's figures that mean something is wrong when not zero (``port_open``: when false).
+LINK_FAULTS = {
+    "port_open": "serial port closed (reopening)",
+    "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
+    "reconnects": "port reopened {} times",
+    "write_stalls": "port took no bytes {} times",
+    "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
+    "replay_save_errors": "replay marks not saved {} times (disk full or read-only?)",
+    "out_of_turn": "{} frames of others on the air in this robot's own TDMA slot (do the clocks agree?)",
+    # The frame's link tag was good but the robot key was not: whoever sent it holds the link key.
+    "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",
+}
+
+#: systemd shows STATUS= on one line of ``systemctl status``: keep it to what fits there.
+MAX_LINE = 200
+
+
+def link_faults(st: dict[str, Any]) -> list[str]:
+    """The link's faults worth a line in ``mapd status``, in words."""
+    out = []
+    for k, words in LINK_FAULTS.items():
+        v = st.get(k)
+        if k in ("port_open", "clock_synchronized"):
+            if v is False:
+                out.append(words)
+        elif isinstance(v, int) and not isinstance(v, bool) and v > 0:
+            out.append(words.format(v))
+    return out
+
+
+def status_line(s: dict[str, Any]) -> str:
+    """``FAULTS uwb port reopened 2 times | map v12; peers beta v9, gamma v4 (gone); global 3 maps 812x604``.
+
+    Faults come first when there are any (a unit's status line is cut at the terminal's width).
+    """
+    parts = []
+    src = s.get("source") or {}
+    parts.append(f"map {label(src.get('version'))}" + (" (source finished)" if src.get("finished") else ""))
+    peers = s.get("peers") or {}
+    if peers:
+        shown = [
+            f"{name} {label(p.get('version'))}" + ("" if p.get("present", True) else " (gone)")
+            for name, p in list(peers.items())[:4]
+            if isinstance(p, dict)
+        ]
+        more = f" +{len(peers) - 4}" if len(peers) > 4 else ""
+        parts.append("peers " + ", ".join(shown) + more)
+    else:
+        parts.append("no peers yet")
+    g = (s.get("fusion") or {}).get("global") or {}
+    if g:
+        n = (s.get("fusion") or {}).get("maps", 0)
+        parts.append(f"global {n} map{'' if n == 1 else 's'} {g.get('width')}x{g.get('height')}")
+    faults = [
+        f"{name} {', '.join(words)}"
+        for name, st in (s.get("links") or {}).items()
+        if isinstance(st, dict) and (words := link_faults(st))
+    ]
+    rec = s.get("recording") or {}
+    if rec.get("failures") or rec.get("dropped"):
+        faults.append("recording: messages not written")
+    if not (s.get("security") or {}).get("signed", True):
+        faults.append("UNSIGNED fleet")
+    line = ("FAULTS " + ", ".join(faults) + " | " if faults else "") + "; ".join(parts)
+    return line if len(line) <= MAX_LINE else line[: MAX_LINE - 3] + "..."

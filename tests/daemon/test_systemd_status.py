@@ -1,0 +1,92 @@
+"""``systemctl status mapd`` shows what the robot is doing: the daemon's STATUS= line (sd_notify).
+
+Before, the daemon said ``STATUS=running`` once and nothing after, so the unit's status showed
+neither the robot's map nor a fault until someone ran ``mapd status``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import socket
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from mapd.daemon.headline import MAX_LINE, status_line
+from mapd.daemon.versions import make as compose
+from mapd.grid import save_map
+from mapd.mapping.synthetic import room_grid
+
+
+def _doc(**kw: Any) -> dict[str, Any]:
+    doc: dict[str, Any] = {
+        "source": {"version": compose(1, 12)},
+        "peers": {"beta": {"version": compose(3, 9)}, "gamma": {"version": compose(1, 4), "present": False}},
+        "fusion": {"maps": 3, "global": {"width": 812, "height": 604}},
+        "links": {"uwb": {"port_open": True, "reconnects": 0}},
+        "security": {"signed": True},
+    }
+    doc.update(kw)
+    return doc
+
+
+def test_the_line_says_the_map_the_peers_and_the_global_map() -> None:
+    assert status_line(_doc()) == "map v12; peers beta v9, gamma v4 (gone); global 3 maps 812x604"
+    assert status_line({}) == "map -; no peers yet"
+
+
+def test_faults_come_first_in_the_words_mapd_status_uses() -> None:
+    line = status_line(
+        _doc(
+            links={"uwb": {"port_open": False, "reconnects": 2}, "zenoh": {}},
+            recording={"failures": 1},
+            security={"signed": False},
+        )
+    )
+    assert line.startswith(
+        "FAULTS uwb serial port closed (reopening), port reopened 2 times, recording: messages not "
+        "written, UNSIGNED fleet | map v12;"
+    )
+
+
+def test_a_large_fleet_or_many_faults_still_fit_one_line() -> None:
+    peers = {f"robot{i:02d}": {"version": compose(1, i)} for i in range(40)}
+    line = status_line(_doc(peers=peers, links={f"uwb{i}": {"write_stalls": 9} for i in range(10)}))
+    assert len(line) <= MAX_LINE and line.endswith("...")
+    assert "+36" in status_line(_doc(peers=peers))
+
+
+@pytest.mark.slow
+def test_a_daemon_under_systemd_keeps_its_status_line_current(tmp_path: Path, dk: SimpleNamespace) -> None:
+    notify = tmp_path / "notify"
+    save_map(room_grid(60, 80, seed=3), tmp_path / "map.yaml")
+    (tmp_path / "config.toml").write_text(
+        '[robot]\nname = "r0"\n[fleet]\nallow_unsigned = true\n'
+        '[source]\nuse = "mapfile"\n[source.mapfile]\npath = "map.yaml"\npoll_s = 0.1\nsettle_s = 0.1\n'
+        '[codec]\nuse = "raw"\n[state]\ndir = "state"\nruntime_dir = "run"\n'
+    )
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.bind(str(notify))
+        s.settimeout(1.0)
+        said: list[str] = []
+        env = {**os.environ, "NOTIFY_SOCKET": str(notify)}
+        with dk.mapd_run(tmp_path / "config.toml", tmp_path / "daemon.log", env=env) as proc:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not any("global 1 map " in m for m in said):
+                assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
+                with contextlib.suppress(TimeoutError):
+                    said.append(s.recv(4096).decode())
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(30) == 0
+    assert said[0] == "READY=1\nSTATUS=running", said
+    status = [m for m in said if m.startswith("STATUS=")]
+    assert status and re.fullmatch(
+        r"STATUS=FAULTS UNSIGNED fleet \| map v1; no peers yet; global 1 map \d+x\d+", status[-1]
+    ), said
+    assert len(status) == len(set(status)), "a line is said again only when it changed"
