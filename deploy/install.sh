@@ -26,7 +26,8 @@ usermod -aG dialout mapd
 install -d -m 0755 /opt/mapd
 "$py" -m venv /opt/mapd/venv
 links=""; [ -d /opt/wheels ] && links="--find-links /opt/wheels"
-/opt/mapd/venv/bin/pip install -q -c constraints.txt $links .
+# with the ROS 2 plugins and recordings (a few small wheels): a robot's config may turn them on
+/opt/mapd/venv/bin/pip install -q -c constraints.txt $links '.[ros2,record]'
 rm -rf /opt/mapd/models && cp -r models /opt/mapd/models
 cp README.md /opt/mapd/README.md
 # `mapd status` and the rest on the PATH, as the README types them

@@ -107,3 +107,6 @@ def test_install_puts_mapd_on_the_path_and_writes_the_config_with_robot_config()
     install = (DEPLOY / "install.sh").read_text()
     assert "ln -sfn /opt/mapd/venv/bin/mapd /usr/local/bin/mapd" in install
     assert 'deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml' in install
+    # the example config names the ros2 and record plugins: a robot gets what they need
+    extras = install.split("pip install", 1)[1].split("\n", 1)[0]
+    assert "'.[ros2,record]'" in extras
