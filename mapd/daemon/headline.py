@@ -50,7 +50,8 @@ def status_line(s: dict[str, Any]) -> str:
     """
     parts = []
     src = s.get("source") or {}
-    parts.append(f"map {label(src.get('version'))}" + (" (source finished)" if src.get("finished") else ""))
+    mine = f"map {label(src['version'])}" if src.get("version") else "no map yet"
+    parts.append(mine + (" (source finished)" if src.get("finished") else ""))
     peers = s.get("peers") or {}
     if peers:
         shown = [

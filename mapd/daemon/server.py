@@ -447,7 +447,11 @@ class Daemon:
         said = "running"
         while True:
             await asyncio.sleep(STATUS_PERIOD_S)
-            line = status_line(self.snapshot())
+            try:
+                line = status_line(self.snapshot())
+            except Exception:  # a status bug must never take the daemon down (as on the socket)
+                log.exception("status line failed")
+                continue
             if line != said:
                 notify(f"STATUS={line}")
                 said = line

@@ -38,7 +38,7 @@ def _doc(**kw: Any) -> dict[str, Any]:
 
 def test_the_line_says_the_map_the_peers_and_the_global_map() -> None:
     assert status_line(_doc()) == "map v12; peers beta v9, gamma v4 (gone); global 3 maps 812x604"
-    assert status_line({}) == "map -; no peers yet"
+    assert status_line({}) == status_line({"source": {"version": 0}}) == "no map yet; no peers yet"
 
 
 def test_faults_come_first_in_the_words_mapd_status_uses() -> None:
@@ -90,3 +90,35 @@ def test_a_daemon_under_systemd_keeps_its_status_line_current(tmp_path: Path, dk
         r"STATUS=FAULTS UNSIGNED fleet \| map v1; no peers yet; global 1 map \d+x\d+", status[-1]
     ), said
     assert len(status) == len(set(status)), "a line is said again only when it changed"
+
+
+def test_a_status_bug_costs_the_line_not_the_daemon(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import asyncio
+
+    from mapd.daemon import server
+
+    sent: list[str] = []
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody"))
+    monkeypatch.setattr(server, "STATUS_PERIOD_S", 0.01)
+    monkeypatch.setattr(server, "notify", sent.append)
+    d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    calls = 0
+
+    def broken() -> dict[str, Any]:
+        nonlocal calls
+        calls += 1
+        if calls < 3:
+            raise KeyError("a bug")
+        return {"source": {"version": 0}}
+
+    monkeypatch.setattr(d, "snapshot", broken)
+
+    async def main() -> None:
+        task = asyncio.create_task(d._systemd_status())
+        await dk.wait_for(lambda: calls >= 3 and bool(sent), what="a line after two failures")
+        assert not task.done() and sent == ["STATUS=no map yet; no peers yet"]
+        task.cancel()
+
+    asyncio.run(main())
