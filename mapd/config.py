@@ -450,11 +450,13 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
     cfg._path = p
     # Relative paths in a config are relative to the file, like systemd drop-ins expect: the
     # daemon runs with cwd "/" under systemd, and `mapd status` must find the socket from anywhere.
+    folder = cfg.folder
+    assert folder is not None  # (just set)
     for section, field in _PATHS_BESIDE_CONFIG:
         table = getattr(cfg, section)
         value = getattr(table, field)
         if value is not None and not value.is_absolute():
-            setattr(table, field, Path(os.path.abspath(p)).parent / value)
+            setattr(table, field, folder / value)
     return cfg
 
 

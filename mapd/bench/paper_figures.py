@@ -1,4 +1,6 @@
-"""The figures of ``mapd bench paper``: Figure 8a, 8b and 9 equivalents (Figure 7: paper_global), as PNG files (matplotlib, Agg).
+"""The figures of ``mapd bench paper``: Figure 8a, 8b and 9 equivalents, as PNG files (matplotlib, Agg).
+
+Figure 7 (global maps fused with and without compression) is drawn by :mod:`mapd.bench.paper_global`.
 
 Colours are the demo's (:data:`mapd.demo.report.COLOURS`), one per codec; line styles tell robots
 apart. The paper's reported values are drawn as dotted reference lines where a figure has one.
