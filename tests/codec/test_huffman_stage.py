@@ -58,9 +58,9 @@ def test_code_lengths_are_optimal_and_prefix_free(counts: list[int]) -> None:
     hf.check_lengths(lengths)
     codes = hf.canonical_codes(lengths)
     words = [format(int(codes[s]), f"0{lengths[s]}b") for s in range(len(counts)) if lengths[s]]
-    for a in words:
-        for b in words:
-            assert a is b or not b.startswith(a)
+    for i, a in enumerate(words):
+        for j, b in enumerate(words):
+            assert i == j or not b.startswith(a), (a, b)  # by index: equal short strings are one object
 
 
 def test_deep_trees_are_capped_at_15_bits() -> None:

@@ -86,15 +86,19 @@ def test_truncated_body_at_every_offset_is_refused(kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", sorted(PAYLOADS))
-def test_every_single_bit_flip_in_the_body_is_caught(kind: str) -> None:
+def test_every_single_bit_flip_in_the_body_is_refused_or_harmless(kind: str) -> None:
     payload, base, grid = PAYLOADS[kind]
     h = read_header(payload)
     body = bytearray(payload[h.body_offset :])
+    harmless = 0
     for i in range(len(body)):
         for bit in range(8):
             body[i] ^= 1 << bit
-            decodes_exactly_or_refuses(with_body(payload, bytes(body)), base, grid)
+            harmless += decodes_exactly_or_refuses(with_body(payload, bytes(body)), base, grid)
             body[i] ^= 1 << bit
+    # a flip the decoder takes gives the same map (checked above); only spare bits allow it (the
+    # last byte's padding, an unused flag bit): 1 or 2 of a body's hundreds of bits
+    assert harmless <= 2, harmless
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

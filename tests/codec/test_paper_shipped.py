@@ -97,10 +97,12 @@ def test_small_shared_maps_reproduce_their_recorded_metrics(meta: dict, shared_m
     assert checked == 4
 
 
-def test_cpu_recipe_pins_the_thread_count(meta: dict) -> None:
+def test_the_shipped_model_was_trained_on_cpu_with_its_threads_pinned(meta: dict) -> None:
     # CPU weights are byte-identical for one seed and one torch thread count (docs/paper.md,
     # "Shipped weights and reproduction"), so the recorded command must fix the count it ran with.
     training = meta["training"]
-    if training["device"] == "cpu":
-        assert f"--threads {training['torch_threads']}" in training["command"]
-        assert f"--seed {training['seed']}" in training["command"]
+    # a model trained elsewhere (cuda) is reproduced to tolerance, not bytes: its card must say so
+    # before this test can let it through
+    assert training["device"] == "cpu", f"model card: device {training['device']!r} needs its own check"
+    assert f"--threads {training['torch_threads']}" in training["command"]
+    assert f"--seed {training['seed']}" in training["command"]

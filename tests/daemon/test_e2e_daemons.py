@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +21,9 @@ from mapd.daemon.state import lock_state_dir
 from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
 from mapd.identity import Identity
+
+#: The uwb cases run the daemons over socat pty pairs through the fault relay.
+needs_socat = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed")
 
 pytestmark = pytest.mark.slow
 
@@ -54,7 +58,7 @@ def _placed_pose(snaps: dict[str, Any], holder: str, robot: str) -> dict[str, An
     return p if isinstance(p, dict) and p.get("fleet") else None
 
 
-@pytest.mark.parametrize("transport", ["zenoh", "uwb"])
+@pytest.mark.parametrize("transport", ["zenoh", pytest.param("uwb", marks=needs_socat)])
 def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str, fk: SimpleNamespace) -> None:
     f = fleet(tmp_path, transport)
     f.start()
@@ -290,6 +294,7 @@ def _same_on_lattice(a: Any, b: Any) -> str | None:
     return None if diff == 0 else f"{diff} cells differ of {int((big_a >= 0).sum())} known"
 
 
+@needs_socat
 def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:
@@ -358,6 +363,7 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(
     assert stats["dropped"] > 0 and stats["flipped_bits"] > 0
 
 
+@needs_socat
 def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path, fk: SimpleNamespace) -> None:
     """robot0 talks UWB (socat + relay) to robot1 and zenoh to robot2, both at once."""
     import tomllib
@@ -413,6 +419,7 @@ def test_one_daemon_runs_uwb_to_one_robot_and_zenoh_to_another(tmp_path: Path, f
     assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
 
 
+@needs_socat
 def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:
@@ -474,6 +481,7 @@ def _all_hold_three(s: dict[str, dict[str, Any]], least: int = 3) -> bool:
     )
 
 
+@needs_socat
 def test_three_daemons_share_one_tdma_channel_where_overlapping_frames_garble(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:
@@ -505,6 +513,7 @@ def test_three_daemons_share_one_tdma_channel_where_overlapping_frames_garble(
     assert heard_out_of_turn <= sent // 50, heard_out_of_turn
 
 
+@needs_socat
 def test_three_daemons_repair_lossy_broadcasts_with_parity(tmp_path: Path, fk: SimpleNamespace) -> None:
     """An emulated radio that loses 15 % of frames: each robot's maps go to the two others at once (a
     broadcast, gap reports and COMPLETEs: R16), and with ``fec`` on (the default) the repairs are
@@ -530,6 +539,7 @@ def test_three_daemons_repair_lossy_broadcasts_with_parity(tmp_path: Path, fk: S
     assert stats["dropped"] > 0
 
 
+@needs_socat
 def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from mcap.exceptions import EndOfFile
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
@@ -131,7 +132,12 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
         f.procs["robot0"].wait(10)
     finally:
         f.stop()
-    files = sorted(tmp_path.glob("fleet*.mcap"))
+
+    def index(p: Path) -> int:  # fleet.mcap, fleet.1.mcap, fleet.2.mcap, ...: the killed one is last
+        parts = p.name.split(".")
+        return int(parts[1]) if len(parts) == 3 else 0
+
+    files = sorted(tmp_path.glob("fleet*.mcap"), key=index)
     assert files
     topics: dict[str, list[int]] = {}
     decoded: dict[str, Any] = {}
@@ -157,8 +163,8 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
                                 tf_msgs.append((record.log_time, decoded[ch.topic]))
                         else:
                             decoded[ch.topic] = json.loads(record.data)
-            except Exception:  # the killed file ends mid-chunk: everything before it was read
-                pass
+            except EndOfFile:  # the killed file ends mid-chunk: everything before it was read
+                assert fp == files[-1], f"{fp} was closed whole, yet ends early"
     assert {"/map", "/robot0/map", "/robot1/map", "/tf_static", "/tf", "/mapd/links"} <= set(topics), (
         topics.keys()
     )

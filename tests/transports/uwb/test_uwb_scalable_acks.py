@@ -217,6 +217,11 @@ def test_broadcast_is_delivered_intact_once_or_fails_by_deadline(
     failed = {e.peer for e in net.events[1] if isinstance(e, arq.MessageFailed)}
     assert delivered | failed == {2, 3, 4, 5} and not delivered & failed
     assert not failed or net.now >= 20.0  # a failure only by the deadline
+    # and not for want of repairs: a 30 KB map is 2.4 s on this line, so up to a tenth of the
+    # frames lost every receiver has it well within the 20 s (300 random cases up to a quarter
+    # lost: none failed; with repairs switched off, most do)
+    if drop <= 0.1:
+        assert delivered == {2, 3, 4, 5}, (failed, net.now)
     for r in (2, 3, 4, 5):
         got = [m.data for m in net.received(r)]
         assert got in ([], [data])  # never corrupt, never twice

@@ -316,6 +316,14 @@ def test_never_a_delta_on_a_base_not_passed_on(zk, ops) -> None:
                 assert not seen or env.version > seen[-1]
                 assert env.base_version == 0 or env.base_version in seen
                 seen.append(env.version)
+    # and not by passing nothing on: whatever came before, a newer keyframe goes through, and then
+    # a delta on it
+    for robot in ("a", "c"):
+        c.on_presence(keys.presence_key("testfleet", robot), True, now=0)
+        for v, base in ((100, 0), (101, 100)):
+            step = c.on_update(keys.update_key("testfleet", robot), zk.envelope(robot, v, base).pack(), 0)
+            got = [unpack(e.data) for e in step.events if isinstance(e, Received)]
+            assert [(g.version, g.base_version) for g in got] == [(v, base)], (robot, v, step.events)
 
 
 def test_ack_rtt_is_offer_to_ack_time_smoothed(zk) -> None:
