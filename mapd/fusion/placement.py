@@ -225,8 +225,9 @@ class Placer:
         With ``estimate=False`` nothing is estimated: configured poses and the anchor are placed,
         other robots keep their held placements (a cheap update, e.g. for a last flush).
         ``tried`` is told each estimate as it is made (each can take seconds: a progress bar).
-        ``enough`` is asked after each robot: once it says so, the robots not yet estimated keep
-        what they held, and go first at the next update. A robot that places against no map was
+        ``enough`` is asked after each estimate (one robot against one placed map): once it says
+        so, the robots not yet estimated keep what they held, and go first at the next update,
+        where the pairs already tried are not searched again while neither map changed. A robot that places against no map was
         searched against every placed one at each new version, so one merge of a fleet with a
         few of them took minutes, and the placed robots' maps waited as long.
         """
@@ -275,7 +276,11 @@ class Placer:
                     self._defer([r for r in pending if r not in out], out)
                     self.placements.update(out)
                     return out
-                p = self._place(robot, maps, placed)
+                p = self._place(robot, maps, placed, enough)
+                if p is None:  # the time ran out within this robot's search: it goes first next time
+                    self._defer([r for r in pending if r not in out], out)
+                    self.placements.update(out)
+                    return out
                 if tried is not None:
                     tried(p)
                 if p.accepted and p.transform is not None:
@@ -334,8 +339,14 @@ class Placer:
         return "start pose reported by the robot" if robot in self.reported else "configured pose"
 
     def _place(
-        self, robot: str, maps: Mapping[str, OccupancyGrid], placed: Mapping[str, Pose2D]
-    ) -> Placement:
+        self,
+        robot: str,
+        maps: Mapping[str, OccupancyGrid],
+        placed: Mapping[str, Pose2D],
+        enough: Callable[[], bool] | None = None,
+    ) -> Placement | None:
+        """The best placement of ``robot`` against the placed maps; None when ``enough`` said so
+        before one was found (one pair at least is tried first, so every update gets on)."""
         track = self._tracks.setdefault(robot, _Track())
         held = self.placements.get(robot)
         if held is not None and not (
@@ -345,6 +356,8 @@ class Placer:
         others = sorted(placed, key=lambda r: (held is None or r != held.against, r))
         best: Placement | None = None
         for other in others:
+            if best is not None and enough is not None and enough():
+                return best if best.accepted else None
             p = self._place_against(robot, other, maps, placed, held, track)
             if best is None or (p.accepted and (not best.accepted or p.confidence > best.confidence)):
                 best = p

@@ -193,3 +193,33 @@ def test_known_poses_are_checked_again_only_when_a_map_or_pose_changes(
     assert n >= 1 and placer.update(maps) == first and len(calls) == n  # nothing changed: no check
     placer.update({**maps, "b": maps["b"].replace(data=np.flipud(maps["b"].data).copy())})
     assert len(calls) > n  # a new map is checked again
+
+
+def test_the_search_budget_holds_within_one_robots_search_too(
+    crops: dict[str, OccupancyGrid], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The budget was asked between robots only: a robot that places against none was searched
+    # against every placed map in one go (15 placed robots at 3-13 s a search: minutes a merge).
+    from mapd.fusion import placement as placement_mod
+
+    calls: list[str] = []
+    real = placement_mod.estimate_transform
+
+    def counting(a: OccupancyGrid, b: OccupancyGrid, *args: object, **kw: object) -> object:
+        calls.append(a.robot)
+        return real(a, b, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(placement_mod, "estimate_transform", counting)
+    poses = {r: Pose2D(float(i), 0.0, 0.0) for i, r in enumerate("abc")}
+    maps = {
+        **{r: crops[r] for r in "abc"},
+        "u": OccupancyGrid(np.full((30, 30), 100, np.int8), 0.05, robot="u"),
+    }
+    placer = Placer(poses, anchor=None)
+    for n in (1, 2):
+        out = placer.update(maps, enough=lambda n=n: len(calls) >= n)  # type: ignore[misc]
+        assert len(calls) == n and "search time was spent" in out["u"].reason, (calls, out["u"])
+    out = placer.update(maps)
+    # each placed map searched once in all: what was tried is kept while neither map changes
+    assert sorted(calls) == ["a", "b", "c"] and not out["u"].accepted
+    assert "search time was spent" not in out["u"].reason
