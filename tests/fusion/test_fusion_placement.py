@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -170,21 +171,29 @@ def test_a_merge_spends_its_search_budget_and_the_robots_left_go_first_next_time
     assert searched[:3] == ["u2", "u3", "u4"]  # none waits for ever behind the others
 
 
+def _calls(
+    monkeypatch: pytest.MonkeyPatch, name: str, who: Callable[[OccupancyGrid, OccupancyGrid], str]
+) -> list[str]:
+    """Count the placer's calls of ``name`` (check_transform or estimate_transform): ``who`` of each."""
+    from mapd.fusion import placement as placement_mod
+
+    calls: list[str] = []
+    real = getattr(placement_mod, name)
+
+    def counting(a: OccupancyGrid, b: OccupancyGrid, *args: object, **kw: object) -> object:
+        calls.append(who(a, b))
+        return real(a, b, *args, **kw)
+
+    monkeypatch.setattr(placement_mod, name, counting)
+    return calls
+
+
 def test_known_poses_are_checked_again_only_when_a_map_or_pose_changes(
     crops: dict[str, OccupancyGrid], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # Every merge checked each robot with a known pose against the others again (32 robots of
     # 600 x 600 cells: 7.7 s a merge) although nothing had changed.
-    from mapd.fusion import placement as placement_mod
-
-    calls: list[str] = []
-    real = placement_mod.check_transform
-
-    def counting(a: OccupancyGrid, b: OccupancyGrid, *args: object, **kw: object) -> object:
-        calls.append(b.robot)
-        return real(a, b, *args, **kw)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(placement_mod, "check_transform", counting)
+    calls = _calls(monkeypatch, "check_transform", lambda a, b: b.robot)
     pa = Pose2D(0.0, 0.0, 0.0)
     placer = Placer({"a": pa, "b": Pose2D(1.0, 0.5, 0.0)}, anchor=None)
     maps = {"a": crops["a"].replace(robot="a"), "b": crops["b"].replace(robot="b")}
@@ -200,16 +209,7 @@ def test_the_search_budget_holds_within_one_robots_search_too(
 ) -> None:
     # The budget was asked between robots only: a robot that places against none was searched
     # against every placed map in one go (15 placed robots at 3-13 s a search: minutes a merge).
-    from mapd.fusion import placement as placement_mod
-
-    calls: list[str] = []
-    real = placement_mod.estimate_transform
-
-    def counting(a: OccupancyGrid, b: OccupancyGrid, *args: object, **kw: object) -> object:
-        calls.append(a.robot)
-        return real(a, b, *args, **kw)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(placement_mod, "estimate_transform", counting)
+    calls = _calls(monkeypatch, "estimate_transform", lambda a, b: a.robot)
     poses = {r: Pose2D(float(i), 0.0, 0.0) for i, r in enumerate("abc")}
     maps = {
         **{r: crops[r] for r in "abc"},
