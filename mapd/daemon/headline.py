@@ -13,9 +13,11 @@ from typing import Any
 
 from mapd.daemon.versions import label
 
-#: A link's figures that mean something is wrong when not zero (``port_open``: when false).
+#: A link's figures that mean something is wrong when not zero (``port_open``, ``session_open``
+#: and ``clock_synchronized``: when false).
 LINK_FAULTS = {
     "port_open": "serial port closed (reopening)",
+    "session_open": "no zenoh router reached yet (trying again)",
     "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",
@@ -35,7 +37,7 @@ def link_faults(st: dict[str, Any]) -> list[str]:
     out = []
     for k, words in LINK_FAULTS.items():
         v = st.get(k)
-        if k in ("port_open", "clock_synchronized"):
+        if k in ("port_open", "session_open", "clock_synchronized"):
             if v is False:
                 out.append(words)
         elif isinstance(v, int) and not isinstance(v, bool) and v > 0:

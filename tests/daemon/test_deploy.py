@@ -30,6 +30,8 @@ def test_unit_asks_for_notify_watchdog_directories_and_hardening() -> None:
     assert "dialout" in s["SupplementaryGroups"] and s["DevicePolicy"] == "closed"
     # uwb TDMA counts slots on the wall clock: start once it is synchronized, where that is waited for
     assert "time-sync.target" in unit()["Unit"]["After"].split()
+    # restarted however often it fails at boot (systemd's default gives up after 5 in 10 s)
+    assert unit()["Unit"]["StartLimitIntervalSec"] == "0"
     env = dict(kv.split("=", 1) for kv in s["Environment"].split())
     # numba may only write below CacheDirectory under ProtectSystem=strict, and install.sh warms it
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/mapd/")

@@ -44,6 +44,7 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import threading
 import time
@@ -72,6 +73,16 @@ MAX_ACK_BYTES = 8 + SIG_LEN
 #: ``dropped``). Each is checked on the loop (a signature), and anyone on the bus can send them
 #: faster than it checks: unbounded, 273,000 waited after 47 s and every timer ran 16 s late.
 MAX_LOOP_BACKLOG = 1024
+#: Seconds before the first new try to open a session whose routers could not be reached; it
+#: doubles after each failed try, up to :data:`RETRY_MAX_S`.
+RETRY_FIRST_S = 1.0
+RETRY_MAX_S = 30.0
+
+
+def _unreachable(exc: BaseException) -> bool:
+    """Whether zenoh refused to open only because no endpoint it must connect to answered (a
+    client whose router is not up or not in reach): worth trying again, unlike a bad config."""
+    return isinstance(exc, Exception) and "Unable to connect to any of" in zenoh_message(exc)
 
 
 @dataclass
@@ -150,6 +161,9 @@ class ZenohTransport(Transport):
         # Answers to keyframe queries waiting on the job thread: taken on the loop, given back by the
         # job thread once the answer is out.
         self._reply_slots = threading.BoundedSemaphore(MAX_REPLIES_PENDING)
+        #: The session config while no router could be reached (``watch`` tries it again), and why.
+        self._retry_conf: Any = None
+        self.unreached: str | None = None
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -174,6 +188,12 @@ class ZenohTransport(Transport):
         try:
             await asyncio.wrap_future(self._jobs.call(lambda: self._open(conf)))
         except BaseException as exc:
+            if _unreachable(exc):
+                # A robot that boots out of its router's reach (or before it): the daemon and its
+                # other links run, and watch() keeps trying, rather than stop them all with it.
+                self._retry_conf, self.unreached = conf, zenoh_message(exc)
+                log.warning("zenoh: %s; trying again (the other links run meanwhile)", self.unreached)
+                return
             # Cancelled mid-open, the session may still come up: close whatever did, then end.
             outbox, self._jobs = self._jobs, None
             self._checks.stop()
@@ -225,6 +245,31 @@ class ZenohTransport(Transport):
             session.close()
             raise
         self._session = session
+
+    async def watch(self) -> None:
+        """While no router could be reached, try to open the session again (1 s, doubling to 30 s);
+        :class:`TransportError` if a try fails for another cause. Then wait while the link works."""
+        delay, since = RETRY_FIRST_S, time.monotonic()
+        while self._retry_conf is not None and not self._closing and self._jobs is not None:
+            await asyncio.sleep(delay)
+            conf, jobs = self._retry_conf, self._jobs
+            if self._closing or jobs is None:
+                break
+            try:
+                await asyncio.wrap_future(jobs.call(functools.partial(self._open, conf)))
+            except asyncio.CancelledError:
+                if self._closing:
+                    break
+                raise
+            except Exception as exc:
+                if not _unreachable(exc):
+                    raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
+                self.unreached = zenoh_message(exc)
+                delay = min(2 * delay, RETRY_MAX_S)
+                continue
+            self._retry_conf = self.unreached = None
+            log.info("zenoh: session open, %.0f s after the first try", time.monotonic() - since)
+        await asyncio.Event().wait()
 
     async def close(self) -> None:
         """Undeclare and close, in order, within ``close_timeout_s``; safe to call twice."""
@@ -614,6 +659,8 @@ class ZenohTransport(Transport):
         with self._rx_lock:
             rx = self._rx.dropped, self._rx.unadmitted
         out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0, "superseded": 0}
+        # False while no router could be reached (and tries go on): a FAULTS line in mapd status
+        out["session_open"] = self._retry_conf is None
         out["dropped"] += rx[0]
         out["unadmitted"] += rx[1]
         if self._checks is not None:

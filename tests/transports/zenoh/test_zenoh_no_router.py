@@ -1,0 +1,144 @@
+"""A robot that boots before its zenoh router, or out of its reach, runs on and joins once it is up.
+
+Before, a client that found no router stopped ``start()``, and with it the daemon and its other
+links (a robot with UWB and zenoh shared nothing over UWB either); systemd's start limit then
+left it failed for good after a few restarts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from mapd.errors import TransportError
+from transports.zenoh import link
+
+
+def _router(ep: str) -> Any:
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([ep]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def test_clients_run_without_their_router_and_meet_once_it_is_up(
+    zk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(link, "RETRY_FIRST_S", 0.2)
+    ep = zk.endpoint(zk.free_port())
+
+    async def main() -> None:
+        a = await zk.Bot("a", connect=[ep], mode="client").start()
+        b = await zk.Bot("b", connect=[ep], mode="client").start()
+        watches = [asyncio.create_task(bot.t.watch()) for bot in (a, b)]
+        try:
+            for bot in (a, b):
+                assert bot.t.stats()["session_open"] is False
+                assert "Unable to connect" in (bot.t.unreached or "")
+            a.offer(zk.envelope("a", 1))  # no session to put it on: b asks for it once they meet
+            await asyncio.sleep(1.0)
+            assert not any(w.done() for w in watches)
+            router = await asyncio.to_thread(_router, ep)
+            try:
+                await zk.meet(a, b, timeout=20.0)
+                assert a.t.stats()["session_open"] and b.t.unreached is None
+                await b.wait(lambda: [v for _, v, _ in b.received("a")] == [1], 10.0)
+                a.offer(zk.envelope("a", 2))
+                await b.wait(lambda: [v for _, v, _ in b.received("a")] == [1, 2], 10.0)
+            finally:
+                for bot in (a, b):
+                    await bot.t.close()
+                await asyncio.to_thread(router.close)
+        finally:
+            for w in watches:
+                w.cancel()
+
+    asyncio.run(main())
+
+
+def test_a_session_zenoh_refuses_for_another_cause_still_stops_start(zk: SimpleNamespace) -> None:
+    async def main() -> None:
+        port = zk.free_port()
+        holder = await zk.Bot("a", listen=[zk.endpoint(port)]).start()
+        try:
+            with pytest.raises(TransportError, match="Address already in use"):
+                await zk.Bot("b", listen=[zk.endpoint(port)]).start()
+        finally:
+            await holder.t.close()
+
+    asyncio.run(main())
+
+
+@pytest.mark.slow
+def test_a_daemon_whose_router_is_down_runs_says_so_and_joins_later(
+    tmp_path: Path, zk: SimpleNamespace
+) -> None:
+    from mapd.grid import save_map
+    from mapd.mapping.synthetic import room_grid
+
+    ep = zk.endpoint(zk.free_port())
+    save_map(room_grid(60, 80, seed=3), tmp_path / "map.yaml")
+    (tmp_path / "config.toml").write_text(
+        '[robot]\nname = "a"\nfleet = "testfleet"\n[fleet]\nallow_unsigned = true\n'
+        '[source]\nuse = "mapfile"\n[source.mapfile]\npath = "map.yaml"\npoll_s = 0.1\nsettle_s = 0.1\n'
+        '[codec]\nuse = "raw"\n[state]\ndir = "state"\nruntime_dir = "run"\n'
+        f'[transports]\nuse = ["zenoh"]\n[transports.zenoh]\nmode = "client"\nconnect = ["{ep}"]\n'
+        "multicast_scouting = false\n"
+    )
+
+    def status(human: bool = False) -> Any:
+        out = subprocess.run(
+            [sys.executable, "-m", "mapd", "status", *([] if human else ["--json"]), "--config",
+             str(tmp_path / "config.toml")],
+            capture_output=True, text=True, timeout=30,
+        )  # fmt: skip
+        if out.returncode != 0:
+            return None
+        return out.stdout if human else json.loads(out.stdout)
+
+    def wait(cond: Any, what: str) -> Any:
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            assert proc.poll() is None, (tmp_path / "d.log").read_text()[-2000:]
+            s = status()
+            if s is not None and cond(s):
+                return s
+            time.sleep(0.3)
+        raise AssertionError(f"{what}: {(tmp_path / 'd.log').read_text()[-2000:]}")
+
+    log = (tmp_path / "d.log").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapd", "run", "--config", str(tmp_path / "config.toml")],
+        stdout=log, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    router = None
+    try:
+        wait(lambda s: s["links"]["zenoh"]["session_open"] is False, "the daemon up without its router")
+        assert "FAULTS no zenoh router reached yet (trying again)" in status(human=True)
+        router = subprocess.Popen(
+            [sys.executable, "-m", "transports.zenoh.router", "--listen", ep],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+        assert router.stdout is not None and "listening on" in router.stdout.readline()
+        wait(lambda s: s["links"]["zenoh"]["session_open"] is True, "the session open once the router is")
+        assert "no zenoh router" not in status(human=True)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    finally:
+        for p in (proc, router):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait(10)
+        log.close()
