@@ -177,7 +177,8 @@ def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None
 @pytest.mark.parametrize("case", ["serial port", "key file", "state dir", "no key", "state in use"])
 def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     (tmp_path / "file").write_text("x")
-    port = "/dev/does-not-exist" if case == "serial port" else str(tmp_path / "file")
+    # a port that is there but is no serial port (one not there yet is waited for: test_uwb_serial)
+    port = str(tmp_path / "file")
     state = tmp_path / "file" / "state" if case == "state dir" else tmp_path / "s"
     me = Identity.generate("a")
     me.write(tmp_path / "a.key")
@@ -206,7 +207,7 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
     expect = {
-        "serial port": "does-not-exist",
+        "serial port": f"cannot open serial port {tmp_path / 'file'}",
         "key file": "no-such.key",
         "state dir": "not writable",
         "no key": "a signed fleet needs this robot's key",
@@ -570,3 +571,78 @@ def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
         assert snaps["robot1"]["links"]["uwb"]["keyframe_requests_tx"] == 0  # unasked
     finally:
         f.stop()
+
+
+@needs_socat
+def test_a_radio_not_there_at_start_leaves_the_other_link_running(tmp_path: Path) -> None:
+    """A robot with UWB and zenoh whose radio the kernel has not named yet at boot: the daemon
+    runs, zenoh carries its map, and it says what it lacks (it stopped, zenoh and all, before)."""
+    import socket
+
+    from mapd.grid import save_map
+    from mapd.mapping.synthetic import room_grid
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        here = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    procs = {}
+    for name, uses, zenoh in (
+        ("a", '["uwb", "zenoh"]', f'listen = ["{here}"]'),
+        ("b", '["zenoh"]', f'connect = ["{here}"]'),
+    ):
+        root = tmp_path / name
+        root.mkdir()
+        save_map(room_grid(60, 80, seed=len(procs)), root / "map.yaml")
+        (root / "config.toml").write_text(
+            f'[robot]\nname = "{name}"\n[fleet]\nallow_unsigned = true\n'
+            '[source]\nuse = "mapfile"\n[source.mapfile]\npath = "map.yaml"\npoll_s = 0.1\nsettle_s = 0.1\n'
+            '[codec]\nuse = "raw"\n[state]\ndir = "state"\nruntime_dir = "run"\n'
+            f'[transports]\nuse = {uses}\n[transports.zenoh]\nmode = "peer"\n{zenoh}\n'
+            "multicast_scouting = false\n"
+            f'[transports.uwb]\nport = "{tmp_path / "no-radio-yet"}"\nreopen_s = 0.2\n'
+            "[transports.uwb.nodes]\na = 1\nb = 2\n"
+        )
+        with (root / "log").open("wb") as log:
+            procs[name] = subprocess.Popen(
+                [sys.executable, "-m", "mapd", "run", "--config", str(root / "config.toml")],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+
+    def status(name: str, *flags: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mapd",
+                "status",
+                *flags,
+                "--config",
+                str(tmp_path / name / "config.toml"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+
+    try:
+        end = time.monotonic() + 60
+        while True:
+            for name, p in procs.items():
+                assert p.poll() is None, (tmp_path / name / "log").read_text()[-2000:]
+            got = status("b", "--json")
+            if got.returncode == 0 and (json.loads(got.stdout)["peers"].get("a") or {}).get("version"):
+                break
+            assert time.monotonic() < end, "b never got a's map over zenoh"
+            time.sleep(0.3)
+        a = json.loads(status("a", "--json").stdout)
+        assert a["links"]["uwb"]["port_open"] is False and a["links"]["zenoh"]["peers"] == ["b"]
+        assert "FAULTS serial port closed (reopening)" in status("a").stdout
+        for p in procs.values():
+            p.send_signal(signal.SIGTERM)
+        assert [p.wait(30) for p in procs.values()] == [0, 0]
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)

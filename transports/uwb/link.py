@@ -134,8 +134,12 @@ class UwbLink:
         reopen_s: float = 1.0,
         session: int | None = None,
         wall_clock: Callable[[], float] = time.time,
+        wait_for_port: bool = False,
     ) -> None:
         self.port = port
+        #: A port not there at start is opened once it is (the daemon), rather than an error (a
+        #: one-shot command such as ``mapd link send``, where a typo must not look like a wait).
+        self.wait_for_port = wait_for_port
         self._wall = wall_clock  # the clock TDMA slots are counted on (a test steps its own)
         self.baud = baud
         self.reopen_s = reopen_s
@@ -152,6 +156,8 @@ class UwbLink:
         )  # 24-bit on the wire
         self.core: arq.ArqEndpoint | None = None
         self._proto: _Proto | None = None
+        #: False until the port first opened (it may not be there yet at start)
+        self._ever_open = False
         self._task: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
         self._closing = False
@@ -175,7 +181,8 @@ class UwbLink:
         self._counter_retry_at = 0.0
 
     async def start(self) -> None:
-        """Open the port and start the loop; :class:`TransportError` with one line when it cannot."""
+        """Open the port and start the loop; :class:`TransportError` with one line when it cannot
+        (with ``wait_for_port``, only when it is there: one not there yet is opened when it is)."""
         if self._cfg.key is not None:
             start = max(await asyncio.to_thread(self._store.load), clock_floor(self._wall()))
             self._replay_saved = await asyncio.to_thread(self._replay.load)
@@ -188,7 +195,19 @@ class UwbLink:
                 self.port,
             )
         await self._persist_counter(strict=True)  # a state dir that cannot be written fails here
-        await self._open()
+        try:
+            await self._open()
+        except TransportError:
+            if not self.wait_for_port or os.path.exists(self.port):
+                raise  # there but not a port this user can open as serial: the config's to fix
+            # A USB radio the kernel has not named yet at boot, or one unplugged: the link runs
+            # and opens it once it is there, as it reopens one that vanishes later; the daemon's
+            # other links run meanwhile.
+            log.warning(
+                "uwb: serial port %s is not there; opening it once it is (every %.1f s)",
+                self.port,
+                self.reopen_s,
+            )
         self.started_at = asyncio.get_running_loop().time()
         self._task = asyncio.create_task(self._run(), name=f"uwb-{self.port}")
         self._task.add_done_callback(self._task_done)
@@ -228,6 +247,7 @@ class UwbLink:
             raise port_error(self.port, exc) from None
         _discard_on_close(transport.serial)
         self._proto = proto
+        self._ever_open = True
 
     async def close(self) -> None:
         """Stop at once: cancel the loop, drop the port (unsent frames are abandoned), save the
@@ -390,9 +410,13 @@ class UwbLink:
         if now < self._reopen_at:
             return
         try:
+            first = not self._ever_open
             await self._open()
-            self.reconnects += 1
-            log.warning("uwb: serial port %s reopened", self.port)
+            if first:
+                log.warning("uwb: serial port %s is there now: opened", self.port)
+            else:
+                self.reconnects += 1
+                log.warning("uwb: serial port %s reopened", self.port)
         except TransportError:
             self._reopen_at = now + self.reopen_s
 

@@ -149,6 +149,7 @@ class UwbTransport(Transport):
             counter_store=store,
             replay_store=replay,
             reopen_s=self.opts.reopen_s,
+            wait_for_port=True,  # a radio named late at boot must not stop the daemon's other links
         )
         await self._link.start()
         if self._relay is not None:

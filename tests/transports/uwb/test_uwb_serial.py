@@ -170,13 +170,22 @@ def test_envelope_crosses_a_faulty_link_intact() -> None:
     asyncio.run(main())
 
 
-def test_missing_port_is_one_clear_error() -> None:
+def test_a_missing_port_is_waited_for_and_said_not_fatal(caplog: pytest.LogCaptureFixture) -> None:
+    # It was one clear error that stopped the daemon; a radio named late at boot is now waited for
+    # (test_a_port_not_there_yet_at_start_is_opened_once_it_is), its absence on the FAULTS line.
     async def main() -> None:
         r = Robot("alpha", "/dev/does-not-exist-uwb", names=["alpha", "beta"])
-        with pytest.raises(TransportError, match="uwb: serial port /dev/does-not-exist-uwb does not exist"):
-            await r.t.start()
+        await r.t.start()
+        try:
+            assert r.t.stats()["port_open"] is False
+        finally:
+            await r.t.close()
 
-    asyncio.run(main())
+    with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+        asyncio.run(main())
+    assert any(
+        "serial port /dev/does-not-exist-uwb is not there" in rec.getMessage() for rec in caplog.records
+    )
 
 
 def test_close_is_prompt_with_a_message_in_flight() -> None:
@@ -520,6 +529,67 @@ def test_ports_that_vanish_and_come_back_are_reopened_and_carry_maps_again(
     lost = [r for r in caplog.records if "lost" in r.getMessage()]
     assert len(lost) == 2  # one line per link, not one per reopen attempt
     assert not [r for r in caplog.records if r.exc_info]
+
+
+def test_a_port_not_there_yet_at_start_is_opened_once_it_is(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A USB radio the kernel names a little after mapd starts at boot stopped the daemon, and with
+    # it every other link, until systemd had restarted it into a port that was there.
+    a_path, b_path = str(tmp_path / "a"), str(tmp_path / "b")
+    got: list[arq.Event] = []
+
+    async def main() -> None:
+        a = UwbLink(arq.ArqConfig(node_id=1, rate_bps=200_000.0), a_path, reopen_s=0.2, wait_for_port=True)
+        await a.start()  # no port yet: the link runs
+        proc = None
+        try:
+            await asyncio.sleep(0.7)  # a few tries while it is not there
+            assert a.stats()["port_open"] is False
+            assert "FAULTS serial port closed (reopening)" in render_status({"links": {"uwb": a.stats()}})
+            proc = subprocess.Popen(
+                ["socat", f"pty,raw,echo=0,link={a_path}", f"pty,raw,echo=0,link={b_path}"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            await until(lambda: os.path.exists(b_path), 5.0)
+            b = UwbLink(arq.ArqConfig(node_id=2, rate_bps=200_000.0), b_path, on_event=got.append)
+            await b.start()
+            try:
+                await until(lambda: a.stats()["port_open"], 5.0)
+                assert a.stats()["reconnects"] == 0  # opened, not reopened
+                a.send(b"late" * 500, [2])
+                await until(lambda: any(isinstance(e, arq.MessageReceived) for e in got), 10.0)
+            finally:
+                await b.close()
+        finally:
+            await a.close()
+            if proc is not None:
+                proc.kill()
+                proc.wait()
+
+    with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("is not there" in m for m in said) == 1  # once, not at every try
+    assert sum("is there now: opened" in m for m in said) == 1
+
+
+def test_a_port_that_is_there_but_no_serial_port_still_stops_start(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("x")
+
+    async def main() -> None:
+        link = UwbLink(
+            arq.ArqConfig(node_id=1, rate_bps=200_000.0), str(tmp_path / "file"), wait_for_port=True
+        )
+        with pytest.raises(TransportError, match="cannot open serial port"):
+            await link.start()
+        # and a one-shot command (mapd link) is told at once of a port that is not there
+        once = UwbLink(arq.ArqConfig(node_id=1, rate_bps=200_000.0), str(tmp_path / "typo"))
+        with pytest.raises(TransportError, match="does not exist"):
+            await once.start()
+
+    asyncio.run(main())
 
 
 def test_a_signing_counter_that_cannot_be_saved_quiets_the_link_until_it_can(
