@@ -217,6 +217,8 @@ def render_status(s: dict[str, Any]) -> str:
     out.append(
         f"source  {src.get('name')}: map {label(src.get('version'))} ({size[0]} x {size[1]} cells{done})"
     )
+    if isinstance(src.get("stats"), dict) and (faults := link_faults(src["stats"])):
+        out.append("        FAULTS " + ", ".join(faults))
     c = s.get("codec", {})
     out.append(
         f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "

@@ -74,6 +74,8 @@ def status_line(s: dict[str, Any]) -> str:
         for name, st in (s.get("links") or {}).items()
         if isinstance(st, dict) and (words := link_faults(st))
     ]
+    if isinstance(src.get("stats"), dict) and (words := link_faults(src["stats"])):
+        faults.insert(0, f"source {', '.join(words)}")  # a source on zenoh (ros2) waits as a link does
     rec = s.get("recording") or {}
     if rec.get("failures") or rec.get("dropped"):
         faults.append("recording: messages not written")

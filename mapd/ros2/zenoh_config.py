@@ -60,6 +60,19 @@ def zenoh_message(exc: BaseException) -> str:
     return text.rstrip(".") or type(exc).__name__
 
 
+#: Seconds before the first new try to open a session whose routers could not be reached; it
+#: doubles after each failed try, up to :data:`RETRY_MAX_S`.
+RETRY_FIRST_S = 1.0
+RETRY_MAX_S = 30.0
+
+
+def unreachable(exc: BaseException) -> bool:
+    """Whether zenoh refused to open a session only because no endpoint it must connect to
+    answered (a client whose router is not up, or not in reach): worth trying again later, unlike
+    a bad config or a port in use."""
+    return isinstance(exc, Exception) and "Unable to connect to any of" in zenoh_message(exc)
+
+
 def check_zenoh_config(path: Path) -> None:
     """Read ``path`` as :func:`zenoh_config_text` does and, where zenoh is installed, parse it as
     zenoh will; ValueError with one line (without the path) for what ``mapd run`` would refuse."""

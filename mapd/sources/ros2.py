@@ -65,6 +65,7 @@ from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
+from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, unreachable
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from mapd.sources.ros2_options import ROBOT_NAME, Ros2Options
 from mapd.sources.ros2_pose import PoseSubscription
@@ -135,6 +136,8 @@ class Ros2Source(MapSource):
         self._inbox_lock = threading.Lock()
         self._bad = 0
         self._last_error = ""
+        #: Why the session is not open yet, while no router answers (tries go on)
+        self._unreached: str | None = None
 
     def start_pose(self) -> Pose2D | None:
         return Pose2D(*self.opts.start_pose) if self.opts.start_pose is not None else None
@@ -328,7 +331,7 @@ class Ros2Source(MapSource):
         """Each new, different map received (per robot when discovering); runs until closed."""
         loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
-        await asyncio.to_thread(self._open, loop)
+        await self._open_when_reachable(loop)
         try:
             while True:
                 await self._wake.wait()
@@ -350,6 +353,27 @@ class Ros2Source(MapSource):
         finally:
             await self.close()
 
+    async def _open_when_reachable(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Open the session; while no router answers (rmw_zenohd not up yet at boot), try again
+        after 1 s, doubling to 30 s, rather than stop the daemon: its links run meanwhile."""
+        delay = RETRY_FIRST_S
+        while True:
+            try:
+                await asyncio.to_thread(self._open, loop)
+            except TransportError as exc:
+                if not unreachable(exc):
+                    raise
+                if self._unreached is None:
+                    log.warning("ros2 source: %s; trying again (the daemon's links run meanwhile)", exc)
+                self._unreached = self._last_error = str(exc)
+                await asyncio.sleep(delay)
+                delay = min(2 * delay, RETRY_MAX_S)
+                continue
+            if self._unreached is not None:
+                log.info("ros2 source: session open")
+                self._unreached = None
+            return
+
     async def close(self) -> None:
         """Undeclare the subscribers and tokens and close the session."""
         things = (self._node, self._pose_sub, self._lv_sub, self._sub, self._session)
@@ -365,6 +389,8 @@ class Ros2Source(MapSource):
             "replaced_before_decode": self._dropped,
             "bad_payloads": self._bad,
             "last_error": self._last_error,
+            # False while no router answers (a FAULTS line in mapd status)
+            "session_open": self._unreached is None,
         }
         if self.opts.discover_robots:
             out["robots"] = ",".join(f"{r}:{n}" for r, n in sorted(self._robots.items())) or "-"

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd import plugins
-from mapd.errors import CodecError, LimitError
+from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2.node import Ros2Sink
@@ -358,3 +358,48 @@ def test_samples_arriving_while_the_loop_is_busy_are_held_one_per_key() -> None:
         assert src.stats()["replaced_before_decode"] == 1000 and src.stats()["received"] == 1
     finally:
         loop.close()
+
+
+def test_a_client_that_finds_no_router_waits_for_it_and_then_takes_maps(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # rmw_zenohd starting after mapd at boot stopped the daemon (its links too) until it was up.
+    from mapd.commands.daemon import render_status
+    from mapd.daemon.headline import status_line
+    from mapd.sources import ros2 as source_mod
+
+    monkeypatch.setattr(source_mod, "RETRY_FIRST_S", 0.2)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    src = Ros2Source(Ros2Options(mode="client", connect=[endpoint]), SourceContext(robot="r2"))
+
+    async def go() -> OccupancyGrid:
+        it = src.maps().__aiter__()
+        first = asyncio.ensure_future(_next(it, 20.0))
+        await asyncio.sleep(1.0)  # several tries, no router
+        assert not first.done() and src.stats()["session_open"] is False
+        doc = {"source": {"name": "ros2", "version": 0, "stats": src.stats()}}
+        assert "FAULTS no zenoh router reached yet (trying again)" in render_status(doc)
+        assert status_line(doc).startswith("FAULTS source no zenoh router reached yet")
+        router = await asyncio.to_thread(ros2cdr.open_session, mode="router", listen=[endpoint])
+        sink = Ros2Sink(router, "/map")
+        try:
+            sink.publish(_grid(3))  # transient local: the source gets it once it is in
+            grid = await first
+            assert src.stats()["session_open"] is True
+            await it.aclose()
+        finally:
+            sink.close()
+            router.close()
+        return grid
+
+    assert np.array_equal(asyncio.run(go()).data, _grid(3).data)
+
+
+def test_a_session_refused_for_another_cause_still_stops_the_source() -> None:
+    src = Ros2Source(Ros2Options(mode="peer", listen=["tcp/127.0.0.1:notaport"]), SourceContext(robot="r2"))
+
+    async def go() -> None:
+        with pytest.raises(TransportError):
+            await src.maps().__anext__()
+
+    asyncio.run(go())

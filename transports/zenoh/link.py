@@ -55,6 +55,7 @@ from typing import Any
 from mapd.envelope import Envelope
 from mapd.errors import EnvelopeError, TransportError
 from mapd.identity import SIG_LEN
+from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, unreachable
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
@@ -73,16 +74,6 @@ MAX_ACK_BYTES = 8 + SIG_LEN
 #: ``dropped``). Each is checked on the loop (a signature), and anyone on the bus can send them
 #: faster than it checks: unbounded, 273,000 waited after 47 s and every timer ran 16 s late.
 MAX_LOOP_BACKLOG = 1024
-#: Seconds before the first new try to open a session whose routers could not be reached; it
-#: doubles after each failed try, up to :data:`RETRY_MAX_S`.
-RETRY_FIRST_S = 1.0
-RETRY_MAX_S = 30.0
-
-
-def _unreachable(exc: BaseException) -> bool:
-    """Whether zenoh refused to open only because no endpoint it must connect to answered (a
-    client whose router is not up or not in reach): worth trying again, unlike a bad config."""
-    return isinstance(exc, Exception) and "Unable to connect to any of" in zenoh_message(exc)
 
 
 @dataclass
@@ -188,7 +179,7 @@ class ZenohTransport(Transport):
         try:
             await asyncio.wrap_future(self._jobs.call(lambda: self._open(conf)))
         except BaseException as exc:
-            if _unreachable(exc):
+            if unreachable(exc):
                 # A robot that boots out of its router's reach (or before it): the daemon and its
                 # other links run, and watch() keeps trying, rather than stop them all with it.
                 self._retry_conf, self.unreached = conf, zenoh_message(exc)
@@ -262,7 +253,7 @@ class ZenohTransport(Transport):
                     break
                 raise
             except Exception as exc:
-                if not _unreachable(exc):
+                if not unreachable(exc):
                     raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
                 self.unreached = zenoh_message(exc)
                 delay = min(2 * delay, RETRY_MAX_S)
