@@ -295,6 +295,9 @@ def render_status(s: dict[str, Any]) -> str:
         fleet = p.get("fleet")
         in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
         out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}")
+    for name, st in (s.get("outputs") or {}).items():
+        if isinstance(st, dict) and (faults := link_faults(st)):
+            out.append(f"output  {name}: FAULTS " + ", ".join(faults))
     rec = s.get("recording")
     if rec and (rec.get("failures") or rec.get("dropped")):
         out.append(

@@ -76,6 +76,11 @@ def status_line(s: dict[str, Any]) -> str:
     ]
     if isinstance(src.get("stats"), dict) and (words := link_faults(src["stats"])):
         faults.insert(0, f"source {', '.join(words)}")  # a source on zenoh (ros2) waits as a link does
+    faults += [
+        f"output.{name} {', '.join(words)}"
+        for name, st in (s.get("outputs") or {}).items()
+        if isinstance(st, dict) and (words := link_faults(st))
+    ]
     rec = s.get("recording") or {}
     if rec.get("failures") or rec.get("dropped"):
         faults.append("recording: messages not written")

@@ -13,6 +13,8 @@ It opens its own zenoh session (``mode``, ``listen``, ``connect``, ``multicast_s
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import threading
 from pathlib import Path
 from typing import Any, Literal
@@ -23,9 +25,10 @@ from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
-from mapd.ros2.zenoh_config import ZenohConfigFiles
+from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, ZenohConfigFiles, unreachable, zenoh_message
 from transports.zenoh.keys import global_key
 
+log = logging.getLogger("mapd.outputs.zenoh")
 MAX_MESSAGE_BYTES = 64 << 20
 
 
@@ -56,13 +59,46 @@ class ZenohOutput(Output):
         self.published = 0
         self.queries = 0
         self.bytes = 0
+        #: Tries again while no router answers (a client whose router is not up yet)
+        self._retry: asyncio.Task[None] | None = None
+        self.unreached: str | None = None
 
     async def start(self) -> None:
         from transports.zenoh.session import ZenohOptions, build_config
 
         fields = self.opts.model_dump(exclude_unset=True)
         conf = build_config(ZenohOptions(**fields), MAX_MESSAGE_BYTES)
-        self._session = await asyncio.to_thread(self._open, conf)
+        try:
+            self._session = await asyncio.to_thread(self._open, conf)
+        except TransportError as exc:
+            if not unreachable(exc):
+                raise
+            # A base station whose router is not up yet: the daemon runs, the newest global map
+            # goes out once the session opens.
+            self.unreached = str(exc)
+            log.warning("%s; trying again (the daemon runs meanwhile)", exc)
+            self._retry = asyncio.create_task(self._open_later(conf), name="output-zenoh-retry")
+
+    async def _open_later(self, conf: Any) -> None:
+        delay = RETRY_FIRST_S
+        while True:
+            await asyncio.sleep(delay)
+            try:
+                session = await asyncio.to_thread(self._open, conf)
+            except TransportError as exc:
+                if not unreachable(exc):
+                    log.error("%s; the global map does not go out on zenoh", exc)
+                    self.unreached = str(exc)
+                    return
+                delay = min(2 * delay, RETRY_MAX_S)
+                continue
+            with self._lock:
+                self._session, latest = session, self._latest
+            self.unreached = None
+            log.info("output.zenoh: session open")
+            if latest is not None:
+                await asyncio.to_thread(session.put, self.key, latest)
+            return
 
     def _open(self, conf: Any) -> Any:
         import zenoh
@@ -70,7 +106,7 @@ class ZenohOutput(Output):
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            raise TransportError(f"output.zenoh: cannot open a session: {exc}") from None
+            raise TransportError(f"output.zenoh: cannot open a session: {zenoh_message(exc)}") from None
         self._queryable = session.declare_queryable(self.key, self._on_query)
         return session
 
@@ -112,6 +148,10 @@ class ZenohOutput(Output):
         self.bytes += len(data)
 
     async def close(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._retry
         session, self._session = self._session, None
         if session is not None:
             await asyncio.to_thread(self._close, session)
@@ -123,4 +163,11 @@ class ZenohOutput(Output):
         session.close()
 
     def stats(self) -> dict[str, int | float | str]:
-        return {"key": self.key, "published": self.published, "queries": self.queries, "bytes": self.bytes}
+        return {
+            "key": self.key,
+            "published": self.published,
+            "queries": self.queries,
+            "bytes": self.bytes,
+            # False while no router answers (a FAULTS line in mapd status)
+            "session_open": self.unreached is None,
+        }

@@ -164,3 +164,55 @@ def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(
         assert out.stats()["published"] == 2 and out.stats()["queries"] == 1
 
     asyncio.run(main())
+
+
+def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_once_it_is(
+    room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A base station whose router came up after it stopped (and took its links down) at start.
+    zenoh = pytest.importorskip("zenoh")
+    from mapd.commands.daemon import render_status
+    from mapd.daemon.headline import status_line
+    from mapd.outputs import zenoh as output_mod
+
+    monkeypatch.setattr(output_mod, "RETRY_FIRST_S", 0.2)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    out = ZenohOutput(
+        ZenohOutputOptions(mode="client", connect=[ep], multicast_scouting=False), OutputContext("base", "f")
+    )
+
+    def session(mode: str, key: str) -> Any:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5(key, json.dumps([ep]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        return zenoh.open(conf)
+
+    async def main() -> None:
+        await out.start()  # no router: returns, and tries again
+        try:
+            out.publish(update(room_grid, 5))  # kept for when it is open
+            await asyncio.sleep(0.6)
+            doc = {"outputs": {"zenoh": out.stats()}}
+            assert out.stats()["session_open"] is False
+            assert "output  zenoh: FAULTS no zenoh router reached yet" in render_status(doc)
+            assert status_line(doc).startswith("FAULTS output.zenoh no zenoh router reached yet")
+            router = await asyncio.to_thread(session, "router", "listen/endpoints")
+            try:
+                end = time.monotonic() + 20
+                while not out.stats()["session_open"]:
+                    assert time.monotonic() < end, "the output never opened its session"
+                    await asyncio.sleep(0.1)
+                with session("client", "connect/endpoints") as z:
+                    replies = [
+                        r.ok.payload.to_bytes() for r in z.get(global_key("f", "base"), timeout=5.0) if r.ok
+                    ]
+                assert [unpack(r).version for r in replies] == [5]  # the map published while waiting
+            finally:
+                router.close()
+        finally:
+            await out.close()
+
+    asyncio.run(main())
