@@ -46,12 +46,12 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field, ValidationInfo, field_validator
 
 from mapd.config import NAME_PATTERN
-from mapd.errors import MapdError
+from mapd.errors import MapdError, TransportError
 from mapd.files import atomic_write_json, read_json_capped
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import ZenohConfigFiles
+from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, unreachable
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
@@ -196,6 +196,11 @@ class Ros2Output(Output):
         self._tf_static: Any = None
         self._tf: Any = None
         self._lock = threading.Lock()
+        #: Tries again while no router answers (a client whose rmw_zenohd is not up yet), and the
+        #: newest global map meanwhile
+        self._retry: asyncio.Task[None] | None = None
+        self.unreached: str | None = None
+        self._waiting: GlobalUpdate | None = None
         self._static_sent: dict[str, Pose2D] | None = None
         #: Robots whose map frame went out under ``frame`` (kept in FRAMES_FILE across restarts).
         self._shown: set[str] = set()
@@ -207,7 +212,30 @@ class Ros2Output(Output):
         self.bytes = 0
 
     async def start(self) -> None:
-        await asyncio.to_thread(self._open)
+        try:
+            await asyncio.to_thread(self._open)
+        except TransportError as exc:
+            if not unreachable(exc):
+                raise
+            # A client whose rmw_zenohd is not up yet: the daemon runs, and the newest global map
+            # goes out (latched) once the session opens.
+            self.unreached = str(exc)
+            log.warning("ros2 output: %s; trying again (the daemon runs meanwhile)", exc)
+            self._retry = asyncio.create_task(self._open_later(), name="output-ros2-retry")
+
+    async def _open_later(self) -> None:
+        try:
+            await open_when_reachable(self._open)
+        except TransportError as exc:
+            log.error("ros2 output: %s; the global map does not go out on ROS 2", exc)
+            self.unreached = str(exc)
+            return
+        self.unreached = None
+        log.info("ros2 output: session open")
+        with self._lock:
+            waiting, self._waiting = self._waiting, None
+        if waiting is not None:
+            await asyncio.to_thread(self.publish, waiting)
 
     def _open(self) -> None:
         from mapd.ros2 import cdr
@@ -239,6 +267,8 @@ class Ros2Output(Output):
         from mapd.ros2 import cdr
 
         if self._map is None:
+            with self._lock:
+                self._waiting = update  # the newest, for when the session opens
             return
         payload = cdr.encode(update.grid, frame_id=self.opts.frame, stamp=update.stamp)
         self._map.put(payload)
@@ -328,6 +358,10 @@ class Ros2Output(Output):
         self.tf_msgs += 1
 
     async def close(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._retry
         await asyncio.to_thread(self._close)
 
     def _close(self) -> None:
@@ -347,4 +381,6 @@ class Ros2Output(Output):
             "unplaced": self.unplaced,
             "tf": self.tf_msgs,
             "bytes": self.bytes,
+            # False while no router answers (a FAULTS line in mapd status)
+            "session_open": self.unreached is None,
         }

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import threading
 from pathlib import Path
@@ -25,7 +26,7 @@ from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
-from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, ZenohConfigFiles, unreachable, zenoh_message
+from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, unreachable, zenoh_message
 from transports.zenoh.keys import global_key
 
 log = logging.getLogger("mapd.outputs.zenoh")
@@ -80,25 +81,18 @@ class ZenohOutput(Output):
             self._retry = asyncio.create_task(self._open_later(conf), name="output-zenoh-retry")
 
     async def _open_later(self, conf: Any) -> None:
-        delay = RETRY_FIRST_S
-        while True:
-            await asyncio.sleep(delay)
-            try:
-                session = await asyncio.to_thread(self._open, conf)
-            except TransportError as exc:
-                if not unreachable(exc):
-                    log.error("%s; the global map does not go out on zenoh", exc)
-                    self.unreached = str(exc)
-                    return
-                delay = min(2 * delay, RETRY_MAX_S)
-                continue
-            with self._lock:
-                self._session, latest = session, self._latest
-            self.unreached = None
-            log.info("output.zenoh: session open")
-            if latest is not None:
-                await asyncio.to_thread(session.put, self.key, latest)
+        try:
+            session = await open_when_reachable(functools.partial(self._open, conf))
+        except TransportError as exc:
+            log.error("%s; the global map does not go out on zenoh", exc)
+            self.unreached = str(exc)
             return
+        with self._lock:
+            self._session, latest = session, self._latest
+        self.unreached = None
+        log.info("output.zenoh: session open")
+        if latest is not None:
+            await asyncio.to_thread(session.put, self.key, latest)
 
     def _open(self, conf: Any) -> Any:
         import zenoh

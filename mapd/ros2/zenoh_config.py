@@ -9,10 +9,12 @@ what zenoh's own loader does with those suffixes.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 from mapd.files import NotRegularFileError, open_regular
 
@@ -60,6 +62,8 @@ def zenoh_message(exc: BaseException) -> str:
     return text.rstrip(".") or type(exc).__name__
 
 
+T = TypeVar("T")
+
 #: Seconds before the first new try to open a session whose routers could not be reached; it
 #: doubles after each failed try, up to :data:`RETRY_MAX_S`.
 RETRY_FIRST_S = 1.0
@@ -71,6 +75,22 @@ def unreachable(exc: BaseException) -> bool:
     answered (a client whose router is not up, or not in reach): worth trying again later, unlike
     a bad config or a port in use."""
     return isinstance(exc, Exception) and "Unable to connect to any of" in zenoh_message(exc)
+
+
+async def open_when_reachable(open_session: Callable[[], T]) -> T:
+    """Call ``open_session`` (blocking: in a worker thread) after :data:`RETRY_FIRST_S`, then after
+    twice as long each time up to :data:`RETRY_MAX_S`, until it opens; an error other than an
+    unreachable router (:func:`unreachable`) is raised. For a session that found no router at
+    start, while the daemon runs on."""
+    delay = RETRY_FIRST_S
+    while True:
+        await asyncio.sleep(delay)
+        try:
+            return await asyncio.to_thread(open_session)
+        except Exception as exc:
+            if not unreachable(exc):
+                raise
+        delay = min(2 * delay, RETRY_MAX_S)
 
 
 def check_zenoh_config(path: Path) -> None:

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import threading
 from collections.abc import AsyncIterator
@@ -65,7 +66,7 @@ from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, unreachable
+from mapd.ros2.zenoh_config import open_when_reachable, unreachable
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from mapd.sources.ros2_options import ROBOT_NAME, Ros2Options
 from mapd.sources.ros2_pose import PoseSubscription
@@ -356,23 +357,17 @@ class Ros2Source(MapSource):
     async def _open_when_reachable(self, loop: asyncio.AbstractEventLoop) -> None:
         """Open the session; while no router answers (rmw_zenohd not up yet at boot), try again
         after 1 s, doubling to 30 s, rather than stop the daemon: its links run meanwhile."""
-        delay = RETRY_FIRST_S
-        while True:
-            try:
-                await asyncio.to_thread(self._open, loop)
-            except TransportError as exc:
-                if not unreachable(exc):
-                    raise
-                if self._unreached is None:
-                    log.warning("ros2 source: %s; trying again (the daemon's links run meanwhile)", exc)
-                self._unreached = self._last_error = str(exc)
-                await asyncio.sleep(delay)
-                delay = min(2 * delay, RETRY_MAX_S)
-                continue
-            if self._unreached is not None:
-                log.info("ros2 source: session open")
-                self._unreached = None
+        try:
+            await asyncio.to_thread(self._open, loop)
             return
+        except TransportError as exc:
+            if not unreachable(exc):
+                raise
+            log.warning("ros2 source: %s; trying again (the daemon's links run meanwhile)", exc)
+            self._unreached = self._last_error = str(exc)
+        await open_when_reachable(functools.partial(self._open, loop))
+        self._unreached = None
+        log.info("ros2 source: session open")
 
     async def close(self) -> None:
         """Undeclare the subscribers and tokens and close the session."""

@@ -173,9 +173,9 @@ def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_onc
     zenoh = pytest.importorskip("zenoh")
     from mapd.commands.daemon import render_status
     from mapd.daemon.headline import status_line
-    from mapd.outputs import zenoh as output_mod
+    from mapd.ros2 import zenoh_config
 
-    monkeypatch.setattr(output_mod, "RETRY_FIRST_S", 0.2)
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"

@@ -261,3 +261,43 @@ def test_ros2dds_format_plain_keys_no_attachment(
         assert not [t for t in peer.graph() if t.node == "mapd"]  # a bridge announces topics, not mapd
     finally:
         asyncio.run(out.close())
+
+
+def test_a_client_whose_rmw_zenohd_is_not_up_waits_and_then_latches_the_newest_map(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # It stopped the daemon at start (its links too) when rmw_zenohd came up after it.
+    from mapd.ros2 import cdr, zenoh_config
+
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
+    out = Ros2Output(
+        Ros2OutputOptions(mode="client", connect=[endpoint], listen=[]),
+        OutputContext(robot="base", fleet="f"),
+    )
+
+    async def main() -> Any:
+        await out.start()
+        try:
+            out.publish(_update(2))
+            out.publish(_update(3))  # the newest waits
+            await asyncio.sleep(0.6)
+            assert out.stats()["session_open"] is False and out.stats()["maps"] == 0
+            router = await asyncio.to_thread(cdr.open_session, mode="router", listen=[endpoint])
+            try:
+                end = time.monotonic() + 20
+                while out.stats()["maps"] < 1:
+                    assert time.monotonic() < end, "the waiting map never went out"
+                    await asyncio.sleep(0.1)
+                assert out.stats()["session_open"] is True and out.stats()["maps"] == 1
+                peer = await asyncio.to_thread(rmw_peer.RmwPeer, endpoint)
+                peers.append(peer)
+                peer.subscribe("/map", rmw_peer.GRID)
+                return await asyncio.to_thread(peer.wait, "/map", lambda r: True)
+            finally:
+                await out.close()
+                router.close()
+        finally:
+            await out.close()  # (again, if the wait failed before the router: closing twice is safe)
+
+    got = asyncio.run(main())
+    assert (got.msg.info.width, got.msg.info.height) == (60, 43)  # update 3, latched

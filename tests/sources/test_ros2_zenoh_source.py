@@ -366,9 +366,9 @@ def test_a_client_that_finds_no_router_waits_for_it_and_then_takes_maps(
     # rmw_zenohd starting after mapd at boot stopped the daemon (its links too) until it was up.
     from mapd.commands.daemon import render_status
     from mapd.daemon.headline import status_line
-    from mapd.sources import ros2 as source_mod
+    from mapd.ros2 import zenoh_config
 
-    monkeypatch.setattr(source_mod, "RETRY_FIRST_S", 0.2)
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     src = Ros2Source(Ros2Options(mode="client", connect=[endpoint]), SourceContext(robot="r2"))
 
