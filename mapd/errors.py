@@ -52,6 +52,11 @@ class TransportError(MapdError):
     """A transport cannot start or has failed (missing serial port, zenoh session refused)."""
 
 
+class UnreachableError(TransportError):
+    """A session found none of the endpoints it must connect to answering (its router not up yet,
+    or out of reach): worth trying again, unlike a refusal by a router that answered."""
+
+
 class ProtocolError(TransportError):
     """Bytes on a link break the wire protocol (bad frame, absurd field). Counted, never fatal."""
 

@@ -26,7 +26,7 @@ from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
 from mapd.errors import TransportError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
-from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, unreachable, zenoh_message
+from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, open_zenoh, unreachable
 from transports.zenoh.keys import global_key
 
 log = logging.getLogger("mapd.outputs.zenoh")
@@ -95,12 +95,7 @@ class ZenohOutput(Output):
             await asyncio.to_thread(session.put, self.key, latest)
 
     def _open(self, conf: Any) -> Any:
-        import zenoh
-
-        try:
-            session = zenoh.open(conf)
-        except zenoh.ZError as exc:
-            raise TransportError(f"output.zenoh: cannot open a session: {zenoh_message(exc)}") from None
+        session = open_zenoh(conf, "output.zenoh: cannot open a session")
         self._queryable = session.declare_queryable(self.key, self._on_query)
         return session
 

@@ -23,7 +23,7 @@ from mapd.envelope import MAX_STR
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem, short_repr
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import zenoh_config_text
+from mapd.ros2.zenoh_config import open_zenoh, zenoh_config_text
 
 MSGTYPE = "nav_msgs/msg/OccupancyGrid"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -268,11 +268,6 @@ def open_session_for(o: Any) -> Any:
 
 
 def open_session(**options: Any) -> Any:
-    """Open a zenoh session from :func:`session_config` options; TransportError when it cannot."""
-    import zenoh
-
-    cfg = session_config(**options)
-    try:
-        return zenoh.open(cfg)
-    except Exception as exc:  # zenoh.ZError: refused endpoint, address in use
-        raise TransportError(f"cannot open zenoh session: {exc}") from None
+    """Open a zenoh session from :func:`session_config` options; TransportError when it cannot
+    (UnreachableError when no router it must connect to answers: see ``open_zenoh``)."""
+    return open_zenoh(session_config(**options), "cannot open zenoh session")

@@ -12,10 +12,12 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import socket
 from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar
 
+from mapd.errors import TransportError, UnreachableError
 from mapd.files import NotRegularFileError, open_regular
 
 #: zenoh's own example config, every option commented, is about 30 KiB.
@@ -70,11 +72,42 @@ RETRY_FIRST_S = 1.0
 RETRY_MAX_S = 30.0
 
 
+#: Seconds to wait for a TCP answer from an endpoint a session could not connect to.
+PROBE_TIMEOUT_S = 1.0
+_ENDPOINT = re.compile(r"\b(?:tcp|tls|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-_]+):(\d{1,5})\b")
+
+
 def unreachable(exc: BaseException) -> bool:
-    """Whether zenoh refused to open a session only because no endpoint it must connect to
-    answered (a client whose router is not up, or not in reach): worth trying again later, unlike
-    a bad config or a port in use."""
-    return isinstance(exc, Exception) and "Unable to connect to any of" in zenoh_message(exc)
+    """Whether a session could not open only because none of the endpoints it must connect to
+    answered (:class:`UnreachableError`, from :func:`open_zenoh`): worth trying again later."""
+    return isinstance(exc, UnreachableError)
+
+
+def _any_answers(message: str) -> bool:
+    """Whether any TCP-based endpoint named in zenoh's message takes a TCP connection: then a router
+    is there and refused us (a certificate, an ACL, a protocol), which no retry mends."""
+    for host, port in _ENDPOINT.findall(message):
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=PROBE_TIMEOUT_S):
+                return True
+        except (OSError, ValueError):
+            continue
+    return False
+
+
+def open_zenoh(conf: Any, what: str) -> Any:
+    """``zenoh.open(conf)`` (blocking: call it off the event loop); a refusal as one line prefixed
+    ``what``: :class:`UnreachableError` when no endpoint it must connect to answers at all, else
+    :class:`TransportError` (a bad config, a port in use, a router that refused us)."""
+    import zenoh
+
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh.ZError
+        message = zenoh_message(exc)
+        if "Unable to connect to any of" in message and not _any_answers(message):
+            raise UnreachableError(f"{what}: {message}") from None
+        raise TransportError(f"{what}: {message}") from None
 
 
 async def open_when_reachable(open_session: Callable[[], T]) -> T:

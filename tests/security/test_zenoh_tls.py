@@ -349,6 +349,9 @@ def test_fleet_robots_share_signed_maps_over_mtls_through_the_acl_router(tmp_pat
         try:
             await r1.t.start()
             r1.offer(envelope(ids["r1"], 1))  # nobody hears it: r2 is not there yet
+            # put before r2 starts (on a loaded machine the outbox may lag: r2 would then hear the
+            # put itself and not ask, and the late-join query below would never come)
+            await r1.wait(lambda: r1.t.stats()["updates_tx"] == 1)
             await r2.t.start()
             # Presence (liveliness) both ways, and r2's late-join query answered with r1's keyframe.
             await r1.wait(lambda: PeerUp("zenoh", "r2") in r1.events)

@@ -55,7 +55,7 @@ from typing import Any
 from mapd.envelope import Envelope
 from mapd.errors import EnvelopeError, TransportError
 from mapd.identity import SIG_LEN
-from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, unreachable
+from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, open_zenoh, unreachable
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
@@ -198,7 +198,7 @@ class ZenohTransport(Transport):
         import zenoh
 
         fleet, me, cb = self.ctx.fleet, self.ctx.robot, self._handlers.callback
-        session = zenoh.open(conf)
+        session = open_zenoh(conf, "zenoh: cannot open session")
         try:
             remote = zenoh.Locality.REMOTE
             cc = (

@@ -142,3 +142,26 @@ def test_a_daemon_whose_router_is_down_runs_says_so_and_joins_later(
                 p.kill()
                 p.wait(10)
         log.close()
+
+
+def test_a_router_that_answers_and_refuses_is_not_waited_for(zk: SimpleNamespace) -> None:
+    # "Unable to connect" is all zenoh says both when nothing listens and when a router there
+    # refuses us (a certificate from another CA, an ACL): only the first is worth waiting for.
+    import socket
+
+    from mapd.errors import UnreachableError
+    from mapd.ros2.zenoh_config import open_zenoh
+    from transports.zenoh.session import ZenohOptions, build_config
+
+    def client(ep: str) -> Any:
+        return build_config(ZenohOptions(mode="client", connect=[ep], multicast_scouting=False), 1 << 20)
+
+    with pytest.raises(UnreachableError, match=r"^test: Unable to connect to any of"):
+        open_zenoh(client(zk.endpoint(zk.free_port())), "test")
+    with socket.socket() as listener:  # something answers on the port, but speaks no zenoh
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        ep = zk.endpoint(listener.getsockname()[1])
+        with pytest.raises(TransportError, match=r"^test: Unable to connect") as refused:
+            open_zenoh(client(ep), "test")
+        assert not isinstance(refused.value, UnreachableError)
