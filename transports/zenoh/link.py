@@ -183,7 +183,7 @@ class ZenohTransport(Transport):
                 # A robot that boots out of its router's reach (or before it): the daemon and its
                 # other links run, and watch() keeps trying, rather than stop them all with it.
                 self._retry_conf, self.unreached = conf, zenoh_message(exc)
-                log.warning("zenoh: %s; trying again (the other links run meanwhile)", self.unreached)
+                log.warning("%s; trying again (the other links run meanwhile)", self.unreached)
                 return
             # Cancelled mid-open, the session may still come up: close whatever did, then end.
             outbox, self._jobs = self._jobs, None
@@ -253,6 +253,8 @@ class ZenohTransport(Transport):
                     break
                 raise
             except Exception as exc:
+                if isinstance(exc, TransportError) and not unreachable(exc):
+                    raise  # a router that answered and refused us, or a config fault: its line
                 if not unreachable(exc):
                     raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
                 self.unreached = zenoh_message(exc)
