@@ -133,6 +133,10 @@ class _Track:
     streak: int = 0
     #: other robot -> ((digest of its map, digest of this map, held transform), answer)
     last: dict[str, tuple[tuple[bytes, bytes, Pose2D | None], Placement]] = field(default_factory=dict)
+    #: Placed robots this robot was searched against in a round the time budget cut short: the
+    #: next update starts with the others (a robot whose map changes every update would otherwise
+    #: be searched against the first placed map only, for ever)
+    tried: set[str] = field(default_factory=set)
 
 
 class Placer:
@@ -227,9 +231,10 @@ class Placer:
         ``tried`` is told each estimate as it is made (each can take seconds: a progress bar).
         ``enough`` is asked after each estimate (one robot against one placed map): once it says
         so, the robots not yet estimated keep what they held, and go first at the next update,
-        where the pairs already tried are not searched again while neither map changed. A robot that places against no map was
-        searched against every placed one at each new version, so one merge of a fleet with a
-        few of them took minutes, and the placed robots' maps waited as long.
+        which starts with the placed maps they were not yet searched against. A robot that
+        places against no map was searched against every placed one at each new version, so one
+        merge of a fleet with a few of them took minutes, and the placed robots' maps waited as
+        long.
         """
         out: dict[str, Placement] = {}
         placed: dict[str, Pose2D] = {}
@@ -353,17 +358,24 @@ class Placer:
             held.accepted and held.transform is not None and held.source == "estimate"
         ):
             held = None
-        others = sorted(placed, key=lambda r: (held is None or r != held.against, r))
+        if set(placed) <= track.tried:
+            track.tried.clear()  # each tried once since the round began: a new round
+        others = sorted(placed, key=lambda r: (held is None or r != held.against, r in track.tried, r))
         best: Placement | None = None
         for other in others:
             if best is not None and enough is not None and enough():
-                return best if best.accepted else None
+                if best.accepted:
+                    track.tried.clear()
+                    return best
+                return None
             p = self._place_against(robot, other, maps, placed, held, track)
+            track.tried.add(other)
             if best is None or (p.accepted and (not best.accepted or p.confidence > best.confidence)):
                 best = p
             if best.accepted and held is not None:
                 break  # a held robot is tracked against one map, not re-shopped every update
         assert best is not None
+        track.tried.clear()  # a whole round: the next starts from the first again
         return best
 
     def _place_against(

@@ -223,3 +223,19 @@ def test_the_search_budget_holds_within_one_robots_search_too(
     # each placed map searched once in all: what was tried is kept while neither map changes
     assert sorted(calls) == ["a", "b", "c"] and not out["u"].accepted
     assert "search time was spent" not in out["u"].reason
+
+
+def test_a_robot_whose_map_changes_every_merge_is_searched_against_every_placed_map_in_turn(
+    crops: dict[str, OccupancyGrid], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With the budget asked within a robot's search, a robot still mapping (a new map, so no
+    # cached pair, at every merge) was searched against the first placed map only, for ever.
+    calls = _calls(monkeypatch, "estimate_transform", lambda a, b: a.robot)
+    poses = {r: Pose2D(float(i), 0.0, 0.0) for i, r in enumerate("abc")}
+    placer = Placer(poses, anchor=None)
+    for v in range(1, 7):
+        lone = OccupancyGrid(np.full((30, 30), 100, np.int8), 0.05, robot="u", version=v)
+        lone.data[0, :v] = 0  # a new map each merge
+        n = len(calls)
+        placer.update({**{r: crops[r] for r in "abc"}, "u": lone}, enough=lambda n=n: len(calls) > n)  # type: ignore[misc]
+    assert calls == ["a", "b", "c", "a", "b", "c"]
