@@ -17,7 +17,9 @@ from mapd.daemon.versions import label
 #: and ``clock_synchronized``: when false).
 LINK_FAULTS = {
     "port_open": "serial port closed (reopening)",
-    "session_open": "no zenoh router reached yet (trying again)",
+    "session_open": "zenoh session not open yet (trying again)",
+    # an output's tries that a router answered and refused (it keeps trying: see outputs.zenoh)
+    "session_refusals": "{} session tries refused by the router (its certificate, ACL or version?)",
     "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",

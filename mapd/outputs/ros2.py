@@ -200,7 +200,12 @@ class Ros2Output(Output):
         #: newest global map meanwhile
         self._retry: asyncio.Task[None] | None = None
         self.unreached: str | None = None
+        self.refusals = 0
         self._waiting: GlobalUpdate | None = None
+        # Held while the session opens or closes and while anything is put: a map published as the
+        # session opens goes out once, after any older one; a session opened after close() closes.
+        self._put_lock = threading.RLock()
+        self._closing = False
         self._static_sent: dict[str, Pose2D] | None = None
         #: Robots whose map frame went out under ``frame`` (kept in FRAMES_FILE across restarts).
         self._shown: set[str] = set()
@@ -224,20 +229,34 @@ class Ros2Output(Output):
             self._retry = asyncio.create_task(self._open_later(), name="output-ros2-retry")
 
     async def _open_later(self) -> None:
-        try:
-            await open_when_reachable(self._open)
-        except TransportError as exc:
-            log.error("ros2 output: %s; the global map does not go out on ROS 2", exc)
+        def refused(exc: TransportError) -> None:
+            if str(exc) != self.unreached:
+                log.warning("ros2 output: %s; trying again", exc)
             self.unreached = str(exc)
-            return
-        self.unreached = None
-        log.info("ros2 output: session open")
-        with self._lock:
+            self.refusals += 1
+
+        await open_when_reachable(self._open_and_flush, on_refusal=refused)
+
+    def _open_and_flush(self) -> None:
+        """On a worker thread: open, then publish the map that waited (a cancelled wait does not
+        stop this thread: ``_open`` closes what it opened if the output closed meanwhile)."""
+        with self._put_lock:
+            self._open()
+            if self._map is None:
+                return  # closed meanwhile
+            self.unreached = None
+            log.info("ros2 output: session open")
             waiting, self._waiting = self._waiting, None
-        if waiting is not None:
-            await asyncio.to_thread(self.publish, waiting)
+            if waiting is not None:
+                self.publish(waiting)
 
     def _open(self) -> None:
+        """Open the session and declare the node and its publishers (nothing once closing)."""
+        with self._put_lock:
+            if not self._closing:
+                self._open_session()
+
+    def _open_session(self) -> None:
         from mapd.ros2 import cdr
         from mapd.ros2.node import Ros2Node
 
@@ -264,12 +283,16 @@ class Ros2Output(Output):
             raise
 
     def publish(self, update: GlobalUpdate) -> None:
+        with self._put_lock:
+            if self._map is None:
+                self._waiting = update  # the newest, for when the session opens
+                return
+            self._waiting = None  # (an older one that waited is superseded)
+            self._publish(update)
+
+    def _publish(self, update: GlobalUpdate) -> None:
         from mapd.ros2 import cdr
 
-        if self._map is None:
-            with self._lock:
-                self._waiting = update  # the newest, for when the session opens
-            return
         payload = cdr.encode(update.grid, frame_id=self.opts.frame, stamp=update.stamp)
         self._map.put(payload)
         self.maps += 1
@@ -280,9 +303,10 @@ class Ros2Output(Output):
             self._send_poses(update)
 
     def publish_poses(self, update: PoseUpdate) -> None:
-        if self._tf_static is not None and update.frames:
-            self._send_static(update.frames, max((p.stamp for p in update.poses.values()), default=0.0))
-        self._send_poses(update)
+        with self._put_lock:
+            if self._tf_static is not None and update.frames:
+                self._send_static(update.frames, max((p.stamp for p in update.poses.values()), default=0.0))
+            self._send_poses(update)
 
     def _send_static(self, frames: dict[str, Pose2D], stamp: float) -> None:
         o = self.opts
@@ -360,13 +384,15 @@ class Ros2Output(Output):
     async def close(self) -> None:
         if self._retry is not None:
             self._retry.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._retry
-        await asyncio.to_thread(self._close)
+        await asyncio.to_thread(self._close, True)
 
-    def _close(self) -> None:
-        node, session = self._node, self._session
-        self._node = self._session = self._map = self._tf = self._tf_static = None
+    def _close(self, closing: bool = False) -> None:
+        with self._put_lock:  # after an open under way on a retry's thread, which then sees this
+            self._closing = self._closing or closing
+            node, session = self._node, self._session
+            self._node = self._session = self._map = self._tf = self._tf_static = None
         if node is not None:
             node.close()
         if session is not None:
@@ -383,4 +409,5 @@ class Ros2Output(Output):
             "bytes": self.bytes,
             # False while no router answers (a FAULTS line in mapd status)
             "session_open": self.unreached is None,
+            "session_refusals": self.refusals,
         }

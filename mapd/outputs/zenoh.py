@@ -63,6 +63,13 @@ class ZenohOutput(Output):
         #: Tries again while no router answers (a client whose router is not up yet)
         self._retry: asyncio.Task[None] | None = None
         self.unreached: str | None = None
+        #: Tries a router answered and refused (a certificate, an ACL): the output tries on, as
+        #: systemd would restart the daemon into the same tries; mapd status says so.
+        self.refusals = 0
+        # Held while a map is put, a session adopted or closed: a map published as the session
+        # opens goes out once, after any older one, and a session opened after close() is closed.
+        self._put_lock = threading.Lock()
+        self._closing = False
 
     async def start(self) -> None:
         from transports.zenoh.session import ZenohOptions, build_config
@@ -81,22 +88,36 @@ class ZenohOutput(Output):
             self._retry = asyncio.create_task(self._open_later(conf), name="output-zenoh-retry")
 
     async def _open_later(self, conf: Any) -> None:
-        try:
-            session = await open_when_reachable(functools.partial(self._open, conf))
-        except TransportError as exc:
-            log.error("%s; the global map does not go out on zenoh", exc)
+        def refused(exc: TransportError) -> None:
+            if str(exc) != self.unreached:
+                log.warning("%s; trying again", exc)
             self.unreached = str(exc)
-            return
-        with self._lock:
-            self._session, latest = session, self._latest
-        self.unreached = None
-        log.info("output.zenoh: session open")
-        if latest is not None:
-            await asyncio.to_thread(session.put, self.key, latest)
+            self.refusals += 1
+
+        await open_when_reachable(functools.partial(self._open_and_adopt, conf), on_refusal=refused)
+
+    def _open_and_adopt(self, conf: Any) -> None:
+        """On a worker thread: open, then use the session (putting the newest map), or close it if
+        the output closed meanwhile (a cancelled wait does not stop this thread)."""
+        session = self._open(conf)
+        with self._put_lock:
+            if self._closing:
+                self._close(session)
+                return
+            with self._lock:
+                self._session, latest = session, self._latest
+            self.unreached = None
+            log.info("output.zenoh: session open")
+            if latest is not None:
+                session.put(self.key, latest)
 
     def _open(self, conf: Any) -> Any:
         session = open_zenoh(conf, "output.zenoh: cannot open a session")
-        self._queryable = session.declare_queryable(self.key, self._on_query)
+        try:
+            self._queryable = session.declare_queryable(self.key, self._on_query)
+        except Exception as exc:
+            session.close()
+            raise TransportError(f"output.zenoh: cannot declare {self.key}: {exc}") from None
         return session
 
     def _on_query(self, query: Any) -> None:
@@ -129,19 +150,22 @@ class ZenohOutput(Output):
         if self.ctx.identity is not None:
             env = env.signed(self.ctx.identity)
         data = env.pack()
-        with self._lock:
-            self._latest = data
-        if self._session is not None:
-            self._session.put(self.key, data)
+        with self._put_lock:
+            with self._lock:
+                self._latest = data
+            if self._session is not None:
+                self._session.put(self.key, data)
         self.published += 1
         self.bytes += len(data)
 
     async def close(self) -> None:
+        with self._put_lock:
+            self._closing = True
+            session, self._session = self._session, None
         if self._retry is not None:
             self._retry.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._retry
-        session, self._session = self._session, None
         if session is not None:
             await asyncio.to_thread(self._close, session)
 
@@ -159,4 +183,5 @@ class ZenohOutput(Output):
             "bytes": self.bytes,
             # False while no router answers (a FAULTS line in mapd status)
             "session_open": self.unreached is None,
+            "session_refusals": self.refusals,
         }

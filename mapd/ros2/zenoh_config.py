@@ -105,23 +105,36 @@ def open_zenoh(conf: Any, what: str) -> Any:
         return zenoh.open(conf)
     except Exception as exc:  # zenoh.ZError
         message = zenoh_message(exc)
-        if "Unable to connect to any of" in message and not _any_answers(message):
-            raise UnreachableError(f"{what}: {message}") from None
+        if "Unable to connect to any of" in message:
+            if not _any_answers(message):
+                raise UnreachableError(f"{what}: {message}") from None
+            # said in words: zenoh's own are the same as for a router that is not there
+            message += " (something answers there and refused the session: its certificate, ACL or version?)"
         raise TransportError(f"{what}: {message}") from None
 
 
-async def open_when_reachable(open_session: Callable[[], T]) -> T:
+async def open_when_reachable(
+    open_session: Callable[[], T], *, on_refusal: Callable[[TransportError], None] | None = None
+) -> T:
     """Call ``open_session`` (blocking: in a worker thread) after :data:`RETRY_FIRST_S`, then after
-    twice as long each time up to :data:`RETRY_MAX_S`, until it opens; an error other than an
-    unreachable router (:func:`unreachable`) is raised. For a session that found no router at
-    start, while the daemon runs on."""
+    twice as long each time up to :data:`RETRY_MAX_S`, until it opens. For a session that found no
+    router at start, while the daemon runs on. An error other than an unreachable router
+    (:func:`unreachable`) is raised, unless ``on_refusal`` takes it (and the tries go on: an output
+    has no way to stop the daemon, and systemd would restart it into the same tries).
+
+    Cancelling the wait does not stop a try under way in its thread: ``open_session`` must itself
+    close what it opened when its owner closed meanwhile."""
     delay = RETRY_FIRST_S
     while True:
         await asyncio.sleep(delay)
         try:
             return await asyncio.to_thread(open_session)
         except Exception as exc:
-            if not unreachable(exc):
+            if unreachable(exc):
+                pass
+            elif on_refusal is not None and isinstance(exc, TransportError):
+                on_refusal(exc)
+            else:
                 raise
         delay = min(2 * delay, RETRY_MAX_S)
 

@@ -366,6 +366,8 @@ class Ros2Source(MapSource):
             log.warning("ros2 source: %s; trying again (the daemon's links run meanwhile)", exc)
             self._unreached = self._last_error = str(exc)
         await open_when_reachable(functools.partial(self._open, loop))
+        if self._last_error == self._unreached:
+            self._last_error = ""  # (the wait is over: not an error to show any more)
         self._unreached = None
         log.info("ros2 source: session open")
 

@@ -197,8 +197,8 @@ def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_onc
             await asyncio.sleep(0.6)
             doc = {"outputs": {"zenoh": out.stats()}}
             assert out.stats()["session_open"] is False
-            assert "output  zenoh: FAULTS no zenoh router reached yet" in render_status(doc)
-            assert status_line(doc).startswith("FAULTS output.zenoh no zenoh router reached yet")
+            assert "output  zenoh: FAULTS zenoh session not open yet" in render_status(doc)
+            assert status_line(doc).startswith("FAULTS output.zenoh zenoh session not open yet")
             router = await asyncio.to_thread(session, "router", "listen/endpoints")
             try:
                 end = time.monotonic() + 20
@@ -216,3 +216,55 @@ def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_onc
             await out.close()
 
     asyncio.run(main())
+
+
+def test_a_session_that_opens_after_close_is_closed_not_leaked(
+    room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # close() cancels the retry's wait, but not a try under way on its thread: a session that
+    # opened after close() stayed open (and zenoh threads left at exit abort the process).
+    import threading
+
+    from mapd.errors import UnreachableError
+    from mapd.ros2 import zenoh_config
+
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.05)
+    opening, release = threading.Event(), threading.Event()
+    tries: list[int] = []
+
+    class Session:
+        closed = False
+
+        def put(self, key: str, data: bytes) -> None:
+            raise AssertionError("nothing is put after close")
+
+        def close(self) -> None:
+            self.closed = True
+
+    late = Session()
+
+    def fake_open(conf: Any) -> Any:
+        tries.append(1)
+        if len(tries) == 1:
+            raise UnreachableError("output.zenoh: cannot open a session: Unable to connect to any of [x]")
+        opening.set()
+        release.wait(10)
+        return late
+
+    out = ZenohOutput(ZenohOutputOptions(mode="client", connect=["tcp/127.0.0.1:9"]), OutputContext("b", "f"))
+    monkeypatch.setattr(out, "_open", fake_open)
+    monkeypatch.setattr(out, "_close", lambda session: session.close())
+
+    async def main() -> None:
+        await out.start()
+        out.publish(update(room_grid, 2))
+        await asyncio.to_thread(opening.wait, 10)  # the retry's second try is under way
+        await out.close()
+        release.set()  # ... and opens after the close
+        for _ in range(100):
+            if late.closed:
+                break
+            await asyncio.sleep(0.02)
+
+    asyncio.run(main())
+    assert late.closed and out.stats()["session_open"] is False

@@ -378,14 +378,14 @@ def test_a_client_that_finds_no_router_waits_for_it_and_then_takes_maps(
         await asyncio.sleep(1.0)  # several tries, no router
         assert not first.done() and src.stats()["session_open"] is False
         doc = {"source": {"name": "ros2", "version": 0, "stats": src.stats()}}
-        assert "FAULTS no zenoh router reached yet (trying again)" in render_status(doc)
-        assert status_line(doc).startswith("FAULTS source no zenoh router reached yet")
+        assert "FAULTS zenoh session not open yet (trying again)" in render_status(doc)
+        assert status_line(doc).startswith("FAULTS source zenoh session not open yet")
         router = await asyncio.to_thread(ros2cdr.open_session, mode="router", listen=[endpoint])
         sink = Ros2Sink(router, "/map")
         try:
             sink.publish(_grid(3))  # transient local: the source gets it once it is in
             grid = await first
-            assert src.stats()["session_open"] is True
+            assert src.stats()["session_open"] is True and src.stats()["last_error"] == ""
             await it.aclose()
         finally:
             sink.close()

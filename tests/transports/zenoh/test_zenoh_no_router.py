@@ -126,7 +126,7 @@ def test_a_daemon_whose_router_is_down_runs_says_so_and_joins_later(
     router = None
     try:
         wait(lambda s: s["links"]["zenoh"]["session_open"] is False, "the daemon up without its router")
-        assert "FAULTS no zenoh router reached yet (trying again)" in status(human=True)
+        assert "FAULTS zenoh session not open yet (trying again)" in status(human=True)
         router = subprocess.Popen(
             [sys.executable, "-m", "transports.zenoh.router", "--listen", ep],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
