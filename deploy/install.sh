@@ -17,6 +17,8 @@ while [ $# -gt 0 ]; do
   esac
 done
 [ "$(id -u)" = 0 ] || { echo "install.sh must run as root" >&2; exit 1; }
+# names first (a hostname with a dot is no robot name): nothing is installed with one mapd refuses
+deploy/robot-config.sh "$robot" "$fleet" < /dev/null > /dev/null
 py="$(command -v python3.11 || command -v python3)"
 "$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "mapd needs Python 3.11+")'
 
@@ -35,7 +37,9 @@ ln -sfn /opt/mapd/venv/bin/mapd /usr/local/bin/mapd
 
 install -d -m 0750 -o root -g mapd /etc/mapd
 if [ ! -f /etc/mapd/config.toml ]; then
-  deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml
+  # written whole or not at all: a half-written file would be kept by the next run
+  deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml.new
+  mv /etc/mapd/config.toml.new /etc/mapd/config.toml
   chgrp mapd /etc/mapd/config.toml && chmod 0640 /etc/mapd/config.toml
   echo "wrote /etc/mapd/config.toml for robot '$robot' (edit it, then: systemctl restart mapd)"
 fi

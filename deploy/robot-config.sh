@@ -8,7 +8,8 @@ set -euo pipefail
 [ $# -eq 2 ] || { echo "usage: $0 ROBOT FLEET < config.toml" >&2; exit 2; }
 robot="$1"; fleet="$2"
 for v in "$robot" "$fleet"; do
-  [[ "$v" =~ ^[A-Za-z0-9_-]{1,64}$ ]] || { echo "$0: '$v': letters, digits, _ and - only" >&2; exit 2; }
+  # mapd's own rule for robot and fleet names (config.NAME_PATTERN)
+  [[ "$v" =~ ^[A-Za-z0-9_-]{1,32}$ ]] || { echo "$0: '$v': 1 to 32 letters, digits, _ and - only" >&2; exit 2; }
 done
 sed -e "s/^name = \"alpha\"/name = \"$robot\"/" -e "s/^fleet = \"demo\"/fleet = \"$fleet\"/" \
     -e 's#^key_file = .*#key_file = "/etc/mapd/robot.key"#' \

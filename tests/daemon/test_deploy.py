@@ -103,12 +103,23 @@ def test_the_robot_config_install_writes_keeps_the_examples_folders(tmp_path: Pa
         ["bash", str(DEPLOY / "robot-config.sh"), 'r"; x', "lab"], input="", capture_output=True, text=True
     )
     assert bad.returncode == 2 and "letters, digits" in bad.stderr
+    # as long as mapd allows (config.NAME_PATTERN: 32), not longer
+    long = subprocess.run(
+        ["bash", str(DEPLOY / "robot-config.sh"), "r" * 33, "lab"], input="", capture_output=True, text=True
+    )
+    assert long.returncode == 2 and "1 to 32" in long.stderr
+    from mapd.config import NAME_PATTERN
+
+    assert NAME_PATTERN.endswith("{1,32}$")
 
 
 def test_install_puts_mapd_on_the_path_and_writes_the_config_with_robot_config() -> None:
     install = (DEPLOY / "install.sh").read_text()
     assert "ln -sfn /opt/mapd/venv/bin/mapd /usr/local/bin/mapd" in install
-    assert 'deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml' in install
+    assert 'deploy/robot-config.sh "$robot" "$fleet" < config.toml > /etc/mapd/config.toml.new' in install
+    assert "mv /etc/mapd/config.toml.new /etc/mapd/config.toml" in install
+    # the names are checked before anything is installed
+    assert install.index("< /dev/null > /dev/null") < install.index("useradd")
     # the example config names the ros2 and record plugins: a robot gets what they need
     extras = install.split("pip install", 1)[1].split("\n", 1)[0]
     assert "'.[ros2,record]'" in extras
