@@ -199,6 +199,12 @@ class ZenohTransport(Transport):
 
         fleet, me, cb = self.ctx.fleet, self.ctx.robot, self._handlers.callback
         session = open_zenoh(conf, "zenoh: cannot open session")
+        if self._closing:
+            # close() gave up waiting for this open (a retry's, which can take seconds) and may
+            # have stopped the outbox that would have closed it: close it here, or its threads
+            # outlive the interpreter and abort the process at exit
+            session.close()
+            return
         try:
             remote = zenoh.Locality.REMOTE
             cc = (

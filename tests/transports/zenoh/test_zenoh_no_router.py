@@ -165,3 +165,44 @@ def test_a_router_that_answers_and_refuses_is_not_waited_for(zk: SimpleNamespace
         with pytest.raises(TransportError, match=r"^test: Unable to connect") as refused:
             open_zenoh(client(ep), "test")
         assert not isinstance(refused.value, UnreachableError)
+
+
+def test_a_retry_that_opens_after_close_gave_up_waiting_closes_its_session(
+    zk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import threading
+
+    from mapd.errors import UnreachableError
+
+    monkeypatch.setattr(link, "RETRY_FIRST_S", 0.05)
+    opening, release = threading.Event(), threading.Event()
+    tries: list[int] = []
+
+    from unittest import mock
+
+    late = mock.MagicMock(name="session")  # takes every declaration, as a real one would
+
+    def fake_open(conf: Any, what: str) -> Any:
+        tries.append(1)
+        if len(tries) == 1:
+            raise UnreachableError(f"{what}: Unable to connect to any of [x]")
+        opening.set()
+        release.wait(10)  # longer than close() waits (close_timeout_s)
+        return late
+
+    monkeypatch.setattr(link, "open_zenoh", fake_open)
+
+    async def main() -> None:
+        bot = await zk.Bot("a", connect=["tcp/127.0.0.1:9"], mode="client", close_timeout_s=0.2).start()
+        watch = asyncio.create_task(bot.t.watch())
+        await asyncio.to_thread(opening.wait, 10)
+        await bot.t.close()  # gives up waiting for the open under way
+        watch.cancel()
+        release.set()
+        for _ in range(100):
+            if late.close.called:
+                break
+            await asyncio.sleep(0.02)
+
+    asyncio.run(main())
+    assert late.close.called
