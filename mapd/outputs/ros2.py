@@ -46,12 +46,13 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field, ValidationInfo, field_validator
 
 from mapd.config import NAME_PATTERN
-from mapd.errors import MapdError, TransportError
+from mapd.errors import MapdError, UnreachableError
 from mapd.files import atomic_write_json, read_json_capped
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
+from mapd.outputs.retry import SessionRetry
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, unreachable
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
@@ -198,9 +199,7 @@ class Ros2Output(Output):
         self._lock = threading.Lock()
         #: Tries again while no router answers (a client whose rmw_zenohd is not up yet), and the
         #: newest global map meanwhile
-        self._retry: asyncio.Task[None] | None = None
-        self.unreached: str | None = None
-        self.refusals = 0
+        self.retry = SessionRetry("ros2 output")
         self._waiting: GlobalUpdate | None = None
         # Held while the session opens or closes and while anything is put: a map published as the
         # session opens goes out once, after any older one; a session opened after close() closes.
@@ -219,23 +218,10 @@ class Ros2Output(Output):
     async def start(self) -> None:
         try:
             await asyncio.to_thread(self._open)
-        except TransportError as exc:
-            if not unreachable(exc):
-                raise
+        except UnreachableError as exc:
             # A client whose rmw_zenohd is not up yet: the daemon runs, and the newest global map
             # goes out (latched) once the session opens.
-            self.unreached = str(exc)
-            log.warning("ros2 output: %s; trying again (the daemon runs meanwhile)", exc)
-            self._retry = asyncio.create_task(self._open_later(), name="output-ros2-retry")
-
-    async def _open_later(self) -> None:
-        def refused(exc: TransportError) -> None:
-            if str(exc) != self.unreached:
-                log.warning("ros2 output: %s; trying again", exc)
-            self.unreached = str(exc)
-            self.refusals += 1
-
-        await open_when_reachable(self._open_and_flush, on_refusal=refused)
+            self.retry.begin(exc, self._open_and_flush)
 
     def _open_and_flush(self) -> None:
         """On a worker thread: open, then publish the map that waited (a cancelled wait does not
@@ -244,8 +230,7 @@ class Ros2Output(Output):
             self._open()
             if self._map is None:
                 return  # closed meanwhile
-            self.unreached = None
-            log.info("ros2 output: session open")
+            self.retry.opened()
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self.publish(waiting)
@@ -382,10 +367,7 @@ class Ros2Output(Output):
         self.tf_msgs += 1
 
     async def close(self) -> None:
-        if self._retry is not None:
-            self._retry.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._retry
+        await self.retry.stop()
         await asyncio.to_thread(self._close, True)
 
     def _close(self, closing: bool = False) -> None:
@@ -407,7 +389,5 @@ class Ros2Output(Output):
             "unplaced": self.unplaced,
             "tf": self.tf_msgs,
             "bytes": self.bytes,
-            # False while no router answers (a FAULTS line in mapd status)
-            "session_open": self.unreached is None,
-            "session_refusals": self.refusals,
+            **self.retry.stats(),
         }

@@ -13,9 +13,7 @@ It opens its own zenoh session (``mode``, ``listen``, ``connect``, ``multicast_s
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import functools
-import logging
 import threading
 from pathlib import Path
 from typing import Any, Literal
@@ -24,12 +22,12 @@ from pydantic import Field
 
 from mapd.codec import encode, read_header
 from mapd.envelope import Envelope
-from mapd.errors import TransportError
+from mapd.errors import TransportError, UnreachableError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
-from mapd.ros2.zenoh_config import ZenohConfigFiles, open_when_reachable, open_zenoh, unreachable
+from mapd.outputs.retry import SessionRetry
+from mapd.ros2.zenoh_config import ZenohConfigFiles, open_zenoh
 from transports.zenoh.keys import global_key
 
-log = logging.getLogger("mapd.outputs.zenoh")
 MAX_MESSAGE_BYTES = 64 << 20
 
 
@@ -61,11 +59,7 @@ class ZenohOutput(Output):
         self.queries = 0
         self.bytes = 0
         #: Tries again while no router answers (a client whose router is not up yet)
-        self._retry: asyncio.Task[None] | None = None
-        self.unreached: str | None = None
-        #: Tries a router answered and refused (a certificate, an ACL): the output tries on, as
-        #: systemd would restart the daemon into the same tries; mapd status says so.
-        self.refusals = 0
+        self.retry = SessionRetry("output.zenoh")
         # Held while a map is put, a session adopted or closed: a map published as the session
         # opens goes out once, after any older one, and a session opened after close() is closed.
         self._put_lock = threading.Lock()
@@ -78,23 +72,10 @@ class ZenohOutput(Output):
         conf = build_config(ZenohOptions(**fields), MAX_MESSAGE_BYTES)
         try:
             self._session = await asyncio.to_thread(self._open, conf)
-        except TransportError as exc:
-            if not unreachable(exc):
-                raise
+        except UnreachableError as exc:
             # A base station whose router is not up yet: the daemon runs, the newest global map
             # goes out once the session opens.
-            self.unreached = str(exc)
-            log.warning("%s; trying again (the daemon runs meanwhile)", exc)
-            self._retry = asyncio.create_task(self._open_later(conf), name="output-zenoh-retry")
-
-    async def _open_later(self, conf: Any) -> None:
-        def refused(exc: TransportError) -> None:
-            if str(exc) != self.unreached:
-                log.warning("%s; trying again", exc)
-            self.unreached = str(exc)
-            self.refusals += 1
-
-        await open_when_reachable(functools.partial(self._open_and_adopt, conf), on_refusal=refused)
+            self.retry.begin(exc, functools.partial(self._open_and_adopt, conf))
 
     def _open_and_adopt(self, conf: Any) -> None:
         """On a worker thread: open, then use the session (putting the newest map), or close it if
@@ -106,8 +87,7 @@ class ZenohOutput(Output):
                 return
             with self._lock:
                 self._session, latest = session, self._latest
-            self.unreached = None
-            log.info("output.zenoh: session open")
+            self.retry.opened()
             if latest is not None:
                 session.put(self.key, latest)
 
@@ -162,10 +142,7 @@ class ZenohOutput(Output):
         with self._put_lock:
             self._closing = True
             session, self._session = self._session, None
-        if self._retry is not None:
-            self._retry.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._retry
+        await self.retry.stop()
         if session is not None:
             await asyncio.to_thread(self._close, session)
 
@@ -181,7 +158,5 @@ class ZenohOutput(Output):
             "published": self.published,
             "queries": self.queries,
             "bytes": self.bytes,
-            # False while no router answers (a FAULTS line in mapd status)
-            "session_open": self.unreached is None,
-            "session_refusals": self.refusals,
+            **self.retry.stats(),
         }

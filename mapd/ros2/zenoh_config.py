@@ -13,7 +13,7 @@ import asyncio
 import json
 import re
 import socket
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
@@ -77,12 +77,6 @@ PROBE_TIMEOUT_S = 1.0
 _ENDPOINT = re.compile(r"\b(?:tcp|tls|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-_]+):(\d{1,5})\b")
 
 
-def unreachable(exc: BaseException) -> bool:
-    """Whether a session could not open only because none of the endpoints it must connect to
-    answered (:class:`UnreachableError`, from :func:`open_zenoh`): worth trying again later."""
-    return isinstance(exc, UnreachableError)
-
-
 def _any_answers(message: str) -> bool:
     """Whether any TCP-based endpoint named in zenoh's message takes a TCP connection: then a router
     is there and refused us (a certificate, an ACL, a protocol), which no retry mends."""
@@ -114,13 +108,16 @@ def open_zenoh(conf: Any, what: str) -> Any:
 
 
 async def open_when_reachable(
-    open_session: Callable[[], T], *, on_refusal: Callable[[TransportError], None] | None = None
+    open_session: Callable[[], T],
+    *,
+    on_refusal: Callable[[TransportError], None] | None = None,
+    run: Callable[[Callable[[], T]], Awaitable[T]] = asyncio.to_thread,
 ) -> T:
-    """Call ``open_session`` (blocking: in a worker thread) after :data:`RETRY_FIRST_S`, then after
-    twice as long each time up to :data:`RETRY_MAX_S`, until it opens. For a session that found no
-    router at start, while the daemon runs on. An error other than an unreachable router
-    (:func:`unreachable`) is raised, unless ``on_refusal`` takes it (and the tries go on: an output
-    has no way to stop the daemon, and systemd would restart it into the same tries).
+    """Call ``open_session`` (blocking: on ``run``'s thread, a worker by default) after
+    :data:`RETRY_FIRST_S`, then after twice as long each time up to :data:`RETRY_MAX_S`, until it
+    opens. For a session that found no router at start, while the daemon runs on. An error other
+    than :class:`UnreachableError` is raised, unless ``on_refusal`` takes it (and the tries go on:
+    an output has no way to stop the daemon, and systemd would restart it into the same tries).
 
     Cancelling the wait does not stop a try under way in its thread: ``open_session`` must itself
     close what it opened when its owner closed meanwhile."""
@@ -128,9 +125,9 @@ async def open_when_reachable(
     while True:
         await asyncio.sleep(delay)
         try:
-            return await asyncio.to_thread(open_session)
+            return await run(open_session)
         except Exception as exc:
-            if unreachable(exc):
+            if isinstance(exc, UnreachableError):
                 pass
             elif on_refusal is not None and isinstance(exc, TransportError):
                 on_refusal(exc)

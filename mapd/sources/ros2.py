@@ -62,11 +62,11 @@ import threading
 from collections.abc import AsyncIterator
 from typing import Any
 
-from mapd.errors import CodecError, LimitError, TransportError
+from mapd.errors import CodecError, LimitError, TransportError, UnreachableError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import open_when_reachable, unreachable
+from mapd.ros2.zenoh_config import open_when_reachable
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from mapd.sources.ros2_options import ROBOT_NAME, Ros2Options
 from mapd.sources.ros2_pose import PoseSubscription
@@ -360,9 +360,7 @@ class Ros2Source(MapSource):
         try:
             await asyncio.to_thread(self._open, loop)
             return
-        except TransportError as exc:
-            if not unreachable(exc):
-                raise
+        except UnreachableError as exc:
             log.warning("ros2 source: %s; trying again (the daemon's links run meanwhile)", exc)
             self._unreached = self._last_error = str(exc)
         await open_when_reachable(functools.partial(self._open, loop))

@@ -48,14 +48,14 @@ import functools
 import logging
 import threading
 import time
-from collections.abc import Callable, Hashable
+from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import asdict, dataclass
 from typing import Any
 
 from mapd.envelope import Envelope
-from mapd.errors import EnvelopeError, TransportError
+from mapd.errors import EnvelopeError, TransportError, UnreachableError
 from mapd.identity import SIG_LEN
-from mapd.ros2.zenoh_config import RETRY_FIRST_S, RETRY_MAX_S, open_zenoh, unreachable
+from mapd.ros2.zenoh_config import open_when_reachable, open_zenoh
 from transports.base import PoseReceived, PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
@@ -179,7 +179,7 @@ class ZenohTransport(Transport):
         try:
             await asyncio.wrap_future(self._jobs.call(lambda: self._open(conf)))
         except BaseException as exc:
-            if unreachable(exc):
+            if isinstance(exc, UnreachableError):
                 # A robot that boots out of its router's reach (or before it): the daemon and its
                 # other links run, and watch() keeps trying, rather than stop them all with it.
                 self._retry_conf, self.unreached = conf, zenoh_message(exc)
@@ -244,30 +244,29 @@ class ZenohTransport(Transport):
         self._session = session
 
     async def watch(self) -> None:
-        """While no router could be reached, try to open the session again (1 s, doubling to 30 s);
-        :class:`TransportError` if a try fails for another cause. Then wait while the link works."""
-        delay, since = RETRY_FIRST_S, time.monotonic()
-        while self._retry_conf is not None and not self._closing and self._jobs is not None:
-            await asyncio.sleep(delay)
-            conf, jobs = self._retry_conf, self._jobs
-            if self._closing or jobs is None:
-                break
+        """While no router could be reached, try to open the session again (1 s, doubling to 30 s;
+        on the job thread, so a close waits for a try under way); :class:`TransportError` if a try
+        fails for another cause. Then wait while the link works."""
+        conf, jobs = self._retry_conf, self._jobs
+        if conf is not None and jobs is not None and not self._closing:
+            since = time.monotonic()
+
+            def on_jobs(fn: Callable[[], None]) -> Awaitable[None]:
+                return asyncio.wrap_future(jobs.call(fn))
+
             try:
-                await asyncio.wrap_future(jobs.call(functools.partial(self._open, conf)))
+                await open_when_reachable(functools.partial(self._open, conf), run=on_jobs)
             except asyncio.CancelledError:
-                if self._closing:
-                    break
-                raise
+                task = asyncio.current_task()
+                if not self._closing or (task is not None and task.cancelling()):
+                    raise  # (the close stopping the job thread cancels only the try's future)
+            except TransportError:
+                raise  # a router that answered and refused us, or a config fault: its line
             except Exception as exc:
-                if isinstance(exc, TransportError) and not unreachable(exc):
-                    raise  # a router that answered and refused us, or a config fault: its line
-                if not unreachable(exc):
-                    raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
-                self.unreached = zenoh_message(exc)
-                delay = min(2 * delay, RETRY_MAX_S)
-                continue
-            self._retry_conf = self.unreached = None
-            log.info("zenoh: session open, %.0f s after the first try", time.monotonic() - since)
+                raise TransportError(f"zenoh: cannot open session: {zenoh_message(exc)}") from None
+            if self._session is not None:  # (not when a close came first: _open closed it)
+                self._retry_conf = self.unreached = None
+                log.info("zenoh: session open, %.0f s after the first try", time.monotonic() - since)
         await asyncio.Event().wait()
 
     async def close(self) -> None:

@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from mapd.errors import TransportError
+from mapd.ros2 import zenoh_config
 from transports.zenoh import link
 
 
@@ -36,7 +37,7 @@ def _router(ep: str) -> Any:
 def test_clients_run_without_their_router_and_meet_once_it_is_up(
     zk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(link, "RETRY_FIRST_S", 0.2)
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
     ep = zk.endpoint(zk.free_port())
 
     async def main() -> None:
@@ -174,7 +175,7 @@ def test_a_retry_that_opens_after_close_gave_up_waiting_closes_its_session(
 
     from mapd.errors import UnreachableError
 
-    monkeypatch.setattr(link, "RETRY_FIRST_S", 0.05)
+    monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.05)
     opening, release = threading.Event(), threading.Event()
     tries: list[int] = []
 
