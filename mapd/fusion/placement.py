@@ -133,9 +133,9 @@ class _Track:
     streak: int = 0
     #: other robot -> ((digest of its map, digest of this map, held transform), answer)
     last: dict[str, tuple[tuple[bytes, bytes, Pose2D | None], Placement]] = field(default_factory=dict)
-    #: Placed robots this robot was searched against in a round the time budget cut short: the
-    #: next update starts with the others (a robot whose map changes every update would otherwise
-    #: be searched against the first placed map only, for ever)
+    #: Placed robots this robot was searched against since its round began (a new round once it
+    #: holds them all): an update starts with the others, so a robot the time budget cuts short
+    #: whose map changes every update is not searched against the first placed map only, for ever
     tried: set[str] = field(default_factory=set)
 
 
@@ -364,10 +364,7 @@ class Placer:
         best: Placement | None = None
         for other in others:
             if best is not None and enough is not None and enough():
-                if best.accepted:
-                    track.tried.clear()
-                    return best
-                return None
+                return best if best.accepted else None
             p = self._place_against(robot, other, maps, placed, held, track)
             track.tried.add(other)
             if best is None or (p.accepted and (not best.accepted or p.confidence > best.confidence)):
@@ -375,7 +372,6 @@ class Placer:
             if best.accepted and held is not None:
                 break  # a held robot is tracked against one map, not re-shopped every update
         assert best is not None
-        track.tried.clear()  # a whole round: the next starts from the first again
         return best
 
     def _place_against(
