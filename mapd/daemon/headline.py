@@ -39,7 +39,7 @@ def link_faults(st: dict[str, Any]) -> list[str]:
     out = []
     for k, words in LINK_FAULTS.items():
         v = st.get(k)
-        if k in ("port_open", "session_open", "clock_synchronized"):
+        if "{}" not in words:  # a state, at fault when false (port_open, session_open, ...)
             if v is False:
                 out.append(words)
         elif isinstance(v, int) and not isinstance(v, bool) and v > 0:
