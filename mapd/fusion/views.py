@@ -281,10 +281,11 @@ def sift_features(
 ) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints and descriptors of the map drawn as an image (walls dark, unknown grey).
 
-    A map of more than ``max_cells`` (default :data:`FEATURE_CELLS`) cells is drawn shrunk by a whole factor first: SIFT doubles
-    the image and keeps a float pyramid of it, about 250 bytes a cell (a 2048 x 2048 map took
-    1 GB). Features only propose placements, which are refined on the whole map, so a coarser
-    drawing costs no accuracy. Keypoints are given in ``cls``'s pixel index either way.
+    A map of more than ``max_cells`` (default :data:`FEATURE_CELLS`) cells is drawn shrunk by a
+    whole factor first: SIFT doubles the image and keeps a float pyramid of it, about 250 bytes a
+    cell. Features only propose placements, which are refined on the whole map; on large maps the
+    shrunk drawing proposes the true one as the whole did (tests/fusion/test_fusion_hostile.py).
+    Keypoints are given in ``cls``'s pixel index either way.
     """
     img: np.ndarray = np.full(cls.shape, 128, dtype=np.uint8)
     img[cls == FREE_C] = 255
