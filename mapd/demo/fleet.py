@@ -13,7 +13,6 @@ import argparse
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -22,17 +21,12 @@ from typing import Any
 
 from mapd.daemon.status_socket import query
 from mapd.daemon.versions import label
+from mapd.demo.ports import free_port
 from mapd.errors import DaemonError, MapdError
 
 UWB_RATE = 12500
 #: The base station's name with ``--ros2-listen``.
 BASE = "base"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _toml_value(v: Any) -> str:
@@ -87,7 +81,7 @@ class Fleet:
         if self.args.transport == "uwb":
             self._start_relay()
         router = self._start_router() if getattr(self.args, "router", False) else None
-        zenoh_ports = [_free_port() for _ in self.members]
+        zenoh_ports = [free_port() for _ in self.members]
         poses = self._start_poses()
         key_files, roster, link_key = self._make_keys()
         for i, name in enumerate(self.members):
@@ -161,7 +155,7 @@ class Fleet:
         """A zenoh router process (deploy/zenoh/router.json5, on a loopback port); returns its endpoint."""
         from mapd.data import REPO_ROOT
 
-        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
         cmd = [sys.executable, "-m", "transports.zenoh.router", "--listen", endpoint]
         example = REPO_ROOT / "deploy" / "zenoh" / "router.json5"
         if example.exists():

@@ -577,14 +577,11 @@ def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
 def test_a_radio_not_there_at_start_leaves_the_other_link_running(tmp_path: Path) -> None:
     """A robot with UWB and zenoh whose radio the kernel has not named yet at boot: the daemon
     runs, zenoh carries its map, and it says what it lacks (it stopped, zenoh and all, before)."""
-    import socket
-
+    from mapd.demo.ports import free_endpoint
     from mapd.grid import save_map
     from mapd.mapping.synthetic import room_grid
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        here = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    here = free_endpoint()
     procs = {}
     for name, uses, zenoh in (
         ("a", '["uwb", "zenoh"]', f'listen = ["{here}"]'),

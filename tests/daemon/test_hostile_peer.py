@@ -20,7 +20,8 @@ import pytest
 
 from mapd.codec import encode
 from mapd.daemon.status_socket import query
-from mapd.demo.fleet import _free_port, write_config
+from mapd.demo.fleet import write_config
+from mapd.demo.ports import free_port
 from mapd.envelope import Envelope
 from mapd.errors import DaemonError
 from mapd.grid import OccupancyGrid, Pose2D, save_map
@@ -75,7 +76,7 @@ def test_garbage_unsigned_forged_foreign_and_flood_are_counted_and_never_stall(
 ) -> None:
     import zenoh
 
-    port = _free_port()
+    port = free_port()
     save_map(room_grid, tmp_path / "map.yaml")
     me = Identity.generate("robot0")
     me.write(tmp_path / "robot0.key")

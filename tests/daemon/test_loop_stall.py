@@ -9,7 +9,6 @@ under a looser bound, which a blocking call on the loop (a file write, a lock) w
 from __future__ import annotations
 
 import asyncio
-import socket
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,6 +20,7 @@ from mapd import config as configmod
 from mapd.codec import decode, encode
 from mapd.daemon.server import Daemon
 from mapd.daemon.versions import split
+from mapd.demo.ports import free_port
 from mapd.envelope import unpack
 from mapd.grid import OccupancyGrid
 
@@ -94,9 +94,7 @@ def test_loop_never_stalls_on_a_4m_cell_map_and_a_keyframe_query(
     # holds the GIL, and this test is about the daemon's threading, not numba's first call.
     small = big_map(160)
     decode(encode(small, "lossless"), None)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     cfg = configmod.load(
         dk.write_config(
             tmp_path,

@@ -7,7 +7,6 @@ import errno
 import json
 import logging
 import os
-import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +17,7 @@ import pytest
 
 from mapd import plugins
 from mapd.codec import decode
+from mapd.demo.ports import free_endpoint, free_port
 from mapd.envelope import unpack
 from mapd.errors import MapFileError
 from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
@@ -123,9 +123,7 @@ def test_zenoh_output_puts_a_signed_lossless_map_and_answers_late_joiners(
     room_grid: OccupancyGrid, zenoh_linked: Callable[..., None]
 ) -> None:
     zenoh = pytest.importorskip("zenoh")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     me = Identity.generate("base")
     out = ZenohOutput(
         ZenohOutputOptions(listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False),
@@ -176,9 +174,7 @@ def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_onc
     from mapd.ros2 import zenoh_config
 
     monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    ep = free_endpoint()
     out = ZenohOutput(
         ZenohOutputOptions(mode="client", connect=[ep], multicast_scouting=False), OutputContext("base", "f")
     )

@@ -21,7 +21,6 @@ import asyncio
 import datetime
 import ipaddress
 import json
-import socket
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -35,6 +34,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from mapd.demo.ports import free_port
 from mapd.envelope import Envelope, unpack
 from mapd.errors import TransportError
 from mapd.grid import Pose2D
@@ -200,12 +200,6 @@ def example(name: str, machine: Path, tls: Path) -> Path:
 
 
 # --- zenoh sessions --------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def open_from(path: Path, **settings: Any) -> Any:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 import struct
 import threading
 import time
@@ -17,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd import plugins
+from mapd.demo.ports import free_port
 from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.ros2 import cdr as ros2cdr
@@ -34,16 +34,10 @@ def _grid(k: int = 0, yaw: float = 0.3) -> OccupancyGrid:
     return OccupancyGrid(d, 0.05, Pose2D(-2.5, 1.25, yaw), frame_id="map", stamp=1700000000.25 + k)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def publisher_session() -> Iterator[tuple[Any, str]]:
     """A zenoh session listening on a free loopback port, multicast scouting off."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = ros2cdr.open_session(mode="peer", listen=[endpoint])
     yield session, endpoint
     session.close()
@@ -369,7 +363,7 @@ def test_a_client_that_finds_no_router_waits_for_it_and_then_takes_maps(
     from mapd.ros2 import zenoh_config
 
     monkeypatch.setattr(zenoh_config, "RETRY_FIRST_S", 0.2)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     src = Ros2Source(Ros2Options(mode="client", connect=[endpoint]), SourceContext(robot="r2"))
 
     async def go() -> OccupancyGrid:

@@ -14,7 +14,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -29,6 +28,7 @@ import pytest
 from PIL import Image
 
 from mapd.daemon.status_socket import query
+from mapd.demo.ports import free_port
 from mapd.errors import DaemonError
 from mapd.grid import OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D, save_map
 from mapd.identity import Identity
@@ -46,12 +46,6 @@ CHROMIUM_FLAGS = [
     "--hide-scrollbars",
     "--mute-audio",
 ]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def chromium_path() -> str | None:

@@ -7,7 +7,6 @@ so tests never reach past loopback or see each other.
 from __future__ import annotations
 
 import asyncio
-import socket
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
@@ -16,6 +15,7 @@ from typing import Any
 
 import pytest
 
+from mapd.demo.ports import free_port
 from mapd.envelope import Envelope
 from mapd.grid import Pose2D
 from mapd.identity import Identity, Roster
@@ -24,12 +24,6 @@ from transports.zenoh import keys
 from transports.zenoh.link import ZenohTransport
 
 FLEET = "testfleet"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 _IDS: dict[str, Identity] = {}
