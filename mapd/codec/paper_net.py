@@ -145,12 +145,36 @@ class CNNRecovery(nn.Module):
     @staticmethod
     def skip(f: torch.Tensor) -> torch.Tensor:
         """The bilinearly upsampled input, cropped to the same interior as :meth:`residual`."""
-        up = F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False)
+        up = (
+            bilinear2x(f)
+            if f.is_cuda
+            else F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False)
+        )
         m = 2 * RECOVERY_PAD
         return up[:, :, m:-m, m:-m]
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
         return self.residual(f) + self.skip(f)
+
+
+def bilinear2x(f: torch.Tensor) -> torch.Tensor:
+    """``F.interpolate(f, scale_factor=2, mode="bilinear", align_corners=False)``, from operations
+    whose gradient CUDA computes deterministically.
+
+    ``torch.use_deterministic_algorithms(True)``, which ``mapd train`` sets so that a run can be
+    repeated, refuses the backward pass of bilinear interpolation on CUDA (torch lists it among
+    the operations it refuses: that pass sums with atomics), so training on a GPU would stop at its
+    first step. The same upsampling is a transposed
+    convolution: output cell ``2m`` is ``0.75 f[m] + 0.25 f[m-1]`` and ``2m+1`` is
+    ``0.75 f[m] + 0.25 f[m+1]`` along each axis, and the edge rows repeat (interpolate clamps its
+    source index there), hence the replicate padding. On the CPU the two agree to float rounding;
+    the CPU keeps ``F.interpolate``, so the shipped weights' payloads stay bit for bit.
+    """
+    c = f.shape[1]
+    k = torch.tensor([0.25, 0.75, 0.75, 0.25], dtype=f.dtype, device=f.device)
+    w = (k[:, None] * k[None, :]).expand(c, 1, 4, 4).contiguous()
+    up = F.conv_transpose2d(F.pad(f, (1, 1, 1, 1), mode="replicate"), w, stride=2, groups=c)
+    return up[:, :, 3:-3, 3:-3]
 
 
 class Quantizer(nn.Module):

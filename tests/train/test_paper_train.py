@@ -92,6 +92,34 @@ def test_same_seed_same_weights_other_seed_other_weights(map_dir: Path, tmp_path
     assert a["split"] == c["split"]  # the split depends on the maps, not the seed
 
 
+@pytest.mark.parametrize("shape", [(2, 1, 7, 9), (1, 16, 1, 1), (3, 2, 1, 5), (1, 1, 33, 2)])
+def test_the_deterministic_upsampling_is_bilinear_interpolation(shape: tuple[int, int, int, int]) -> None:
+    """``bilinear2x`` (the skip on CUDA, where interpolate's gradient is refused in deterministic
+    mode) gives interpolate's values and gradients, edges included."""
+    import torch.nn.functional as F
+
+    x = torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(sum(shape)))
+    x.requires_grad_(True)
+    ref = F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
+    got = pn.bilinear2x(x)
+    assert got.shape == ref.shape
+    assert torch.allclose(got, ref, atol=1e-12)
+    g = torch.randn_like(ref)
+    (g_ref,) = torch.autograd.grad(ref, x, g)
+    (g_got,) = torch.autograd.grad(got, x, g)
+    assert torch.allclose(g_got, g_ref, atol=1e-12)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (run on a GPU machine)")
+def test_training_on_cuda_runs_deterministically(map_dir: Path, tmp_path: Path) -> None:
+    """``--device cuda`` trains under torch's deterministic mode, and the same seed repeats."""
+    a = train(_cfg(map_dir, tmp_path / "a", seed=7, evaluate=False, device="cuda"))
+    b = train(_cfg(map_dir, tmp_path / "b", seed=7, evaluate=False, device="cuda"))
+    assert a["training"]["device"].startswith("cuda")
+    assert a["weights_sha256"] == b["weights_sha256"]
+    assert all(np.isfinite(h["train_mse"]) for h in a["training"]["history"])
+
+
 def test_split_is_by_place_and_recorded(map_dir: Path, tmp_path: Path) -> None:
     meta = train(_cfg(map_dir, tmp_path / "m", evaluate=False, val_fraction=0.3))
     sp = meta["split"]
