@@ -33,6 +33,11 @@ from typing import Any, BinaryIO
 
 #: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>``.
 _TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+")
+#: The temp files this process is writing now: the only ones :func:`remove_stale_temps` keeps. (Not
+#: "every temp file with our pid": after a power cut a daemon can get its old pid again at boot,
+#: and its predecessor's temp files would then be kept until some later start.)
+_ACTIVE: set[Path] = set()
+_ACTIVE_LOCK = threading.Lock()
 
 
 class NotRegularFileError(OSError):
@@ -77,8 +82,9 @@ def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
     temps: list[Path] = []
     try:
         for target, (_, payload) in zip(targets, files, strict=True):
-            temps.append(_temp_name(target))
+            temps.append(_active(_temp_name(target)))
             with open(temps[-1], "wb") as fh:
+                _keep_mode(fh.fileno(), target)
                 fh.write(payload)
                 fh.flush()
                 os.fsync(fh.fileno())
@@ -86,11 +92,11 @@ def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
         try:
             for target, tmp in zip(targets, temps, strict=True):
                 if len(targets) > 1 and target.exists():
-                    kept = _temp_name(target, ".old")
+                    kept = _active(_temp_name(target, ".old"))
                     try:
                         os.link(target, kept)  # the old file stays whole until every rename is done
                     except OSError:
-                        pass  # (a file system without hard links: written without the way back)
+                        _done(kept)  # (a file system without hard links: written without the way back)
                     else:
                         backups.append((kept, target))
                 os.replace(tmp, target)
@@ -103,10 +109,12 @@ def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
             for kept, _ in backups:
                 with contextlib.suppress(OSError):
                     kept.unlink(missing_ok=True)
+                _done(kept)
     finally:
         for tmp in temps:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
+            _done(tmp)
     for directory in {target.parent for target in targets}:
         _fsync_dir(directory)  # make the renames themselves durable across a power cut
 
@@ -129,9 +137,45 @@ def _write_target(path: Path) -> Path:
     return path
 
 
+def _active(tmp: Path) -> Path:
+    with _ACTIVE_LOCK:
+        _ACTIVE.add(tmp)
+    return tmp
+
+
+def _done(tmp: Path) -> None:
+    with _ACTIVE_LOCK:
+        _ACTIVE.discard(tmp)
+
+
+def _keep_mode(fd: int, target: Path) -> None:
+    """Give the new file the mode (and, where allowed, the group) of the file it replaces.
+
+    An operator's ``chmod o+r map.pgm`` (a map_server running as another user) or ``chgrp`` would
+    otherwise be undone by the next write, the new file taking the daemon's umask.
+    """
+    try:
+        st = os.stat(target)
+    except OSError:
+        return  # a new file: the umask decides, as for any file
+    with contextlib.suppress(OSError):
+        os.fchmod(fd, stat.S_IMODE(st.st_mode))
+    with contextlib.suppress(OSError):  # only a group the daemon's user is in (or root)
+        os.fchown(fd, -1, st.st_gid)
+
+
 def _temp_name(path: Path, kind: str = "") -> Path:
     stem = os.fsdecode(os.fsencode(path.name)[:_TEMP_STEM])  # bytes: a directory's limit is in bytes
     return path.with_name(f".{stem}{kind}.tmp{os.getpid()}.{threading.get_ident()}")
+
+
+def make_dir(directory: Path) -> None:
+    """``mkdir -p directory``, its new entry made durable: without the parent's fsync a power cut
+    can lose the folder while a file written later that names it (state.json) survives."""
+    if directory.is_dir():
+        return
+    directory.mkdir(parents=True, exist_ok=True)
+    _fsync_dir(directory.parent)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -147,23 +191,23 @@ def _fsync_dir(directory: Path) -> None:
 
 
 def remove_stale_temps(directory: Path) -> list[Path]:
-    """Remove the temp files of :func:`atomic_write_bytes` in ``directory`` left by other processes.
+    """Remove the temp files of :func:`atomic_write_bytes` in ``directory`` that no write is using.
 
     A writer killed between creating its temp file and the rename leaves it behind, and the next
     run's temp files have other names (the pid is in them), so without this they pile up for ever,
     each as large as the file it was to replace. Only regular files named as this module names its
-    temps are removed, and not this process's own (a write of ours may be under way). Returns the
-    paths removed; a directory that cannot be listed, or a file that cannot be removed, is skipped.
+    temps are removed, and not the ones this process is writing now. Returns the paths removed; a
+    directory that cannot be listed, or a file that cannot be removed, is skipped.
     """
     removed: list[Path] = []
     try:
         entries = list(os.scandir(directory))
     except OSError:
         return removed
-    me = str(os.getpid())
+    with _ACTIVE_LOCK:
+        busy = {os.path.realpath(p) for p in _ACTIVE}
     for entry in entries:
-        m = _TEMP_NAME.fullmatch(entry.name)
-        if m is None or m.group(1) == me:
+        if _TEMP_NAME.fullmatch(entry.name) is None or os.path.realpath(entry.path) in busy:
             continue
         try:
             if not entry.is_file(follow_symlinks=False):

@@ -14,7 +14,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from mapd.daemon.events import EventQueue
 from mapd.daemon.poses import PoseRelay
@@ -23,6 +23,7 @@ from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope,
 from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
+from mapd.files import WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.identity import Roster
 from transports.base import (
@@ -61,6 +62,9 @@ class Inbound:
     max_cells: int
     #: Called when a link became free or a peer needs a keyframe: the publisher has work.
     wake: Callable[[], None]
+    #: A full disk fails the save of every peer map and base (several a second in a large fleet):
+    #: said once, and once when saving works again.
+    _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
 
     async def run(self) -> None:
         """Take events off the queue until cancelled."""
@@ -91,7 +95,9 @@ class Inbound:
                 try:
                     await self._save_base()
                 except StateError as exc:  # a full disk: the base is saved with a later ack
-                    log.error("%s", exc)
+                    self._saves.failed(f"{exc}; trying again with each map or ack")
+                else:
+                    self._saves.recovered("state saved again")
         elif isinstance(ev, OnAir):
             if ev.robot == self.me and core.on_air(ev.transport, ev.version, time.monotonic()):
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever
@@ -166,8 +172,10 @@ class Inbound:
         rx.accept(grid, env, ev.transport, len(ev.data), time.time())
         try:
             await asyncio.to_thread(self.store.save_peer, grid)
-        except StateError as exc:
-            log.error("%s", exc)
+        except StateError as exc:  # the map is still used; after a restart it comes again whole
+            self._saves.failed(f"{exc}; trying again with each map or ack")
+        else:
+            self._saves.recovered("state saved again")
         if not self.roster.admits(env.robot):
             # Revoked while it was saved: the revocation took the map out of the receiver, but the
             # save has put its record back in the state since.

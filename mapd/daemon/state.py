@@ -35,7 +35,7 @@ from typing import Any
 from mapd.daemon.versions import next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_json, read_json_capped, remove_stale_temps
+from mapd.files import atomic_write_json, make_dir, read_json_capped, remove_stale_temps
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, map_from_yaml_fields, read_map_yaml, save_map
 
 log = logging.getLogger(__name__)
@@ -322,7 +322,7 @@ class StateStore:
     def save_peer(self, grid: OccupancyGrid) -> None:
         d = self._peer_dir(grid.robot)
         with self._io:
-            d.mkdir(parents=True, exist_ok=True)
+            make_dir(d)
             record = self._save(grid, d / "map.yaml")
             with self._lock:
                 self.data.peers[grid.robot] = record

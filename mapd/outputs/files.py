@@ -1,15 +1,21 @@
 """``[output.files]``: the global map as map_server files in a folder (for map_server, nav2, a viewer).
 
-Each update replaces ``<dir>/<name>.yaml`` + ``<dir>/<name>.pgm`` and ``<dir>/transforms.json``
-atomically (image and YAML written before either is renamed), so a reader never sees half a map. The
-daemon's own state directory keeps its copy regardless (``state/global``); this output is for
-another place, say where a ``map_server`` on the same robot or a web server looks.
+Each update writes ``<dir>/<name>.yaml``, the image it names, and ``<dir>/transforms.json``
+atomically, so a reader never sees half a map. Each map's image has a name of its own,
+``<name>-<n>.pgm`` (n counts up, also across restarts), and the one before it is kept: a reader
+(map_server, a web viewer) reads the YAML and then the image it names, and with one fixed image
+name an update between those two reads (about one a second) gave it the new image at the old
+origin and size. Older images are removed. The daemon's own state directory keeps its copy
+regardless (``state/global``); this output is for another place, say where a ``map_server`` on the
+same robot or a web server looks.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import re
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -49,6 +55,8 @@ class FilesOutput(Output):
         #: Updates that could not be written (a full or read-only disk, a path that is a folder).
         self.failures = 0
         self._outage = WriteOutage(log)
+        self._image = re.compile(re.escape(self.opts.name) + r"-(\d{1,18})\.pgm")
+        self._seq = 1  # the next image's number; set past those in the folder at start
 
     async def start(self) -> None:
         try:
@@ -57,6 +65,16 @@ class FilesOutput(Output):
             raise ConfigError(f"output.files: cannot create {self.opts.dir}: {exc.strerror}") from None
         # what a write killed mid-way (kill -9, power loss) left there would otherwise pile up
         await asyncio.to_thread(remove_stale_temps, self.opts.dir)
+        # Numbers go on from the last run's: a reader may still hold its YAML, naming its image.
+        self._seq = max(self._images(), default=0) + 1
+
+    def _images(self) -> list[int]:
+        """The numbers of the ``<name>-<n>.pgm`` images in the folder."""
+        try:
+            names = [p.name for p in self.opts.dir.iterdir()]
+        except OSError:
+            return []
+        return [int(m.group(1)) for n in names if (m := self._image.fullmatch(n))]
 
     def publish(self, update: GlobalUpdate) -> None:
         try:
@@ -72,7 +90,17 @@ class FilesOutput(Output):
         self.written += 1
 
     def _write(self, update: GlobalUpdate) -> None:
-        save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml")
+        seq = self._seq
+        save_map(
+            update.grid, self.opts.dir / f"{self.opts.name}.yaml", image_name=f"{self.opts.name}-{seq}.pgm"
+        )
+        self._seq = seq + 1
+        # Keep this image and the one before (a reader between the old YAML and its image).
+        old = [self.opts.dir / f"{self.opts.name}-{n}.pgm" for n in self._images() if n < seq - 1]
+        old.append(self.opts.dir / f"{self.opts.name}.pgm")  # the one fixed name of mapd before
+        for path in old:
+            with contextlib.suppress(OSError):
+                path.unlink(missing_ok=True)
         doc: dict[str, Any] = {
             "frame_id": self.opts.frame_id,
             "stamp": update.stamp,

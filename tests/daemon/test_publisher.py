@@ -261,6 +261,62 @@ def test_a_version_that_cannot_be_saved_is_not_sent_and_the_robot_runs_on(
     asyncio.run(main())
 
 
+def test_peer_maps_that_cannot_be_saved_are_used_and_said_once(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full disk on the receiving robot: every peer map still reaches fusion, and the run of
+    failed saves is one error line (a fleet's maps come several a second), then one line when
+    saving works again."""
+    import logging
+
+    from mapd import config as configmod
+    from mapd.errors import StateError
+
+    caplog.set_level(logging.INFO, logger="mapd.daemon")
+    channel = dk.channel()
+    daemons = []
+    for robot in ("robot0", "robot1"):
+        path = dk.write_config(
+            tmp_path, robot, extra='[transports]\nuse = ["virtual"]\n',
+            **{"transports.virtual": f'channel = "{channel}"'},
+        )  # fmt: skip
+        daemons.append(Daemon(configmod.load(path), source=dk.QueueSource(robot)))
+    d0, d1 = daemons
+    source = d0.source
+    assert isinstance(source, dk.QueueSource)
+    save, full = d1.store.save_peer, {"disk": True}
+
+    def save_peer(grid: Any) -> None:
+        if full["disk"]:
+            raise StateError(f"{d1.cfg.state.dir}: cannot save map of {grid.robot}: No space left on device")
+        save(grid)
+
+    d1.store.save_peer = save_peer  # type: ignore[method-assign]
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d in daemons]
+        try:
+            await dk.wait_for(lambda: d0.transports and d0.transports[0].peers() == ["robot1"], what="peers")
+            for v in (1, 2, 3, 4):
+                if v == 4:
+                    full["disk"] = False
+                await source.queue.put(dk.growing_map(v))
+                await dk.wait_for(
+                    lambda v=v: num(getattr(d1.receiver.maps.get("robot0"), "version", 0)) == v, what=f"v{v}"
+                )
+            await dk.wait_for(lambda: d1.store.peer_map("robot0") is not None, what="v4 saved")
+        finally:
+            for d in daemons:
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+    errors = [r for r in caplog.records if "No space left" in r.getMessage()]
+    assert len(errors) == 1 and errors[0].levelname == "ERROR"
+    assert any(r.getMessage() == "state saved again" for r in caplog.records)
+    assert num(d1.store.peer_map("robot0").version) == 4  # type: ignore[union-attr]
+
+
 def test_a_lossy_codec_with_deltas_names_the_base_its_receiver_decoded(
     tmp_path: Path, dk: SimpleNamespace
 ) -> None:

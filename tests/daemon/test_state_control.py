@@ -164,6 +164,28 @@ def test_unsafe_peer_names_never_become_paths(tmp_path: Path, room_grid: Occupan
         store.save_peer(room_grid.replace(robot="../../etc"))
 
 
+def test_a_new_peer_folder_is_made_durable_before_state_json_names_it(
+    tmp_path: Path, room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A power cut must not keep state.json's record of a peer while losing the folder holding its
+    map: the parent's entry for the new folder is fsynced first."""
+    from mapd import files
+
+    store = StateStore(tmp_path)
+    store.open()
+    synced: list[Path] = []
+    real = files._fsync_dir
+    monkeypatch.setattr(files, "_fsync_dir", lambda d: (synced.append(Path(d)), real(d))[1])
+    store.save_peer(room_grid.replace(robot="beta", version=3))
+    peers = store.root / "peers"
+    beta = next(p for p in peers.iterdir() if p.is_dir())
+    assert (beta / "map.yaml").exists()
+    assert peers in synced and synced.index(peers) < synced.index(store.root)  # before state.json's
+    synced.clear()
+    store.save_peer(room_grid.replace(robot="beta", version=4))
+    assert peers not in synced  # an existing folder: nothing more to make durable
+
+
 def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
     path = tmp_path / "run" / "mapd.sock"
     calls = {"n": 0}

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from mapd import plugins
 from mapd.codec import decode
@@ -59,6 +60,35 @@ def test_files_output_writes_map_server_files_and_transforms(
         "child_frame_id": "robot1/map", "x": 4.0, "y": -1.0, "yaw": 0.5, "version": 9
     }  # fmt: skip
     assert out.stats()["written"] == 1
+
+
+def test_a_files_reader_between_yaml_and_image_gets_one_map(tmp_path: Path, room_grid: OccupancyGrid) -> None:
+    """A reader (map_server, a web viewer) reads the YAML, then the image it names. With one fixed
+    image name, an update between the two reads gave it the new image at the old origin."""
+    d = tmp_path / "maps"
+    d.mkdir()
+    (d / "fleet.pgm").write_bytes(b"P5 the image of an earlier mapd")
+    out = FilesOutput(FilesOptions(dir=d, name="fleet"), OutputContext("base", "f"))
+    asyncio.run(out.start())
+    first = room_grid.replace(version=1, robot="base")
+    out.publish(GlobalUpdate(grid=first, frames={}, stamp=1.0, versions={}))
+    held = (d / "fleet.yaml").read_text()  # the reader has read the YAML...
+    grown = OccupancyGrid(np.zeros((room_grid.height + 64, room_grid.width), np.int8), room_grid.resolution,
+                          Pose2D(-3.2, -5.0, 0.0), robot="base", version=2)  # fmt: skip
+    out.publish(GlobalUpdate(grid=grown, frames={}, stamp=2.0, versions={}))
+    (d / "held.yaml").write_text(held)  # ...and now reads the image that YAML names
+    assert load_map(d / "held.yaml").same_map(first)
+    assert load_map(d / "fleet.yaml").same_map(grown)
+    assert not (d / "fleet.pgm").exists()  # the fixed name of before: stale, removed
+    for v in (3, 4):
+        out.publish(GlobalUpdate(grid=first.replace(version=v), frames={}, stamp=float(v), versions={}))
+    assert sorted(p.name for p in d.glob("fleet-*.pgm")) == ["fleet-3.pgm", "fleet-4.pgm"]  # no pile-up
+    # After a restart the numbers go on: the YAML a reader holds may name the last image.
+    again = FilesOutput(FilesOptions(dir=d, name="fleet"), OutputContext("base", "f"))
+    asyncio.run(again.start())
+    again.publish(GlobalUpdate(grid=grown.replace(version=5), frames={}, stamp=5.0, versions={}))
+    assert yaml.safe_load((d / "fleet.yaml").read_text())["image"] == "fleet-5.pgm"
+    assert sorted(p.name for p in d.glob("fleet-*.pgm")) == ["fleet-4.pgm", "fleet-5.pgm"]
 
 
 def test_files_output_that_cannot_write_says_so_once_and_carries_on(
