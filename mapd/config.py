@@ -214,7 +214,28 @@ class RecordSection(Strict):
 
     path: Path | None = Field(default=None, description="the MCAP file to write; rotates to NAME.1.mcap, ...")
     max_bytes: int = Field(default=256 << 20, ge=1 << 20, description="start the next file past this size")
+    max_total_bytes: int = Field(
+        default=2 << 30,
+        ge=1 << 20,
+        description="the recording's files together: as each new file opens, the oldest are removed until "
+        "the rest and max_bytes fit; at least max_bytes (there is no 'no cap': 0 is refused)",
+    )
+    min_free_bytes: int = Field(
+        default=256 << 20,
+        ge=0,
+        description="below this much free space on its disk nothing is recorded (the daemon's own state "
+        "needs it); recording resumes once there is room; 0: no check",
+    )
     stats_every_s: float = Field(default=5.0, gt=0.0, description="how often the link counters are recorded")
+
+    @model_validator(mode="after")
+    def _check_total(self) -> RecordSection:
+        # a cap under one file would remove every file, the one just finished too, at each rotation
+        if self.max_total_bytes < self.max_bytes:
+            raise ValueError(
+                f"max_total_bytes ({self.max_total_bytes}) must be at least max_bytes ({self.max_bytes})"
+            )
+        return self
 
 
 class LogSection(Strict):

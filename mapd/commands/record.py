@@ -6,6 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
+from mapd.bench.common import int_arg
+from mapd.grid import DEFAULT_MAX_CELLS
+
+#: The most ``--max-cells`` takes (16 Gi cells): a chunk of up to about 16 GiB is then read whole.
+MAX_MAX_CELLS = 1 << 34
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -18,12 +24,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     info = rsub.add_parser("info", help="summarise a recording (also one cut short by a crash)")
     info.add_argument("file", type=Path)
     info.add_argument("--json", action="store_true", help="print JSON")
+    info.add_argument(
+        "--max-cells",
+        type=int_arg(1, MAX_MAX_CELLS),
+        default=DEFAULT_MAX_CELLS,
+        help="largest map the recording holds, as the recording daemon's [limits] max_cells "
+        f"(default {DEFAULT_MAX_CELLS}); a chunk holding more is refused unread",
+    )
     info.set_defaults(func=cmd_info)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
     from mapd.record.info import render, summarize
 
-    s = summarize(args.file)
+    s = summarize(args.file, max_cells=args.max_cells)
     print(json.dumps(s.to_json(), indent=1) if args.json else render(s))
     return 0

@@ -136,7 +136,17 @@ class Daemon:
         self._state_lock: int | None = None
         self.outputs: list[Output] = []
         # Outputs, the MCAP recording and fused.csv, each on a worker thread, never on the loop.
-        recorder = Recorder(cfg.record.path, max_bytes=cfg.record.max_bytes) if cfg.record.path else None
+        rec = cfg.record
+        recorder = (
+            Recorder(
+                rec.path,
+                max_bytes=rec.max_bytes,
+                max_total_bytes=rec.max_total_bytes,
+                min_free_bytes=rec.min_free_bytes,
+            )
+            if rec.path
+            else None
+        )
         self.sinks = Sinks(self.outputs, recorder, CsvLog(cfg.state.dir / "fused.csv"))
         self.poses = PoseRelay(
             self.me,

@@ -126,13 +126,15 @@ class Sinks:
         return {o.name: o.stats() for o in self.outputs}
 
     def recording(self) -> dict[str, int] | None:
-        """The recording's faults and backlog for ``mapd status``; None without one."""
+        """The recording's faults and backlog for ``mapd status``, and how many of its oldest files
+        were removed to keep it within ``max_total_bytes`` (not a fault); None without one."""
         if self.recorder is None:
             return None
         return {
             "failures": self.record_failures,
             "dropped": self.record_dropped,
             "queued_bytes": self._queued,
+            "removed_files": self.recorder.removed,
         }
 
     # ------------------------------------------------------------------ worker side

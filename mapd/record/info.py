@@ -41,14 +41,18 @@ class RecordingSummary:
         }
 
 
+#: Room in a chunk beside its one map: the messages of the recorder's ``chunk_bytes`` before it
+#: (256 KiB), the map's header, and the schemas and channels.
+CHUNK_SLACK = 1 << 20
 #: Largest record read from the file (a chunk, compressed): a map of ``DEFAULT_MAX_CELLS`` compresses
-#: well under it; a hostile length is refused before it is read.
+#: well under it; a hostile length is refused before it is read. (Larger for ``max_cells`` above the
+#: default: :func:`limits_for`.)
 MAX_RECORD_BYTES = 64 << 20
 #: Largest chunk decompressed. A chunk holds the messages of ``chunk_bytes`` plus at most one more,
-#: which is at most a map of ``DEFAULT_MAX_CELLS`` cells (one byte each) and its header. A chunk
+#: which is at most a map of ``max_cells`` cells (one byte each) and its header. A chunk
 #: declaring more is refused before anything is decompressed, and none decompresses past what it
 #: declares: a few KiB of zstd can otherwise stand for gigabytes.
-MAX_CHUNK_BYTES = DEFAULT_MAX_CELLS + (1 << 20)
+MAX_CHUNK_BYTES = DEFAULT_MAX_CELLS + CHUNK_SLACK
 
 #: Records parsed out of chunks, at most, per byte of the chunks read so far (plus
 #: :data:`RECORDS_GRACE`). A recorded record is a map, a transform or link counters, 100 bytes or
@@ -69,12 +73,21 @@ _MESSAGE_HEAD = struct.Struct("<H4xQ")  # channel id, (sequence), log time
 _MESSAGE_HEAD_BYTES = 22  # channel id, sequence, log time, publish time
 
 
-def _decompress(chunk: Any) -> bytes:
-    """A chunk's records, decompressed to at most the size it declares (and :data:`MAX_CHUNK_BYTES`)."""
+def limits_for(max_cells: int) -> tuple[int, int]:
+    """The largest record read and the largest chunk decompressed, for a recording of maps up to
+    ``max_cells`` cells (the daemon's ``[limits] max_cells``): what :func:`summarize` holds at most."""
+    chunk = max_cells + CHUNK_SLACK
+    # a chunk of maps that hardly compress is a little over its size (zstd's frame, the record)
+    return max(MAX_RECORD_BYTES, chunk + CHUNK_SLACK), chunk
+
+
+def _decompress(chunk: Any, max_chunk: int = MAX_CHUNK_BYTES, max_cells: int = DEFAULT_MAX_CELLS) -> bytes:
+    """A chunk's records, decompressed to at most the size it declares (and ``max_chunk``)."""
     size = chunk.uncompressed_size
-    if size > MAX_CHUNK_BYTES:
+    if size > max_chunk:
         raise MapFileError(
-            f"a chunk declares {size} bytes, over the {MAX_CHUNK_BYTES} a recording's chunk holds"
+            f"a chunk declares {size} bytes, over the {max_chunk} a recording's chunk holds with maps of up "
+            f"to {max_cells} cells (mapd record info --max-cells, as the daemon's [limits] max_cells)"
         )
     if chunk.compression == "":
         data = bytes(chunk.data)
@@ -148,12 +161,14 @@ def _chunk_records(data: bytes, count: _RecordCount) -> Iterator[Any]:
         pos += length
 
 
-def summarize(path: Path) -> RecordingSummary:
+def summarize(path: Path, *, max_cells: int = DEFAULT_MAX_CELLS) -> RecordingSummary:
     """Read every message of ``path`` in order (so a file without its footer reads up to its last chunk).
 
-    Memory stays bounded whatever the file says: records over :data:`MAX_RECORD_BYTES` and chunks
-    over :data:`MAX_CHUNK_BYTES` are refused, and messages are counted, not kept.
+    Memory stays bounded whatever the file says: records and chunks over what a recording of maps
+    up to ``max_cells`` cells holds (:func:`limits_for`; by default :data:`MAX_RECORD_BYTES` and
+    :data:`MAX_CHUNK_BYTES`) are refused, and messages are counted, not kept.
     """
+    max_record, max_chunk = limits_for(max_cells)
     try:
         from mcap.records import Channel, Chunk, Footer, Message, Schema
         from mcap.stream_reader import StreamReader
@@ -195,16 +210,16 @@ def summarize(path: Path) -> RecordingSummary:
     try:
         # open_for_reading: a FIFO named by mistake reads as empty instead of blocking for ever
         with open_for_reading(path) as fh:
-            # emit_chunks: chunks are decompressed here, within MAX_CHUNK_BYTES; the mcap reader
+            # emit_chunks: chunks are decompressed here, within max_chunk; the mcap reader
             # would decompress whatever size a chunk claims and build every message it holds.
-            reader = StreamReader(fh, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)
+            reader = StreamReader(fh, skip_magic=False, emit_chunks=True, record_size_limit=max_record)
             count = _RecordCount()
             chunk_bytes = 0  # (counted here, not by fh.tell(): a pipe cannot tell)
             for record in reader.records:
                 if isinstance(record, Chunk):
                     chunk_bytes += len(record.data)
                     count.allowed = RECORDS_GRACE + RECORDS_PER_CHUNK_BYTE * chunk_bytes
-                    for item in _chunk_records(_decompress(record), count):
+                    for item in _chunk_records(_decompress(record, max_chunk, max_cells), count):
                         take(item)
                 elif isinstance(record, Message):
                     message(record.channel_id, record.log_time)

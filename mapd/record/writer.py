@@ -9,26 +9,44 @@ Channels (REP-105 frame names: the fleet frame is ``map``, each robot's map fram
 * ``/mapd/links``: the transports' counters (JSON with a JSON schema), every ``stats_every_s``.
 
 Every message is stamped with the wall clock (log time and publish time, nanoseconds). The file is
-written in chunks (``chunk_bytes``) and flushed to the OS after each one, so a daemon killed with
-``kill -9`` leaves a file readable up to its last chunk; a clean stop writes the summary and
-footer. Past ``max_bytes`` the recording rotates: ``fleet.mcap``, ``fleet.1.mcap``, ... A file that
-exists is never written over: a restarted daemon records into the next free number.
+written in chunks (``chunk_bytes``), each handed to the OS as it is made, so a daemon killed
+with ``kill -9`` leaves a file readable up to its last chunk; a clean stop writes the summary and
+footer.
+
+Files: past ``max_bytes`` the recording rotates: ``fleet.mcap``, ``fleet.1.mcap``, ... A file that
+exists is never written over: a restarted daemon goes on after the highest number there, so the
+numbers sort the files by time even after the oldest were removed. As each new file opens, the
+oldest files of the recording are removed until the others and a new file of ``max_bytes`` fit in
+``max_total_bytes``. While the filesystem has less than ``min_free_bytes`` free, messages are
+refused (:class:`~mapd.errors.StateError`), so a recording never takes the last space the daemon's
+own state needs; it records again by itself once there is room.
+
+A write that fails (a full disk) takes the file back to its last whole chunk, closes it without a
+summary and goes on in a new file, so a streaming reader reads every file to its end; the
+messages of the chunk that failed are lost with it.
 
 Blocking (file writes, CDR encoding): the daemon calls it from its file thread, never the loop.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import math
+import os
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, cast
 
 import yaml
 
-from mapd.errors import ConfigError
+from mapd.errors import ConfigError, StateError
 from mapd.grid import OccupancyGrid, Pose2D
+
+log = logging.getLogger("mapd.record")
 
 GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -37,6 +55,10 @@ LINKS_SCHEMA = {
     "description": "mapd link counters by transport (see mapd status --json, links)",
     "additionalProperties": {"type": "object"},
 }
+#: Defaults of ``[record]`` (the config's RecordSection has the same).
+DEFAULT_MAX_BYTES = 256 << 20
+DEFAULT_MAX_TOTAL_BYTES = 2 << 30
+DEFAULT_MIN_FREE_BYTES = 256 << 20
 
 
 def _ns(wall: float) -> int:
@@ -76,75 +98,285 @@ def offered_qos_profiles(latched: bool) -> str:
     return yaml.safe_dump([profile], sort_keys=False)
 
 
-class Recorder:
-    """Writes one fleet's maps, transforms and link counters to MCAP files, rotating by size."""
+class _RawFile:
+    """An unbuffered, write-only file for mcap's Writer, which only calls ``write`` and ``tell``.
 
-    def __init__(self, path: Path, *, max_bytes: int = 256 << 20, chunk_bytes: int = 256 << 10) -> None:
+    Not a BufferedWriter: one that failed to write (a full disk) keeps the bytes it holds and tries
+    them again at every flush and at close, which would put a piece of the failed chunk after the
+    point the file was taken back to. Here a write is done, or it raised and the file can be cut
+    back with :meth:`truncate`.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._pos = 0
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        view = memoryview(data).cast("B")
+        done = 0
+        while done < len(view):  # os.write may write part (up to a file size limit), then raise
+            n = os.write(self._fd, view[done:])
+            if n <= 0:  # (a regular file never takes nothing without an error; this loop must end)
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            done += n
+            self._pos += n
+        return done
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        """Nothing is held here: every write went to the OS."""
+
+    def truncate(self, size: int) -> None:
+        os.ftruncate(self._fd, size)
+        os.lseek(self._fd, size, os.SEEK_SET)
+        self._pos = size
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            fd, self._fd = self._fd, -1
+            os.close(fd)
+
+
+@dataclass(frozen=True)
+class _OnDisk:
+    index: int  # 0 for NAME.mcap, N for NAME.N.mcap
+    path: Path
+    size: int
+    regular: bool
+
+
+class Recorder:
+    """Writes one fleet's maps, transforms and link counters to MCAP files, rotating by size and
+    keeping the recording's files within ``max_total_bytes`` (see the module's docstring)."""
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        chunk_bytes: int = 256 << 10,
+        max_total_bytes: int = DEFAULT_MAX_TOTAL_BYTES,
+        min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
+    ) -> None:
         try:
             from mcap.writer import CompressionType, Writer  # noqa: F401 - checked here, used below
             from rosbags.typesys import Stores, get_typestore
         except ModuleNotFoundError as exc:
             raise ConfigError(f"record: needs {exc.name} (pip install 'mapd[record]')") from None
+        if max_total_bytes < max_bytes:
+            raise ConfigError(f"record: max_total_bytes ({max_total_bytes}) is under max_bytes ({max_bytes})")
         self.path = path
         self.max_bytes = max_bytes
         self.chunk_bytes = chunk_bytes
+        self.max_total_bytes = max_total_bytes
+        self.min_free_bytes = min_free_bytes
         self._ts = get_typestore(Stores.ROS2_HUMBLE)
         self._lock = threading.Lock()
-        self._file: IO[bytes] | None = None
+        self._file: _RawFile | None = None
         self._writer: Any = None
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
-        self._index = 0
+        self._index: int | None = None  # the number of the file to open next (found at the first open)
+        self._data_start = 0  # where the open file's first chunk goes (after its header)
+        #: This recorder's files still on disk, oldest first.
         self.files: list[Path] = []
         self.messages = 0
+        #: Files of the recording removed to stay within ``max_total_bytes``.
+        self.removed = 0
         self._last_tf: tuple[bytes, float] | None = None
+        self._tf_owed = False  # the open file lacks the latest /tf_static (new, or it was refused)
 
     # ------------------------------------------------------------------ files
-    def _current_path(self) -> Path:
-        if self._index == 0:
+    def _path_of(self, index: int) -> Path:
+        if index == 0:
             return self.path
-        return self.path.with_name(f"{self.path.stem}.{self._index}{self.path.suffix}")
+        return self.path.with_name(f"{self.path.stem}.{index}{self.path.suffix}")
 
-    def _open(self) -> Any:
+    def _index_of(self, name: str) -> int | None:
+        """The number of the recording's file called ``name`` (0 for NAME.mcap), None for others."""
+        if name == self.path.name:
+            return 0
+        head, tail = f"{self.path.stem}.", self.path.suffix
+        if len(name) <= len(head) + len(tail) or not name.startswith(head) or not name.endswith(tail):
+            return None
+        number = name[len(head) : len(name) - len(tail)]
+        # as _path_of writes them: ASCII digits, no leading zero (fleet.01.mcap is someone else's)
+        if not (number.isascii() and number.isdigit()) or number[0] == "0":
+            return None
+        return int(number)
+
+    def _on_disk(self) -> list[_OnDisk]:
+        """The recording's files in its folder, oldest (lowest number) first."""
+        found = []
+        try:
+            with os.scandir(self.path.parent) as entries:
+                for entry in entries:
+                    index = self._index_of(entry.name)
+                    if index is None:
+                        continue
+                    try:
+                        st = entry.stat(follow_symlinks=False)
+                        regular = entry.is_file(follow_symlinks=False)
+                    except OSError:  # removed meanwhile
+                        continue
+                    found.append(_OnDisk(index, Path(entry.path), st.st_size, regular))
+        except OSError:  # no folder yet (or unreadable: the open says so)
+            return []
+        return sorted(found, key=lambda f: f.index)
+
+    def _make_room(self, on_disk: list[_OnDisk]) -> None:
+        """Remove the oldest files until the rest and a new file of ``max_bytes`` fit in
+        ``max_total_bytes``. Only regular files named as the recording's are removed; none is open
+        (this runs before the next file is opened)."""
+        kept = [f for f in on_disk if f.regular]
+        total = sum(f.size for f in kept)
+        for f in kept:
+            if total + self.max_bytes <= self.max_total_bytes:
+                break
+            try:
+                f.path.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:  # not ours to remove after all (permissions): try the next
+                log.warning("record: cannot remove %s: %s", f.path, exc.strerror)
+                continue
+            else:
+                self.removed += 1
+                log.info(
+                    "record: removed %s (%.1f MiB), the oldest file, to keep the recording within "
+                    "max_total_bytes (%.1f MiB)",
+                    f.path, f.size / (1 << 20), self.max_total_bytes / (1 << 20),
+                )  # fmt: skip
+            total -= f.size
+            if f.path in self.files:
+                self.files.remove(f.path)
+
+    def _check_space(self) -> None:
+        """StateError while the filesystem has less than ``min_free_bytes`` free."""
+        if self.min_free_bytes <= 0:
+            return
+        try:
+            st = os.statvfs(self.path.parent)
+        except OSError:  # no folder yet, or none at all: opening the file says what is wrong
+            return
+        free = st.f_bavail * st.f_frsize
+        if free < self.min_free_bytes:
+            raise StateError(
+                f"record: {free / (1 << 20):.0f} MiB free on the disk of {self.path.parent}, under "
+                f"min_free_bytes ({self.min_free_bytes / (1 << 20):.0f} MiB): nothing is recorded until "
+                "there is room"
+            )
+
+    def _open(self) -> None:
+        """Start the next file: make room for it, then create it with its header (and /tf_static)."""
         from mcap.writer import CompressionType, Writer
 
-        path = self._current_path()
+        on_disk = self._on_disk()
+        if self._index is None:
+            # After the highest number there, never into a gap: a gap is where the oldest files
+            # were removed, and a file there would sort as the oldest while being the newest.
+            self._index = max((f.index for f in on_disk), default=-1) + 1
+        self._make_room(on_disk)
+        self._check_space()
+        path = self._path_of(self._index)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
+            flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
             while True:
-                # "xb", never "wb": a daemon restarted after a crash (systemd, 2 s later) must not
-                # truncate the recording of that crash; it goes on with the next free number.
+                # O_EXCL, never O_TRUNC: a daemon restarted after a crash (systemd, 2 s later) must
+                # not truncate the recording of that crash; it goes on with the next number.
                 try:
-                    self._file = open(path, "xb")  # noqa: SIM115 - closed in _close
+                    fd = os.open(path, flags, 0o666)
                     break
                 except FileExistsError:
                     self._index += 1
-                    path = self._current_path()
+                    path = self._path_of(self._index)
         except OSError as exc:
-            raise ConfigError(f"record: cannot write {path}: {exc.strerror}") from None
-        self._writer = Writer(self._file, chunk_size=self.chunk_bytes, compression=CompressionType.ZSTD)
-        self._writer.start(profile="ros2", library="mapd")
+            raise StateError(f"record: cannot write {path}: {exc.strerror}") from None
+        file = _RawFile(fd)
+        # (cast: the Writer is typed for any IO but uses only write and tell, which _RawFile has)
+        writer = Writer(cast(IO[bytes], file), chunk_size=self.chunk_bytes, compression=CompressionType.ZSTD)
+        try:
+            writer.start(profile="ros2", library="mapd")
+        except OSError as exc:
+            # Not even the header fits (a full disk): no file is left behind, and the number is
+            # used again at the next try, so a long outage does not leave a trail of empty files.
+            file.close()
+            path.unlink(missing_ok=True)
+            raise StateError(f"record: cannot write {path}: {exc.strerror}") from None
+        self._file, self._writer = file, writer
+        self._data_start = file.tell()
         self._channels.clear()
         self._schemas.clear()
         self.files.append(path)
-        if self._last_tf is not None:  # /tf_static is latched: every file starts with the transforms
-            data, wall = self._last_tf
-            ch = self._ros2_channel("/tf_static", TF_TYPE)
-            self._writer.add_message(channel_id=ch, log_time=_ns(wall), publish_time=_ns(wall), data=data)
-        return self._writer
+        # /tf_static is latched: every file starts with the transforms (written with its first
+        # message, where a failure is handled as any write's)
+        self._tf_owed = self._last_tf is not None
 
-    def _close(self) -> None:
+    def _put_tf(self) -> None:
+        """The latest /tf_static, into the open file."""
+        assert self._last_tf is not None and self._writer is not None
+        data, wall = self._last_tf
+        ch = self._ros2_channel("/tf_static", TF_TYPE)
+        self._writer.add_message(channel_id=ch, log_time=_ns(wall), publish_time=_ns(wall), data=data)
+        self._tf_owed = False
+
+    def _abandon(self, mark: int) -> None:
+        """After a failed write: cut the file back to ``mark`` (where its last whole chunk ends),
+        close it without a summary, which would not fit either, and move on to the next file.
+
+        Best effort: a file that cannot be cut (rare: shrinking needs no space) keeps the partial
+        chunk, which a streaming reader stops at. A file that holds no chunk yet is removed instead.
+        """
+        assert self._file is not None and self._index is not None
+        path = self._path_of(self._index)
+        empty = mark <= self._data_start
+        try:
+            if empty:
+                path.unlink(missing_ok=True)
+            else:
+                self._file.truncate(mark)
+        except OSError as exc:
+            log.warning("record: cannot cut %s back to its last chunk: %s", path, exc.strerror)
+        self._file.close()
+        self._file = None
+        self._writer = None
+        if empty:
+            if path in self.files:
+                self.files.remove(path)
+        else:
+            self._index += 1
+
+    def _guarded(self, step: Callable[[], None]) -> None:
+        """``step`` on the open file; on an OSError the file is taken back to where it was."""
+        assert self._file is not None
+        mark = self._file.tell()
+        path = self._path_of(self._index or 0)
+        try:
+            step()
+        except OSError as exc:
+            self._abandon(mark)
+            raise StateError(
+                f"record: cannot write {path}: {exc.strerror or exc}; the file was cut back to its last "
+                "whole chunk (the next message starts a new file)"
+            ) from None
+
+    def _finish(self) -> None:
+        """Summary and footer, then close (the file stays as it was if they do not fit)."""
         if self._writer is not None:
-            self._writer.finish()
-            self._writer = None
+            self._guarded(self._writer.finish)
         if self._file is not None:
             self._file.close()
-            self._file = None
+        self._file = None
+        self._writer = None
 
     def close(self) -> None:
-        """Write the summary and footer (a clean stop)."""
+        """Write the summary and footer (a clean stop). StateError when they cannot be written (the
+        file then ends at its last whole chunk, without them)."""
         with self._lock:
-            self._close()
+            self._finish()
 
     def _channel(
         self,
@@ -155,7 +387,8 @@ class Recorder:
         schema_encoding: str,
         metadata: dict[str, str] | None = None,
     ) -> int:
-        writer = self._writer if self._writer is not None else self._open()
+        writer = self._writer
+        assert writer is not None
         if schema not in self._schemas:
             self._schemas[schema] = writer.register_schema(
                 name=schema, encoding=schema_encoding, data=schema_data
@@ -174,14 +407,34 @@ class Recorder:
         qos = {"offered_qos_profiles": offered_qos_profiles(latched=topic != "/tf")}
         return self._channel(topic, msgtype, "cdr", msgdef.encode(), "ros2msg", qos)
 
-    def _write(self, channel: int, data: bytes, wall: float) -> None:
-        assert self._writer is not None and self._file is not None
+    def _write(self, topic: str, channel: Callable[[], int], data: bytes, wall: float) -> None:
+        """One message on the channel ``channel()`` registers (called with the lock held)."""
+        if self._writer is None:
+            self._open()  # makes room first, then checks the free space
+        else:
+            try:
+                self._check_space()
+            except StateError:
+                if topic == "/tf_static":  # refused: written first once there is room
+                    self._tf_owed = True
+                raise
         t = _ns(wall)
-        self._writer.add_message(channel_id=channel, log_time=t, publish_time=t, data=data)
-        self._file.flush()  # what the writer has put out survives kill -9 (the OS holds it)
+
+        def step() -> None:
+            # Registering a schema or a channel may write out a full chunk, as adding a message
+            # may: all of it is guarded. A /tf_static message is the latest transforms itself.
+            if self._tf_owed and topic != "/tf_static":
+                self._put_tf()
+            self._writer.add_message(channel_id=channel(), log_time=t, publish_time=t, data=data)
+
+        self._guarded(step)
+        if topic == "/tf_static":
+            self._tf_owed = False
         self.messages += 1
+        assert self._file is not None
         if self._file.tell() >= self.max_bytes:
-            self._close()
+            self._finish()
+            assert self._index is not None
             self._index += 1
 
     # ------------------------------------------------------------------ messages
@@ -191,7 +444,7 @@ class Recorder:
 
         data = encode(grid, frame_id=frame_id, stamp=wall)
         with self._lock:
-            self._write(self._ros2_channel(topic, GRID_TYPE), data, wall)
+            self._write(topic, lambda: self._ros2_channel(topic, GRID_TYPE), data, wall)
 
     def transforms(
         self, topic: str, parent: str, children: dict[str, Pose2D], wall: float, stamp: float | None = None
@@ -222,11 +475,13 @@ class Recorder:
         with self._lock:
             if topic == "/tf_static":
                 self._last_tf = (data, wall)
-            self._write(self._ros2_channel(topic, TF_TYPE), data, wall)
+            self._write(topic, lambda: self._ros2_channel(topic, TF_TYPE), data, wall)
 
     def json(self, topic: str, doc: dict[str, Any], wall: float) -> None:
         """A JSON document (the link counters) on ``topic``."""
         data = json.dumps(doc, default=str, sort_keys=True).encode()
+        schema = json.dumps(LINKS_SCHEMA).encode()
         with self._lock:
-            ch = self._channel(topic, "mapd.links", "json", json.dumps(LINKS_SCHEMA).encode(), "jsonschema")
-            self._write(ch, data, wall)
+            self._write(
+                topic, lambda: self._channel(topic, "mapd.links", "json", schema, "jsonschema"), data, wall
+            )

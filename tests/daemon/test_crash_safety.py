@@ -17,6 +17,7 @@ import sys
 import textwrap
 import zlib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -549,7 +550,8 @@ def test_a_slow_recording_disk_holds_a_bounded_backlog_and_says_so_once(
 
     monkeypatch.setattr(sinksmod, "MAX_QUEUED_BYTES", 10_000)
     sinks = sinksmod.Sinks([], None, CsvLog(tmp_path / "fused.csv"))
-    sinks.recorder = object()  # type: ignore[assignment]  # (only for recording(): none is written here)
+    # (only for recording(): nothing is written through it here)
+    sinks.recorder = SimpleNamespace(removed=0)  # type: ignore[assignment]
     stalled, written = threading.Event(), []
     high = [0]
 
@@ -651,3 +653,24 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_the_record_settings_reach_the_daemons_recorder(tmp_path: Path, dk: SimpleNamespace) -> None:
+    """``[record] max_total_bytes`` and ``min_free_bytes`` are what the running recorder keeps to
+    (the daemon once built it with max_bytes alone: the defaults, whatever the config said)."""
+    from mapd import config as configmod
+    from mapd.daemon.server import Daemon
+
+    rec = tmp_path / "rec" / "fleet.mcap"
+    path = dk.write_config(
+        tmp_path, "robot0",
+        record=f'path = "{rec}"\nmax_bytes = 2097152\nmax_total_bytes = 6291456\nmin_free_bytes = 1048576',
+    )  # fmt: skip
+    d = Daemon(configmod.load(path), source=dk.QueueSource("robot0"))
+    recorder = d.sinks.recorder
+    assert recorder is not None
+    assert (recorder.max_bytes, recorder.max_total_bytes, recorder.min_free_bytes) == (
+        2 << 20,
+        6 << 20,
+        1 << 20,
+    )
