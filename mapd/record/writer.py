@@ -30,14 +30,11 @@ Blocking (file writes, CDR encoding): the daemon calls it from its file thread, 
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import math
-import os
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, cast
 
@@ -45,6 +42,7 @@ import yaml
 
 from mapd.errors import ConfigError, StateError
 from mapd.grid import OccupancyGrid, Pose2D
+from mapd.record.files import RawFile, RecordingFiles
 
 log = logging.getLogger("mapd.record")
 
@@ -98,55 +96,6 @@ def offered_qos_profiles(latched: bool) -> str:
     return yaml.safe_dump([profile], sort_keys=False)
 
 
-class _RawFile:
-    """An unbuffered, write-only file for mcap's Writer, which only calls ``write`` and ``tell``.
-
-    Not a BufferedWriter: one that failed to write (a full disk) keeps the bytes it holds and tries
-    them again at every flush and at close, which would put a piece of the failed chunk after the
-    point the file was taken back to. Here a write is done, or it raised and the file can be cut
-    back with :meth:`truncate`.
-    """
-
-    def __init__(self, fd: int) -> None:
-        self._fd = fd
-        self._pos = 0
-
-    def write(self, data: bytes | bytearray | memoryview) -> int:
-        view = memoryview(data).cast("B")
-        done = 0
-        while done < len(view):  # os.write may write part (up to a file size limit), then raise
-            n = os.write(self._fd, view[done:])
-            if n <= 0:  # (a regular file never takes nothing without an error; this loop must end)
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-            done += n
-            self._pos += n
-        return done
-
-    def tell(self) -> int:
-        return self._pos
-
-    def flush(self) -> None:
-        """Nothing is held here: every write went to the OS."""
-
-    def truncate(self, size: int) -> None:
-        os.ftruncate(self._fd, size)
-        os.lseek(self._fd, size, os.SEEK_SET)
-        self._pos = size
-
-    def close(self) -> None:
-        if self._fd >= 0:
-            fd, self._fd = self._fd, -1
-            os.close(fd)
-
-
-@dataclass(frozen=True)
-class _OnDisk:
-    index: int  # 0 for NAME.mcap, N for NAME.N.mcap
-    path: Path
-    size: int
-    regular: bool
-
-
 class Recorder:
     """Writes one fleet's maps, transforms and link counters to MCAP files, rotating by size and
     keeping the recording's files within ``max_total_bytes`` (see the module's docstring)."""
@@ -168,135 +117,53 @@ class Recorder:
         if max_total_bytes < max_bytes:
             raise ConfigError(f"record: max_total_bytes ({max_total_bytes}) is under max_bytes ({max_bytes})")
         self.path = path
-        self.max_bytes = max_bytes
         self.chunk_bytes = chunk_bytes
-        self.max_total_bytes = max_total_bytes
-        self.min_free_bytes = min_free_bytes
+        self.disk = RecordingFiles(
+            path, max_bytes=max_bytes, max_total_bytes=max_total_bytes, min_free_bytes=min_free_bytes
+        )
         self._ts = get_typestore(Stores.ROS2_HUMBLE)
         self._lock = threading.Lock()
-        self._file: _RawFile | None = None
+        self._file: RawFile | None = None
         self._writer: Any = None
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._index: int | None = None  # the number of the file to open next (found at the first open)
         self._data_start = 0  # where the open file's first chunk goes (after its header)
-        #: This recorder's files still on disk, oldest first.
-        self.files: list[Path] = []
         self.messages = 0
-        #: Files of the recording removed to stay within ``max_total_bytes``.
-        self.removed = 0
         self._last_tf: tuple[bytes, float] | None = None
         self._tf_owed = False  # the open file lacks the latest /tf_static (new, or it was refused)
 
+    # ------------------------------------------------------------------ properties
+    @property
+    def files(self) -> list[Path]:
+        """This recorder's files still on disk, oldest first."""
+        return self.disk.files
+
+    @property
+    def removed(self) -> int:
+        """Files of the recording removed to stay within ``max_total_bytes``."""
+        return self.disk.removed
+
+    @property
+    def max_bytes(self) -> int:
+        return self.disk.max_bytes
+
+    @property
+    def max_total_bytes(self) -> int:
+        return self.disk.max_total_bytes
+
+    @property
+    def min_free_bytes(self) -> int:
+        return self.disk.min_free_bytes
+
     # ------------------------------------------------------------------ files
-    def _path_of(self, index: int) -> Path:
-        if index == 0:
-            return self.path
-        return self.path.with_name(f"{self.path.stem}.{index}{self.path.suffix}")
-
-    def _index_of(self, name: str) -> int | None:
-        """The number of the recording's file called ``name`` (0 for NAME.mcap), None for others."""
-        if name == self.path.name:
-            return 0
-        head, tail = f"{self.path.stem}.", self.path.suffix
-        if len(name) <= len(head) + len(tail) or not name.startswith(head) or not name.endswith(tail):
-            return None
-        number = name[len(head) : len(name) - len(tail)]
-        # as _path_of writes them: ASCII digits, no leading zero (fleet.01.mcap is someone else's)
-        if not (number.isascii() and number.isdigit()) or number[0] == "0":
-            return None
-        return int(number)
-
-    def _on_disk(self) -> list[_OnDisk]:
-        """The recording's files in its folder, oldest (lowest number) first."""
-        found = []
-        try:
-            with os.scandir(self.path.parent) as entries:
-                for entry in entries:
-                    index = self._index_of(entry.name)
-                    if index is None:
-                        continue
-                    try:
-                        st = entry.stat(follow_symlinks=False)
-                        regular = entry.is_file(follow_symlinks=False)
-                    except OSError:  # removed meanwhile
-                        continue
-                    found.append(_OnDisk(index, Path(entry.path), st.st_size, regular))
-        except OSError:  # no folder yet (or unreadable: the open says so)
-            return []
-        return sorted(found, key=lambda f: f.index)
-
-    def _make_room(self, on_disk: list[_OnDisk]) -> None:
-        """Remove the oldest files until the rest and a new file of ``max_bytes`` fit in
-        ``max_total_bytes``. Only regular files named as the recording's are removed; none is open
-        (this runs before the next file is opened)."""
-        kept = [f for f in on_disk if f.regular]
-        total = sum(f.size for f in kept)
-        for f in kept:
-            if total + self.max_bytes <= self.max_total_bytes:
-                break
-            try:
-                f.path.unlink()
-            except FileNotFoundError:
-                pass
-            except OSError as exc:  # not ours to remove after all (permissions): try the next
-                log.warning("record: cannot remove %s: %s", f.path, exc.strerror)
-                continue
-            else:
-                self.removed += 1
-                log.info(
-                    "record: removed %s (%.1f MiB), the oldest file, to keep the recording within "
-                    "max_total_bytes (%.1f MiB)",
-                    f.path, f.size / (1 << 20), self.max_total_bytes / (1 << 20),
-                )  # fmt: skip
-            total -= f.size
-            if f.path in self.files:
-                self.files.remove(f.path)
-
-    def _check_space(self) -> None:
-        """StateError while the filesystem has less than ``min_free_bytes`` free."""
-        if self.min_free_bytes <= 0:
-            return
-        try:
-            st = os.statvfs(self.path.parent)
-        except OSError:  # no folder yet, or none at all: opening the file says what is wrong
-            return
-        free = st.f_bavail * st.f_frsize
-        if free < self.min_free_bytes:
-            raise StateError(
-                f"record: {free / (1 << 20):.0f} MiB free on the disk of {self.path.parent}, under "
-                f"min_free_bytes ({self.min_free_bytes / (1 << 20):.0f} MiB): nothing is recorded until "
-                "there is room"
-            )
-
     def _open(self) -> None:
         """Start the next file: make room for it, then create it with its header (and /tf_static)."""
         from mcap.writer import CompressionType, Writer
 
-        on_disk = self._on_disk()
-        if self._index is None:
-            # After the highest number there, never into a gap: a gap is where the oldest files
-            # were removed, and a file there would sort as the oldest while being the newest.
-            self._index = max((f.index for f in on_disk), default=-1) + 1
-        self._make_room(on_disk)
-        self._check_space()
-        path = self._path_of(self._index)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
-            while True:
-                # O_EXCL, never O_TRUNC: a daemon restarted after a crash (systemd, 2 s later) must
-                # not truncate the recording of that crash; it goes on with the next number.
-                try:
-                    fd = os.open(path, flags, 0o666)
-                    break
-                except FileExistsError:
-                    self._index += 1
-                    path = self._path_of(self._index)
-        except OSError as exc:
-            raise StateError(f"record: cannot write {path}: {exc.strerror}") from None
-        file = _RawFile(fd)
-        # (cast: the Writer is typed for any IO but uses only write and tell, which _RawFile has)
+        self._index, path, fd = self.disk.open_next(self._index)
+        file = RawFile(fd)
+        # (cast: the Writer is typed for any IO but uses only write and tell, which RawFile has)
         writer = Writer(cast(IO[bytes], file), chunk_size=self.chunk_bytes, compression=CompressionType.ZSTD)
         try:
             writer.start(profile="ros2", library="mapd")
@@ -305,12 +172,12 @@ class Recorder:
             # used again at the next try, so a long outage does not leave a trail of empty files.
             file.close()
             path.unlink(missing_ok=True)
+            self.disk.forget(path)
             raise StateError(f"record: cannot write {path}: {exc.strerror}") from None
         self._file, self._writer = file, writer
         self._data_start = file.tell()
         self._channels.clear()
         self._schemas.clear()
-        self.files.append(path)
         # /tf_static is latched: every file starts with the transforms (written with its first
         # message, where a failure is handled as any write's)
         self._tf_owed = self._last_tf is not None
@@ -331,7 +198,7 @@ class Recorder:
         chunk, which a streaming reader stops at. A file that holds no chunk yet is removed instead.
         """
         assert self._file is not None and self._index is not None
-        path = self._path_of(self._index)
+        path = self.disk.path_of(self._index)
         empty = mark <= self._data_start
         try:
             if empty:
@@ -344,8 +211,7 @@ class Recorder:
         self._file = None
         self._writer = None
         if empty:
-            if path in self.files:
-                self.files.remove(path)
+            self.disk.forget(path)
         else:
             self._index += 1
 
@@ -353,7 +219,7 @@ class Recorder:
         """``step`` on the open file; on an OSError the file is taken back to where it was."""
         assert self._file is not None
         mark = self._file.tell()
-        path = self._path_of(self._index or 0)
+        path = self.disk.path_of(self._index or 0)
         try:
             step()
         except OSError as exc:
@@ -413,7 +279,7 @@ class Recorder:
             self._open()  # makes room first, then checks the free space
         else:
             try:
-                self._check_space()
+                self.disk.check_space()
             except StateError:
                 if topic == "/tf_static":  # refused: written first once there is room
                     self._tf_owed = True

@@ -28,7 +28,7 @@ from mapd.daemon.coding import CsvLog
 from mapd.daemon.sinks import Sinks
 from mapd.errors import MapFileError, StateError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D
-from mapd.record import writer as writer_mod
+from mapd.record import files as files_mod
 from mapd.record.info import summarize
 from mapd.record.writer import Recorder
 
@@ -172,7 +172,7 @@ def free_space(monkeypatch: pytest.MonkeyPatch) -> list[int]:
         st = real(path)
         return SimpleNamespace(f_bavail=free[0] // st.f_frsize, f_frsize=st.f_frsize)
 
-    monkeypatch.setattr(writer_mod.os, "statvfs", statvfs)
+    monkeypatch.setattr(files_mod.os, "statvfs", statvfs)
     return free
 
 
@@ -242,7 +242,7 @@ def disk(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> list[int | None]:
         budget[0] -= n
         return n
 
-    monkeypatch.setattr(writer_mod.os, "write", write)
+    monkeypatch.setattr(files_mod.os, "write", write)
     return budget
 
 
