@@ -272,8 +272,8 @@ class ViewSection(Strict):
     )
     token_file: Path | None = Field(
         default=None,
-        description=f"file holding the access token ({MIN_VIEW_TOKEN}+ characters); required unless "
-        "listen is a loopback address",
+        description=f"file holding the access token ({MIN_VIEW_TOKEN}+ characters of A-Z a-z 0-9 . _ ~ -, "
+        "as a URL carries them); required unless listen is a loopback address",
     )
     max_viewers: int = Field(default=256, ge=1, le=4096, description="concurrent viewers; more get 503")
 
@@ -308,10 +308,13 @@ def read_view_token(cfg: MapdConfig) -> str | None:
         token = raw.decode("ascii").strip()
     except UnicodeDecodeError:
         token = ""
-    if len(raw) > 4096 or len(token) < MIN_VIEW_TOKEN or not token.isprintable() or " " in token:
+    # Only what a URL carries unchanged (RFC 3986 unreserved): the README has users paste the token
+    # into ``?token=`` as is, where "+" arrives as a space, "&" and "#" end it and "%" escapes.
+    if len(raw) > 4096 or len(token) < MIN_VIEW_TOKEN or not re.fullmatch(r"[A-Za-z0-9._~-]+", token):
         raise ConfigError(
-            f"{where}: view.token_file: {path} must hold one token of {MIN_VIEW_TOKEN}+ printable "
-            "ASCII characters without spaces (e.g. from: openssl rand -hex 24)"
+            f"{where}: view.token_file: {path} must hold one token of {MIN_VIEW_TOKEN}+ characters, "
+            "each one of A-Z a-z 0-9 . _ ~ - (it goes into the URL as it is); make one with: "
+            "openssl rand -hex 24"
         )
     return token
 

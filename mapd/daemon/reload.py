@@ -4,7 +4,10 @@ Adding a robot to a fleet changes one table in every robot's config, ``[fleet.ro
 lets the running daemons take it without a restart, so no link drops and no map waits. What a
 reload applies is the roster's keys: robots added, removed or given a new key. Every holder of the
 daemon's :class:`~mapd.identity.Roster` (the receiver, the transports, the pose relay) verifies
-with the new keys from the next message on.
+with the new keys from the next message on. The live view's token (``[view] token_file``, its
+path or what the file holds) is applied too: a leaked one is rotated by writing a new one and
+reloading; the view checks every request against the new token and ends the streams opened with
+the old one (unless ``[view] listen`` changed as well: then both wait for the restart).
 
 Everything else that differs from the running config (transports, codec, this robot's own key, the
 link key, ``allow_unsigned``, ...) is named, key by key, as needing a restart, and left as it runs:
@@ -35,6 +38,10 @@ class Plan:
     rekeyed: list[str] = field(default_factory=list)
     #: Dotted keys that differ and only take effect on a restart, e.g. ``codec.use``.
     restart: list[str] = field(default_factory=list)
+    #: The live view's token from now on (the daemon hands it to the running view; None: none).
+    view_token: str | None = None
+    #: Whether ``view_token`` differs from the token the view ran with.
+    view_token_changed: bool = False
 
     @property
     def roster_changed(self) -> bool:
@@ -44,6 +51,8 @@ class Plan:
         """One line: what changed in the roster, and what waits for a restart."""
         parts = [f"{what} {', '.join(names)}" for what, names in self._roster_parts() if names]
         said = "roster: " + "; ".join(parts) if parts else "roster unchanged"
+        if self.view_token_changed:
+            said += "; view: new token in force" if self.view_token else "; view: token removed"
         if self.restart:
             said += f"; needs a restart to take effect: {', '.join(self.restart)}"
         return said
@@ -62,13 +71,25 @@ def _flat(doc: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _view_token_live(running: configmod.MapdConfig, new: configmod.MapdConfig) -> bool:
+    """Whether the running view takes the new config's token: it serves the same ``listen``.
+
+    A token checked against another ``listen`` is no token for this one (none is needed on
+    loopback, one is off it), so with ``listen`` changed the token waits for the restart too.
+    """
+    return new.view.listen is not None and new.view.listen == running.view.listen
+
+
 def plan(running: configmod.MapdConfig, new: configmod.MapdConfig) -> Plan:
     """Compare ``new`` with the ``running`` config (both validated; no files read)."""
     old_r, new_r = running.fleet.roster, new.fleet.roster
     a = _flat(running.model_dump(mode="json"))
     b = _flat(new.model_dump(mode="json"))
+    live = {"view.token_file"} if _view_token_live(running, new) else set()
     restart = sorted(
-        key for key in a.keys() | b.keys() if not key.startswith("fleet.roster.") and a.get(key) != b.get(key)
+        key
+        for key in a.keys() | b.keys()
+        if not key.startswith("fleet.roster.") and key not in live and a.get(key) != b.get(key)
     )
     return Plan(
         added=sorted(set(new_r) - set(old_r)),
@@ -79,13 +100,16 @@ def plan(running: configmod.MapdConfig, new: configmod.MapdConfig) -> Plan:
 
 
 def read(
-    running: configmod.MapdConfig, keys: configmod.Keys
+    running: configmod.MapdConfig, keys: configmod.Keys, view_token: str | None = None
 ) -> tuple[configmod.MapdConfig, configmod.Keys, Plan]:
     """Load and check the running config's file again (blocking), and plan what it changes.
 
-    Raises what loading or checking raises (:class:`~mapd.errors.ConfigError` and its kin, one line).
-    The key files are read again too: a changed own key or link key under the same path is a change
-    that needs a restart, like any other.
+    Raises what loading or checking raises (:class:`~mapd.errors.ConfigError` and its kin, one line):
+    so a token file gone missing, or holding a token too short, refuses the reload and the view
+    keeps the token it has. The key files are read again too: a changed own key or link key under
+    the same path is a change that needs a restart, like any other. ``view_token``: the token the
+    running view checks (None: no view, or one without a token); the plan's ``view_token`` is the
+    one it checks from now on.
     """
     if running.path is None:
         raise ConfigError("this daemon was not started from a config file: nothing to reload")
@@ -99,7 +123,8 @@ def read(
         restart.append("robot.key_file (the key in it changed)")
     if keys.link_key != checked.keys.link_key and "fleet.link_key_file" not in restart:
         restart.append("fleet.link_key_file (the key in it changed)")
-    return new, checked.keys, Plan(p.added, p.removed, p.rekeyed, sorted(restart))
+    token = checked.view_token if _view_token_live(running, new) else view_token
+    return new, checked.keys, Plan(p.added, p.removed, p.rekeyed, sorted(restart), token, token != view_token)
 
 
 @dataclass
@@ -114,11 +139,16 @@ class Reloads:
     last_message: str = ""
 
     def applied(self, new: configmod.MapdConfig, p: Plan, now: float | None = None) -> str:
-        """Record a reload whose roster was taken; the restart-only keys keep their running values."""
-        # Later reloads compare against the roster now in force, and the rest as it runs.
-        self.config = self.config.model_copy(
-            update={"fleet": self.config.fleet.model_copy(update={"roster": dict(new.fleet.roster)})}
-        )
+        """Record a reload whose roster (and view token) was taken; the restart-only keys keep their
+        running values."""
+        # Later reloads compare against the roster (and the view's token file) now in force, and the
+        # rest as it runs.
+        update: dict[str, Any] = {
+            "fleet": self.config.fleet.model_copy(update={"roster": dict(new.fleet.roster)})
+        }
+        if _view_token_live(self.config, new):
+            update["view"] = self.config.view.model_copy(update={"token_file": new.view.token_file})
+        self.config = self.config.model_copy(update=update)
         return self._record(True, p.summary(), now)
 
     def failed(self, message: str, now: float | None = None) -> str:

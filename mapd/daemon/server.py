@@ -217,7 +217,8 @@ class Daemon:
         """Read the config file again (on a worker) and apply its roster; False when refused."""
         notify(f"RELOADING=1\nMONOTONIC_USEC={time.monotonic_ns() // 1000}")
         try:
-            new, keys, plan = await asyncio.to_thread(read_reload, self.reloads.config, self.keys)
+            token = self.view.token if self.view is not None else None
+            new, keys, plan = await asyncio.to_thread(read_reload, self.reloads.config, self.keys, token)
         except MapdError as exc:
             log.error("reload %s", self.reloads.failed(str(exc)))
             ok = False
@@ -226,6 +227,8 @@ class Daemon:
             ok = False
         else:
             self.keys.roster.adopt(keys.roster)
+            if self.view is not None:  # checked per request: a rotated token is in force at once
+                self.view.set_token(plan.view_token)
             for robot in plan.removed:
                 if robot != self.me and not self.keys.roster.admits(robot):
                     self._revoke(robot)

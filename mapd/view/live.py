@@ -55,6 +55,15 @@ class LiveView(Output):
     def url(self) -> str:
         return self.server.url
 
+    @property
+    def token(self) -> str | None:
+        """The token every request is checked against (None: none, a loopback listen)."""
+        return self.server.token
+
+    def set_token(self, token: str | None) -> bool:
+        """A new token (a reload): in force from the next request; True when it changed (on the loop)."""
+        return self.server.set_token(token)
+
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
         await self.server.start()

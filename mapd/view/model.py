@@ -3,7 +3,8 @@
 Two models, because they live on two threads and must never wait for each other:
 
 * :class:`MapModel`, fed on the daemon's output thread: the global map as tiles (only changed tiles
-  are encoded and sent), each robot's placed map outline, its pose and trail in the fleet frame.
+  are encoded and sent), each robot's placed map outline, its pose and trail in the fleet frame
+  (kept in the robot's own map frame and placed when sent, so a trail follows a re-placed robot).
 * :class:`StatusModel`, fed on the event loop with the daemon's status dict (what ``mapd status``
   shows): link rates against the radio budget (from byte counters between two snapshots), RTT,
   resends, last heard, and per robot its versions, keyframes/deltas, bytes and fusion confidence.
@@ -16,6 +17,7 @@ from __future__ import annotations
 import base64
 import math
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,6 +67,12 @@ def _pose(p: Pose2D) -> list[float]:
     return [round(p.x, 3), round(p.y, 3), round(p.yaw, 4)]
 
 
+def _placed(frame: Pose2D, points: Iterable[tuple[float, float]]) -> list[list[float]]:
+    """Points of a robot's map frame in the fleet frame, given the map frame's pose there."""
+    c, s = math.cos(frame.yaw), math.sin(frame.yaw)  # compose() per point, without a Pose2D each
+    return [[round(frame.x + c * x - s * y, 3), round(frame.y + s * x + c * y, 3)] for x, y in points]
+
+
 class MapModel:
     """The global map's tiles and the robots' placements, poses and trails (one thread only)."""
 
@@ -79,6 +87,8 @@ class MapModel:
         self._frames: dict[str, Pose2D] = {}
         self._maps: dict[str, RobotMap] = {}
         self._poses: dict[str, StampedPose] = {}
+        #: Per robot, the points it passed, in its own map frame: fusion may place the map anew at
+        #: any time, and the trail must move with it (placed in the fleet frame when sent).
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._trail_len = trail
         #: Tiles encoded, in all (a measure of the work the diffs save).
@@ -110,6 +120,11 @@ class MapModel:
             "geometry": geometry.as_dict(),
         }
         self._full = None  # built when a viewer needs it
+        for robot in self._frames.keys() - update.frames.keys():
+            # No longer placed: its pose and trail are in no frame now; a placement that comes back
+            # may put its map elsewhere (a new incarnation), so they start afresh then.
+            self._trails.pop(robot, None)
+            self._poses.pop(robot, None)
         self._frames = dict(update.frames)
         if update.poses:
             self._note_poses(update.poses)
@@ -137,17 +152,17 @@ class MapModel:
 
     def _note_poses(self, poses: dict[str, StampedPose]) -> None:
         for robot, sp in poses.items():
+            if robot not in self._frames:
+                continue  # not placed: in no frame to draw it in (its first pose once placed starts it)
             held = self._poses.get(robot)
             if held is not None and sp.stamp < held.stamp:
                 continue  # a global map may carry a pose older than one already shown
             self._poses[robot] = sp
-            frame = self._frames.get(robot)
-            if frame is None:
-                continue
-            p = compose(frame, sp.pose)
+            # In the robot's own map frame (a rigid placement keeps distances: the step is the same).
+            p = (sp.pose.x, sp.pose.y)
             trail = self._trails.setdefault(robot, deque(maxlen=self._trail_len))
-            if not trail or math.dist(trail[-1], (p.x, p.y)) >= TRAIL_STEP_M:
-                trail.append((round(p.x, 3), round(p.y, 3)))
+            if not trail or math.dist(trail[-1], p) >= TRAIL_STEP_M:
+                trail.append(p)
 
     def colour(self, robot: str) -> str:
         """This robot's colour in the view (sticky: the order robots were first seen)."""
@@ -162,16 +177,18 @@ class MapModel:
             frame = self._frames.get(robot)
             rmap = self._maps.get(robot)
             sp = self._poses.get(robot)
-            pose = None
-            if sp is not None and frame is not None:
-                pose = _pose(compose(frame, sp.pose))
+            pose = trail = None
+            if frame is not None:
+                if sp is not None:
+                    pose = _pose(compose(frame, sp.pose))
+                trail = _placed(frame, self._trails.get(robot, ()))
             out[robot] = {
                 "colour": self.colour(robot),
                 "frame": None if frame is None else _pose(frame),
                 "outline": None if frame is None or rmap is None else rmap.outline(frame),
                 "pose": pose,
-                "pose_stamp": None if sp is None else round(sp.stamp, 3),
-                "trail": [list(p) for p in self._trails.get(robot, ())],
+                "pose_stamp": None if sp is None or frame is None else round(sp.stamp, 3),
+                "trail": trail or [],
             }
         return sse("robots", {"robots": out})
 

@@ -4,7 +4,7 @@ Routes (everything else is 404; with a token configured, any request without it 
 
     GET /                 the page (index.html)
     GET /static/<asset>   view.js, view.css (shipped in the package: no CDN, works offline)
-    GET /events           server-sent events: map (tiles), robots, status
+    GET /events           server-sent events: hello (this server's instance), map (tiles), robots, status
 
 Read-only: nothing here changes the daemon. Messages are encoded off the loop (the map on the
 output thread) or are small (the status); the loop only hands shared ``bytes`` to each viewer's
@@ -14,10 +14,16 @@ and is closed before anything is read), an idle one closes after ``IDLE_TIMEOUT_
 that takes nothing for ``WRITE_TIMEOUT_S`` is cut, and so is a client that does not take a page,
 asset or refusal within it (pipelined requests, never read); a stream's frames go out in slices,
 so a stuck viewer holds a slice, not its own copy of the map. The connection cap is fitted to the
-process's open-file limit. A malformed request is counted (``bad_requests``), not logged with a
-traceback, so a client cannot fill the journal.
+process's open-file limit (each socket is counted from the moment it is accepted, so a burst cannot
+slip past it). A malformed request is counted (``bad_requests``), and so is a client that leaves
+before its answer is written (``left_early``), not logged with a traceback: a client cannot fill
+the journal.
 Without a token (a loopback listen), only requests naming a loopback host are served: a web page
-that rebinds its own DNS name to 127.0.0.1 still sends its own name as ``Host``.
+that rebinds its own DNS name to 127.0.0.1 still sends its own name as ``Host``. The token is
+checked per request, so :meth:`ViewServer.set_token` (a reload) takes effect at once.
+
+Each stream starts with a ``hello`` naming this server's instance (new at every start), so a page
+that reconnects to a restarted daemon drops the old daemon's map instead of showing it as live.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import contextlib
 import hmac
 import logging
 import resource
+import secrets
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -40,7 +47,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 from mapd.config import is_loopback
 from mapd.errors import DaemonError
 from mapd.view.model import StatusModel
-from mapd.view.queue import ClientQueue, Message
+from mapd.view.queue import ClientQueue, Message, sse
 
 log = logging.getLogger("mapd.view")
 
@@ -117,11 +124,13 @@ def fit_open_files(need: int) -> int:
 
 
 class _HttpLog(logging.LoggerAdapter):
-    """aiohttp's server logger: a malformed request is counted, not logged with a traceback.
+    """aiohttp's server logger: a malformed request or a client gone is counted, not logged with a traceback.
 
     aiohttp logs every request it cannot parse (a doubled Host, a bare LF, a NUL in a header) as
     "Error handling request" with a traceback: 800 bytes of journal each, 1.5 MB a second from one
-    client. A bug in a handler (anything else) is still logged whole.
+    client; and so a handler that a client's reset ended mid-write (2 KB each). The handlers catch
+    the resets they know of; this is the backstop. A bug in a handler (anything else) is still
+    logged whole.
     """
 
     def __init__(self, counters: dict[str, int]) -> None:
@@ -133,13 +142,58 @@ class _HttpLog(logging.LoggerAdapter):
             self.counters["bad_requests"] += 1
             self.logger.debug("view: a malformed request (%s)", exc_info.message)
             return
+        if isinstance(exc_info, ConnectionError):
+            self.counters["left_early"] += 1
+            self.logger.debug("view: the client left (%s)", exc_info)
+            return
         self.logger.error(msg, *args, exc_info=exc_info, **kw)
+
+
+class _Counted(asyncio.Protocol):
+    """aiohttp's protocol for one socket, counted open from its accept to its close.
+
+    aiohttp's own count of connections grows only in ``connection_made``, which the loop calls
+    after it has accepted every socket waiting in the backlog: a burst of 100 sockets all saw the
+    count from before it, and all were taken past a cap of 4.
+    """
+
+    def __init__(self, inner: asyncio.Protocol, closed: Callable[[], None]) -> None:
+        self._inner = inner
+        self._closed: Callable[[], None] | None = closed
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._inner.connection_made(transport)
+
+    def data_received(self, data: bytes) -> None:
+        self._inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self._inner.eof_received()
+
+    def pause_writing(self) -> None:
+        self._inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self._inner.resume_writing()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)  # anything else asked of aiohttp's protocol
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        try:
+            self._inner.connection_lost(exc)
+        finally:
+            if self._closed is not None:  # once, however often the transport says it
+                self._closed()
+                self._closed = None
 
 
 @dataclass(eq=False)
 class _Viewer:
     queue: ClientQueue
     wake: asyncio.Event = field(default_factory=asyncio.Event)
+    #: Set when the stream must end (the token it was opened with is no longer the token).
+    ended: bool = False
 
 
 class ViewServer:
@@ -173,6 +227,9 @@ class ViewServer:
         self._closing = False
         self._page = b""
         self._assets: dict[str, bytes] = {}
+        #: Names this server's run: a page seeing another one after a reconnect clears its state.
+        self.instance = secrets.token_hex(8)
+        self._hello = sse("hello", {"instance": self.instance}).frame
         #: Counters for ``mapd status``.
         self.counters = {
             "viewers_total": 0,
@@ -182,8 +239,10 @@ class ViewServer:
             "refused_conns": 0,
             "dropped_msgs": 0,
             "bad_requests": 0,
+            "left_early": 0,
             "write_timeouts": 0,
         }
+        self._open = 0  # sockets accepted and not yet closed (see _Counted)
 
     @property
     def viewers(self) -> int:
@@ -191,9 +250,8 @@ class ViewServer:
 
     @property
     def connections(self) -> int:
-        """Open HTTP connections (streams, page loads, idle keep-alives)."""
-        server = self._runner.server if self._runner is not None else None
-        return len(server.connections) if server is not None else 0
+        """Open HTTP connections (streams, page loads, idle keep-alives), from accept to close."""
+        return self._open
 
     @property
     def url(self) -> str:
@@ -268,6 +326,25 @@ class ViewServer:
             await self._runner.cleanup()
             self._runner = None
 
+    def set_token(self, token: str | None) -> bool:
+        """Check every request against ``token`` from now on (None: no token); True when it changed.
+
+        Streams opened before a change end (the page's own reconnect then needs the new token): a
+        leaked token that is rotated must not keep a stream it opened.
+        """
+        if token == self.token:
+            return False
+        self.token = token
+        for v in self._viewers:
+            v.ended = True
+            v.wake.set()
+        log.warning(
+            "view: %s; %d stream(s) opened before it ended",
+            "a new token is in force" if token else "the token is removed",
+            len(self._viewers),
+        )
+        return True
+
     # ------------------------------------------------------------------ messages in (loop thread)
     def post(self, *msgs: Message, full_map: Message | None = None) -> None:
         """New messages for every viewer; ``full_map``: the whole map as of the ``map`` delta in ``msgs``."""
@@ -299,12 +376,20 @@ class ViewServer:
 
     # ------------------------------------------------------------------ HTTP
     def _accept(self) -> asyncio.BaseProtocol:
-        """The protocol for a new socket: aiohttp's, or a 503 once ``max_connections`` are open."""
+        """The protocol for a new socket: aiohttp's, or a 503 once ``max_connections`` are open.
+
+        Counted here, as each socket is accepted: the loop accepts every socket waiting in the
+        backlog before any of them is handed to aiohttp.
+        """
         assert self._runner is not None and self._runner.server is not None
-        if self.connections >= self.max_connections:
+        if self._open >= self.max_connections:
             self.counters["refused_conns"] += 1
             return _Refused()
-        return self._runner.server()
+        self._open += 1
+        return _Counted(self._runner.server(), self._closed)
+
+    def _closed(self) -> None:
+        self._open -= 1
 
     def _authorized(self, request: web.Request) -> bool:
         assert self.token is not None
@@ -362,6 +447,10 @@ class ViewServer:
                 await asyncio.wait_for(self._send(request, resp), WRITE_TIMEOUT_S)
             except TimeoutError:
                 self._cut(request)
+            except ConnectionError:
+                # The client reset the socket before taking its answer: nothing to send it any more.
+                # (A reset cancels this handler, and wait_for turns that into this error.)
+                self.counters["left_early"] += 1
         return resp
 
     @staticmethod
@@ -405,13 +494,17 @@ class ViewServer:
         resp = web.StreamResponse(
             headers={**_HEADERS, "Content-Type": "text/event-stream", "X-Accel-Buffering": "no"}
         )
-        await resp.prepare(request)
         viewer = _Viewer(ClientQueue(QUEUE_LIMIT))
         viewer.wake.set()  # the first write is the full current state
         self._viewers.add(viewer)
         self.counters["viewers_total"] += 1
         try:
-            await resp.write(b"retry: 2000\n\n")
+            try:  # in here: a client that resets at once makes the headers' write fail
+                await resp.prepare(request)
+            except ConnectionError:
+                self.counters["left_early"] += 1
+                raise
+            await resp.write(b"retry: 2000\n\n" + self._hello)
             while not self._closing:
                 try:
                     await asyncio.wait_for(viewer.wake.wait(), KEEPALIVE_S)
@@ -419,6 +512,8 @@ class ViewServer:
                     await self._write(resp, b": keep-alive\n\n")
                     continue
                 viewer.wake.clear()
+                if viewer.ended:
+                    break  # not one more message under the token it was opened with
                 for msg in viewer.queue.take(self._current):
                     await self._write(resp, msg.frame)
         except TimeoutError:

@@ -348,3 +348,104 @@ def test_a_reload_that_fails_unexpectedly_leaves_the_daemon_running(
             await task
 
     asyncio.run(main())
+
+
+def test_read_takes_a_rotated_view_token_and_refuses_an_invalid_one(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    """A leaked view token is rotated by writing a new one into its file and reloading; the reload
+    said nothing of it and the old token kept working (on the same path nothing in the config
+    changed). A token file that is gone, or holds too short a token, refuses the reload whole."""
+    view = 'listen = "0.0.0.0:8080"\ntoken_file = "view.token"'
+    path = _virtual(dk, tmp_path, "robot0", "c")
+    path.write_text(path.read_text() + f"[view]\n{view}\n")
+    token_file = path.parent / "view.token"
+    token_file.write_text("old-token-0123456789abcdef\n")
+    running = configmod.load(path)
+    checked = configmod.check(running)
+    old = checked.view_token
+    assert old == "old-token-0123456789abcdef"
+    _, _, p = reload.read(running, checked.keys, old)
+    assert (p.view_token, p.view_token_changed, p.summary()) == (old, False, "roster unchanged")
+
+    token_file.write_text("new-token-ffffffffffffffff\n")  # rotated in place
+    _, _, p = reload.read(running, checked.keys, old)
+    assert p.view_token == "new-token-ffffffffffffffff" and p.view_token_changed and p.restart == []
+    assert p.summary() == "roster unchanged; view: new token in force"
+
+    # another file: applied as well, not left for a restart
+    (path.parent / "other.token").write_text("other-token-0123456789abcdef\n")
+    path.write_text(path.read_text().replace('"view.token"', '"other.token"'))
+    new, _, p = reload.read(running, checked.keys, old)
+    assert p.view_token == "other-token-0123456789abcdef" and p.restart == []
+    reloads = reload.Reloads(running)
+    reloads.applied(new, p)
+    assert reloads.config.view.token_file == path.parent / "other.token"
+    path.write_text(path.read_text().replace('"other.token"', '"view.token"'))
+
+    # broken: the reload is refused in one line, and the running token stays what it was
+    for content, said in (("short\n", "must hold one token of 16"), (None, "cannot read")):
+        if content is None:
+            token_file.unlink()
+        else:
+            token_file.write_text(content)
+        with pytest.raises(ConfigError, match=r"view\.token_file: .*" + said) as err:
+            reload.read(running, checked.keys, old)
+        assert "\n" not in str(err.value)
+
+    # a new listen: the new token belongs to it and waits for the restart with it
+    token_file.write_text("new-token-ffffffffffffffff\n")
+    path.write_text(path.read_text().replace('"0.0.0.0:8080"', '"0.0.0.0:9090"'))
+    _, _, p = reload.read(running, checked.keys, old)
+    assert p.view_token == old and not p.view_token_changed and p.restart == ["view.listen"]
+
+
+def test_a_rotated_view_token_is_in_force_after_a_reload(tmp_path: Path, dk: SimpleNamespace) -> None:
+    """On a running daemon: the old token is refused from the reload on, the new one served; a reload
+    with a token file gone or too short is refused and the token in force stays."""
+    import aiohttp
+
+    from mapd.demo.ports import free_port
+
+    port = free_port()
+    path = _virtual(dk, tmp_path, "robot0", dk.channel())
+    path.write_text(path.read_text() + f'[view]\nlisten = "127.0.0.1:{port}"\ntoken_file = "view.token"\n')
+    token_file = path.parent / "view.token"
+    old, new = "old-token-0123456789abcdef", "new-token-ffffffffffffffff"
+    token_file.write_text(old + "\n")
+    d = Daemon(configmod.load(path), source=dk.QueueSource("robot0"))
+
+    async def main() -> None:
+        task = asyncio.create_task(d.run())
+        try:
+            async with aiohttp.ClientSession() as s:
+
+                async def status(token: str) -> int:
+                    try:
+                        async with s.get(f"http://127.0.0.1:{port}/", params={"token": token}) as r:
+                            return r.status
+                    except aiohttp.ClientConnectionError:
+                        return 0  # not listening yet
+
+                for _ in range(400):
+                    if await status(old) == 200:
+                        break
+                    await asyncio.sleep(0.05)
+                assert await status(old) == 200 and await status(new) == 401
+                token_file.write_text(new + "\n")
+                assert await d.reload()
+                assert (await status(old), await status(new)) == (401, 200)
+                assert d.snapshot()["reload"]["last"] == "roster unchanged; view: new token in force"
+                for broken in ("short\n", None):
+                    if broken is None:
+                        token_file.unlink()
+                    else:
+                        token_file.write_text(broken)
+                    assert not await d.reload()
+                    assert "view.token_file" in d.snapshot()["reload"]["last"]
+                    assert (await status(old), await status(new)) == (401, 200)
+        finally:
+            d.request_stop()
+            await task
+
+    asyncio.run(main())

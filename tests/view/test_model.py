@@ -193,3 +193,27 @@ def test_a_slow_viewer_is_bounded_and_resyncs_to_the_newest_state() -> None:
     assert q.dropped >= 9990
     with pytest.raises(ValueError):
         ClientQueue(limit=1)
+
+
+def test_a_trail_moves_with_its_robot_when_fusion_places_it_anew_and_goes_when_unplaced() -> None:
+    """Trail points are kept in the robot's own map frame; the placement in force puts them in the fleet
+    frame. Kept in the fleet frame under the placement of the moment, a re-placed robot's old trail
+    stayed where its old placement put it, away from the robot."""
+    m = MapModel()
+    m.robot_maps({"r1": RobotMap(40, 20, 0.5, Pose2D(-1.0, -1.0, 0.0))})  # listed while unplaced
+    for i in range(5):  # along its own map's x axis, placed at the fleet origin
+        m.poses({"r1": StampedPose(Pose2D(float(i), 0.0, 0.0), 10.0 + i)}, {"r1": Pose2D()})
+    before = body(m.robots())["robots"]["r1"]
+    assert np.allclose(before["trail"], [[float(i), 0.0] for i in range(5)])
+    # fusion places r1's map anew: turned 90 degrees and shifted by (1, 2) m
+    m.global_map(GlobalUpdate(grid(), {"r1": Pose2D(1.0, 2.0, math.pi / 2)}, 1.0))
+    r = body(m.robots())["robots"]["r1"]
+    assert r["pose"][:2] == pytest.approx([1.0, 6.0], abs=1e-3)
+    assert np.allclose(r["trail"], [[1.0, 2.0 + i] for i in range(5)], atol=1e-3)
+    # no longer placed: its trail and pose go (they would be in no frame), not kept for later
+    m.global_map(GlobalUpdate(grid(), {}, 2.0, poses={"r1": StampedPose(Pose2D(5.0, 0.0, 0.0), 16.0)}))
+    r = body(m.robots())["robots"]["r1"]
+    assert (r["frame"], r["pose"], r["pose_stamp"], r["trail"]) == (None, None, None, [])
+    # placed again: a new trail starts where it is now
+    m.poses({"r1": StampedPose(Pose2D(6.0, 0.0, 0.0), 17.0)}, {"r1": Pose2D()})
+    assert body(m.robots())["robots"]["r1"]["trail"] == [[6.0, 0.0]]

@@ -144,6 +144,7 @@ def test_sse_delivers_full_state_then_updates_and_status() -> None:
         async with aiohttp.ClientSession() as s, s.get(url + "events") as r:
             assert r.status == 200 and r.content_type == "text/event-stream"
             it = events(r)
+            assert await anext(it) == ("hello", {"instance": server.instance})  # before any state
             kind, first = await anext(it)
             assert kind == "map" and first["full"] and first["seq"] == 1 and len(first["tiles"]) == 3
             seen = {kind}
@@ -227,8 +228,37 @@ def test_config_reads_the_token_file_relative_to_the_config(tmp_path: Path) -> N
     cfg = configmod.load(_config(tmp_path, 'listen = "0.0.0.0:8080"\ntoken_file = "view.token"'))
     assert configmod.check(cfg).view_token == TOKEN
     (tmp_path / "view.token").write_text("short\n")
-    with pytest.raises(ConfigError, match="16\\+ printable"):
+    with pytest.raises(ConfigError, match="must hold one token of 16\\+ characters"):
         configmod.check(cfg)
+
+
+@pytest.mark.parametrize("char", ["+", "&", "#", "%", "/", "=", "?", ";", '"', "<"])
+def test_config_refuses_a_token_the_url_would_change(tmp_path: Path, char: str) -> None:
+    """The README's ``?token=<token>``, pasted as is: ``+`` arrives as a space, ``&`` and ``#`` end it,
+    ``%`` escapes what follows; so only characters a URL carries unchanged are taken."""
+    (tmp_path / "view.token").write_text(f"0123456789{char}abcdefgh\n")
+    cfg = configmod.load(_config(tmp_path, 'listen = "0.0.0.0:8080"\ntoken_file = "view.token"'))
+    with pytest.raises(ConfigError) as err:
+        configmod.check(cfg)
+    msg = str(err.value)
+    assert "\n" not in msg and "view.token_file" in msg and "openssl rand -hex 24" in msg
+    assert "A-Z a-z 0-9" in msg
+
+
+def test_a_url_safe_token_works_pasted_raw_into_the_url(tmp_path: Path) -> None:
+    token = "Ab9._~-Zz0123456789-openssl-rand-hex"
+    (tmp_path / "view.token").write_text(token + "\n")
+    cfg = configmod.load(_config(tmp_path, 'listen = "0.0.0.0:8080"\ntoken_file = "view.token"'))
+    assert configmod.check(cfg).view_token == token
+
+    async def body(server: ViewServer, url: str) -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(f"GET /?token={token} HTTP/1.1\r\nHost: robot\r\nConnection: close\r\n\r\n".encode())
+        answer = await reader.read()
+        writer.close()
+        assert answer.startswith(b"HTTP/1.1 200 "), answer[:80]
+
+    serve(body, token=token)
 
 
 @pytest.mark.parametrize("listen", ["8080", "127.0.0.1", "127.0.0.1:0", "127.0.0.1:99999", ":80"])
@@ -240,3 +270,48 @@ def test_config_refuses_a_malformed_listen(tmp_path: Path, listen: str) -> None:
 def test_view_is_off_by_default(tmp_path: Path) -> None:
     cfg = configmod.load(_config(tmp_path, ""))
     assert cfg.view.listen is None and configmod.check(cfg).view_token is None
+
+
+def test_each_stream_starts_with_the_servers_instance_new_at_every_start() -> None:
+    """A page that reconnects to a restarted daemon learns it from the hello (and drops the old map)."""
+    seen: list[str] = []
+
+    async def body(server: ViewServer, url: str) -> None:
+        async with aiohttp.ClientSession() as s:
+            for _ in range(2):
+                async with s.get(url + "events") as r:
+                    kind, data = await anext(events(r))
+                    assert kind == "hello" and data == {"instance": server.instance}
+        seen.append(server.instance)
+
+    serve(body)
+    serve(body)
+    assert len(seen) == 2 and seen[0] != seen[1] and all(len(i) >= 16 for i in seen)
+
+
+def test_a_new_token_is_in_force_at_once_and_ends_the_streams_of_the_old_one() -> None:
+    """What a reload does with a rotated token (``set_token``): the old one is refused from the next
+    request on, and a stream it opened ends instead of watching on."""
+    new = "n3w-token-9876543210"
+
+    async def body(server: ViewServer, url: str) -> None:
+        async with aiohttp.ClientSession() as s:
+            stream = await s.get(url + "events", params={"token": TOKEN})
+            assert stream.status == 200
+            assert (await anext(events(stream)))[0] == "hello"
+            assert server.set_token(TOKEN) is False  # the same token: nothing ends
+            assert server.viewers == 1
+            assert server.set_token(new) is True
+            rest = await asyncio.wait_for(stream.read(), 10)  # the stream ends (before: never)
+            assert b"event: hello" not in rest
+            stream.close()
+            for token, status in ((TOKEN, 401), (new, 200)):
+                async with s.get(url, params={"token": token}) as r:
+                    assert r.status == status, token
+                    if status == 200:  # the page hands on the token now in force
+                        assert f"?token={new}" in await r.text()
+                async with s.get(url + "static/view.css", headers={"Authorization": f"Bearer {token}"}) as r:
+                    assert r.status == status, token
+        assert server.viewers == 0
+
+    serve(body, token=TOKEN)

@@ -8,8 +8,10 @@ it past a short, fixed time.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import socket
+import struct
 import subprocess
 import sys
 import textwrap
@@ -217,7 +219,7 @@ def test_a_stream_outlives_the_idle_timeout(monkeypatch: pytest.MonkeyPatch) -> 
             assert server.viewers == 1
             server.post(sse("status", {"i": 1}))
             async for line in r.content:
-                if line.startswith(b"data: "):
+                if line.startswith(b"data: ") and b'"instance"' not in line:  # past the hello
                     assert line == b'data: {"i":1}\n'
                     break
 
@@ -348,3 +350,70 @@ def test_the_connection_cap_is_fitted_to_the_open_file_limit(tmp_path: Path) -> 
     (conns, viewers, soft_after), stderr = runs[4096]  # raised to what the cap needs
     assert (conns, viewers, soft_after) == (2016, 1000, 2016 + server_mod.FD_RESERVE)
     assert stderr == ""
+
+
+@pytest.mark.parametrize("token", [None, TOKEN])
+def test_clients_that_reset_at_once_are_counted_without_a_traceback(
+    caplog: pytest.LogCaptureFixture, token: str | None
+) -> None:
+    """A request, then a reset (SO_LINGER 0) before the answer: each was an ERROR with a 2 KB traceback
+    (the handler's cancellation came out of wait_for as ClientConnectionResetError), so anyone who
+    can reach the port, without the token too, could write 2 MB of journal per 1,000 requests."""
+    targets = [b"/", b"/events", b"/static/view.js", b"/nope"]
+
+    async def body(server: ViewServer, url: str) -> None:
+        for target in targets:
+            for _ in range(25):
+                sock = socket.socket()
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                sock.connect(("127.0.0.1", server.port))
+                sock.sendall(b"GET " + target + b" HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                sock.close()  # a reset, with the request unanswered
+        for _ in range(200):  # until the server is done with every one of them
+            if server.connections == 0 and server.viewers == 0 and server.counters["left_early"]:
+                break
+            await asyncio.sleep(0.05)
+        assert server.connections == 0 and server.viewers == 0
+        assert server.counters["left_early"] > 0
+        async with aiohttp.ClientSession() as s, s.get(url, params={"token": token or ""}) as r:
+            assert r.status == 200  # and the view serves others as before
+
+    with caplog.at_level(logging.DEBUG):
+        serve(body, token=token)
+    loud = [r for r in caplog.records if r.exc_info or r.levelno >= logging.WARNING]
+    assert not loud, loud[0].getMessage()
+
+
+def test_a_burst_of_connections_stays_within_the_cap() -> None:
+    """Sockets that arrive together are accepted in one go, before aiohttp has seen any of them: the
+    cap read aiohttp's count then, so 50 at once against a cap of 4 were all taken."""
+
+    async def body(server: ViewServer, url: str) -> None:
+        burst = []
+        try:
+            for _ in range(50):  # all in the listen backlog before the loop accepts one
+                sock = socket.socket()
+                sock.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    sock.connect(("127.0.0.1", server.port))
+                burst.append(sock)
+            for _ in range(200):
+                if server.connections + server.counters["refused_conns"] >= 50:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.connections + server.counters["refused_conns"] == 50
+            assert server.connections == 4 and server.counters["refused_conns"] == 46
+            assert server._runner is not None and server._runner.server is not None
+            assert len(server._runner.server.connections) == 4  # aiohttp's own count agrees
+        finally:
+            for sock in burst:
+                sock.close()
+        for _ in range(100):  # the places are freed once the sockets go
+            if server.connections == 0:
+                break
+            await asyncio.sleep(0.05)
+        assert server.connections == 0
+        async with aiohttp.ClientSession() as s, s.get(url) as r:
+            assert r.status == 200
+
+    serve(body, max_connections=4)

@@ -24,6 +24,9 @@
     view: { scale: 1, x: 0, y: 0, fitted: false, moved: false }, // moved: the user zoomed or panned
     maps: 0,
     loadedAt: Date.now(),
+    instance: null, // the serving daemon's run (its hello): another one means a restart
+    restarts: 0, // how often the page cleared the state of a daemon that restarted
+    retries: 0, // refusals in a row (401, 503): how long to wait before the next try
   };
   window.mapdView = st;
 
@@ -230,11 +233,68 @@
     }
   }
 
+  // A new daemon (restarted) has its own maps: what the page holds is the old one's, so it goes
+  // (the new daemon's state follows the hello at once, if it has any yet).
+  function onHello(m) {
+    if (st.instance !== null && m.instance !== st.instance) {
+      st.geometry = null;
+      st.seq = st.drawnSeq = st.pending = 0;
+      st.version = null;
+      st.gen += 1; // tile decodes still under way belong to the old map
+      st.tileSeq.clear();
+      st.robots = {};
+      st.status = null;
+      st.view.moved = false; // the new map is fitted to the window
+      st.restarts += 1;
+      for (const id of ["mapinfo", "who"]) $(id).textContent = "";
+      for (const id of ["robots", "links"]) $(id).tBodies[0].textContent = "";
+      redraw();
+    }
+    st.instance = m.instance;
+  }
+
   // ---------------------------------------------------------------- the stream
+  function setConn(text, cls) {
+    $("conn").textContent = text;
+    $("conn").className = cls;
+  }
+
+  let countdown = 0;
+  // An answer other than 200 (503: the viewer or connection cap; 401: the token changed) makes the
+  // browser close the EventSource for good; only a broken stream is retried by the browser. So try
+  // again after 5, 10, then 20 s, each up to half as long again at random: pages refused together
+  // by a full daemon do not all come back in the same second. (EventSource does not show the 503's
+  // Retry-After, 10 s.)
+  function retryLater() {
+    const base = [5, 10, 20][Math.min(st.retries, 2)];
+    st.retries += 1;
+    let left = Math.round(base + Math.random() * base / 2);
+    setConn("disconnected, retrying in " + left + " s", "bad");
+    clearInterval(countdown);
+    countdown = setInterval(() => {
+      left -= 1;
+      if (left > 0) {
+        setConn("disconnected, retrying in " + left + " s", "bad");
+      } else {
+        clearInterval(countdown);
+        setConn("connecting", "bad");
+        connect();
+      }
+    }, 1000);
+  }
+
   function connect() {
     const es = new EventSource("events" + query);
-    es.onopen = () => { $("conn").textContent = "live"; $("conn").className = "ok"; };
-    es.onerror = () => { $("conn").textContent = "reconnecting"; $("conn").className = "bad"; };
+    es.onopen = () => { st.retries = 0; setConn("live", "ok"); };
+    es.onerror = () => {
+      if (es.readyState === EventSource.CLOSED) {
+        es.close();
+        retryLater();
+      } else {
+        setConn("reconnecting", "bad"); // the stream broke: the browser tries again by itself
+      }
+    };
+    es.addEventListener("hello", (e) => onHello(JSON.parse(e.data)));
     es.addEventListener("map", (e) => onMap(JSON.parse(e.data)));
     es.addEventListener("robots", (e) => { st.robots = JSON.parse(e.data).robots; redraw(); renderPanel(); });
     es.addEventListener("status", (e) => { st.status = JSON.parse(e.data); renderPanel(); });
