@@ -22,7 +22,8 @@ deploy/robot-config.sh "$robot" "$fleet" < /dev/null > /dev/null
 py="$(command -v python3.11 || command -v python3)"
 "$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "mapd needs Python 3.11+")'
 
-id mapd >/dev/null 2>&1 || useradd --system --home-dir /var/lib/mapd --shell /usr/sbin/nologin mapd
+# --user-group: Group=mapd and install -g mapd need it where useradd makes no group by default
+id mapd >/dev/null 2>&1 || useradd --system --user-group --home-dir /var/lib/mapd --shell /usr/sbin/nologin mapd
 usermod -aG dialout mapd
 
 install -d -m 0755 /opt/mapd
@@ -47,7 +48,10 @@ fi
 if [ ! -f /etc/mapd/robot.key ]; then
   line="$(/opt/mapd/venv/bin/mapd keygen "$robot" -o /etc/mapd/robot.key)"
   chgrp mapd /etc/mapd/robot.key && chmod 0640 /etc/mapd/robot.key
-  grep -qF "$line" /etc/mapd/config.toml || sed -i "/^\[fleet.roster\]/a $line" /etc/mapd/config.toml
+  # this robot's line replaced, not added beside an old one (a key made again): TOML refuses a key
+  # given twice, and the daemon would not start
+  sed -i "/^\[fleet.roster\]/,/^\[/{/^$robot[[:space:]]*=/d}" /etc/mapd/config.toml
+  sed -i "/^\[fleet.roster\]/a $line" /etc/mapd/config.toml
   echo "made /etc/mapd/robot.key; add this line to [fleet.roster] on every robot of the fleet:"
   echo "  $line"
 fi
@@ -68,4 +72,6 @@ install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
 udevadm control --reload 2>/dev/null || true
 systemctl daemon-reload
 systemd-analyze verify /etc/systemd/system/mapd.service || true
+# An upgrade: a running daemon goes on with the old code until it restarts (nothing if not running)
+systemctl try-restart mapd 2>/dev/null || true
 echo "installed. start with: systemctl enable --now mapd; check with: mapd status"

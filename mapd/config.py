@@ -634,6 +634,7 @@ def _check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]
     where = str(cfg.path) if cfg.path else "config"
     for section, chosen in (
         ("source", [cfg.source.use]),
+        ("codec", [cfg.codec.use]),
         ("transports", cfg.transports.use),
         ("output", cfg.output.use),
     ):

@@ -225,6 +225,29 @@ def test_check_config_refuses_a_zenoh_config_file_that_mapd_run_would(
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "bad.json5: " in done.stderr
 
 
+def test_check_config_refuses_a_paper_model_that_mapd_run_could_not_load(tmp_path: Path) -> None:
+    """The model was loaded at the first map: check-config said ok, and mapd run started, said READY
+    and logged "paper model not found" at every map, never sending one."""
+    import shutil
+
+    models = tmp_path / "models"
+    shutil.copytree(REPO_ROOT / "models" / "paper-v3", models / "mine")
+    text = MINIMAL.replace('use = "zstd"', 'use = "paper"') + "[fleet]\nallow_unsigned = true\n"
+    good = write(tmp_path, text + '[codec.paper]\nmodel = "mine"\nmodel_dir = "models"\n')
+    config.check(config.load(good))  # the model is there: fine
+    for model, says in (("no-such-model", "paper model not found.*models in .*: mine"), ("mine", ".*sha256")):
+        if model == "mine":  # tampered weights
+            weights = models / "mine" / "weights.npz"
+            weights.write_bytes(weights.read_bytes()[:-1] + b"x")
+        path = write(tmp_path, text + f'[codec.paper]\nmodel = "{model}"\nmodel_dir = "models"\n')
+        with pytest.raises(ConfigError, match=rf"mapd\.toml: codec\.paper\.model: {says}"):
+            config.check(config.load(path))
+    done = subprocess.run(
+        [sys.executable, "-m", "mapd", "check-config", str(path)], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "sha256" in done.stderr
+
+
 def _example_keys() -> dict[str, set[str]]:
     """Keys config.toml shows (set or commented out), by table; a shown sub-table counts as a key."""
     import re

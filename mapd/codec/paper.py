@@ -85,6 +85,18 @@ class PaperOptions(CodecOptions):
         description="torch threads for the CNNs during encode/decode (0: leave torch's default)",
     )
 
+    def check_files(self) -> None:
+        """ValueError for a model ``mapd run`` could not load (missing, tampered, of another format).
+
+        Loaded at the first map otherwise: a daemon that started, said READY and never sent a map.
+        """
+        from mapd.codec.paper_net import load_model
+
+        try:
+            load_model(models_root(self) / self.model)
+        except CodecError as exc:
+            raise ValueError(f"model: {exc}") from None
+
 
 def models_root(options: PaperOptions) -> Path:
     """Where model folders are looked up: option, else ``$MAPD_MODELS``, else ``<repo>/models``."""

@@ -316,7 +316,17 @@ def cmd_status(args: argparse.Namespace) -> int:
 
     path = _socket_path(args)
     while True:
-        doc = query(path)
+        try:
+            doc = query(path)
+        except DaemonError as exc:
+            if not args.watch:
+                raise
+            # Watching through a restart (or before the daemon is up): say why, and keep watching.
+            if not args.json:
+                print("\033[2J\033[H", end="")
+            print(f"mapd: {exc} (watching: trying again in {args.watch:g} s)", flush=True)
+            time.sleep(args.watch)
+            continue
         if args.json:
             print(json.dumps(doc, indent=2))
         else:

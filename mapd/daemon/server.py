@@ -25,6 +25,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel
@@ -90,6 +91,7 @@ class Daemon:
         self.source = source
         self.transports: list[Transport] = []
         self._stop = asyncio.Event()
+        self._status_said = "running"  # the Status line systemd was last told
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
@@ -240,7 +242,9 @@ class Daemon:
                 for t in self.transports:
                     await t.request_keyframe(robot)
             ok = True
-        notify("READY=1\nSTATUS=running")
+        # READY=1 ends RELOADING=1; the Status line goes with it (not "running": the loop below
+        # says a line again only when it changes, so a steady robot's FAULTS would vanish)
+        notify(f"READY=1\nSTATUS={self._status_now()}")
         return ok
 
     def _revoke(self, robot: str) -> None:
@@ -262,8 +266,49 @@ class Daemon:
             await self.reload()
 
     async def run(self) -> None:
-        """Start everything, run until asked to stop, then shut down within the timeout."""
+        """Start everything, run until asked to stop, then shut down within the timeout.
+
+        A stop asked for during start-up (``systemctl stop`` of a start that takes long: a source
+        building its world, a transport opening) ends the start-up there, without READY=1.
+        """
         await self._restore()
+        try:
+            if not await self._unless_stopped(self._start()):
+                return
+            notify(f"READY=1\nSTATUS={self._status_now()}")
+            log.info(
+                "mapd started",
+                extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}},
+            )
+            try:
+                await self._run_tasks()
+            except* MapdError as group:
+                raise group.exceptions[0] from None
+        finally:
+            await self._shutdown()
+
+    async def _unless_stopped(self, job: Coroutine[Any, Any, None]) -> bool:
+        """Run ``job`` unless a stop comes first, which cancels it: True when it finished."""
+        task = asyncio.ensure_future(job)
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if task.done():
+            task.result()  # its error, if it failed
+            return True
+        task.cancel()
+        await asyncio.wait({task})
+        if not task.cancelled():
+            task.exception()  # (retrieved: what its cancellation raised is not news now)
+        self._stopping_at = time.monotonic()
+        notify("STOPPING=1")
+        log.info("stopping during start-up")
+        return False
+
+    async def _start(self) -> None:
+        """Make the source, transports and outputs and start them, and the control socket."""
         if self.source is None:
             source_cls = plugins.load("source", self.cfg.source.use)
             self.source = source_cls(
@@ -311,28 +356,16 @@ class Daemon:
             self.outputs.append(out_cls(self._options("output", name, out_cls.Options), out_ctx))
         if self.view is not None:
             self.outputs.append(self.view)
-        try:
-            for t in self.transports:
-                await t.start()
-            for o in self.outputs:
-                await o.start()
-            await self.status_server.start()
-            if not self.keys.signed:
-                log.warning(
-                    "fleet.allow_unsigned = true: unsigned messages are accepted, so anyone on the "
-                    "radio or the network can write as any robot"
-                )
-            notify("READY=1\nSTATUS=running")
-            log.info(
-                "mapd started",
-                extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}},
+        for t in self.transports:
+            await t.start()
+        for o in self.outputs:
+            await o.start()
+        await self.status_server.start()
+        if not self.keys.signed:
+            log.warning(
+                "fleet.allow_unsigned = true: unsigned messages are accepted, so anyone on the "
+                "radio or the network can write as any robot"
             )
-            try:
-                await self._run_tasks()
-            except* MapdError as group:
-                raise group.exceptions[0] from None
-        finally:
-            await self._shutdown()
 
     def _options(self, section: str, name: str, model: type[M]) -> M | None:
         """A plugin's validated options (``check_plugins`` built them with ``model``)."""
@@ -457,17 +490,22 @@ class Daemon:
         the peers', the global map and any fault, said again only when it changes."""
         if not os.environ.get("NOTIFY_SOCKET"):
             return
-        said = "running"
         while True:
             await asyncio.sleep(STATUS_PERIOD_S)
-            try:
-                line = status_line(self.snapshot())
-            except Exception:  # a status bug must never take the daemon down (as on the socket)
-                log.exception("status line failed")
-                continue
+            said = self._status_said
+            line = self._status_now()
             if line != said:
                 notify(f"STATUS={line}")
-                said = line
+
+    def _status_now(self) -> str:
+        """The Status line for systemd now (remembered as said: every caller sends it)."""
+        try:
+            line = status_line(self.snapshot())
+        except Exception:  # a status bug must never take the daemon down (as on the socket)
+            log.exception("status line failed")
+            line = self._status_said
+        self._status_said = line
+        return line
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """The fusion worker made a new global map: outputs, recording and fused.csv take it."""
@@ -555,5 +593,21 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
         loop.add_signal_handler(signal.SIGINT, on_sigint)
         await daemon.run()
 
-    asyncio.run(main())
+    # Not asyncio.run: at its end it waits for every job on the default executor, and a job that a
+    # stop cancelled the await of (a source's start_pose, a placement search) runs on in its thread
+    # for as long as it takes, past systemd's TimeoutStopSec. The state is saved by the time run()
+    # returns, and mapd run leaves with os._exit, which ends such a thread.
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    try:
+        loop.run_until_complete(main())
+    finally:
+        pending = asyncio.all_tasks(loop)
+        for task in pending:
+            task.cancel()
+        if pending:
+            loop.run_until_complete(asyncio.wait(pending))
+        loop.run_until_complete(loop.shutdown_asyncgens())
+        asyncio.set_event_loop(None)
+        loop.close()  # shuts the default executor down without waiting for its threads
     return 0

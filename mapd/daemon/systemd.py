@@ -61,14 +61,33 @@ class JournalFormatter(logging.Formatter):
         if record.exc_info:
             msg += "\n" + self.formatException(record.exc_info)
         if self.journal:
-            return f"<{_PRIORITY.get(record.levelno, 6)}>{record.name}: {msg}"
+            # journald takes each line as an entry of its own, at the default (info) priority
+            # unless it starts with the prefix: a traceback's lines must carry it too, or
+            # ``journalctl -p err`` shows the headline without its traceback.
+            prio = f"<{_PRIORITY.get(record.levelno, 6)}>"
+            return "\n".join(prio + line for line in f"{record.name}: {msg}".split("\n"))
         return f"{self.formatTime(record, '%H:%M:%S')} {record.levelname:<7} {record.name}: {msg}"
+
+
+def stderr_is_journal() -> bool:
+    """Whether stderr is the journal stream systemd gave this service (``$JOURNAL_STREAM``).
+
+    Compared with stderr's device and inode, as sd_journal_stream_fd(3) says: the variable is
+    inherited by every process the service starts, whose stderr may be anything.
+    """
+    value = os.environ.get("JOURNAL_STREAM", "")
+    dev, _, ino = value.partition(":")
+    try:
+        st = os.fstat(sys.stderr.fileno())
+        return (st.st_dev, st.st_ino) == (int(dev), int(ino))
+    except (OSError, ValueError, AttributeError):  # no stderr, a stream without fd, a bad value
+        return False
 
 
 def setup_logging(level: str = "info") -> None:
     """Log to stderr; with journald attached (``$JOURNAL_STREAM``) use priority prefixes."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JournalFormatter(journal=bool(os.environ.get("JOURNAL_STREAM"))))
+    handler.setFormatter(JournalFormatter(journal=stderr_is_journal()))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())

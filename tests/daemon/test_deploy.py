@@ -30,8 +30,12 @@ def test_unit_asks_for_notify_watchdog_directories_and_hardening() -> None:
     assert "dialout" in s["SupplementaryGroups"] and s["DevicePolicy"] == "closed"
     # uwb TDMA counts slots on the wall clock: start once it is synchronized, where that is waited for
     assert "time-sync.target" in unit()["Unit"]["After"].split()
-    # restarted however often it fails at boot (systemd's default gives up after 5 in 10 s)
+    # restarted however often it fails at boot (systemd's default gives up after 5 in 10 s)...
     assert unit()["Unit"]["StartLimitIntervalSec"] == "0"
+    # ...but not for a config error, which no retry heals (a start every 2 s, for ever)
+    from mapd.errors import ConfigError
+
+    assert s["RestartPreventExitStatus"] == str(ConfigError.exit_code) == "2"
     env = dict(kv.split("=", 1) for kv in s["Environment"].split())
     # numba may only write below CacheDirectory under ProtectSystem=strict, and install.sh warms it
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/mapd/")
@@ -123,3 +127,36 @@ def test_install_puts_mapd_on_the_path_and_writes_the_config_with_robot_config()
     # the example config names the ros2 and record plugins: a robot gets what they need
     extras = install.split("pip install", 1)[1].split("\n", 1)[0]
     assert "'.[ros2,record]'" in extras
+
+
+def test_install_replaces_this_robots_roster_line_when_its_key_is_made_again(tmp_path: Path) -> None:
+    """A robot whose key was made again (robot.key lost) got a second ``alpha = ...`` line beside
+    the old one: TOML refuses a key given twice, and the daemon would not start. The roster lines of
+    install.sh, run as it runs them, on a config with the old line."""
+    import tomllib
+
+    install = (DEPLOY / "install.sh").read_text()
+    roster_lines = [
+        ln.strip() for ln in install.splitlines() if ln.strip().startswith("sed -i") and "fleet.roster" in ln
+    ]
+    assert len(roster_lines) == 2
+    config = tmp_path / "config.toml"
+    config.write_text(
+        '[robot]\nname = "alpha"\n\n[fleet.roster]\nalpha = "ed25519:OLD"\nbeta = "ed25519:BETA"\n\n'
+        "[fleet.more]\nalpha = 1\n"
+    )
+    script = "robot=alpha; line='alpha = \"ed25519:NEW\"'\n" + "\n".join(roster_lines).replace(
+        "/etc/mapd/config.toml", str(config)
+    )
+    done = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    doc = tomllib.loads(config.read_text())
+    assert doc["fleet"]["roster"] == {"alpha": "ed25519:NEW", "beta": "ed25519:BETA"}
+    assert doc["fleet"]["more"] == {"alpha": 1}  # another table's "alpha" is not this robot's line
+
+
+def test_install_restarts_a_running_daemon_after_an_upgrade() -> None:
+    install = (DEPLOY / "install.sh").read_text()
+    assert "systemctl try-restart mapd" in install  # the old code ran on until a reboot
+    assert install.index("systemctl daemon-reload") < install.index("systemctl try-restart mapd")
+    assert "useradd --system --user-group" in install

@@ -215,6 +215,37 @@ def test_control_socket_serves_json_and_ignores_input(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
+def test_status_watch_keeps_watching_while_no_daemon_answers(tmp_path: Path) -> None:
+    """``mapd status --watch`` exited at the first failed query: watching through a restart ended
+    with the restart."""
+    path = tmp_path / "mapd.sock"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapd", "status", "--socket", str(path), "--watch", "0.1", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        assert "no mapd daemon is running" in first and "watching" in first
+        assert proc.poll() is None  # still watching
+
+        async def serve() -> str:
+            server = StatusServer(path, lambda: {"robot": "alpha"})
+            await server.start()
+            try:
+                while True:  # until a status document comes through
+                    line = await asyncio.to_thread(proc.stdout.readline)  # type: ignore[union-attr]
+                    if not line or '"robot": "alpha"' in line:
+                        return line
+            finally:
+                await server.close()
+
+        assert '"robot": "alpha"' in asyncio.run(asyncio.wait_for(serve(), 60))
+    finally:
+        proc.kill()
+        proc.wait(30)
+
+
 def test_the_control_socket_replaces_only_a_stale_socket_and_removes_only_its_own(tmp_path: Path) -> None:
     """A file, a FIFO or a device at the socket path was deleted (as root, /dev/null would be), and
     a second daemon refused at start removed the first one's socket on its way out."""
@@ -332,6 +363,41 @@ def test_journal_formatter_priority_prefix() -> None:
     rec = logging.LogRecord("mapd.x", logging.WARNING, __file__, 1, "link down", None, None)
     rec.fields = {"peer": "beta"}
     assert JournalFormatter(journal=True).format(rec) == "<4>mapd.x: link down peer=beta"
+
+
+def test_every_line_of_a_traceback_carries_the_journal_priority() -> None:
+    """journald stores each line as an entry: unprefixed lines went in at info, so
+    ``journalctl -p err`` showed an error's headline without its traceback."""
+    try:
+        raise ZeroDivisionError("division by zero")
+    except ZeroDivisionError:
+        exc_info = sys.exc_info()
+    import logging
+
+    rec = logging.LogRecord("mapd.daemon", logging.ERROR, __file__, 1, "status line failed", None, exc_info)
+    lines = JournalFormatter(journal=True).format(rec).split("\n")
+    assert len(lines) > 3 and all(line.startswith("<3>") for line in lines)
+    assert (
+        lines[0] == "<3>mapd.daemon: status line failed"
+        and lines[-1] == "<3>ZeroDivisionError: division by zero"
+    )
+
+
+@pytest.mark.parametrize("journal", [True, False])
+def test_the_error_that_stops_mapd_is_at_error_priority_in_the_journal(tmp_path: Path, journal: bool) -> None:
+    """``mapd: error: ...`` (why the unit stopped) went to the journal at info priority; and only a
+    stderr that is the journal stream (device and inode of ``$JOURNAL_STREAM``) gets the prefix."""
+    err = tmp_path / "stderr"
+    with err.open("wb") as fh:
+        st = os.fstat(fh.fileno())
+        env = dict(os.environ, JOURNAL_STREAM=f"{st.st_dev}:{st.st_ino}" if journal else "1:1")
+        subprocess.run(
+            [sys.executable, "-m", "mapd", "check-config", str(tmp_path / "none.toml")],
+            stderr=fh, stdout=subprocess.DEVNULL, env=env, timeout=60, check=False,
+        )  # fmt: skip
+    line = err.read_text().strip().splitlines()[-1]
+    assert "none.toml" in line and "error" in line
+    assert line.startswith("<3>mapd: error: ") == journal
 
 
 @pytest.mark.parametrize(

@@ -84,7 +84,7 @@ def test_a_daemon_under_systemd_keeps_its_status_line_current(tmp_path: Path, dk
                     said.append(s.recv(4096).decode())
             proc.send_signal(signal.SIGTERM)
             assert proc.wait(30) == 0
-    assert said[0] == "READY=1\nSTATUS=running", said
+    assert said[0] == "READY=1\nSTATUS=FAULTS UNSIGNED fleet | no map yet; no peers yet", said
     status = [m for m in said if m.startswith("STATUS=")]
     assert status and re.fullmatch(
         r"STATUS=FAULTS UNSIGNED fleet \| map v1; no peers yet; global 1 map \d+x\d+", status[-1]
@@ -122,3 +122,70 @@ def test_a_status_bug_costs_the_line_not_the_daemon(
         task.cancel()
 
     asyncio.run(main())
+
+
+def test_a_reload_keeps_the_status_line_not_running(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """READY=1 after a reload said STATUS=running, and the status loop, which says a line only when
+    it changes, never said the real one again: a steady robot's FAULTS vanished from systemctl
+    status at every reload."""
+    import asyncio
+
+    from mapd.daemon import server
+
+    sent: list[str] = []
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody"))
+    monkeypatch.setattr(server, "STATUS_PERIOD_S", 0.01)
+    monkeypatch.setattr(server, "notify", sent.append)
+    d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+
+    async def main() -> None:
+        task = asyncio.create_task(d._systemd_status())
+        await dk.wait_for(lambda: any(m.startswith("STATUS=") for m in sent), what="a first line")
+        line = sent[-1]
+        assert await d.reload()
+        assert sent[-2].startswith("RELOADING=1") and sent[-1] == "READY=1\n" + line
+        n = len(sent)
+        await asyncio.sleep(0.2)  # twenty turns of the status loop: nothing changed, nothing said
+        assert len(sent) == n
+        task.cancel()
+
+    asyncio.run(main())
+
+
+def test_a_stop_during_start_up_ends_it_without_ready(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGTERM while the source was still reading its start pose (a large log, a world to build)
+    waited for the whole start-up, then said READY=1 and only then stopped: systemctl stop of a
+    slow start ran into TimeoutStopSec."""
+    import asyncio
+    import threading
+
+    from mapd.daemon import server
+
+    sent: list[str] = []
+    monkeypatch.setattr(server, "notify", sent.append)
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    entered, release = threading.Event(), threading.Event()
+
+    def slow_start_pose() -> None:
+        entered.set()
+        release.wait(60)
+
+    monkeypatch.setattr(source, "start_pose", slow_start_pose)
+
+    async def main() -> None:
+        task = asyncio.create_task(d.run())
+        await dk.wait_for(entered.is_set, what="start-up under way")
+        d.request_stop()
+        await asyncio.wait_for(task, 30)  # returns with start_pose still blocked
+        assert not release.is_set()
+
+    try:
+        asyncio.run(main())
+    finally:
+        release.set()
+    assert "STOPPING=1" in sent and not any(m.startswith("READY=1") for m in sent), sent
+    assert d.transports == [] or all(not t.peers() for t in d.transports)
