@@ -36,6 +36,8 @@ def test_unit_asks_for_notify_watchdog_directories_and_hardening() -> None:
     from mapd.errors import ConfigError
 
     assert s["RestartPreventExitStatus"] == str(ConfigError.exit_code) == "2"
+    # a stop waits out one placement search, then saves the state: room for both before SIGKILL
+    assert int(s["TimeoutStopSec"]) >= 30
     env = dict(kv.split("=", 1) for kv in s["Environment"].split())
     # numba may only write below CacheDirectory under ProtectSystem=strict, and install.sh warms it
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/mapd/")

@@ -252,7 +252,7 @@ def test_stopping_during_a_long_merge_waits_one_estimate_not_the_merge(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # The stop waited for the whole merge: with robots that do not place, minutes, past systemd's
-    # TimeoutStopSec (10 s), which then kills the daemon before its state is flushed.
+    # TimeoutStopSec (10 s then, 30 s now), which then kills the daemon before its state is flushed.
     import time
 
     from mapd.fusion import placement as placement_mod
