@@ -10,6 +10,23 @@ Two models, because they live on two threads and must never wait for each other:
   resends, last heard, and per robot its versions, keyframes/deltas, bytes and fusion confidence.
 
 Both return :class:`~mapd.view.queue.Message` frames, encoded once for all viewers.
+
+The ``map`` message (format :data:`MAP_FORMAT`; the page ships with the server and reloads itself
+on a format it does not know)::
+
+    {"format": 2, "seq": n, "version": v, "stamp": s, "versions": {...},
+     "geometry": {"width", "height", "resolution", "origin": [x, y], "tile": 128, "lattice": [c, r]},
+     "full": bool, "tiles": [[tx, ty, "<base64 palette PNG>"], ...]}
+
+``tiles`` are on the fleet frame's tile lattice (:mod:`mapd.view.tiles`). ``full``: the viewer starts
+from a blank canvas (all unknown) of the new geometry. Otherwise the message follows the one of
+``seq - 1`` (map messages reach a viewer in order, or it is resynced with a full one): with the same
+geometry, its tiles are drawn over the canvas; with another one (the map grew or moved by whole cells
+on the same lattice), the viewer first makes a canvas of the new size and copies the old one into it
+at ``old lattice - new lattice`` pixels, then draws the tiles. The tiles sent are those with a
+changed cell and those new or whose extent changed (edge tiles): every cell of the new canvas is
+then as the map says, exactly as if the whole map had been sent. A change of resolution, or an
+origin moved by a fraction of a cell, goes out ``full``.
 """
 
 from __future__ import annotations
@@ -27,8 +44,11 @@ from mapd.fusion.transforms import compose
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate
 from mapd.view.queue import Message, sse
-from mapd.view.tiles import Geometry, changed_tiles, class_image, encode_tile
+from mapd.view.tiles import Geometry, all_tiles, changed_tiles, class_image, encode_tile
 
+#: The ``map`` message's format: bumped when the page must draw its tiles another way (2: tiles on
+#: the fleet frame's lattice, and grown maps sent as deltas).
+MAP_FORMAT = 2
 #: Robot colours (the demo report's, as CSS): robots get them in the order they are first seen.
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf")
 #: Trail points kept per robot (older ones fall off: memory stays bounded however long it runs).
@@ -96,23 +116,35 @@ class MapModel:
 
     # -- the global map ----------------------------------------------------------------------
     def global_map(self, update: GlobalUpdate) -> Message:
-        """A new global map: the ``map`` message with only the tiles that changed (all on a resize)."""
+        """A new global map: the ``map`` message with only the tiles that changed or are new.
+
+        A map that grew or moved by whole cells is a delta too (its tiles are on the fleet frame's
+        lattice); only a change of resolution or a fractional move sends every tile.
+        """
         grid = update.grid
         image = class_image(grid)
         geometry = Geometry.of(grid)
-        full = geometry != self._geometry or self._image is None
-        tiles = changed_tiles(None if full else self._image, image)
+        prev = self._geometry
+        full = prev is None or self._image is None or not geometry.lines_up_with(prev)
+        tiles = changed_tiles(None if full else self._image, image, geometry, prev)
         if full:
             self._tiles.clear()
+        elif geometry != prev:
+            # the full state keeps the tiles that did not change (same lattice place, same bytes)
+            # and loses those now off the map (it shrank on a side)
+            keep = set(all_tiles(geometry))
+            for key in self._tiles.keys() - keep:
+                del self._tiles[key]
         encoded = []
         for tx, ty in tiles:
-            b64 = base64.b64encode(encode_tile(image, tx, ty)).decode("ascii")
+            b64 = base64.b64encode(encode_tile(image, geometry, tx, ty)).decode("ascii")
             self._tiles[(tx, ty)] = b64
             encoded.append([tx, ty, b64])
         self.tiles_encoded += len(tiles)
         self._image, self._geometry = image, geometry
         self.seq += 1
         self._head = {
+            "format": MAP_FORMAT,
             "seq": self.seq,
             "version": grid.version,
             "stamp": round(update.stamp, 3),

@@ -3,12 +3,15 @@ its token rotated; its daemon restarted.
 
 An answer other than 200 on ``/events`` (a 503 at the viewer cap, a 401 after the token changed)
 makes the browser close an EventSource for good: the page must try again by itself, and say so.
-A page whose daemon restarted must not show the old daemon's map as live.
+A page whose daemon restarted must not show the old daemon's map as live. A page whose map grew
+draws it from the new tiles alone, cell for cell the same as the whole map.
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
+import io
 import re
 from pathlib import Path
 from typing import Any
@@ -16,11 +19,13 @@ from typing import Any
 import aiohttp
 import numpy as np
 import pytest
+from PIL import Image
 
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.outputs.base import GlobalUpdate
 from mapd.view.model import MapModel
 from mapd.view.server import ViewServer
+from mapd.view.tiles import PALETTE, class_image
 
 TOKEN = "s3cret-token-0123456789"
 CONN = "document.getElementById('conn').textContent"
@@ -126,5 +131,76 @@ def test_a_page_drops_the_map_of_a_daemon_that_restarted(chromium: str, vk: Any,
             await first.close()
             if second is not None:
                 await second.close()
+
+    asyncio.run(main())
+
+
+async def _cells(b: Any) -> np.ndarray:
+    """The page's canvas of cells (one pixel per cell), read back through the DevTools protocol."""
+    url = await b.eval("mapdView.cells().toDataURL('image/png')")
+    with Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))) as im:
+        return np.asarray(im.convert("RGB")).copy()
+
+
+def _rgb(grid: OccupancyGrid) -> np.ndarray:
+    lut = np.array([PALETTE[i] for i in range(3)], np.uint8)
+    return lut[class_image(grid)]
+
+
+@pytest.mark.slow
+def test_a_page_draws_a_grown_map_from_its_new_tiles_exactly_as_the_whole_map(
+    chromium: str, vk: Any, tmp_path: Path
+) -> None:
+    """Before: every growth re-sent the whole map. Now only new and changed tiles come, and the page
+    copies its old cells into a bigger canvas: its pixels must still be the map's, cell for cell,
+    also when growths follow each other before the page has decoded the tiles of the one before."""
+    rng = np.random.default_rng(5)
+    d = np.full((200, 300), -1, np.int8)  # lattice columns -64..235, rows -136..63: clipped all round
+    d[10:-10, 10:-10] = 0
+    d[rng.random(d.shape) < 0.02] = 100
+    origin = [-3.2, -3.2]
+
+    def grow(side: str) -> OccupancyGrid:
+        nonlocal d
+        h, w = d.shape
+        k = 64
+        out = np.full((h + k * (side in "-y+y"), w + k * (side in "-x+x")), -1, np.int8)
+        r, c = (k if side == "-y" else 0), (k if side == "-x" else 0)
+        out[r : r + h, c : c + w] = d
+        out[rng.random(out.shape) < 0.001] = 100  # and some cells change, old ones and new ones
+        d = out
+        origin[0] -= k * 0.05 if side == "-x" else 0.0
+        origin[1] -= k * 0.05 if side == "-y" else 0.0
+        return OccupancyGrid(d, 0.05, Pose2D(origin[0], origin[1], 0.0))
+
+    async def main() -> None:
+        server = ViewServer("127.0.0.1", 0)
+        await server.start()
+        model = MapModel()
+        g = OccupancyGrid(d, 0.05, Pose2D(origin[0], origin[1], 0.0))
+        server.post(model.global_map(GlobalUpdate(g, {}, 1.0)), model.robots(), full_map=model.full_map())
+        try:
+            async with vk.Browser(chromium, tmp_path) as b:
+                await b.goto(server.url)
+                await b.wait(LIVE_AND_DRAWN, 60, "the map drawn")
+                assert np.array_equal(await _cells(b), _rgb(g))
+                for i, sides in enumerate((["-x"], ["+y"], ["+x", "-y"], ["-x", "+y", "+x"])):
+                    for side in sides:  # several at once: tiles of one still decoding at the next
+                        g = grow(side)
+                        delta = model.global_map(GlobalUpdate(g, {}, 2.0 + i))
+                        assert b'"full":false' in delta.frame
+                        server.post(delta, full_map=model.full_map())
+                    await b.wait(
+                        f"mapdView.drawnSeq === {model.seq} && mapdView.seq === {model.seq}",
+                        60,
+                        f"growth {sides} drawn",
+                    )
+                    got = await _cells(b)
+                    assert got.shape == (g.height, g.width, 3), sides
+                    wrong = np.argwhere((got != _rgb(g)).any(axis=2))
+                    assert len(wrong) == 0, (sides, len(wrong), wrong[:5].tolist())
+                assert await b.eval("mapdView.restarts") == 0
+        finally:
+            await server.close()
 
     asyncio.run(main())

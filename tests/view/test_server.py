@@ -158,7 +158,7 @@ def test_sse_delivers_full_state_then_updates_and_status() -> None:
                 kind, data = await anext(it)
                 if kind == "map":
                     break
-            assert data["seq"] == 2 and not data["full"] and [t[:2] for t in data["tiles"]] == [[1, 0]]
+            assert data["seq"] == 2 and not data["full"] and [t[:2] for t in data["tiles"]] == [[1, -1]]
 
     serve(body, snapshot=lambda: snaps, status_every_s=0.05)
 

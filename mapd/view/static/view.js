@@ -1,5 +1,7 @@
 // mapd live view: one EventSource; map tiles drawn into an offscreen canvas (one pixel per cell),
 // then that canvas, the robots' outlines, trails and markers drawn at the current zoom and pan.
+// Tiles lie on the fleet frame's lattice (mapd/view/tiles.py, the map message in model.py): a map
+// that grew keeps its tiles, so the canvas is copied into a bigger one and only new tiles come.
 // window.mapdView exposes the state for tests (what is drawn, and where a fleet point lands).
 "use strict";
 (function () {
@@ -7,8 +9,10 @@
   const query = (script && script.dataset.query) || "";
   const canvas = document.getElementById("map");
   const ctx = canvas.getContext("2d");
-  const off = document.createElement("canvas");
-  const offctx = off.getContext("2d");
+  const MAP_FORMAT = 2; // the map message's format this page draws (model.py MAP_FORMAT)
+  const UNKNOWN_RGB = "#a3a7ad"; // a cell no tile has drawn yet is unknown (tiles.py PALETTE)
+  let off = document.createElement("canvas"); // one pixel per cell: replaced when the map grows
+  let offctx = off.getContext("2d");
   const $ = (id) => document.getElementById(id);
 
   const st = {
@@ -29,6 +33,7 @@
     retries: 0, // refusals in a row (401, 503): how long to wait before the next try
   };
   window.mapdView = st;
+  st.cells = () => off; // the canvas of cells (tests read its pixels)
 
   // ---------------------------------------------------------------- coordinates
   // fleet metres -> map pixel (row 0 at the top) -> CSS pixel on the screen
@@ -130,20 +135,58 @@
   }
 
   // ---------------------------------------------------------------- messages
+  // A blank canvas of g's size (every cell unknown), with the old one copied where its cells lie
+  // on the lattice now: a map that grew toward -x or +y moves its old cells right or down.
+  function newCells(g, keep) {
+    const next = document.createElement("canvas");
+    next.width = g.width;
+    next.height = g.height;
+    const nctx = next.getContext("2d");
+    nctx.fillStyle = UNKNOWN_RGB;
+    nctx.fillRect(0, 0, g.width, g.height);
+    if (keep) {
+      nctx.imageSmoothingEnabled = false;
+      nctx.drawImage(off, keep.lattice[0] - g.lattice[0], keep.lattice[1] - g.lattice[1]);
+    }
+    off = next;
+    offctx = nctx;
+  }
+
+  // A page older or newer than its daemon (one upgraded under an open page) cannot draw its tiles:
+  // load the page that ships with it, once (a second mismatch says so instead of reloading for ever).
+  function wrongFormat(format) {
+    const key = "mapd-reloaded-for-format";
+    let first = false;
+    try {
+      first = sessionStorage.getItem(key) !== String(format);
+      sessionStorage.setItem(key, String(format));
+    } catch (e) {
+      first = false; // no storage (a locked-down browser): no way to tell a reload loop, so ask
+    }
+    if (first) location.reload();
+    else setConn("this page is out of date: reload it", "bad");
+  }
+
   function onMap(m) {
+    if (m.format !== MAP_FORMAT) return wrongFormat(m.format);
     const g = m.geometry;
-    const same = st.geometry && g.width === st.geometry.width && g.height === st.geometry.height &&
-      g.origin[0] === st.geometry.origin[0] && g.origin[1] === st.geometry.origin[1];
+    const old = st.geometry;
+    const same = old && g.width === old.width && g.height === old.height &&
+      g.resolution === old.resolution && g.lattice[0] === old.lattice[0] && g.lattice[1] === old.lattice[1] &&
+      g.origin[0] === old.origin[0] && g.origin[1] === old.origin[1];
     if (!same) {
-      if (!m.full) return; // a delta for another geometry: the full map follows
-      const old = st.geometry;
-      off.width = g.width;
-      off.height = g.height;
-      offctx.fillStyle = "#a3a7ad";
-      offctx.fillRect(0, 0, g.width, g.height);
-      st.gen += 1;
-      st.tileSeq.clear();
-      st.pending = 0;
+      if (m.full) {
+        newCells(g, null);
+        st.gen += 1; // tile decodes under way are for a canvas that is gone
+        st.tileSeq.clear();
+        st.pending = 0;
+      } else if (old && g.resolution === old.resolution && g.tile === old.tile) {
+        // the map grew (or moved by whole cells) on the same lattice: its old cells stay, and a
+        // tile still decoding lands by its lattice place, so nothing under way is dropped
+        newCells(g, old);
+      } else {
+        return; // a delta for a geometry this page does not hold: the full map follows
+      }
       if (old && st.view.moved) {
         // keep the same fleet point under the same screen point when the map grows: a point's
         // pixel column (x - ox) / res shifts by -dox / res, but its row height - (y - oy) / res
@@ -162,6 +205,8 @@
     const gen = st.gen, seq = m.seq;
     for (const [tx, ty, b64] of m.tiles) {
       const key = tx + "," + ty;
+      // the tile's top-left cell on the lattice (an edge tile is clipped to the map it came with)
+      const lx = Math.max(tx * g.tile, g.lattice[0]), ly = Math.max(ty * g.tile, g.lattice[1]);
       st.tileSeq.set(key, seq);
       st.pending += 1;
       const img = new Image();
@@ -169,7 +214,8 @@
         if (gen === st.gen) {
           st.pending -= 1;
           if (img.complete && img.naturalWidth && st.tileSeq.get(key) === seq) {
-            offctx.drawImage(img, tx * g.tile, ty * g.tile);
+            const now = st.geometry.lattice; // the canvas may have grown since the tile came
+            offctx.drawImage(img, lx - now[0], ly - now[1]);
           }
           if (st.pending === 0) st.drawnSeq = st.seq;
           redraw();
