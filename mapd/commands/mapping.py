@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -18,6 +19,54 @@ def _resolution(text: str) -> float:
     from mapd.mapping.mapper import resolution_arg
 
     return resolution_arg(text)
+
+
+#: What a replay writes into its output folder: a second run into the same folder left the first
+#: run's extra snapshots (and robots) beside its own, so such a folder is refused.
+_REPLAY_DIR = re.compile(r"robot\d+")
+
+
+def _check_output(out: Path) -> None:
+    """Refuse ``-o`` when it is not a folder, or holds an earlier replay's files; before any work.
+
+    Overwriting in place would mix two runs: a run with fewer snapshots or robots leaves the
+    earlier run's later ``map_*.yaml`` files and ``robotN/`` folders, and nothing tells them apart.
+    """
+    from mapd.errors import MapFileError
+
+    if out.exists() and not out.is_dir():
+        raise MapFileError(f"{out}: -o must be a folder, and this is a file")
+    if not out.is_dir():
+        return  # a new folder: made when the first snapshot is written
+    try:
+        held = sorted(
+            e.name
+            for e in out.iterdir()
+            if e.name == "poses.yaml" or (_REPLAY_DIR.fullmatch(e.name) is not None and e.is_dir())
+        )
+    except OSError as exc:
+        raise MapFileError(f"{out}: cannot read the output folder: {exc.strerror}") from None
+    if held:
+        shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+        raise MapFileError(
+            f"{out}: already holds a replay ({shown}); give another -o folder, or remove this one first"
+        )
+
+
+def _no_scan_lines(log: Path) -> str:
+    """Why a log with no scan line at all is no CARMEN log, in words (for the one error line)."""
+    try:
+        with open(log, "rb") as fh:
+            head = fh.read(2)
+    except OSError:
+        head = b""
+    if not head:
+        return f"{log}: the log is empty"
+    if log.name.endswith(".gz") and head != b"\x1f\x8b":
+        return (
+            f"{log}: not a CARMEN log (named .gz but not gzip-compressed, and no FLASER or ROBOTLASER1 line)"
+        )
+    return f"{log}: not a CARMEN log (no FLASER or ROBOTLASER1 line)"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -52,7 +101,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     import yaml
     from tqdm import tqdm
 
-    from mapd.errors import ConfigError, MapFileError
+    from mapd.errors import ConfigError, MapFileError, SourceError
     from mapd.files import atomic_write_bytes
     from mapd.grid import save_map
     from mapd.mapping import carmen
@@ -64,7 +113,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise ConfigError("--robots must lie in 1..64")
     if not 0.0 <= args.overlap < 1.0:
         raise ConfigError("--overlap must lie in [0, 1)")
+    _check_output(args.output)
     total = carmen.count_scans(args.log)
+    if total == 0:
+        # SourceError, as for a log that cannot be opened: the log is the input at fault.
+        raise SourceError(_no_scan_lines(args.log))
     # One record of bad lines for every robot's pass: each kind of fault is said once, not per robot.
     stats = carmen.LogStats()
     poses: dict[str, list[float]] = {}
@@ -101,6 +154,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
             f"{last.width} x {last.height} cells -> {out}/",
             file=sys.stderr,
         )
+    if not poses:
+        # Scan lines, but not one usable: a run that wrote nothing must not exit 0. One robot
+        # without scans among others that had some stays the warning above.
+        why = f"; the last: {stats.last_error}" if stats.last_error else ""
+        raise SourceError(f"{args.log}: no usable scan in its {total} scan lines (all skipped{why})")
     try:
         args.output.mkdir(parents=True, exist_ok=True)
         text = (

@@ -95,14 +95,12 @@ class _FullDisk:
         return getattr(self._fh, name)
 
 
-def test_a_full_disk_leaves_the_previous_poses_file_whole(
+def test_a_full_disk_leaves_no_partial_poses_file(
     box_log: BoxLog, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     log, _poses = box_log(scans=12)
     out = tmp_path / "out"
-    out.mkdir()
-    old = "# the previous run's frames\nrobot0: [1.0, 2.0, 0.5]\n"
-    (out / "poses.yaml").write_text(old)
+    out.mkdir()  # an empty folder that exists already is a fine output
     real_open = builtins.open
 
     def full_disk_open(file: Any, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
@@ -121,8 +119,8 @@ def test_a_full_disk_leaves_the_previous_poses_file_whole(
     assert [ln for ln in err.splitlines() if ln.startswith("mapd: error: ")] == [
         f"mapd: error: {out}/poses.yaml: cannot write: No space left on device"
     ]
-    assert (out / "poses.yaml").read_text() == old
-    assert sorted(p.name for p in out.iterdir()) == ["poses.yaml", "robot0"]  # no temp file left
+    # Neither a truncated poses.yaml nor a temp file beside it.
+    assert sorted(p.name for p in out.iterdir()) == ["robot0"]
 
 
 @pytest.mark.parametrize("value", ["100", "inf", "1e300", "1e-300", "0", "-0.05", "nan"])
@@ -139,3 +137,55 @@ def test_a_resolution_the_mapper_cannot_take_is_one_usage_line(
     assert err.splitlines()[-1].startswith("mapd replay: error: argument --resolution: ")
     assert len(err.splitlines()[-1]) < 120
     assert not out.exists()
+
+
+def _errors(err: str) -> list[str]:
+    assert "Traceback" not in err
+    return [ln for ln in err.splitlines() if ln.startswith("mapd: error: ")]
+
+
+@pytest.mark.parametrize(
+    ("name", "data", "says"),
+    [
+        ("map.yaml", b"image: map.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n", "not a CARMEN log"),
+        ("empty.log", b"", "the log is empty"),
+        ("g.log.gz", b"garbage", "named .gz but not gzip-compressed"),
+        ("bad.log", b"FLASER 3 1 2\nFLASER x\n", "no usable scan in its 2 scan lines"),
+    ],
+)
+def test_a_replay_that_read_no_scan_is_one_error_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, data: bytes, says: str
+) -> None:
+    log = tmp_path / name
+    log.write_bytes(data)
+    out = tmp_path / "out"
+    rc = main(["replay", str(log), "-o", str(out)])
+    errors = _errors(capsys.readouterr().err)
+    assert rc == 1
+    assert len(errors) == 1 and errors[0].startswith(f"mapd: error: {log}: ") and says in errors[0], errors
+    assert not (out / "poses.yaml").exists()  # no empty poses.yaml that looks like a finished run
+
+
+def test_an_output_folder_holding_an_earlier_replay_is_refused(
+    box_log: BoxLog, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log, _poses = box_log(scans=30)
+    out = tmp_path / "out"
+    assert main(["replay", str(log), "-o", str(out), "--every", "2", "--robots", "2"]) == 0
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    assert "robot1/map_0009.yaml" in before
+    capsys.readouterr()
+    # Fewer snapshots and robots: in place, the first run's map_0002..0009 and robot1/ would have stayed.
+    rc = main(["replay", str(log), "-o", str(out), "--every", "50"])
+    errors = _errors(capsys.readouterr().err)
+    assert rc == 1
+    assert errors == [
+        f"mapd: error: {out}: already holds a replay (poses.yaml, robot0, robot1); "
+        "give another -o folder, or remove this one first"
+    ]
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before  # refused before any work
+    # A robot's folder alone (a run stopped before its poses.yaml) is an earlier replay too.
+    only = tmp_path / "only"
+    (only / "robot3").mkdir(parents=True)
+    assert main(["replay", str(log), "-o", str(only)]) == 1
+    assert "already holds a replay (robot3)" in capsys.readouterr().err
