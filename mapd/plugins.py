@@ -12,8 +12,10 @@ for that plugin, and then it is one clear :class:`~mapd.errors.PluginError`.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import importlib.metadata
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, overload
 
@@ -85,6 +87,22 @@ def available(kind: str) -> list[PluginInfo]:
 def names(kind: str) -> list[str]:
     """Names of the plugins registered for ``kind``."""
     return sorted(_entry_points(kind))
+
+
+def name_type(kind: str, extra: tuple[str, ...] = ()) -> Callable[[str], str]:
+    """An argparse ``type``: a name registered for ``kind`` (or one of ``extra``), else a usage error
+    (exit 2) listing them, when the arguments are parsed rather than after work began. Reads the
+    package metadata only: no plugin is imported."""
+
+    def check(text: str) -> str:
+        known = [*names(kind), *extra]
+        if text not in known:
+            raise argparse.ArgumentTypeError(
+                f"no {kind} named {text!r} (installed: {', '.join(known) or 'none'})"
+            )
+        return text
+
+    return check
 
 
 def interface(kind: str) -> type:

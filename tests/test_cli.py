@@ -61,3 +61,65 @@ def test_plugins_lists_all_kinds() -> None:
     rows = json.loads(out.stdout)
     assert {r["kind"] for r in rows} == {"source", "codec", "transport", "output"}
     assert any(r["name"] == "zstd" and r["status"] == "ok" for r in rows)
+
+
+def test_an_unknown_codec_is_a_usage_error_listing_the_codecs(tmp_path: Path, room_grid) -> None:  # type: ignore[no-untyped-def]
+    """It exited 1 after the map was read (encode) or the work began (warmup, bench codec)."""
+    src = save_map(room_grid, tmp_path / "room.yaml")
+    for args in (
+        ("encode", str(src), "-o", str(tmp_path / "x.mapd"), "--codec", "nope"),
+        ("warmup", "--codec", "raw", "nope"),
+        ("bench", "codec", "--codec", "nope", "--limit", "1"),
+    ):
+        out = run(*args)
+        assert out.returncode == 2, (args, out.stderr)
+        assert "no codec named 'nope'" in out.stderr and "lossless" in out.stderr, out.stderr
+        assert "Traceback" not in out.stderr and out.stdout == ""
+    assert not (tmp_path / "x.mapd").exists()
+
+
+def test_payloads_go_through_stdout_and_stdin_and_maps_refuse_dash(tmp_path: Path, room_grid) -> None:  # type: ignore[no-untyped-def]
+    """'-' made a file named '-' (encode) or failed to open one (decode)."""
+    src = save_map(room_grid, tmp_path / "room.yaml")
+    enc = subprocess.run(
+        [*MAPD, "encode", str(src), "-o", "-", "--codec", "zstd"],
+        capture_output=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert enc.returncode == 0, enc.stderr
+    assert enc.stdout[:1] and not (tmp_path / "-").exists()
+    dec = subprocess.run(
+        [*MAPD, "decode", "-", "-o", "back.yaml"],
+        input=enc.stdout,
+        capture_output=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert dec.returncode == 0, dec.stderr
+    assert load_map(tmp_path / "back.yaml").same_map(room_grid)
+    for args in (("encode", "-", "-o", "x.mapd"), ("decode", "x.mapd", "-o", "-")):
+        out = subprocess.run([*MAPD, *args], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+        lines = out.stderr.strip().splitlines()
+        assert out.returncode == 2 and len(lines) == 1 and "cannot be '-'" in lines[0], out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["back.pgm", "back.yaml", "room.pgm", "room.yaml"]
+
+
+def test_check_config_json_is_json_alone(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[robot]\nname = "alpha"\nfleet = "lab"\n[fleet]\nallow_unsigned = true\n')
+    out = run("check-config", str(cfg), "--json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["robot"]["name"] == "alpha"  # `| jq` needs nothing before the JSON
+
+
+def test_keygen_prints_an_absolute_link_key_path_and_refuses_out_with_public(tmp_path: Path) -> None:
+    mapd = lambda *a: subprocess.run([*MAPD, *a], capture_output=True, text=True, cwd=tmp_path, timeout=60)  # noqa: E731
+    made = mapd("keygen", "--link-key", "link.key")
+    assert made.returncode == 0, made.stderr
+    # config paths are relative to the config's folder, not to where keygen ran
+    assert made.stdout.startswith(f'link_key_file = "{tmp_path.resolve() / "link.key"}"'), made.stdout
+    assert mapd("keygen", "r1", "-o", "old.key").returncode == 0
+    both = mapd("keygen", "r1", "-o", "new.key", "--public", "old.key")
+    assert both.returncode == 2 and both.stderr.startswith("mapd: error: keygen: --public"), both.stderr
+    assert not (tmp_path / "new.key").exists()

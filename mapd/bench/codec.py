@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mapd import plugins
 from mapd.bench.common import MAX_REPEAT, int_arg
 from mapd.tables import emit, table
 
@@ -26,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--codec",
         nargs="+",
+        type=plugins.name_type("codec", BASELINES),
         default=None,
         metavar="NAME",
         help="codecs to measure (default: every installed one)",

@@ -9,7 +9,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mapd.commands.common import path_or_stdio
 from mapd.errors import ConfigError
+
+#: Exit status of a merge that wrote its output but left some input maps out of it (each listed,
+#: with why): scripts can tell a partial merge from a whole one without parsing the output.
+EXIT_LEFT_OUT = 3
 
 EPILOG = """\
 Robots are named by their map file's stem (intel_part1.yaml -> intel_part1) when the stems are all
@@ -23,7 +28,14 @@ first map's frame; maps without a pose are estimated against the maps already pl
 
 Every transform printed is the input's map frame expressed in the FIRST map's frame
 (p_first = R(yaw) p_input + (x, y)). An input whose estimate is below --min-confidence or
---min-agreement is left out of the merge, and the output says why.
+--min-agreement is left out of the merge, and the output says why. When the first map has no
+--pose and matches no posed map, the output is in the frame of the --pose options instead, and
+everything printed says so. --json lists every input under "maps" (and those after the first under
+"transforms"): "accepted" is whether its cells are in the output, "reason" why not.
+
+exit status: 0 every map merged; 3 the output was written but some maps were left out (listed on
+stderr, and in "left_out" with --json); 2 a bad option (an output naming an input file, a --pose
+for no input, ...; nothing is written); 1 another error (an unreadable map, a full disk, ...).
 
 examples:
   mapd merge intel_part1.yaml intel_part2.yaml -o merged.yaml --png merged.png
@@ -41,10 +53,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "maps", nargs="+", type=Path, metavar="MAP.yaml", help="map_server YAML files (at least two)"
+        "maps", nargs="+", type=path_or_stdio, metavar="MAP.yaml", help="map_server YAML files (at least two)"
     )
     p.add_argument(
-        "-o", "--output", type=Path, required=True, help="map_server YAML to write the merged map to"
+        "-o", "--output", type=path_or_stdio, required=True, help="map_server YAML to write the merged map to"
     )
     p.add_argument(
         "--pose",
@@ -56,7 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", choices=("logodds", "occupied_wins"), default="logodds", help="merge rule")
     p.add_argument("--min-confidence", type=float, default=0.5, help="accept estimates at or above this")
     p.add_argument("--min-agreement", type=float, default=0.8, help="overlap agreement needed to accept")
-    p.add_argument("--png", type=Path, help="also write a colour preview (each map's cells in its colour)")
+    p.add_argument(
+        "--png", type=path_or_stdio, help="also write a colour preview (each map's cells in its colour)"
+    )
     p.add_argument("--json", action="store_true", help="print the transforms as JSON")
     p.set_defaults(func=cmd_merge)
 
@@ -101,6 +115,7 @@ def parse_poses(specs: list[str], names: list[str]) -> dict[str, Any]:
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
+    from mapd.commands.common import check_writable, map_inputs, map_outputs, refuse_overwrite, refuse_stdio
     from mapd.fusion.merge import NO_OWNER, merge_with_owner, save_png
     from mapd.fusion.placement import Placer
     from mapd.fusion.transforms import IDENTITY, compose, inverse
@@ -110,15 +125,27 @@ def cmd_merge(args: argparse.Namespace) -> int:
         raise ConfigError("merge needs at least two maps")
     if len(args.maps) >= NO_OWNER:  # said now, not after every map was placed against the others
         raise ConfigError(f"merge takes at most {NO_OWNER - 1} maps, not {len(args.maps)}")
+    for path in args.maps:
+        refuse_stdio(path, "a map to merge")
+    refuse_stdio(args.output, "-o")
+    refuse_stdio(args.png, "--png")
+    outputs = map_outputs(args.output, "-o")
     if args.png is not None:
-        outputs = {args.output.resolve(), args.output.with_suffix(".pgm").resolve()}
-        if args.png.resolve() in outputs:  # the preview would be written over the merged map
+        if args.png.resolve() in {p.resolve() for p, _ in outputs}:  # the preview over the merged map
             raise ConfigError(f"--png {args.png}: that is the merged map's own file; name the preview apart")
+        outputs.append((args.png, f"--png {args.png}"))
     for name, v in (("--min-confidence", args.min_confidence), ("--min-agreement", args.min_agreement)):
         if not (0.0 <= v <= 1.0):
             raise ConfigError(f"{name} must lie in [0, 1], got {v}")
     names = robot_names(args.maps)
     poses = parse_poses(args.pose, names)
+    # Before any map is placed (minutes) and before anything is written: an output over an input
+    # (map YAML or the image it names) destroyed it, and a bad --png came up after the merged map
+    # was written.
+    refuse_overwrite(outputs, [f for path in args.maps for f in map_inputs(path, "the input map")])
+    check_writable(args.output, "-o")
+    if args.png is not None:
+        check_writable(args.png, "--png")
     maps = {n: load_map(p, robot=n) for n, p in zip(names, args.maps, strict=True)}
     placer = Placer(
         poses, anchor=names[0], min_confidence=args.min_confidence, min_agreement=args.min_agreement
@@ -134,19 +161,28 @@ def cmd_merge(args: argparse.Namespace) -> int:
             bar.update(1 if p.accepted else 0)
 
         placements = placer.update(maps, tried=tried)
-    merged = [n for n in names if placements[n].accepted and placements[n].transform is not None]
-    # The output is in the first map's frame (the fleet frame unless poses define another one);
-    # when the first map could not be placed, it stays in the fleet frame.
+    placed = [n for n in names if placements[n].accepted and placements[n].transform is not None]
+    # The output is in the first map's frame when that map is placed (by --pose or as the anchor);
+    # when it is not (only other maps have a --pose, and it matched none of them), the output stays
+    # in the frame of the --pose options, and so do the transforms reported.
     first = placements[names[0]]
-    t_first = first.transform if first.accepted else None
+    t_first = first.transform if names[0] in placed else None
     back = inverse(t_first) if t_first is not None else IDENTITY
+    if t_first is not None:
+        frame = f"map frame of {names[0]}"
+        units = "x, y in meters, yaw in radians: p_first = R(yaw) p_input + (x, y)"
+    else:
+        frame = "frame of the --pose options (" + ", ".join(sorted(poses)) + ")"
+        units = "x, y in meters, yaw in radians: p_pose_frame = R(yaw) p_input + (x, y)"
+    in_frame = {n: compose(back, placements[n].transform) for n in placed}  # type: ignore[arg-type]
     result = merge_with_owner(
         [maps[n] for n in names],
-        [compose(back, placements[n].transform) if n in merged else None for n in names],  # type: ignore[arg-type]
+        [in_frame.get(n) for n in names],
         args.mode,
         resolution=maps[names[0]].resolution,
         frame_id="map",
     )
+    refused = {names[i]: why for i, why in result.left_out}  # placed, but the merge could not take it
     grid = result.grid
     save_map(grid, args.output)
     if args.png:
@@ -155,12 +191,9 @@ def cmd_merge(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     for i, n in enumerate(names):
         p = placements[n]
-        rel_t = None
-        if t_first is not None and p.accepted and p.transform is not None:
-            rel_t = compose(inverse(t_first), p.transform)
-        reason = p.reason
-        if p.accepted and t_first is None:
-            reason = f"{reason}; the first map is not placed, so no transform in its frame"
+        rel_t = in_frame.get(n)
+        merged = rel_t is not None and n not in refused
+        reason = refused.get(n, p.reason) if not merged else p.reason
         rows.append(
             {
                 "robot": n,
@@ -170,31 +203,40 @@ def cmd_merge(args: argparse.Namespace) -> int:
                 "yaw": None if rel_t is None else rel_t.yaw,
                 "confidence": round(p.confidence, 4),
                 "agreement": None if p.agreement is None else round(p.agreement, 4),
-                "accepted": bool(p.accepted and rel_t is not None),
+                "accepted": merged,  # its cells are in the output
                 "source": p.source,
                 "reason": reason,
             }
         )
+    merged_rows = [r for r in rows if r["accepted"]]
+    left_out = [r for r in rows if not r["accepted"]]
     doc = {
         "output": str(args.output),
-        "frame": f"map frame of {names[0]}",
-        "units": "x, y in meters, yaw in radians: p_first = R(yaw) p_input + (x, y)",
+        "frame": frame,
+        "units": units,
+        # every input after the first (the first map's row is in "maps"), as before
         "transforms": rows[1:],
+        "maps": rows,
+        "left_out": [r["robot"] for r in left_out],
         "global": {
             "width": grid.width,
             "height": grid.height,
             "resolution": grid.resolution,
             "origin": list(grid.origin),
-            "maps_merged": len(merged),
+            "maps_merged": len(merged_rows),
+            "maps_left_out": len(left_out),
         },
     }
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
-        print(f"{args.output}: {grid.width} x {grid.height} cells, {len(merged)} of {len(names)} maps merged")
-        print(f"transforms in the map frame of {names[0]} (meters, degrees):")
-        for r in rows[1:]:
-            if r["x"] is None:
+        print(
+            f"{args.output}: {grid.width} x {grid.height} cells, {len(merged_rows)} of {len(names)} maps merged"
+        )
+        why = "" if t_first is not None else f", as the first map {names[0]} is not placed"
+        print(f"transforms in the {frame}{why} (meters, degrees):")
+        for r in rows:
+            if not r["accepted"]:
                 print(f"  {r['robot']:<20} not merged: {r['reason']}")
             else:
                 print(
@@ -202,9 +244,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
                     f"confidence {r['confidence']:.2f}  agreement "
                     f"{'-' if r['agreement'] is None else format(r['agreement'], '.2f')}  ({r['source']})"
                 )
-    if len(merged) < len(names):
+    if left_out:
         print(
-            f"mapd merge: {len(names) - len(merged)} map(s) left out (not confidently placed)",
+            f"mapd merge: {len(left_out)} of {len(names)} maps left out of {args.output}: "
+            + "; ".join(f"{r['robot']}: {r['reason']}" for r in left_out),
             file=sys.stderr,
         )
+        return EXIT_LEFT_OUT
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import secrets
 from pathlib import Path
@@ -46,7 +47,9 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
     if args.link_key is not None:
         _write_secret(args.link_key, secrets.token_hex(32).encode() + b"\n")
-        print(f'link_key_file = "{args.link_key}"   # in [fleet]; copy this file to every robot of the fleet')
+        # Absolute: the config reads its paths relative to its own folder, not to where keygen ran.
+        path = json.dumps(str(args.link_key.resolve()))  # a TOML basic string: quotes escaped
+        print(f"link_key_file = {path}   # in [fleet]; copy this file to every robot of the fleet")
         return 0
     if not args.robot:
         raise ConfigError("keygen: name the robot (mapd keygen ROBOT -o FILE), or give --link-key FILE")
@@ -57,6 +60,10 @@ def cmd_keygen(args: argparse.Namespace) -> int:
             f"keygen: {args.robot!r} is not a robot name (1 to 32 letters, digits, '_' or '-', as the config takes)"
         )
     if args.public is not None:
+        if args.out is not None:  # -o was silently ignored: the user expected a key written there
+            raise ConfigError(
+                "keygen: --public prints the line of an existing key; it writes nothing, so drop -o"
+            )
         identity = read_identity(args.public, args.robot, "--public")
     else:
         if args.out is None:

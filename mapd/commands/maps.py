@@ -9,7 +9,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mapd.errors import CodecError
+from mapd.commands.common import (
+    codec_name,
+    is_stdio,
+    map_inputs,
+    map_outputs,
+    path_or_stdio,
+    refuse_overwrite,
+    refuse_stdio,
+)
+from mapd.errors import CodecError, ConfigError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Validate config.toml (every key and every plugin table) and print the result.",
     )
     p.add_argument("path", type=Path, help="config file (TOML)")
+    p.add_argument("--json", action="store_true", help="print only the resolved config, as JSON (for jq)")
     p.set_defaults(func=cmd_check_config)
 
     p = sub.add_parser(
@@ -39,10 +49,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="compress a map_server map into a mapd payload",
         description="Encode a map into a self-describing payload; with --base, as a delta when smaller.",
     )
-    p.add_argument("map", type=Path, help="map_server YAML to encode")
-    p.add_argument("-o", "--output", type=Path, required=True, help="payload file to write")
-    p.add_argument("--codec", default="lossless", help="codec plugin (default: lossless; see 'mapd plugins')")
-    p.add_argument("--base", type=Path, help="map_server YAML the receiver already holds (delta base)")
+    p.add_argument("map", type=path_or_stdio, help="map_server YAML to encode")
+    p.add_argument(
+        "-o", "--output", type=path_or_stdio, required=True, help="payload file to write ('-': stdout)"
+    )
+    p.add_argument(
+        "--codec",
+        type=codec_name,
+        default="lossless",
+        help="codec plugin (default: lossless; see 'mapd plugins')",
+    )
+    p.add_argument(
+        "--base", type=path_or_stdio, help="map_server YAML the receiver already holds (delta base)"
+    )
     p.set_defaults(func=cmd_encode)
 
     p = sub.add_parser(
@@ -50,9 +69,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="turn a mapd payload back into map_server files",
         description="Decode a payload made by 'mapd encode' into map_server YAML + PGM.",
     )
-    p.add_argument("payload", type=Path, help="payload file")
-    p.add_argument("-o", "--output", type=Path, required=True, help="map_server YAML to write")
-    p.add_argument("--base", type=Path, help="the base map, when the payload is a delta")
+    p.add_argument("payload", type=path_or_stdio, help="payload file ('-': stdin)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=path_or_stdio,
+        required=True,
+        help="map_server YAML to write (NAME.pgm beside it)",
+    )
+    p.add_argument("--base", type=path_or_stdio, help="the base map, when the payload is a delta")
     p.set_defaults(func=cmd_decode)
 
     p = sub.add_parser(
@@ -61,7 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Encode and decode a tiny map with each codec so numba compiles its kernels into "
         "the on-disk cache (NUMBA_CACHE_DIR if set) and models load once.",
     )
-    p.add_argument("--codec", nargs="+", default=["lossless", "zstd", "raw"], help="codecs to warm up")
+    p.add_argument(
+        "--codec", nargs="+", type=codec_name, default=["lossless", "zstd", "raw"], help="codecs to warm up"
+    )
     p.set_defaults(func=cmd_warmup)
 
 
@@ -102,7 +129,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     for section, tables in checked.options.items():
         for name, opts in tables.items():
             resolved[section][name] = opts.model_dump(mode="json")
-    print(f"{args.path}: ok")
+    if not args.json:  # with --json, stdout is the JSON alone (``| jq``); the exit status says ok
+        print(f"{args.path}: ok")
     print(json.dumps(resolved, indent=2))
     return 0
 
@@ -152,6 +180,16 @@ def cmd_encode(args: argparse.Namespace) -> int:
     from mapd.codec import encode
     from mapd.grid import load_map
 
+    refuse_stdio(args.map, "the map")
+    refuse_stdio(args.base, "--base")
+    inputs = map_inputs(args.map, "the input map")
+    if args.base:
+        inputs += map_inputs(args.base, "--base")
+    if is_stdio(args.output):
+        if sys.stdout.isatty():  # a binary payload would only garble the terminal
+            raise ConfigError("-o -: stdout is a terminal; redirect it to a file or a pipe")
+    else:
+        refuse_overwrite([(args.output, f"-o {args.output}")], inputs)
     grid = load_map(args.map)
     base = load_map(args.base) if args.base else None
     t0 = time.perf_counter()
@@ -159,11 +197,16 @@ def cmd_encode(args: argparse.Namespace) -> int:
     ms = 1000 * (time.perf_counter() - t0)
     from mapd.files import atomic_write_bytes
 
-    try:
-        # Atomic: a full disk or a crash mid-write leaves the previous payload, never half of one.
-        atomic_write_bytes(args.output, payload)
-    except OSError as exc:
-        raise CodecError(f"{args.output}: cannot write payload: {exc.strerror}") from None
+    if is_stdio(args.output):
+        sys.stdout.buffer.write(payload)
+        sys.stdout.buffer.flush()
+        args.output = "<stdout>"  # for the summary line below
+    else:
+        try:
+            # Atomic: a full disk or a crash mid-write leaves the previous payload, never half of one.
+            atomic_write_bytes(args.output, payload)
+        except OSError as exc:
+            raise CodecError(f"{args.output}: cannot write payload: {exc.strerror}") from None
     ratio = grid.cells / len(payload)
     print(
         f"{args.output}: {len(payload)} bytes for {grid.cells} cells "
@@ -182,11 +225,24 @@ def cmd_decode(args: argparse.Namespace) -> int:
     limit = DEFAULT_MAX_CELLS + (1 << 16)
     from mapd.files import DATA_READ_TIMEOUT_S, read_capped
 
-    try:
-        # a FIFO with no writer reads as empty, one held open without data is given up
-        payload = read_capped(args.payload, limit, timeout_s=DATA_READ_TIMEOUT_S)
-    except OSError as exc:
-        raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
+    refuse_stdio(args.output, "-o")
+    refuse_stdio(args.base, "--base")
+    inputs = [] if is_stdio(args.payload) else [(args.payload, f"the payload {args.payload}")]
+    if args.base:
+        inputs += map_inputs(args.base, "--base")
+    refuse_overwrite(map_outputs(args.output, "-o"), inputs)
+    if is_stdio(args.payload):
+        if sys.stdin.isatty():  # nobody types a binary payload: say so instead of waiting
+            raise ConfigError("decode -: stdin is a terminal; pipe a payload in")
+        args.payload = "<stdin>"  # for the messages below
+        # At most limit + 1 bytes, as from a file: a never-ending producer is refused, not buffered.
+        payload = sys.stdin.buffer.read(limit + 1)
+    else:
+        try:
+            # a FIFO with no writer reads as empty, one held open without data is given up
+            payload = read_capped(args.payload, limit, timeout_s=DATA_READ_TIMEOUT_S)
+        except OSError as exc:
+            raise CodecError(f"{args.payload}: cannot read payload: {exc.strerror}") from None
     if len(payload) > limit:
         raise CodecError(f"{args.payload}: over {limit} bytes, larger than any payload mapd decodes")
     base = load_map(args.base) if args.base else None

@@ -125,3 +125,34 @@ def test_merge_shows_its_progress_on_a_terminal_and_nothing_in_a_pipe(
     assert b"placing maps" in seen and b"1: placed" in seen, seen[-500:]
     r = _mapd("merge", str(a), str(b), "-o", str(tmp_path / "p.yaml"), cwd=tmp_path)
     assert r.returncode == 0 and r.stderr == "", r.stderr
+
+
+def test_a_first_map_left_out_is_reported_with_the_frame_the_output_is_in(
+    tmp_path: Path, two_maps: tuple[Path, Path]
+) -> None:
+    """Only the second map posed, the first matching nothing: the report said the output was in
+    the first map's frame, called the merged map "accepted: false", and never named the map left out."""
+    room = np.full((40, 60), -1, np.int8)
+    room[5:35, 5:55] = 0
+    room[5, 5:55] = 100  # a bare rectangle: many placements fit it equally, so none is accepted
+    first = save_map(OccupancyGrid(room, 0.05, (-1.0, -1.0, 0.0)), tmp_path / "room.yaml")
+    second = save_map(load_map(two_maps[1]), tmp_path / "hall.yaml")
+    out = tmp_path / "m.yaml"
+    args = ("merge", str(first), str(second), "-o", str(out), "--pose", "hall=0.5,0,0")
+    r = _mapd(*args, "--json", cwd=tmp_path)
+    assert r.returncode == 3, r.stderr  # written, but a map is left out: a status of its own
+    doc = json.loads(r.stdout)
+    assert "--pose" in doc["frame"] and "room" not in doc["frame"], doc["frame"]
+    rows = {m["robot"]: m for m in doc["maps"]}
+    assert set(rows) == {"room", "hall"} and doc["left_out"] == ["room"]
+    assert not rows["room"]["accepted"] and rows["room"]["reason"] and rows["room"]["x"] is None
+    hall = rows["hall"]
+    assert hall["accepted"] and (hall["x"], hall["y"], hall["yaw"]) == (0.5, 0.0, 0.0)
+    assert doc["transforms"] == doc["maps"][1:]
+    assert (doc["global"]["maps_merged"], doc["global"]["maps_left_out"]) == (1, 1)
+    assert load_map(out).cells > 0  # the output was written all the same
+    assert "room" in r.stderr and "left out" in r.stderr
+    text = _mapd(*args, cwd=tmp_path)
+    assert text.returncode == 3
+    assert "frame of the --pose options (hall)" in text.stdout and "room" in text.stdout
+    assert "x     0.500" in text.stdout  # the merged map is listed as merged, with its transform

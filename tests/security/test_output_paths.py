@@ -142,3 +142,55 @@ def test_the_merge_preview_takes_a_few_bytes_a_cell() -> None:
         tracemalloc.stop()
     assert rgb.shape == (h, w, 3) and rgb[0, 0].tolist() != [0, 0, 0]
     assert peak < rgb.nbytes + (40 << 20), peak  # before: 80 bytes a cell, 320 MB here
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    """Every file in ``folder`` (symlinks by target name), to show a refused command changed none."""
+    return {
+        p.name: (os.readlink(p).encode() if p.is_symlink() else p.read_bytes() if p.is_file() else b"dir")
+        for p in sorted(folder.iterdir())
+    }
+
+
+def test_encode_decode_and_merge_refuse_to_write_over_their_own_inputs(
+    tmp_path: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
+    """``encode in.yaml -o in.yaml`` replaced the map by a payload (exit 0); decode and merge alike."""
+    a = _map(tmp_path, "a.yaml")
+    _map(tmp_path, "b.yaml")
+    payload = tmp_path / "a.mapd"
+    assert mapd_run("encode", str(a), "-o", str(payload), "--codec", "raw").returncode == 0
+    (tmp_path / "via_link.yaml").symlink_to("a.yaml")  # the output reached through a symlink
+    (tmp_path / "sub").mkdir()
+    before = _tree(tmp_path)
+    cases = [
+        (["encode", "a.yaml", "-o", "a.yaml"], "input map a.yaml"),
+        (["encode", "a.yaml", "-o", "a.pgm"], "the image"),  # the image the YAML names
+        (["encode", "a.yaml", "-o", "via_link.yaml"], "input map a.yaml"),
+        (["encode", "a.yaml", "-o", "sub/../b.pgm", "--base", "b.yaml"], "--base b.yaml"),
+        (["decode", "a.mapd", "-o", "a.mapd"], "the payload a.mapd"),
+        (["decode", "a.mapd", "-o", "b.yaml", "--base", "b.yaml"], "--base b.yaml"),
+        (["merge", "a.yaml", "b.yaml", "-o", "a.yaml", "--pose", "1=0,0,0"], "input map a.yaml"),
+        (["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--png", "b.pgm"], "input map b.yaml"),
+        (["merge", "a.yaml", "b.yaml", "-o", "via_link.yaml"], "input map a.yaml"),
+    ]
+    for args, says in cases:
+        out = mapd_run(*args, cwd=tmp_path)
+        line = one_error_line(out, code=2)
+        assert "refusing to write over an input" in line and says in line, (args, line)
+        assert _tree(tmp_path) == before, args
+    # a payload decoded beside (not over) its source is fine: the check is no blanket refusal
+    assert mapd_run("decode", "a.mapd", "-o", "copy.yaml", cwd=tmp_path).returncode == 0
+
+
+def test_merge_checks_its_preview_path_before_writing_anything(
+    tmp_path: Path, mapd_run: Run, one_error_line: OneLine
+) -> None:
+    """A --png in a missing folder was found only after the merged map had been written."""
+    a, b = _map(tmp_path, "a.yaml"), _map(tmp_path, "b.yaml")
+    (tmp_path / "adir").mkdir()
+    for png, says in (("nodir/x.png", "no such directory"), ("adir", "is a directory")):
+        args = ("merge", str(a), str(b), "-o", "out.yaml", "--pose", "0=0,0,0", "--png", png)
+        line = one_error_line(mapd_run(*args, cwd=tmp_path), code=2)
+        assert f"--png {png}" in line and says in line, line
+        assert not (tmp_path / "out.yaml").exists() and not (tmp_path / "out.pgm").exists()
