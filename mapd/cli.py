@@ -73,13 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except MapdError as exc:
-        from mapd.daemon.systemd import stderr_is_journal
+        from mapd.daemon.systemd import print_error
 
-        # Under systemd (mapd run) this line is why the unit stopped: at error priority, so that
-        # ``journalctl -p err -u mapd`` shows it (an unprefixed line is taken as info).
-        prio = "<3>" if stderr_is_journal() else ""
-        for line in str(exc).splitlines() or [type(exc).__name__]:
-            print(f"{prio}mapd: error: {line}", file=sys.stderr)
+        print_error(exc)
         return exc.exit_code
     except KeyboardInterrupt:
         print("mapd: interrupted", file=sys.stderr)

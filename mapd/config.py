@@ -218,7 +218,8 @@ class RecordSection(Strict):
         default=2 << 30,
         ge=1 << 20,
         description="the recording's files together: as each new file opens, the oldest are removed until "
-        "the rest and max_bytes fit; at least max_bytes (there is no 'no cap': 0 is refused)",
+        "the rest and max_bytes fit (the newest finished file always stays); at least twice max_bytes "
+        "(there is no 'no cap': 0 is refused)",
     )
     min_free_bytes: int = Field(
         default=256 << 20,
@@ -230,10 +231,11 @@ class RecordSection(Strict):
 
     @model_validator(mode="after")
     def _check_total(self) -> RecordSection:
-        # a cap under one file would remove every file, the one just finished too, at each rotation
-        if self.max_total_bytes < self.max_bytes:
+        # Room for the file being written and the one just finished (each ends a little past
+        # max_bytes): under that, every rotation would leave the recording with almost nothing.
+        if self.max_total_bytes < 2 * self.max_bytes:
             raise ValueError(
-                f"max_total_bytes ({self.max_total_bytes}) must be at least max_bytes ({self.max_bytes})"
+                f"max_total_bytes ({self.max_total_bytes}) must be at least twice max_bytes ({self.max_bytes})"
             )
         return self
 

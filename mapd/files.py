@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
+import itertools
 import json
 import logging
 import os
@@ -31,8 +32,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
-#: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>``.
-_TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+")
+#: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>.<n>``
+#: (and, as mapd named them before, without ``.<n>``).
+_TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+(?:\.\d+)?")
+#: A number of its own for every temp file: two writes of one file by one thread had the same temp
+#: name, and a sweep that listed the folder between them could take the second's temp for stale.
+_TEMP_SEQ = itertools.count()
 #: The temp files this process is writing now: the only ones :func:`remove_stale_temps` keeps. (Not
 #: "every temp file with our pid": after a power cut a daemon can get its old pid again at boot,
 #: and its predecessor's temp files would then be kept until some later start.)
@@ -70,8 +75,11 @@ def atomic_write_via(path: Path, write: Callable[[io.BytesIO], object]) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
+def atomic_write_files(files: list[tuple[Path, bytes]], *, like: dict[Path, Path] | None = None) -> None:
     """:func:`atomic_write_bytes` of files that belong together (a map's image and the YAML naming it).
+
+    Each file takes the mode of the file it replaces; a new one (a map image under a name of its
+    own) takes the mode of the file ``like`` names for it, if that exists (the YAML beside it).
 
     Every file is written and fsynced to its temp file before any is renamed, so a full disk
     fails before anything changed; a rename that fails (an immutable file) puts back the files
@@ -81,10 +89,10 @@ def atomic_write_files(files: list[tuple[Path, bytes]]) -> None:
     targets = [_write_target(path) for path, _ in files]
     temps: list[Path] = []
     try:
-        for target, (_, payload) in zip(targets, files, strict=True):
+        for target, (path, payload) in zip(targets, files, strict=True):
             temps.append(_active(_temp_name(target)))
             with open(temps[-1], "wb") as fh:
-                _keep_mode(fh.fileno(), target)
+                _keep_mode(fh.fileno(), target, (like or {}).get(path))
                 fh.write(payload)
                 fh.flush()
                 os.fsync(fh.fileno())
@@ -148,25 +156,36 @@ def _done(tmp: Path) -> None:
         _ACTIVE.discard(tmp)
 
 
-def _keep_mode(fd: int, target: Path) -> None:
-    """Give the new file the mode (and, where allowed, the group) of the file it replaces.
+def _keep_mode(fd: int, target: Path, fallback: Path | None = None) -> None:
+    """Give the new file the permissions (and, where allowed, the group) of the file it replaces,
+    or of ``fallback`` when it replaces none.
 
     An operator's ``chmod o+r map.pgm`` (a map_server running as another user) or ``chgrp`` would
-    otherwise be undone by the next write, the new file taking the daemon's umask.
+    otherwise be undone by the next write, the new file taking the daemon's umask. Permission bits
+    only (no setuid, setgid or sticky bit), and the group only when not root: a root-run command
+    writing into another user's folder must not hand its file to that user's group.
     """
-    try:
-        st = os.stat(target)
-    except OSError:
+    st = None
+    for source in (target, fallback):
+        if source is None:
+            continue
+        try:
+            st = os.stat(source)
+            break
+        except OSError:
+            continue
+    if st is None:
         return  # a new file: the umask decides, as for any file
     with contextlib.suppress(OSError):
-        os.fchmod(fd, stat.S_IMODE(st.st_mode))
-    with contextlib.suppress(OSError):  # only a group the daemon's user is in (or root)
-        os.fchown(fd, -1, st.st_gid)
+        os.fchmod(fd, stat.S_IMODE(st.st_mode) & 0o777)
+    if os.geteuid() != 0:
+        with contextlib.suppress(OSError):  # only a group the daemon's user is in
+            os.fchown(fd, -1, st.st_gid)
 
 
 def _temp_name(path: Path, kind: str = "") -> Path:
     stem = os.fsdecode(os.fsencode(path.name)[:_TEMP_STEM])  # bytes: a directory's limit is in bytes
-    return path.with_name(f".{stem}{kind}.tmp{os.getpid()}.{threading.get_ident()}")
+    return path.with_name(f".{stem}{kind}.tmp{os.getpid()}.{threading.get_ident()}.{next(_TEMP_SEQ)}")
 
 
 def make_dir(directory: Path) -> None:
@@ -205,7 +224,8 @@ def remove_stale_temps(directory: Path) -> list[Path]:
     except OSError:
         return removed
     with _ACTIVE_LOCK:
-        busy = {os.path.realpath(p) for p in _ACTIVE}
+        busy = {os.path.realpath(p) for p in _ACTIVE}  # after the listing: a write that began
+        # since is not in it, and every temp name is new, so none listed can be a later write's
     for entry in entries:
         if _TEMP_NAME.fullmatch(entry.name) is None or os.path.realpath(entry.path) in busy:
             continue

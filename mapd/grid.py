@@ -538,7 +538,10 @@ def save_map(
             [
                 (image_path, header + np.ascontiguousarray(pixels).tobytes()),
                 (path, yaml.safe_dump(meta, sort_keys=False).encode()),
-            ]
+            ],
+            # an image under a name of its own (map-<n>.pgm) is a new file each time: it takes the
+            # permissions the operator gave the map's YAML
+            like={image_path: path},
         )
     except OSError as exc:
         # strerror, not str(exc): that names the hidden temp file, which means nothing to the user.

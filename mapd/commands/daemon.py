@@ -152,11 +152,18 @@ def _outage_arg(text: str) -> str:
 def cmd_run(args: argparse.Namespace) -> int:
     from mapd import config
     from mapd.daemon.server import run_daemon
-    from mapd.daemon.systemd import setup_logging
+    from mapd.daemon.systemd import print_error, setup_logging
+    from mapd.errors import MapdError
 
     cfg = config.load(args.config)
     setup_logging(cfg.log.level)
-    code = run_daemon(cfg)
+    try:
+        code = run_daemon(cfg)
+    except MapdError as exc:
+        # Said here, not by cli.main, so that this path too leaves with os._exit below: returning
+        # would make the interpreter join every executor thread first (a search, a start_pose).
+        print_error(exc)
+        code = exc.exit_code
     # By now the state directory is written and fsynced, the transports and the control socket are
     # closed. All the interpreter's finalization would add is tearing down native extensions (numba's
     # LLVM, zenoh's runtime, OpenCV): 1-3 s on a loaded 2-core robot, measured after the "stopped"
@@ -172,7 +179,11 @@ def _socket_path(args: argparse.Namespace) -> Path:
         return Path(args.socket)
     from mapd import config
 
-    cfg_path = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
+    try:
+        default = DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None
+    except OSError:  # /etc/mapd is 0750 root:mapd: a user outside group mapd may not look in
+        default = None  # the socket's own refusal then says who may ask
+    cfg_path = args.config or default
     if cfg_path is not None:
         return config.load(cfg_path).control_socket()
     return Path("/run/mapd/mapd.sock")

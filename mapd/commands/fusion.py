@@ -48,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "merge",
         help="fuse map_server maps into one (known poses, estimated ones, or both)",
         description="Place every map in the first map's frame (by --pose, or by estimating it from the "
-        "maps' overlap) and merge them into one map_server map.",
+        "maps' overlap; in the frame of the --pose options when the first map cannot be placed) and "
+        "merge them into one map_server map.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -71,7 +72,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--png", type=path_or_stdio, help="also write a colour preview (each map's cells in its colour)"
     )
-    p.add_argument("--json", action="store_true", help="print the transforms as JSON")
+    p.add_argument(
+        "--json", action="store_true", help="print the report as JSON: frame, maps, left_out, transforms"
+    )
     p.set_defaults(func=cmd_merge)
 
 

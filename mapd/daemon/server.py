@@ -291,15 +291,21 @@ class Daemon:
         """Run ``job`` unless a stop comes first, which cancels it: True when it finished."""
         task = asyncio.ensure_future(job)
         stop = asyncio.ensure_future(self._stop.wait())
+        cut = True
         try:
             await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+            cut = not task.done()
         finally:
             stop.cancel()
-        if task.done():
+            if not task.done():
+                # A stop came first, or run() itself was cancelled: either way the start-up must
+                # not go on starting transports and the control socket after the shutdown that
+                # follows has closed them.
+                task.cancel()
+                await asyncio.wait({task})
+        if not cut:
             task.result()  # its error, if it failed
             return True
-        task.cancel()
-        await asyncio.wait({task})
         if not task.cancelled():
             task.exception()  # (retrieved: what its cancellation raised is not news now)
         self._stopping_at = time.monotonic()
@@ -596,7 +602,7 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
     # Not asyncio.run: at its end it waits for every job on the default executor, and a job that a
     # stop cancelled the await of (a source's start_pose, a placement search) runs on in its thread
     # for as long as it takes, past systemd's TimeoutStopSec. The state is saved by the time run()
-    # returns, and mapd run leaves with os._exit, which ends such a thread.
+    # returns (or raises), and mapd run leaves with os._exit either way, which ends such a thread.
     loop = asyncio.new_event_loop()
     asyncio.set_event_loop(loop)
     try:

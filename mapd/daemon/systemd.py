@@ -84,6 +84,17 @@ def stderr_is_journal() -> bool:
         return False
 
 
+def print_error(exc: BaseException) -> None:
+    """The one ``mapd: error: ...`` line (a line per line of the message) on stderr.
+
+    Under systemd this line is why the unit stopped: at error priority, so that ``journalctl -p err
+    -u mapd`` shows it (an unprefixed line is taken as info).
+    """
+    prio = "<3>" if stderr_is_journal() else ""
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(f"{prio}mapd: error: {line}", file=sys.stderr)
+
+
 def setup_logging(level: str = "info") -> None:
     """Log to stderr; with journald attached (``$JOURNAL_STREAM``) use priority prefixes."""
     handler = logging.StreamHandler(sys.stderr)

@@ -21,7 +21,7 @@ from typing import Any
 
 from mapd.daemon.status_socket import query
 from mapd.daemon.versions import label
-from mapd.demo.ports import free_port
+from mapd.demo.ports import free_port, free_ports
 from mapd.errors import DaemonError, MapdError
 
 UWB_RATE = 12500
@@ -81,7 +81,7 @@ class Fleet:
         if self.args.transport == "uwb":
             self._start_relay()
         router = self._start_router() if getattr(self.args, "router", False) else None
-        zenoh_ports = [free_port() for _ in self.members]
+        zenoh_ports = free_ports(len(self.members))
         poses = self._start_poses()
         key_files, roster, link_key = self._make_keys()
         for i, name in enumerate(self.members):

@@ -57,6 +57,17 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def free_ports(n: int) -> list[int]:
+    """``n`` distinct :func:`free_port` ports (nothing holds a port until it is bound, so two draws
+    could otherwise be the same one)."""
+    ports: list[int] = []
+    while len(ports) < n:
+        port = free_port()
+        if port not in ports:
+            ports.append(port)
+    return ports
+
+
 def free_endpoint() -> str:
     """:func:`free_port` as a zenoh endpoint, ``tcp/127.0.0.1:PORT``."""
     return f"tcp/127.0.0.1:{free_port()}"

@@ -55,7 +55,8 @@ class FilesOutput(Output):
         #: Updates that could not be written (a full or read-only disk, a path that is a folder).
         self.failures = 0
         self._outage = WriteOutage(log)
-        self._image = re.compile(re.escape(self.opts.name) + r"-(\d{1,18})\.pgm")
+        # as _write names them (no leading zero: "fleet-007.pgm" is someone else's file)
+        self._image = re.compile(re.escape(self.opts.name) + r"-([1-9]\d{0,17})\.pgm")
         self._seq = 1  # the next image's number; set past those in the folder at start
 
     async def start(self) -> None:

@@ -121,11 +121,13 @@ class RecordingFiles:
 
     def make_room(self, on_disk: list[OnDisk]) -> None:
         """Remove the oldest files until the rest and a new file of ``max_bytes`` fit in
-        ``max_total_bytes``. Only regular files named as the recording's are removed; none is open
-        (this runs before the next file is opened)."""
+        ``max_total_bytes``. Only regular files named as the recording's are removed, never the
+        newest of them (the file just finished: a file ends a chunk and a summary past
+        ``max_bytes``, so with a tight cap it never fit, and right after each rotation the
+        recording held almost nothing); none is open (this runs before the next file is opened)."""
         kept = [f for f in on_disk if f.regular]
         total = sum(f.size for f in kept)
-        for f in kept:
+        for f in kept[:-1]:
             if total + self.max_bytes <= self.max_total_bytes:
                 break
             try:

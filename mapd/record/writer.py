@@ -114,8 +114,10 @@ class Recorder:
             from rosbags.typesys import Stores, get_typestore
         except ModuleNotFoundError as exc:
             raise ConfigError(f"record: needs {exc.name} (pip install 'mapd[record]')") from None
-        if max_total_bytes < max_bytes:
-            raise ConfigError(f"record: max_total_bytes ({max_total_bytes}) is under max_bytes ({max_bytes})")
+        if max_total_bytes < 2 * max_bytes:
+            raise ConfigError(
+                f"record: max_total_bytes ({max_total_bytes}) is under twice max_bytes ({max_bytes})"
+            )
         self.path = path
         self.chunk_bytes = chunk_bytes
         self.disk = RecordingFiles(

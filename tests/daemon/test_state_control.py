@@ -442,3 +442,19 @@ def test_status_watch_takes_a_sane_period_in_one_usage_line(tmp_path: Path, peri
     )  # fmt: skip
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "not within 0.1..3600 seconds" in out.stderr.splitlines()[-1]
+
+
+def test_status_outside_group_mapd_is_not_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """/etc/mapd is 0750 root:mapd: for a user outside group mapd, Path.exists() raised
+    PermissionError (Python 3.11) before the socket could say who may ask."""
+    import argparse
+
+    from mapd.commands import daemon as cmd
+
+    class Locked(type(Path())):  # type: ignore[misc]
+        def exists(self, *args: object, **kw: object) -> bool:
+            raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(cmd, "DEFAULT_CONFIG", Locked("/etc/mapd/config.toml"))
+    args = argparse.Namespace(socket=None, config=None)
+    assert cmd._socket_path(args) == Path("/run/mapd/mapd.sock")

@@ -6,11 +6,13 @@ neither the robot's map nor a fault until someone ran ``mapd status``.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import re
 import signal
 import socket
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -154,18 +156,13 @@ def test_a_reload_keeps_the_status_line_not_running(
     asyncio.run(main())
 
 
-def test_a_stop_during_start_up_ends_it_without_ready(
-    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """SIGTERM while the source was still reading its start pose (a large log, a world to build)
-    waited for the whole start-up, then said READY=1 and only then stopped: systemctl stop of a
-    slow start ran into TimeoutStopSec."""
-    import asyncio
-    import threading
-
+def _slow_start(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch, sent: list[str]
+) -> tuple[Any, threading.Event, threading.Event]:
+    """A daemon whose source's start pose blocks until ``release`` (``entered`` once it does), with
+    sd_notify's messages collected in ``sent``."""
     from mapd.daemon import server
 
-    sent: list[str] = []
     monkeypatch.setattr(server, "notify", sent.append)
     d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
     entered, release = threading.Event(), threading.Event()
@@ -175,6 +172,17 @@ def test_a_stop_during_start_up_ends_it_without_ready(
         release.wait(60)
 
     monkeypatch.setattr(source, "start_pose", slow_start_pose)
+    return d, entered, release
+
+
+def test_a_stop_during_start_up_ends_it_without_ready(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGTERM while the source was still reading its start pose (a large log, a world to build)
+    waited for the whole start-up, then said READY=1 and only then stopped: systemctl stop of a
+    slow start ran into TimeoutStopSec."""
+    sent: list[str] = []
+    d, entered, release = _slow_start(tmp_path, dk, monkeypatch, sent)
 
     async def main() -> None:
         task = asyncio.create_task(d.run())
@@ -189,3 +197,27 @@ def test_a_stop_during_start_up_ends_it_without_ready(
         release.set()
     assert "STOPPING=1" in sent and not any(m.startswith("READY=1") for m in sent), sent
     assert d.transports == [] or all(not t.peers() for t in d.transports)
+
+
+def test_a_cancelled_run_takes_its_start_up_with_it(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """run() cancelled during start-up (a test's task.cancel(), Ctrl-C) left the start-up task
+    running: it went on to make and start the transports after the shutdown had closed them."""
+    d, entered, release = _slow_start(tmp_path, dk, monkeypatch, [])
+
+    async def main() -> None:
+        task = asyncio.create_task(d.run())
+        await dk.wait_for(entered.is_set, what="start-up under way")
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await asyncio.wait_for(task, 30)
+        release.set()
+        for _ in range(50):  # the start-up, were it still going, would make the transports now
+            await asyncio.sleep(0.02)
+        assert d.transports == []
+
+    try:
+        asyncio.run(main())
+    finally:
+        release.set()

@@ -54,6 +54,12 @@ def test_a_range_starting_low_picks_above_it(monkeypatch: pytest.MonkeyPatch) ->
         assert ports.free_port() > 49151
 
 
+def test_ports_drawn_together_are_distinct(monkeypatch: pytest.MonkeyPatch) -> None:
+    picks = iter([21000, 21000, 21001, 21000, 21002])
+    monkeypatch.setattr(ports, "free_port", lambda: next(picks))
+    assert ports.free_ports(3) == [21000, 21001, 21002]
+
+
 def test_endpoint_form() -> None:
     ep = ports.free_endpoint()
     assert ep.startswith("tcp/127.0.0.1:")

@@ -91,6 +91,30 @@ def test_a_files_reader_between_yaml_and_image_gets_one_map(tmp_path: Path, room
     assert sorted(p.name for p in d.glob("fleet-*.pgm")) == ["fleet-4.pgm", "fleet-5.pgm"]
 
 
+def test_a_files_output_image_takes_the_permissions_the_operator_gave_the_map(
+    tmp_path: Path, room_grid: OccupancyGrid
+) -> None:
+    """Each map's image has a new name, so keeping the mode of the file replaced kept nothing: under
+    the unit's UMask=0007 every new image was 0660, unreadable to a map_server of another user,
+    while the YAML naming it stayed as the operator made it."""
+    d = tmp_path / "maps"
+    out = FilesOutput(FilesOptions(dir=d, name="fleet"), OutputContext("base", "f"))
+    asyncio.run(out.start())
+    before = os.umask(0o007)
+    try:
+        out.publish(update(room_grid, 3))
+        for f in d.iterdir():
+            f.chmod(0o644)  # the operator: readable by the map_server's user
+        out.publish(update(room_grid, 4))
+    finally:
+        os.umask(before)
+    image = d / yaml.safe_load((d / "fleet.yaml").read_text())["image"]
+    assert image.name == "fleet-2.pgm"
+    assert {f.name: f.stat().st_mode & 0o777 for f in (d / "fleet.yaml", image)} == {
+        "fleet.yaml": 0o644, "fleet-2.pgm": 0o644,
+    }  # fmt: skip
+
+
 def test_files_output_that_cannot_write_says_so_once_and_carries_on(
     tmp_path: Path, room_grid: OccupancyGrid, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -113,6 +113,27 @@ def test_the_oldest_files_are_removed_to_stay_within_max_total_bytes(
         assert read_stream(tmp_path / name)[0][0] == "/tf_static"
 
 
+def test_the_file_just_finished_stays_with_the_tightest_cap(tmp_path: Path) -> None:
+    """A file ends a chunk and a summary past max_bytes, so with max_total_bytes at twice max_bytes
+    the file just finished never fit beside a new one and went at every rotation: right after it
+    the recording held almost nothing."""
+    max_bytes = 256 << 10
+    rec = Recorder(
+        tmp_path / "fleet.mcap", max_bytes=max_bytes, chunk_bytes=64 << 10, max_total_bytes=2 * max_bytes,
+        min_free_bytes=0,
+    )  # fmt: skip
+    seen = []
+    for i in range(40):
+        rec.grid("/map", grid(i), "map", 2.0 + i)
+        seen.append(recording_files(tmp_path))
+    rec.close()
+    assert rec.removed > 0  # the cap is kept to
+    rotated = [names for names in seen if names != ["fleet.mcap"]]
+    assert rotated  # (it did rotate)
+    # from the first rotation on, the file just finished is there beside the one being written
+    assert all(len(names) == 2 for names in rotated), seen
+
+
 def test_a_restart_goes_on_after_the_highest_number_and_keeps_to_the_cap(tmp_path: Path) -> None:
     """After the oldest files were removed, a restart took the first free number: fleet.mcap, the
     newest file, sorted as the oldest and was the next removed."""
@@ -139,18 +160,20 @@ def test_a_restart_goes_on_after_the_highest_number_and_keeps_to_the_cap(tmp_pat
     assert again.files == [tmp_path / "fleet.6.mcap"]
 
 
-def test_max_total_bytes_under_max_bytes_is_refused() -> None:
+def test_max_total_bytes_under_twice_max_bytes_is_refused() -> None:
     from pydantic import ValidationError
 
     from mapd.config import RecordSection
     from mapd.errors import ConfigError
 
-    with pytest.raises(ValidationError, match=r"max_total_bytes .* must be at least max_bytes"):
-        RecordSection(max_bytes=8 << 20, max_total_bytes=4 << 20)
+    for total in (4 << 20, 12 << 20):
+        with pytest.raises(ValidationError, match=r"max_total_bytes .* must be at least twice max_bytes"):
+            RecordSection(max_bytes=8 << 20, max_total_bytes=total)
+        with pytest.raises(ConfigError, match="max_total_bytes"):
+            Recorder(Path("fleet.mcap"), max_bytes=8 << 20, max_total_bytes=total)
+    RecordSection(max_bytes=8 << 20, max_total_bytes=16 << 20)
     with pytest.raises(ValidationError):
         RecordSection(max_total_bytes=0)  # no "0 means no cap": a recording always has one
-    with pytest.raises(ConfigError, match="max_total_bytes"):
-        Recorder(Path("fleet.mcap"), max_bytes=8 << 20, max_total_bytes=4 << 20)
     # the recorder's defaults are the config's (the daemon passes the config's values)
     d = RecordSection()
     rec = Recorder(Path("fleet.mcap"))
