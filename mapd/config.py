@@ -641,10 +641,16 @@ def _check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]
         ("output", cfg.output.use),
     ):
         for name in chosen:
-            check_files = getattr(options[section].get(name), "check_files", None)
-            if check_files is None:
-                continue
-            try:
-                check_files()
-            except ValueError as exc:
-                raise ConfigError(f"{where}: {section}.{name}.{exc}") from None
+            opts = options[section].get(name)
+            # check_files: the files its options name; check_for_robot: what its start would refuse
+            # on this robot (the uwb link ids): found here, not only when mapd run starts it
+            checks = [getattr(opts, "check_files", None)]
+            if (for_robot := getattr(opts, "check_for_robot", None)) is not None:
+                checks.append(lambda f=for_robot: f(cfg.robot.name))
+            for check in checks:
+                if check is None:
+                    continue
+                try:
+                    check()
+                except ValueError as exc:
+                    raise ConfigError(f"{where}: {section}.{name}.{exc}") from None

@@ -248,6 +248,35 @@ def test_check_config_refuses_a_paper_model_that_mapd_run_could_not_load(tmp_pat
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "sha256" in done.stderr
 
 
+@pytest.mark.parametrize(
+    ("uwb", "says"),
+    [
+        ("nodes = { beta = 2 }", r"transports\.uwb\.nodes: no link id for robot 'alpha'"),
+        (
+            'nodes = { alpha = 1, beta = 2 }\npeers = ["alpha"]',
+            r"transports\.uwb\.peers: this robot's own link id 1",
+        ),
+        ('nodes = { alpha = 1 }\npeers = ["gamma"]', r"transports\.uwb\.peers: 'gamma' is not in"),
+    ],
+)
+def test_check_config_refuses_uwb_link_ids_that_mapd_run_would(tmp_path: Path, uwb: str, says: str) -> None:
+    """check-config said ok, and mapd run then stopped at start with exit 2, which the unit does not
+    restart (RestartPreventExitStatus=2): the robot stayed down on a config the check passed."""
+    text = (
+        MINIMAL
+        + '[fleet]\nallow_unsigned = true\n[transports]\nuse = ["uwb"]\n[transports.uwb]\n'
+        + uwb
+        + "\n"
+    )
+    with pytest.raises(ConfigError, match=rf"mapd\.toml: {says}"):
+        config.check(config.load(write(tmp_path, text)))
+    fine = (
+        MINIMAL
+        + '[fleet]\nallow_unsigned = true\n[transports]\nuse = ["uwb"]\n[transports.uwb]\nnodes = { alpha = 1, beta = 2 }\n'
+    )
+    config.check(config.load(write(tmp_path, fine)))
+
+
 def _example_keys() -> dict[str, set[str]]:
     """Keys config.toml shows (set or commented out), by table; a shown sub-table counts as a key."""
     import re

@@ -155,6 +155,36 @@ class UwbOptions(TransportOptions):
             return self.slot_ms
         return SLOT_FRAMES * self.max_frame * 8000 / self.link_rate_bps + self.guard_ms
 
+    def link_ids(self, robot: str) -> tuple[int, list[int]]:
+        """This robot's link id and its peers' (ConfigError when the tables do not give them).
+
+        The one place these are worked out: the transport at start, and ``mapd check-config``
+        (:meth:`check_for_robot`), so a table the start would refuse is refused by the check too.
+        """
+        node = self.node_id if self.node_id is not None else self.nodes.get(robot)
+        if node is None:
+            raise ConfigError(
+                f"transports.uwb: no link id for robot '{robot}': set node_id or add it to nodes"
+            )
+        if self.peers:
+            peer_ids = [resolve_peer(p, self.nodes) for p in self.peers]
+        else:
+            peer_ids = sorted(i for i in self.nodes.values() if i != node)
+        if node in peer_ids:
+            raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
+        return node, peer_ids
+
+    def check_for_robot(self, robot: str) -> None:
+        """ValueError for what the transport would refuse at start on robot ``robot``."""
+        try:
+            self.link_ids(robot)
+        except ConfigError as exc:
+            # named by the key at fault, as check-config names every option: "transports.uwb.peers: ..."
+            text = str(exc)
+            if text.startswith("transports.uwb.peers: "):
+                raise ValueError(text.removeprefix("transports.uwb.")) from None
+            raise ValueError("nodes: " + text.removeprefix("transports.uwb: ")) from None
+
 
 def resolve_peer(spec: str, nodes: dict[str, int]) -> int:
     """A peer given as a robot name in ``nodes``, a number, or ``uwb-N``; ConfigError otherwise."""

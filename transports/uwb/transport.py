@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.envelope import Envelope
-from mapd.errors import ConfigError, LimitError, MapdError, TransportError
+from mapd.errors import LimitError, MapdError, TransportError
 from transports import signed_requests
 from transports.base import (
     Arrived,
@@ -40,7 +40,7 @@ from transports.base import (
 from transports.uwb import arq, forwarding
 from transports.uwb import keyframe_requests as control
 from transports.uwb.link import POSE_STREAM, UwbLink
-from transports.uwb.options import MAX_MESSAGE, UwbOptions, resolve_peer
+from transports.uwb.options import MAX_MESSAGE, UwbOptions
 from transports.uwb.relaying import RelayDriver
 from transports.uwb.signing import CounterStore, ReplayStore
 
@@ -59,19 +59,8 @@ class UwbTransport(Transport):
         opts = self.options
         assert isinstance(opts, UwbOptions)
         self.opts = opts
-        node = opts.node_id if opts.node_id is not None else opts.nodes.get(ctx.robot)
-        if node is None:
-            raise ConfigError(
-                f"transports.uwb: no link id for robot '{ctx.robot}': set node_id or add it to nodes"
-            )
-        self.node_id = node
+        self.node_id, self.peer_ids = opts.link_ids(ctx.robot)
         self._names = {i: name for name, i in opts.nodes.items()}
-        if opts.peers:
-            self.peer_ids = [resolve_peer(p, opts.nodes) for p in opts.peers]
-        else:
-            self.peer_ids = sorted(i for i in opts.nodes.values() if i != node)
-        if node in self.peer_ids:
-            raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
         self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
@@ -85,7 +74,7 @@ class UwbTransport(Transport):
         self._relay: RelayDriver | None = None
         if opts.relay and not ctx.roster.allow_unsigned:
             self._relay = RelayDriver(
-                node,
+                self.node_id,
                 summary_period_s=opts.summary_period_s,
                 relay_period_s=opts.relay_period_s,
                 stream_of=lambda origin: self._stream(self._name(origin)),
