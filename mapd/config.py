@@ -642,15 +642,13 @@ def _check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]
     ):
         for name in chosen:
             opts = options[section].get(name)
-            # check_files: the files its options name; check_for_robot: what its start would refuse
-            # on this robot (the uwb link ids): found here, not only when mapd run starts it
-            checks = [getattr(opts, "check_files", None)]
-            if (for_robot := getattr(opts, "check_for_robot", None)) is not None:
-                checks.append(lambda f=for_robot: f(cfg.robot.name))
-            for check in checks:
+            # check_files(): the files its options name; check_for_robot(robot): what its start
+            # would refuse on this robot (the uwb link ids). Found here, not only by mapd run.
+            for hook, args in (("check_files", ()), ("check_for_robot", (cfg.robot.name,))):
+                check = getattr(opts, hook, None)
                 if check is None:
                     continue
                 try:
-                    check()
+                    check(*args)
                 except ValueError as exc:
                     raise ConfigError(f"{where}: {section}.{name}.{exc}") from None

@@ -34,7 +34,7 @@ from typing import Any, BinaryIO
 
 #: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>.<n>``
 #: (and, as mapd named them before, without ``.<n>``).
-_TEMP_NAME = re.compile(r"\..+\.tmp(\d+)\.\d+(?:\.\d+)?")
+_TEMP_NAME = re.compile(r"\..+\.tmp\d+\.\d+(?:\.\d+)?")
 #: A number of its own for every temp file: two writes of one file by one thread had the same temp
 #: name, and a sweep that listed the folder between them could take the second's temp for stale.
 _TEMP_SEQ = itertools.count()

@@ -95,15 +95,22 @@ def refuse_overwrite(outputs: Iterable[tuple[Path, str]], inputs: Iterable[tuple
 def check_writable(path: Path, what: str) -> None:
     """Raise :class:`ConfigError` now if ``path`` cannot be written as a new or replaced file.
 
-    For outputs written only after long work (a merge places maps for minutes): a missing folder or
-    a directory in the way is said before the work, and before any other output is written.
+    For outputs written only after long work (a merge places maps for minutes, ``link recv`` waits
+    for a whole transfer): a missing folder or a directory in the way is said before the work, and
+    before any other output is written.
     """
+    import tempfile
+
     if path.is_dir():
-        raise ConfigError(f"{what} {path}: is a directory")
+        raise ConfigError(f"{what} {path}: is a folder (it is a directory); give a file name")
     if path.exists() and not path.is_file():
         raise ConfigError(f"{what} {path}: not a regular file")
     folder = path.parent
     if not folder.is_dir():
-        raise ConfigError(f"{what} {path}: no such directory {folder}")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ConfigError(f"{what} {path}: cannot write in {folder}")
+        raise ConfigError(f"{what} {path}: the folder {folder} does not exist (no such directory)")
+    try:
+        # A real write, not os.access: it also catches a read-only file system, and root.
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot write in {folder}: {exc.strerror}") from None

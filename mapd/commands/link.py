@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.bench.common import DAY_S, UWB_MAX_BPS, float_arg, int_arg
+from mapd.commands.common import check_writable
 from mapd.errors import ConfigError, TransportError
 from mapd.keys import read_key_file
 
@@ -160,24 +161,6 @@ async def _progress(link: Any, what: str, total: int | None) -> None:
         print(f"link: {moved} bytes {'sent' if what == 'bytes_tx' else 'received'}{share}", file=sys.stderr)
 
 
-def _check_output(path: Path) -> None:
-    """Refuse an ``-o`` that cannot be written before the link starts: checked only after the
-    transfer, the sender reported success for data the receiver then threw away."""
-    import tempfile
-
-    if path.is_dir():
-        raise ConfigError(f"-o {path}: is a folder; give a file name")
-    folder = path.parent
-    if not folder.is_dir():
-        raise ConfigError(f"-o {path}: the folder {folder} does not exist")
-    try:
-        # A real write, not os.access: it also catches a read-only file system, and root.
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}.", suffix=".probe"):
-            pass
-    except OSError as exc:
-        raise ConfigError(f"-o {path}: cannot write in {folder}: {exc.strerror}") from None
-
-
 def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, Any]) -> None:
     if args.json:
         print(json.dumps({**summary, "stats": stats}, indent=2))
@@ -263,7 +246,9 @@ async def _send(args: argparse.Namespace, data: bytes, peers: list[int]) -> int:
 def cmd_recv(args: argparse.Namespace) -> int:
     import asyncio
 
-    _check_output(args.output)
+    # before the link starts: checked after the transfer, the sender reported success for data the
+    # receiver then threw away
+    check_writable(args.output, "-o")
     return asyncio.run(_recv(args))
 
 

@@ -67,7 +67,13 @@ class FilesOutput(Output):
         # what a write killed mid-way (kill -9, power loss) left there would otherwise pile up
         await asyncio.to_thread(remove_stale_temps, self.opts.dir)
         # Numbers go on from the last run's: a reader may still hold its YAML, naming its image.
-        self._seq = max(self._images(), default=0) + 1
+        # What an earlier run left beyond the last two images (and the one fixed name of mapd
+        # before) goes now; from here on each write removes the one image it makes too old.
+        images = await asyncio.to_thread(self._images)
+        self._seq = max(images, default=0) + 1
+        for n in sorted(images)[:-2]:
+            self._unlink(self._image_path(n))
+        self._unlink(self.opts.dir / f"{self.opts.name}.pgm")
 
     def _images(self) -> list[int]:
         """The numbers of the ``<name>-<n>.pgm`` images in the folder."""
@@ -76,6 +82,14 @@ class FilesOutput(Output):
         except OSError:
             return []
         return [int(m.group(1)) for n in names if (m := self._image.fullmatch(n))]
+
+    def _image_path(self, n: int) -> Path:
+        return self.opts.dir / f"{self.opts.name}-{n}.pgm"
+
+    @staticmethod
+    def _unlink(path: Path) -> None:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
 
     def publish(self, update: GlobalUpdate) -> None:
         try:
@@ -92,16 +106,11 @@ class FilesOutput(Output):
 
     def _write(self, update: GlobalUpdate) -> None:
         seq = self._seq
-        save_map(
-            update.grid, self.opts.dir / f"{self.opts.name}.yaml", image_name=f"{self.opts.name}-{seq}.pgm"
-        )
+        save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml", image_name=self._image_path(seq).name)
         self._seq = seq + 1
-        # Keep this image and the one before (a reader between the old YAML and its image).
-        old = [self.opts.dir / f"{self.opts.name}-{n}.pgm" for n in self._images() if n < seq - 1]
-        old.append(self.opts.dir / f"{self.opts.name}.pgm")  # the one fixed name of mapd before
-        for path in old:
-            with contextlib.suppress(OSError):
-                path.unlink(missing_ok=True)
+        # Keep this image and the one before (a reader between the old YAML and its image). Numbers
+        # go up by one per map written, so the one now too old is seq - 2.
+        self._unlink(self._image_path(seq - 2))
         doc: dict[str, Any] = {
             "frame_id": self.opts.frame_id,
             "stamp": update.stamp,

@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapd.errors import StateError
+from mapd.errors import ConfigError, StateError
 
 log = logging.getLogger("mapd.record")
 
@@ -73,6 +73,13 @@ class RecordingFiles:
     """The files of one recording, and the room they may take."""
 
     def __init__(self, path: Path, *, max_bytes: int, max_total_bytes: int, min_free_bytes: int) -> None:
+        # Room for the file being written and the one just finished (each ends a little past
+        # max_bytes): under that, every rotation would leave the recording with almost nothing.
+        # (The config's RecordSection says the same for check-config, naming the key.)
+        if max_total_bytes < 2 * max_bytes:
+            raise ConfigError(
+                f"record: max_total_bytes ({max_total_bytes}) is under twice max_bytes ({max_bytes})"
+            )
         self.path = path
         self.max_bytes = max_bytes
         self.max_total_bytes = max_total_bytes

@@ -114,12 +114,9 @@ class Recorder:
             from rosbags.typesys import Stores, get_typestore
         except ModuleNotFoundError as exc:
             raise ConfigError(f"record: needs {exc.name} (pip install 'mapd[record]')") from None
-        if max_total_bytes < 2 * max_bytes:
-            raise ConfigError(
-                f"record: max_total_bytes ({max_total_bytes}) is under twice max_bytes ({max_bytes})"
-            )
         self.path = path
         self.chunk_bytes = chunk_bytes
+        #: Which files, and how much disk they may take (the limits: ``disk.max_bytes``, ...).
         self.disk = RecordingFiles(
             path, max_bytes=max_bytes, max_total_bytes=max_total_bytes, min_free_bytes=min_free_bytes
         )
@@ -145,18 +142,6 @@ class Recorder:
     def removed(self) -> int:
         """Files of the recording removed to stay within ``max_total_bytes``."""
         return self.disk.removed
-
-    @property
-    def max_bytes(self) -> int:
-        return self.disk.max_bytes
-
-    @property
-    def max_total_bytes(self) -> int:
-        return self.disk.max_total_bytes
-
-    @property
-    def min_free_bytes(self) -> int:
-        return self.disk.min_free_bytes
 
     # ------------------------------------------------------------------ files
     def _open(self) -> None:
@@ -300,7 +285,7 @@ class Recorder:
             self._tf_owed = False
         self.messages += 1
         assert self._file is not None
-        if self._file.tell() >= self.max_bytes:
+        if self._file.tell() >= self.disk.max_bytes:
             self._finish()
             assert self._index is not None
             self._index += 1

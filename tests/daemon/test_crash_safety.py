@@ -669,7 +669,8 @@ def test_the_record_settings_reach_the_daemons_recorder(tmp_path: Path, dk: Simp
     d = Daemon(configmod.load(path), source=dk.QueueSource("robot0"))
     recorder = d.sinks.recorder
     assert recorder is not None
-    assert (recorder.max_bytes, recorder.max_total_bytes, recorder.min_free_bytes) == (
+    disk = recorder.disk
+    assert (disk.max_bytes, disk.max_total_bytes, disk.min_free_bytes) == (
         2 << 20,
         6 << 20,
         1 << 20,

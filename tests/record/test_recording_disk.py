@@ -177,7 +177,7 @@ def test_max_total_bytes_under_twice_max_bytes_is_refused() -> None:
     # the recorder's defaults are the config's (the daemon passes the config's values)
     d = RecordSection()
     rec = Recorder(Path("fleet.mcap"))
-    assert (rec.max_bytes, rec.max_total_bytes, rec.min_free_bytes) == (
+    assert (rec.disk.max_bytes, rec.disk.max_total_bytes, rec.disk.min_free_bytes) == (
         d.max_bytes, d.max_total_bytes, d.min_free_bytes,
     )  # fmt: skip
 
