@@ -6,6 +6,13 @@ the radio, so it is packed by hand rather than as a msgpack envelope (about 100 
 them the signature)::
 
     "MP" | u8 format (1) | u8 len | fleet | u8 len | robot | f64 stamp | f32 x | f32 y | f32 yaw | sig
+    "MP" | u8 format (2) | u8 len | fleet | u8 len | robot | f64 stamp | f64 x | f64 y | f32 yaw | sig
+
+Format 1 holds x and y as float32, whose step is a quarter metre beyond 2,100 km and half a metre
+beyond 4,200 km: a map frame in UTM coordinates (which maps may use, up to ``MAX_ORIGIN_M``) would
+move peers' robots in half-metre jumps. So a pose whose x or y float32 cannot carry within a
+millimetre goes as format 2, with float64 x and y (8 bytes more); every other pose still goes as
+format 1, so radios pay nothing extra and robots of earlier releases keep reading them.
 
 ``sig`` is the Ed25519 signature of the robot it names over everything before it, under its own
 domain (so no other signed mapd message can pass for a pose); it is absent in a fleet that allows
@@ -27,10 +34,13 @@ from mapd.grid import MAX_ORIGIN_M, MAX_ORIGIN_YAW, Pose2D, StampedPose
 from mapd.identity import SIG_LEN, Identity, Roster
 
 MAGIC = b"MP"
-FORMAT = 1
+#: The formats this mapd reads; it writes the smallest one that holds the pose (see above).
+FORMATS = (1, 2)
 _DOMAIN = b"mapd-pose/1\x00"
 _MAX_NAME = 64
-_TAIL = struct.Struct("<dfff")
+_TAILS = {1: struct.Struct("<dfff"), 2: struct.Struct("<dddf")}
+#: Format 1 is used while float32 keeps x and y within this many metres.
+_F32_TOLERANCE_M = 1e-3
 #: A pose stamped further than this ahead of the receiver's clock is refused (clocks differ a little).
 MAX_AHEAD_S = 60.0
 
@@ -45,15 +55,25 @@ class PoseMessage:
     pose: Pose2D
     sig: bytes = field(default=b"", repr=False)
 
+    @property
+    def format(self) -> int:
+        """1 when float32 holds x and y within a millimetre, else 2 (float64 x and y)."""
+        fits = all(
+            abs(struct.unpack("<f", struct.pack("<f", v))[0] - v) <= _F32_TOLERANCE_M
+            for v in (self.pose.x, self.pose.y)
+        )
+        return 1 if fits else 2
+
     def _body(self) -> bytes:
         fleet, robot = self.fleet.encode(), self.robot.encode()
+        fmt = self.format
         return (
             MAGIC
-            + bytes([FORMAT, len(fleet)])
+            + bytes([fmt, len(fleet)])
             + fleet
             + bytes([len(robot)])
             + robot
-            + _TAIL.pack(self.stamp, self.pose.x, self.pose.y, self.pose.yaw)
+            + _TAILS[fmt].pack(self.stamp, self.pose.x, self.pose.y, self.pose.yaw)
         )
 
     def signed(self, identity: Identity) -> PoseMessage:
@@ -92,18 +112,19 @@ def unpack_pose(data: bytes, *, roster: Roster | None = None, fleet: str | None 
     :class:`~mapd.errors.SignatureError` when ``roster`` does not accept its signature. Without a
     roster nothing is verified (tools).
     """
-    if len(data) > 4 + 2 * (_MAX_NAME + 1) + _TAIL.size + SIG_LEN:
+    if len(data) > 4 + 2 * (_MAX_NAME + 1) + _TAILS[2].size + SIG_LEN:
         raise EnvelopeError(f"pose message of {len(data)} bytes is too long")
     if data[:2] != MAGIC or len(data) < 3:
         raise EnvelopeError("not a pose message")
-    if data[2] != FORMAT:
-        raise EnvelopeError(f"pose format {data[2]} is not supported (this mapd reads {FORMAT})")
+    tail = _TAILS.get(data[2])
+    if tail is None:
+        raise EnvelopeError(f"pose format {data[2]} is not supported (this mapd reads 1 and 2)")
     fleet_name, at = _name(data, 3, "fleet")
     robot, at = _name(data, at, "robot")
-    if len(data) < at + _TAIL.size:
+    if len(data) < at + tail.size:
         raise EnvelopeError("pose message is truncated")
-    stamp, x, y, yaw = _TAIL.unpack_from(data, at)
-    at += _TAIL.size
+    stamp, x, y, yaw = tail.unpack_from(data, at)
+    at += tail.size
     sig = data[at:]
     if sig and len(sig) != SIG_LEN:
         raise EnvelopeError("pose signature has the wrong length")

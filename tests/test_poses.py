@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import struct
 
@@ -64,6 +65,32 @@ def test_a_robot_cannot_speak_for_another() -> None:
 
 
 @pytest.mark.parametrize(
+    ("x", "y"),
+    [(512345.67, 5412345.67), (687654.32, -9876543.21), (-40000.002, 3.0), (9_999_999.999, 0.5)],
+)
+def test_far_from_the_origin_a_pose_keeps_its_millimetres(x: float, y: float) -> None:
+    """UTM-sized map frames: float32 would round 5,412,345.67 m to 5,412,345.5, so format 2 (float64)."""
+    data = msg(pose=Pose2D(x, y, -1.25)).signed(R0).pack()
+    assert data[2] == 2
+    got = unpack_pose(data, roster=ROSTER, fleet="demo")
+    assert abs(got.pose.x - x) < 1e-6 and abs(got.pose.y - y) < 1e-6
+    assert got.pose.yaw == pytest.approx(-1.25)
+    # A robot walking 10 cm steps there is seen walking 10 cm steps, not half-metre jumps.
+    seen = [unpack_pose(msg(pose=Pose2D(x, y + 0.1 * i, 0)).pack()).pose.y for i in range(8)]
+    assert [round(b - a, 6) for a, b in itertools.pairwise(seen)] == [0.1] * 7
+
+
+def test_near_the_origin_the_pose_stays_format_1() -> None:
+    """Format 1 where float32 holds x and y within a millimetre: no extra bytes on the radio, and
+    robots of earlier releases (which read format 1 only) keep reading it."""
+    data = msg(pose=Pose2D(8000.123, -16000.5, 3.0)).signed(R0).pack()
+    assert data[2] == 1
+    assert len(data) == len(msg(pose=Pose2D(1e6 + 0.3, 0, 0)).signed(R0).pack()) - 8
+    got = unpack_pose(data, roster=ROSTER, fleet="demo")
+    assert abs(got.pose.x - 8000.123) <= 1e-3 and abs(got.pose.y + 16000.5) <= 1e-3
+
+
+@pytest.mark.parametrize(
     ("pose", "stamp", "why"),
     [
         (Pose2D(math.nan, 0, 0), 1.0, "non-finite"),
@@ -90,6 +117,12 @@ def test_structure_errors() -> None:
         unpack_pose(good + bytes(10))
     with pytest.raises(EnvelopeError, match="name"):
         unpack_pose(b"MP\x01\x00" + struct.pack("<dfff", 1, 0, 0, 0))
+    far = msg(pose=Pose2D(3e6 + 0.3, 0, 0)).pack()
+    for cut in range(len(far)):
+        with pytest.raises(EnvelopeError):
+            unpack_pose(far[:cut])
+    with pytest.raises(EnvelopeError, match="extent"):
+        unpack_pose(far.replace(struct.pack("<d", 3e6 + 0.3), struct.pack("<d", 2e7)))
 
 
 @settings(max_examples=400, deadline=None)
@@ -97,6 +130,8 @@ def test_structure_errors() -> None:
 def test_fuzz_only_envelope_errors(data: bytes) -> None:
     with contextlib.suppress(EnvelopeError):
         unpack_pose(b"MP\x01" + data, roster=ROSTER, fleet="demo")
+    with contextlib.suppress(EnvelopeError):
+        unpack_pose(b"MP\x02" + data, roster=ROSTER, fleet="demo")
     with contextlib.suppress(EnvelopeError):
         unpack_pose(data)
 
