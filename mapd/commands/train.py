@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from mapd.bench.common import MAX_SEED, int_arg
@@ -114,6 +115,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     snap.add_argument(
         "--cache", type=Path, default=None, help="snapshot cache (default $MAPD_CACHE or ~/.cache/mapd)"
     )
+    stop = p.add_argument_group(
+        "stopping and going on (the state after each epoch is kept in OUTPUT.checkpoint)"
+    )
+    stop.add_argument(
+        "--resume",
+        action="store_true",
+        help="go on from OUTPUT.checkpoint (same settings): the same weights as a run that never stopped",
+    )
+    stop.add_argument(
+        "--time-limit",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stop after the epoch that ends S seconds in, keeping the checkpoint; exit status 3 (default 0: none)",
+    )
     p.add_argument("--no-eval", action="store_true", help="skip the whole-map evaluation at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -153,6 +169,7 @@ def _snapshot_args(args: argparse.Namespace) -> list[str]:
 def cmd_train(args: argparse.Namespace) -> int:
     from mapd.data import data_dir
     from mapd.errors import ConfigError
+    from mapd.train.checkpoint import TrainingPaused
     from mapd.train.loop import TrainConfig, main_train
     from mapd.train.snapshots import SnapshotSpec
 
@@ -190,9 +207,15 @@ def cmd_train(args: argparse.Namespace) -> int:
         ),
         finished=not args.no_finished,
         exclude_places=tuple(args.exclude_place),
+        resume=args.resume,
+        time_limit=args.time_limit,
         extra={"argv": _command(args, maps)},
     )
-    meta = main_train(cfg)
+    try:
+        meta = main_train(cfg)
+    except TrainingPaused as paused:
+        print(f"mapd: {paused}", file=sys.stderr)
+        return 3
     out = f"{args.output}: weights sha256 {meta['weights_sha256'][:12]}, {meta['parameters']} parameters"
     m = meta.get("metrics", {}).get("validation")
     if m:

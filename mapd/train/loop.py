@@ -24,6 +24,9 @@ stage after it is lossless, so "through Cod(.)" is through the rounding).
   cells on a class boundary that many times; the loss stays a per-cell MSE on the PSNR's scale.
 * **Bad settings** are refused before any work (:func:`check_settings`, :func:`~mapd.train.install.output_folder`):
   every size has an upper bound, so memory stays bounded; tiles are drawn a batch at a time.
+* **Stops.** After each epoch the whole training state goes to ``<-o>.checkpoint``
+  (:mod:`mapd.train.checkpoint`); ``resume`` goes on from it to the same weights as an unbroken run,
+  and ``time_limit`` ends a run cleanly after the epoch that reaches it (:class:`TrainingPaused`).
 * **Output.** The model folder is written and evaluated in a hidden folder beside ``-o`` and then
   renamed into place (:mod:`mapd.train.install`), so a failure (a full disk, a diverged run: non-finite
   weights are never saved) leaves a model already there whole.
@@ -50,6 +53,7 @@ import torch
 from mapd.codec import paper_net as pn
 from mapd.errors import ConfigError, MapdError
 from mapd.grid import load_map
+from mapd.train import checkpoint as ckpt
 from mapd.train.card import evaluate_maps, model_card, summarize
 from mapd.train.data import (
     MARGIN,
@@ -112,6 +116,10 @@ class TrainConfig:
     finished: bool = True
     #: Places (split groups) left out of training and validation, e.g. the place of a held-out log.
     exclude_places: tuple[str, ...] = ()
+    #: Go on from ``<out>.checkpoint`` (same settings) instead of starting over.
+    resume: bool = False
+    #: Seconds after which the run stops at the end of an epoch, checkpoint kept (0: no limit).
+    time_limit: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -203,6 +211,8 @@ def check_settings(cfg: TrainConfig) -> None:
         raise ConfigError(f"--levels must be 2 to 256, got {cfg.levels}")
     if not 0 <= cfg.seed < 2**63:  # torch and numpy take seeds in this range
         raise ConfigError(f"--seed must be 0 to 2**63 - 1, got {cfg.seed}")
+    if not (math.isfinite(cfg.time_limit) and cfg.time_limit >= 0):
+        raise ConfigError(f"--time-limit must be a number of seconds >= 0, got {cfg.time_limit}")
 
 
 def train(cfg: TrainConfig) -> dict[str, Any]:
@@ -215,6 +225,12 @@ def train(cfg: TrainConfig) -> dict[str, Any]:
     if cfg.snapshots:
         cfg.snapshots.check()
     out = output_folder(cfg.out)
+    saved = ckpt.checkpoint_path(out)
+    if not cfg.resume and saved.exists():
+        # Starting over would write over the progress of the stopped run.
+        raise ConfigError(
+            f"{saved} holds a stopped run of -o {out}: add --resume to go on with it, or delete it"
+        )
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     was_threads = torch.get_num_threads()
     if cfg.threads:
@@ -252,6 +268,7 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     torch.use_deterministic_algorithms(True)
     rng = np.random.default_rng(cfg.seed)
     started = time.time()
+    saved = ckpt.checkpoint_path(out)
 
     train_maps = _load_maps(train_paths, root, cfg.tile)
     recipe: dict[str, Any] = {"finished": cfg.finished, "finished_maps": len(train_paths)}
@@ -269,9 +286,45 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * min(s, total_steps) / total_steps))
     )
-    history = []
-    bar = tqdm(total=total_steps, desc="train", unit="step", disable=not cfg.progress, file=sys.stderr)
-    for epoch in range(cfg.epochs):
+    settings = ckpt.fingerprint(
+        {
+            "epochs": cfg.epochs, "tile": cfg.tile, "seed": cfg.seed, "levels": cfg.levels,
+            "tiles_per_epoch": cfg.tiles_per_epoch, "batch": cfg.batch, "lr": cfg.lr,
+            "edge_weight": cfg.edge_weight, "val_tiles": cfg.val_tiles, "device": device.type,
+            "threads": torch.get_num_threads(), "recipe": recipe,
+            "train maps": sorted(_label(p, root) for p in train_paths),
+            "validation maps": sorted(_label(p, root) for p in val_paths),
+        }
+    )  # fmt: skip
+    history: list[dict[str, Any]] = []
+    first, spent, resumed = 0, 0.0, []
+    if cfg.resume:
+        state = ckpt.load(saved, settings)
+        try:
+            net.load_state_dict(state["net"])
+            opt.load_state_dict(state["opt"])
+            sched.load_state_dict(state["sched"])
+            rng.bit_generator.state = state["rng"]
+            torch.set_rng_state(state["torch_rng"])
+            if device.type == "cuda" and "cuda_rng" in state:
+                torch.cuda.set_rng_state(state["cuda_rng"], device)
+            first, spent, history = int(state["epoch"]), float(state["seconds"]), list(state["history"])
+            resumed = [*state["resumed"], first]
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise ConfigError(
+                f"--resume: checkpoint {saved} does not fit this run ({type(exc).__name__})"
+            ) from None
+        if not 0 < first < cfg.epochs:
+            raise ConfigError(f"--resume: checkpoint {saved} says {first} epochs of {cfg.epochs} are done")
+    bar = tqdm(
+        total=total_steps,
+        initial=first * steps_per_epoch,
+        desc="train",
+        unit="step",
+        disable=not cfg.progress,
+        file=sys.stderr,
+    )
+    for epoch in range(first, cfg.epochs):
         net.train()
         if epoch == cfg.epochs - 1 and cfg.epochs > 1:
             _freeze_bn(net)
@@ -306,8 +359,17 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             entry["val_mse"] = sum(vl) / cfg.val_tiles
             bar.set_postfix(epoch=epoch + 1, loss=f"{entry['train_mse']:.5f}", val=f"{entry['val_mse']:.5f}")
         history.append(entry)
+        if epoch + 1 < cfg.epochs:
+            _save_checkpoint(saved, settings, net, opt, sched, rng, device, epoch + 1, history, resumed,
+                             spent + time.time() - started)  # fmt: skip
+            if cfg.time_limit and time.time() - started >= cfg.time_limit:
+                bar.close()
+                raise ckpt.TrainingPaused(
+                    f"-o {out}: stopped after epoch {epoch + 1} of {cfg.epochs} (--time-limit"
+                    f" {cfg.time_limit:g} s); {saved} holds it: run the same command with --resume to go on"
+                )
     bar.close()
-    train_seconds = time.time() - started
+    train_seconds = spent + time.time() - started
 
     net = net.cpu().eval()
     arrays = pn.state_arrays(net)
@@ -352,6 +414,7 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             "seconds": round(train_seconds, 1),
             "command": " ".join(cfg.extra.get("argv", [])),
             "history": history,
+            "resumed_after_epochs": resumed,
             "recipe": recipe,
         },
         "split": {
@@ -383,11 +446,46 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 )
             (folder / CARD_FILE).write_text(model_card(meta), encoding="utf-8")
             install(folder, out)
+        saved.unlink(missing_ok=True)  # the model is whole: nothing left to resume
     except OSError as exc:
         raise MapdError(
             f"-o {out}: cannot write the model ({exc.strerror or exc}); any model there is unchanged"
         ) from None
     return meta
+
+
+def _save_checkpoint(
+    path: Path,
+    settings: dict[str, str],
+    net: pn.PaperNet,
+    opt: torch.optim.Optimizer,
+    sched: torch.optim.lr_scheduler.LRScheduler,
+    rng: np.random.Generator,
+    device: torch.device,
+    epochs_done: int,
+    history: list[dict[str, Any]],
+    resumed: list[int],
+    seconds: float,
+) -> None:
+    """Everything the epochs after ``epochs_done`` depend on (see :mod:`mapd.train.checkpoint`)."""
+    state: dict[str, Any] = {
+        "settings": settings,
+        "epoch": epochs_done,
+        "net": net.state_dict(),
+        "opt": opt.state_dict(),
+        "sched": sched.state_dict(),
+        "rng": rng.bit_generator.state,
+        "torch_rng": torch.get_rng_state(),
+        "history": history,
+        "resumed": resumed,
+        "seconds": seconds,
+    }
+    if device.type == "cuda":
+        state["cuda_rng"] = torch.cuda.get_rng_state(device)
+    try:
+        ckpt.save(path, state)
+    except OSError as exc:
+        raise MapdError(f"cannot write the checkpoint {path}: {exc.strerror or exc}") from None
 
 
 def main_train(cfg: TrainConfig) -> dict[str, Any]:
