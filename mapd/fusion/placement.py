@@ -12,10 +12,15 @@ the ``anchor`` robot's map frame (the worker's own robot, or the first map of ``
 * any other robot is estimated against the maps already placed (so chains work: c is placed
   against b once b is placed against a); the most confident accepted estimate wins;
 * **never flip**: once accepted, a robot's placement is *held*. Each update refines it from the held
-  value (cheap, no search); a full search runs again every ``research_every`` updates. A different
-  placement replaces the held one only when it is accepted, beats the held one's current fit by
-  ``switch_margin``, and does so on ``switch_after`` updates in a row. A held placement whose
-  confidence drops stays merged (dropping it would flip the map too) and says so in its reason;
+  value (cheap, no search); a full search runs again every ``research_every`` updates, and at once
+  when the held placement fails its check against the map it was placed against, or while a
+  different placement is being watched. A different placement replaces the held one only when it
+  is accepted, beats the held one's current fit by ``switch_margin``, and does so on
+  ``switch_after`` searched updates in a row. A held placement whose confidence drops stays merged
+  (dropping it would flip the map too) and says so in its reason;
+* a placement estimated against another robot's map is held *relative to that map*: when that
+  robot is placed anew (its pose corrected, or it switched), the placement moves with it, unless
+  only the old fleet-frame placement still fits that robot's map (its map frame itself moved);
 * an estimate below threshold is never merged; its ``reason`` says why.
 
 Pure logic over :func:`~mapd.fusion.estimate.estimate_transform`: no asyncio, no clock, no files.
@@ -130,9 +135,16 @@ class _Track:
 
     updates_since_search: int = 0
     challenger: Pose2D | None = None
+    #: searched updates in a row that saw ``challenger`` clearly better
     streak: int = 0
-    #: other robot -> ((digest of its map, digest of this map, held transform), answer)
-    last: dict[str, tuple[tuple[bytes, bytes, Pose2D | None], Placement]] = field(default_factory=dict)
+    #: where the robot the held placement was estimated against was placed then (so the held
+    #: placement can follow it when it is placed anew); None when not known (restored)
+    against_at: Pose2D | None = None
+    #: other robot -> ((digest of its map, digest of this map, other's placement, held transform),
+    #: answer)
+    last: dict[str, tuple[tuple[bytes, bytes, Pose2D, Pose2D | None], Placement]] = field(
+        default_factory=dict
+    )
     #: Placed robots this robot was searched against since its round began (a new round once it
     #: holds them all): an update starts with the others, so a robot the time budget cuts short
     #: whose map changes every update is not searched against the first placed map only, for ever
@@ -261,11 +273,18 @@ class Placer:
                 )
             self.placements.update(out)
             return out
-        # Held robots first, so chains form in a stable order; then those an earlier update left
-        # for later (so none waits for ever behind the others); then the rest by name.
+        # Held robots first, so chains form in a stable order, each after the robot it is held
+        # against (so it sees where that one is placed now); then those an earlier update left for
+        # later (so none waits for ever behind the others); then the rest by name.
+        unplaced = {r for r in maps if r not in placed}
         pending = sorted(
-            (r for r in maps if r not in placed),
-            key=lambda r: (r not in self.placements, r not in self._deferred, r),
+            unplaced,
+            key=lambda r: (
+                r not in self.placements,
+                self._chain_depth(r, unplaced),
+                r not in self._deferred,
+                r,
+            ),
         )
         if not estimate:
             for robot in pending:
@@ -295,6 +314,17 @@ class Placer:
                 out[robot] = p
         self.placements.update(out)
         return out
+
+    def _chain_depth(self, robot: str, among: set[str]) -> int:
+        """How many robots of ``among`` lie under ``robot``'s held estimate (it against b, b
+        against c, ...)."""
+        n, seen = 0, {robot}
+        p = self.placements.get(robot)
+        while p is not None and p.source == "estimate" and p.against in among and p.against not in seen:
+            seen.add(p.against)
+            n += 1
+            p = self.placements.get(p.against)
+        return n
 
     def _defer(self, robots: list[str], out: dict[str, Placement]) -> None:
         """Leave ``robots`` to the next update, holding what they had."""
@@ -372,6 +402,9 @@ class Placer:
             if best.accepted and held is not None:
                 break  # a held robot is tracked against one map, not re-shopped every update
         assert best is not None
+        if best.accepted and best.source == "estimate" and best.against in placed:
+            assert best.against is not None
+            track.against_at = placed[best.against]
         return best
 
     def _place_against(
@@ -385,13 +418,47 @@ class Placer:
     ) -> Placement:
         a, b = maps[other], maps[robot]
         t_other = placed[other]
-        key = (a.digest(), b.digest(), None if held is None else held.transform)
+        key = (a.digest(), b.digest(), t_other, None if held is None else held.transform)
         cached = track.last.get(other)
         if cached is not None and cached[0] == key:
-            return cached[1]  # neither map nor the held placement changed: same answer
+            return cached[1]  # neither map nor a placement changed: same answer
+        own = held is not None and other == held.against
         prior = None if held is None else compose(inverse(t_other), held.transform or IDENTITY)
-        search = prior is None or track.updates_since_search + 1 >= self.research_every
-        est = estimate_transform(
+        est: Estimate | None = None
+        if held is not None and own and track.against_at is not None and track.against_at != t_other:
+            # The map it was found against was placed anew (a corrected pose, a switch): the held
+            # placement is relative to that map, and moves with it. Unless that map's frame moved
+            # itself (SLAM re-anchored, and that robot switched to follow): then the old
+            # fleet-frame placement is the one that still fits, and stays.
+            track.challenger, track.streak = None, 0  # seen against the old placement
+            rel = compose(inverse(track.against_at), held.transform or IDENTITY)
+            follow = self._estimate(a, b, rel, search=False)
+            if self._holds(follow, rel, b):
+                held = replace(held, transform=compose(t_other, rel))
+                prior, est = rel, follow
+        # Search on schedule, and while a different placement is watched: only a search sees it
+        # again, and a switch needs it seen on searched updates in a row.
+        search = (
+            prior is None
+            or track.challenger is not None
+            or track.updates_since_search + 1 >= self.research_every
+        )
+        if est is None or search:
+            est = self._estimate(a, b, prior, search=search)
+        if not search and own and not self._holds(est, prior, b):
+            # The held placement fails its check against the map it was placed against: look for
+            # a better one now, not at the next scheduled search (between those, a robot whose
+            # SLAM restarted elsewhere was held wrong for good). It costs no more than a robot
+            # that is not placed yet, which is searched at every new map.
+            search = True
+            est = self._estimate(a, b, prior, search=True)
+        track.updates_since_search = 0 if search else track.updates_since_search + 1
+        result = self._judge(robot, other, b, t_other, est, held, prior, track, search)
+        track.last[other] = (key, result)
+        return result
+
+    def _estimate(self, a: OccupancyGrid, b: OccupancyGrid, prior: Pose2D | None, search: bool) -> Estimate:
+        return estimate_transform(
             a,
             b,
             min_confidence=self.min_confidence,
@@ -400,10 +467,10 @@ class Placer:
             search=search,
             options=self.options,
         )
-        track.updates_since_search = 0 if search else track.updates_since_search + 1
-        result = self._judge(robot, other, b, t_other, est, held, prior, track)
-        track.last[other] = (key, result)
-        return result
+
+    def _holds(self, est: Estimate, prior: Pose2D | None, b: OccupancyGrid) -> bool:
+        """Whether ``est`` accepts the placement ``prior`` (refined no farther than a rival lies)."""
+        return prior is not None and est.accepted and _close(est.transform, prior, b, self.options)
 
     def _judge(
         self,
@@ -415,7 +482,10 @@ class Placer:
         held: Placement | None,
         prior: Pose2D | None,
         track: _Track,
+        searched: bool,
     ) -> Placement:
+        """``est`` (b in ``other``'s map) as ``robot``'s placement: held, tracked, or switched.
+        Only a ``searched`` estimate counts towards a switch, or breaks a run of sightings."""
         new_t = compose(t_other, est.transform)
         if held is None or prior is None:
             if est.accepted:
@@ -424,13 +494,9 @@ class Placer:
                 )
             return Placement(robot, None, "none", False, est.confidence, est.agreement, est.reason, other)
         assert held.transform is not None
-        ctr = _centre(b)
-        dist_m, dyaw = pose_distance(est.transform, prior, ctr)
-        near = dist_m <= self.options.rival_cells * b.resolution and dyaw <= math.radians(
-            self.options.rival_deg
-        )
-        if near:
-            track.challenger, track.streak = None, 0
+        if _close(est.transform, prior, b, self.options):
+            if searched:
+                track.challenger, track.streak = None, 0
             if est.accepted:
                 return Placement(
                     robot, new_t, "estimate", True, est.confidence, est.agreement, "tracking", other
@@ -446,7 +512,9 @@ class Placer:
         prior_fit = est.details.get("prior_fit") or 0.0
         best_fit = est.details.get("best_fit") or 0.0
         clearly = est.accepted and best_fit >= prior_fit + self.switch_margin
-        if clearly:
+        if not searched:
+            pass  # a refine of the held placement alone says nothing of another one
+        elif clearly:
             same = track.challenger is not None and _close(track.challenger, new_t, b, self.options)
             track.streak = track.streak + 1 if same else 1
             track.challenger = new_t

@@ -115,6 +115,75 @@ def test_accepted_placement_is_held_and_switches_only_to_a_clearly_better_one_tw
     assert _near(third.transform, compose(_truth(60, 110), inverse(shift)), crops["b"])
 
 
+def _version(g: OccupancyGrid, v: int) -> OccupancyGrid:
+    """``g`` as map version ``v``, one cell changed (any change makes a new map)."""
+    data = g.data.copy()
+    data[0, v] = 0 if data[0, v] != 0 else -1
+    return g.replace(data=data, version=v)
+
+
+def test_with_the_daemons_settings_a_held_placement_that_became_wrong_is_replaced(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    # The daemon's Placer searches every 5th update: on the updates between, the refine of the
+    # wrong held placement reset the count of sightings of the better one, so it was never
+    # adopted (an audit: held 2 m off for good, only 24% of its walls meeting).
+    placer = Placer({}, anchor="a")  # FusionWorker's: research_every=5, switch_after=2
+    first = placer.update({"a": crops["a"], "b": crops["b"]})["b"]
+    assert first.accepted and _near(first.transform, _truth(60, 110), crops["b"])
+    # b's SLAM re-anchors: the same place now lies 2 m further along b's map x axis
+    shift = Pose2D(2.0, 0.0, 0.0)
+    moved = crops["b"].replace(origin=compose(shift, crops["b"].origin))
+    truth = compose(_truth(60, 110), inverse(shift))
+    second = placer.update({"a": crops["a"], "b": _version(moved, 2)})["b"]
+    assert second.accepted and second.transform == first.transform  # seen once: held, not flipped
+    assert "being watched" in second.reason and second.watching is not None
+    third = placer.update({"a": crops["a"], "b": _version(moved, 3)})["b"]
+    assert third.accepted and "switched" in third.reason and _near(third.transform, truth, crops["b"])
+    fourth = placer.update({"a": crops["a"], "b": _version(moved, 4)})["b"]
+    assert fourth.accepted and fourth.reason == "tracking" and _near(fourth.transform, truth, crops["b"])
+
+
+def test_a_robot_placed_against_another_moves_with_it_when_that_one_is_placed_anew(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    # c (no overlap with a) was found against b's map; b's reported start pose was 3 m off and is
+    # then corrected. c stayed where it was in the fleet frame, 3 m off b's map (an audit), while
+    # a fresh start placed it right.
+    truth_b, truth_c = _truth(60, 110), _truth(80, 210, name="c")
+    wrong_b = compose(truth_b, Pose2D(3.0, 0.0, 0.0))
+    placer = Placer({"a": ZERO, "b": wrong_b, "c": None}, anchor=None)
+    c1 = placer.update(crops)["c"]
+    assert c1.accepted and c1.against == "b"
+    assert _near(c1.transform, compose(wrong_b, compose(inverse(truth_b), truth_c)), crops["c"])
+    placer.poses["b"] = truth_b  # as FusionWorker.known_pose does when b reports its pose again
+    c2 = placer.update(crops)["c"]
+    assert c2.accepted and c2.against == "b" and _near(c2.transform, truth_c, crops["c"]), c2
+    # its own maps change too: it keeps following b's map, not the old place
+    c3 = placer.update({**crops, "c": _version(crops["c"], 3)})["c"]
+    assert c3.accepted and c3.reason == "tracking" and _near(c3.transform, truth_c, crops["c"]), c3
+
+
+def test_a_robot_placed_against_another_stays_when_that_ones_map_frame_moved(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    # b's SLAM re-anchors (its map frame moves 2 m, its maps with it) and b switches to its new
+    # true placement: c's walls have not moved, so following b's new placement would misplace c.
+    placer = Placer({}, anchor="a")
+    first = placer.update(crops)
+    assert first["c"].accepted and first["c"].against == "b"
+    assert _near(first["c"].transform, _truth(80, 210, name="c"), crops["c"])
+    shift = Pose2D(2.0, 0.0, 0.0)
+    moved = crops["b"].replace(origin=compose(shift, crops["b"].origin))
+    for v in (2, 3, 4):
+        out = placer.update({**crops, "b": _version(moved, v)})
+        assert out["c"].accepted and _near(out["c"].transform, _truth(80, 210, name="c"), crops["c"]), (
+            v,
+            out,
+        )
+    assert _near(out["b"].transform, compose(_truth(60, 110), inverse(shift)), crops["b"]), out["b"]
+
+
 def test_held_placement_stays_merged_when_evidence_drops(crops: dict[str, OccupancyGrid]) -> None:
     placer = Placer({}, anchor="a", research_every=1)
     first = placer.update({"a": crops["a"], "b": crops["b"]})["b"]
