@@ -52,6 +52,33 @@ _KEYS = {
 MAX_STR = 64
 
 
+#: Where an envelope names its robot: its packer writes format, fleet (64 bytes at most), then robot
+#: (64 bytes at most) first (:meth:`Envelope._fields`), well within this many bytes and fields.
+_HEAD_BYTES = 256
+_HEAD_FIELDS = 3
+
+
+def peek_robot(data: bytes) -> str | None:
+    """The robot an envelope's bytes name (its ``r`` field), read from their first fields without
+    verifying anything, or None when it is not there (not an envelope, or one packed otherwise).
+
+    Only to sort untrusted bytes before they are checked (the daemon's inbox keeps a slot per
+    robot); never a reason to trust them. Cheap on the event loop: at most :data:`_HEAD_BYTES`
+    bytes are looked at, the payload never.
+    """
+    head = msgpack.Unpacker(raw=False, max_buffer_size=_HEAD_BYTES)
+    head.feed(data[:_HEAD_BYTES])
+    try:
+        for _ in range(min(head.read_map_header(), _HEAD_FIELDS)):
+            if head.unpack() == "r":
+                robot = head.unpack()
+                return robot if isinstance(robot, str) else None
+            head.skip()
+    except Exception:  # msgpack raises assorted exceptions on hostile or cut-short bytes
+        return None
+    return None
+
+
 @dataclass(frozen=True)
 class Envelope:
     """One map update on the wire.

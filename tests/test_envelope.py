@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd.envelope import Envelope, unpack
+from mapd.envelope import Envelope, peek_robot, unpack
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.grid import Pose2D
 from mapd.identity import Identity, Roster
@@ -148,3 +148,13 @@ def test_frame_pose_travels_signed_and_is_checked() -> None:
         d["fp"] = bad
         with pytest.raises(EnvelopeError, match="frame pose"):
             unpack(msgpack.packb(d))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=300))
+def test_peek_robot_names_the_robot_and_never_raises(data: bytes) -> None:
+    """The inbox sorts untrusted bytes by the robot they name before anything is checked."""
+    assert peek_robot(data) is None or isinstance(peek_robot(data), str)
+    env = make(robot="beta", fleet="x" * 64).signed(BETA)
+    assert peek_robot(env.pack()) == "beta"
+    assert peek_robot(env.pack()[:5]) is None

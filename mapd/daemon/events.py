@@ -8,8 +8,13 @@ memory stays bounded by the number of peers. Pose messages are latest-wins too, 
 peer beside its map. Other events (acks, presence, keyframe needs) are small and must not be lost
 to a flood of maps or poses, so they wait in their own bounded FIFO and go first.
 
-Transports report every robot's updates under that robot's peer name (zenoh: the robot; UWB: the
-sending node, which only sends its own robot's map), so "latest per peer" is "latest per robot".
+Transports report updates under the peer that handed them over (zenoh: the robot; UWB: the sending
+node), and a UWB node also forwards other robots' maps (the multi-hop relay). So a map waits in the
+slot of its sender *and* of the robot it names (read from the envelope's first fields, unverified:
+only to pick the slot), and "latest per slot" is "latest per robot": a relayed map never replaces
+the relayer's own map, nor one of another robot, before the daemon has checked either. A sender
+gets at most :data:`MAX_RELAYED` slots for robots other than itself, so one that names invented
+robots (a forger, before any signature is checked) cannot take the inbox from the others.
 """
 
 from __future__ import annotations
@@ -18,25 +23,34 @@ import asyncio
 from collections import deque
 from dataclasses import dataclass
 
+from mapd.envelope import peek_robot
 from transports.base import PoseReceived, Received, TransportEvent
+
+#: Maps of robots other than the sender that may wait from one sender, each in a slot of its own. A
+#: UWB robot relays one map at a time, so a few are plenty; more from one sender are dropped.
+MAX_RELAYED = 8
 
 
 @dataclass
 class EventQueueCounters:
-    """Updates replaced by a newer one from the same peer before the daemon took them, and events dropped."""
+    """Updates replaced by a newer one of the same robot from the same peer before the daemon took
+    them, and events dropped."""
 
     superseded: int = 0
     dropped: int = 0
 
 
 class EventQueue:
-    """Bounded inbox: one waiting update per (transport, peer), and a FIFO of other events."""
+    """Bounded inbox: one waiting update per (transport, peer, robot), and a FIFO of other events."""
 
     def __init__(self, max_events: int = 256, max_peers: int = 256) -> None:
         self.max_events = max_events
         self.max_peers = max_peers
         self._control: deque[TransportEvent] = deque()
-        self._updates: dict[tuple[bool, str, str], Received | PoseReceived] = {}
+        # (is a pose, transport, peer, robot) -> the update waiting in that slot
+        self._updates: dict[tuple[bool, str, str, str], Received | PoseReceived] = {}
+        # (transport, peer) -> how many of its slots hold maps of other robots (relayed)
+        self._relayed: dict[tuple[str, str], int] = {}
         self._wake = asyncio.Event()
         self.counters = EventQueueCounters()
 
@@ -46,13 +60,20 @@ class EventQueue:
     def put(self, event: TransportEvent) -> None:
         """Add an event (event-loop thread only); never blocks."""
         if isinstance(event, Received | PoseReceived):
-            key = (isinstance(event, PoseReceived), event.transport, event.peer)
+            # Poses are bound to their link; a map may be another robot's, which the peer relays.
+            robot = (peek_robot(event.data) if isinstance(event, Received) else None) or event.peer
+            key = (isinstance(event, PoseReceived), event.transport, event.peer, robot)
+            sender = (event.transport, event.peer)
             if key in self._updates:
                 del self._updates[key]  # re-insert at the end: peers take turns in arrival order
                 self.counters.superseded += 1
-            elif len(self._updates) >= self.max_peers:
+            elif len(self._updates) >= self.max_peers or (
+                robot != event.peer and self._relayed.get(sender, 0) >= MAX_RELAYED
+            ):
                 self.counters.dropped += 1
                 return
+            elif robot != event.peer:
+                self._relayed[sender] = self._relayed.get(sender, 0) + 1
             self._updates[key] = event
         else:
             if len(self._control) >= self.max_events:
@@ -67,6 +88,13 @@ class EventQueue:
             return self._control.popleft()
         if self._updates:
             key = next(iter(self._updates))
+            _, transport, peer, robot = key
+            if robot != peer:
+                sender = (transport, peer)
+                if self._relayed[sender] > 1:
+                    self._relayed[sender] -= 1
+                else:
+                    del self._relayed[sender]  # no entry kept per sender ever heard
             return self._updates.pop(key)
         return None
 

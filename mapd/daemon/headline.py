@@ -26,6 +26,8 @@ LINK_FAULTS = {
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
     "replay_save_errors": "replay marks not saved {} times (disk full or read-only?)",
     "out_of_turn": "{} frames of others on the air in this robot's own TDMA slot (do the clocks agree?)",
+    # A counter over 5 minutes ahead of this clock: clocks far apart, or a link-key holder's forgery.
+    "future": "{} frames signed with counters over 5 min ahead of this robot's clock (clocks apart, or a forged link key?)",
     # The frame's link tag was good but the robot key was not: whoever sent it holds the link key.
     "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",
 }

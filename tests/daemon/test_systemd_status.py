@@ -221,3 +221,10 @@ def test_a_cancelled_run_takes_its_start_up_with_it(
         asyncio.run(main())
     finally:
         release.set()
+
+
+def test_frames_from_beyond_the_clock_window_are_a_fault() -> None:
+    """A counter over 5 minutes ahead: clocks far apart, or a link-key holder forging (audit F1)."""
+    line = status_line(_doc(links={"uwb": {"future": 3}}))
+    assert line.startswith("FAULTS uwb 3 frames signed with counters over 5 min ahead of this robot's clock")
+    assert not status_line(_doc(links={"uwb": {"future": 0}})).startswith("FAULTS")

@@ -24,7 +24,14 @@ from typing import Any, TypeVar
 from mapd.errors import MapdError, StateError, TransportError
 from transports.uwb import arq, wallclock
 from transports.uwb.pacing import ByteWindow
-from transports.uwb.signing import CounterStore, ReplayStore, clock_floor
+from transports.uwb.signing import (
+    MAX_AHEAD_S,
+    CounterStore,
+    ReplayStore,
+    bound_marks,
+    clock_floor,
+    counter_bound,
+)
 
 #: The stream robot poses travel on (255 is control, 253 relay summaries; maps use 0..252).
 POSE_STREAM = 254
@@ -184,9 +191,31 @@ class UwbLink:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot
         (with ``wait_for_port``, only when it is there: one not there yet is opened when it is)."""
         if self._cfg.key is not None:
-            start = max(await asyncio.to_thread(self._store.load), clock_floor(self._wall()))
-            self._replay_saved = await asyncio.to_thread(self._replay.load)
-            self._cfg = dataclasses.replace(self._cfg, counter_start=start, replay_marks=self._replay_saved)
+            wall = self._wall()
+            stored = await asyncio.to_thread(self._store.load)
+            start = max(stored, clock_floor(wall))
+            if stored > counter_bound(wall):
+                # Never lowered (a restart must not reuse a counter): the clock was set ahead while
+                # this node signed, and its peers refuse its frames until the clock catches up.
+                log.warning(
+                    "uwb %s: the signing counter saved is %.0f s ahead of the wall clock (was the "
+                    "clock set ahead?); peers refuse this node's frames until it is within %.0f s",
+                    self.port,
+                    (stored - clock_floor(wall)) / 100_000,
+                    MAX_AHEAD_S,
+                )
+            self._replay_saved = await asyncio.to_thread(self._replay.load, self._cfg.key)
+            marks = bound_marks(self._replay_saved, wall)
+            lowered = sorted(src for src, mark in marks.items() if mark != self._replay_saved[src])
+            if lowered:
+                log.warning(
+                    "uwb %s: replay marks of link id %s lay more than %.0f s ahead of the wall clock "
+                    "(a forged counter, or a clock set back since); lowered to that",
+                    self.port,
+                    ", ".join(map(str, lowered)),
+                    MAX_AHEAD_S,
+                )
+            self._cfg = dataclasses.replace(self._cfg, counter_start=start, replay_marks=marks)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
         if self._cfg.mac == "tdma" and wallclock.synchronized() is False:
             log.warning(
@@ -276,7 +305,7 @@ class UwbLink:
             return
         self._replay_save_at = now + REPLAY_SAVE_S
         try:
-            await asyncio.to_thread(self._replay.save, marks)
+            await asyncio.to_thread(self._replay.save, marks, self._cfg.key)
         except StateError as exc:
             self.replay_save_errors += 1
             if self.replay_save_errors == 1:

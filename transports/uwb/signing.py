@@ -14,6 +14,10 @@ Receivers keep, per sender id, the highest counter seen and a 64-frame window be
 does), so reordered frames are accepted once and replayed or duplicated frames are dropped. The
 highest counters are kept across restarts as well (:class:`ReplayStore`, saved every few seconds
 and at close): a receiver that forgot them took every frame recorded before its restart once more.
+They are kept with a fingerprint of the link key they were taken under, and read only under that
+key: frames signed with another key fail their tag anyway, and a key rotated after it leaked takes
+with it any mark its holder pushed ahead. A counter is accepted at most :data:`MAX_AHEAD_S` ahead
+of the receiver's clock, so one forged frame can hold a sender's frames off no longer than that.
 
 :class:`Signer` and :class:`Verifier` are pure; only :class:`CounterStore` and :class:`ReplayStore`
 touch files.
@@ -40,13 +44,41 @@ COUNTER_MAX = (1 << 48) - 1
 DOMAIN = b"mapd-uwb-frame/2\x00"
 _EPOCH_2015 = 1420070400.0
 REPLAY_WINDOW = 64
-#: How far ahead of its own clock a receiver lets a sender's counter be (clocks disagree a little).
-MAX_AHEAD_S = 86400.0
+#: How far ahead of its own clock a receiver lets a sender's counter be. An honest sender's counter
+#: is its clock floor, or the block it saved before a restart (4096 counters: 41 ms) when that is
+#: higher, plus the frames it signed (a few a second, of 100,000 ticks a second); and the fleet's
+#: clocks agree within milliseconds (TDMA needs 10 ms, chrony is a precondition). Five minutes cover
+#: that with room for a clock that chrony stepped back since a save, yet a key holder's one frame
+#: with a counter at this bound holds the real sender's frames off (as replays) for five minutes at
+#: most, where a day's window let one frame silence a robot for a day (audit F1).
+MAX_AHEAD_S = 300.0
 
 
 def clock_floor(wall_time: float) -> int:
     """A counter value derived from the wall clock (10 µs ticks since 2015-01-01)."""
     return max(0, min(COUNTER_MAX, int((wall_time - _EPOCH_2015) * 100_000)))
+
+
+def counter_bound(wall_now: float) -> int:
+    """The highest counter a receiver whose clock reads ``wall_now`` accepts (:data:`MAX_AHEAD_S`)."""
+    return clock_floor(wall_now + MAX_AHEAD_S)
+
+
+def bound_marks(marks: Mapping[int, int], wall_now: float) -> dict[int, int]:
+    """``marks`` with every mark above :func:`counter_bound` lowered to it.
+
+    A mark above it was taken under a wider window (before the window shrank) or with a clock set
+    ahead since: kept as it was, a forged far-ahead counter would refuse the real sender's frames
+    until its clock reached it. Lowered, every counter a frame recorded so far can carry is still
+    refused.
+    """
+    top = counter_bound(wall_now)
+    return {src: min(mark, top) for src, mark in marks.items()}
+
+
+def key_id(key: bytes) -> str:
+    """A short fingerprint of a link key, for the files that must hold only under that key."""
+    return hmac.new(key, b"mapd-uwb-replay-marks\x00", hashlib.sha256).hexdigest()[:16]
 
 
 class _Mac:
@@ -136,7 +168,7 @@ class Verifier:
             return None
         src = body[1]
         counter = int.from_bytes(data[-COUNTER_LEN:], "little")
-        if wall_now is not None and counter > clock_floor(wall_now + MAX_AHEAD_S):
+        if wall_now is not None and counter > counter_bound(wall_now):
             self.stats.future += 1
             return None
         if not self._accept(src, counter):
@@ -199,22 +231,26 @@ class CounterStore:
             raise StateError(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None
 
 
-#: A replay file holds at most one mark a sender id (256), about 30 bytes each.
+#: A replay file holds at most one mark a sender id (256), about 30 bytes each, and a key fingerprint.
 MAX_REPLAY_FILE = 16 << 10
 
 
 class ReplayStore:
-    """The highest counter accepted from each sender, kept across restarts (a small JSON file).
+    """The highest counter accepted from each sender, kept across restarts (a small JSON file:
+    ``{"key": <key_id>, "marks": {"<sender id>": <counter>, ...}}``).
 
-    A file that cannot be read or is damaged costs what it held (one warning; frames recorded
-    before the restart are refused again from each sender's first frame heard after it), never the
-    start.
+    Marks are read back only under the link key they were saved under: after the key is rotated
+    they are void (one warning). A file from before keys were recorded (the marks alone) is read
+    under any key. A file that cannot be read or is damaged costs what it held (one warning; frames
+    recorded before the restart are refused again from each sender's first frame heard after it),
+    never the start.
     """
 
     def __init__(self, path: Path | None) -> None:
         self.path = path
 
-    def load(self) -> dict[int, int]:
+    def load(self, key: bytes | None = None) -> dict[int, int]:
+        """The marks saved under ``key`` (None: whatever key)."""
         if self.path is None:
             return {}
         try:
@@ -224,22 +260,39 @@ class ReplayStore:
         except (OSError, ValueError, RecursionError) as exc:
             log.warning("uwb: replay marks %s unreadable (%s); starting without them", self.path, exc)
             return {}
+        if isinstance(doc, dict) and "marks" in doc:
+            saved_under = doc.get("key")
+            if set(doc) - {"key", "marks"} or not isinstance(saved_under, str):
+                log.warning("uwb: replay marks %s are damaged; starting without them", self.path)
+                return {}
+            if key is not None and saved_under != key_id(key):
+                log.warning(
+                    "uwb: replay marks %s were kept under another link key (rotated?); starting without them",
+                    self.path,
+                )
+                return {}
+            doc = doc["marks"]
         marks = {}
         if isinstance(doc, dict):
-            for key, value in doc.items():
-                if key.isdigit() and int(key) < 256 and type(value) is int and 0 <= value <= COUNTER_MAX:
-                    marks[int(key)] = value
+            for src, value in doc.items():
+                if src.isdigit() and int(src) < 256 and type(value) is int and 0 <= value <= COUNTER_MAX:
+                    marks[int(src)] = value
         if not isinstance(doc, dict) or len(marks) != len(doc):
             log.warning(
                 "uwb: replay marks %s are damaged; keeping the %d that are not", self.path, len(marks)
             )
         return marks
 
-    def save(self, marks: Mapping[int, int]) -> None:
-        """Write ``marks`` atomically; StateError when the disk refuses."""
+    def save(self, marks: Mapping[int, int], key: bytes | None = None) -> None:
+        """Write ``marks``, taken under link key ``key``, atomically; StateError when the disk refuses.
+
+        Without ``key`` the marks alone are written (read back under any key)."""
         if self.path is None:
             return
+        doc: dict[str, object] = {str(src): top for src, top in sorted(marks.items())}
+        if key is not None:
+            doc = {"key": key_id(key), "marks": doc}
         try:
-            atomic_write_json(self.path, {str(src): top for src, top in sorted(marks.items())})
+            atomic_write_json(self.path, doc)
         except OSError as exc:
             raise StateError(f"uwb: cannot write replay marks {self.path}: {exc.strerror}") from None
