@@ -632,19 +632,30 @@ def check(cfg: MapdConfig) -> Checked:
 
 
 def _check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]]) -> None:
-    """Have each chosen plugin read the files its options name (``check_files``), as it will at start."""
+    """Have each chosen plugin read the files its options name (``check_files``), check what its
+    start would refuse on this robot (``check_for_robot``) and beside the other chosen plugins
+    (``check_with_plugins``), as it will at start."""
     where = str(cfg.path) if cfg.path else "config"
-    for section, chosen in (
+    picked = (
         ("source", [cfg.source.use]),
         ("codec", [cfg.codec.use]),
         ("transports", cfg.transports.use),
         ("output", cfg.output.use),
-    ):
-        for name in chosen:
+    )
+    # What each check_with_plugins() sees: the options of every chosen plugin, by section and name.
+    chosen = {s: {n: options[s][n] for n in names if n in options[s]} for s, names in picked}
+    for section, names in picked:
+        for name in names:
             opts = options[section].get(name)
             # check_files(): the files its options name; check_for_robot(robot): what its start
-            # would refuse on this robot (the uwb link ids). Found here, not only by mapd run.
-            for hook, args in (("check_files", ()), ("check_for_robot", (cfg.robot.name,))):
+            # would refuse on this robot (the uwb link ids); check_with_plugins(chosen): what it
+            # refuses beside the other chosen plugins (a ros2 output on its ros2 source's topic).
+            # Found here, not only by mapd run.
+            for hook, args in (
+                ("check_files", ()),
+                ("check_for_robot", (cfg.robot.name,)),
+                ("check_with_plugins", (chosen,)),
+            ):
                 check = getattr(opts, hook, None)
                 if check is None:
                     continue

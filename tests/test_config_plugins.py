@@ -312,3 +312,20 @@ def test_the_example_config_shows_every_key_the_code_takes() -> None:
                 missing += [f"[{table}] {k}" for k in options.model_fields if k not in shown.get(table, ())]
     assert not missing, f"config.toml does not show: {missing}"
     assert "slot_index" in shown["transports.uwb"] and "roster" in shown["fleet"]
+
+
+def test_a_robots_ros2_output_on_its_ros2_sources_topic_is_refused_in_one_line(tmp_path: Path) -> None:
+    """Both default to /map: the daemon would read its own global map back as the robot's map, and
+    the robot's Nav2 would see two /map publishers in two frames (ROS 2 edge audit, finding 1)."""
+    robot = '[robot]\nname = "r1"\n[fleet]\nallow_unsigned = true\n[source]\nuse = "ros2"\n[output]\nuse = ["ros2"]\n'
+    path = tmp_path / "robot.toml"
+    path.write_text(robot)
+    with pytest.raises(ConfigError) as info:
+        config.check(config.load(path))
+    msg = str(info.value)
+    assert msg.startswith(f"{path}: output.ros2.topic: '/map' (ROS domain 0) is where [source.ros2]")
+    assert "\n" not in msg
+    path.write_text(robot + '[output.ros2]\ntopic = "/fleet/map"\nframe = "fleet"\n')
+    config.check(config.load(path))  # the robot-side layout
+    path.write_text(robot.replace('use = ["ros2"]', "use = []") + "[output.ros2]\n")
+    config.check(config.load(path))  # both tables present, only the source chosen

@@ -22,6 +22,7 @@ from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
+from mapd.ros2.tf import TfFrames, robot_frame, static_transforms, unplaced_transforms
 
 log = logging.getLogger("mapd.daemon")
 #: The most the file thread may have waiting, in bytes of the maps it holds: a disk that is slow
@@ -58,7 +59,9 @@ class Sinks:
         self._behind = WriteOutage(log)
         #: The latest known robot poses, which every GlobalUpdate carries too.
         self.poses_now: dict[str, StampedPose] = {}
-        self._recorded_tf: dict[str, Pose2D] = {}
+        #: The latest /tf_static recorded (parent, child, pose), and every robot it ever placed.
+        self._recorded_tf: list[tuple[str, str, Pose2D]] = []
+        self._recorded_placed: set[str] = set()
         #: Called on the loop with every robot map the daemon holds (the live view notes its size).
         self.map_watchers: list[Callable[[OccupancyGrid], None]] = []
 
@@ -85,25 +88,37 @@ class Sinks:
             )
             self._to_outputs(update)
         if self.recorder is not None:
-            self._record(self.recorder.grid, "/map", grid, "map", wall)
-            placed = {f"{r}/map": p for r, p in frames.items()}
-            if placed != self._recorded_tf:  # latched: written again only when a placement changes
-                self._recorded_tf = placed
-                self._record(self.recorder.transforms, "/tf_static", "map", placed, wall)
+            f = self._frames()
+            self._record(self.recorder.grid, "/map", grid, f.frame, wall)
+            # A robot no longer placed moves under unplaced_frame, as on the ros2 output: tf2 keeps
+            # a static transform for as long as it runs, so one only left out of the next message
+            # stayed placed when the recording was played.
+            gone = sorted(self._recorded_placed - set(frames)) if f.unplaced_frame else []
+            self._recorded_placed |= set(frames)
+            items = [
+                (parent, child, pose)
+                for parent, child, pose, _ in static_transforms(f.frame, frames, wall, f.robot_map_frame)
+                + unplaced_transforms(f.unplaced_frame, gone, wall, f.robot_map_frame)
+            ]
+            if items != self._recorded_tf:  # latched: written again only when a placement changes
+                self._recorded_tf = items
+                self._record(self.recorder.transform_list, "/tf_static", items, wall)
 
     def robot_map(self, grid: OccupancyGrid) -> None:
         """A robot's map as this daemon now holds it (its own, or one received)."""
         for watch in self.map_watchers:
             watch(grid)
         if self.recorder is not None:
-            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, f"{grid.robot}/map", time.time())
+            frame = robot_frame(self._frames().robot_map_frame, grid.robot)
+            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, frame, time.time())
 
     def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
         """New robot poses (each ``base_link`` in its robot's map frame) and the current placements."""
         before, self.poses_now = self.poses_now, poses
         if self.outputs:
             self._to_outputs(poses=PoseUpdate(poses=poses, frames=frames))
-        if self.recorder is not None:
+        f = self._frames()
+        if self.recorder is not None and f.robot_pose_frame:  # ("": no poses, as on the ros2 output)
             wall = time.time()
             for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link, when it moved
                 if before.get(robot) != sp:
@@ -111,8 +126,8 @@ class Sinks:
                     self._record(
                         self.recorder.transforms,
                         "/tf",
-                        f"{robot}/map",
-                        {f"{robot}/base_link": sp.pose},
+                        robot_frame(f.robot_map_frame, robot),
+                        {robot_frame(f.robot_pose_frame, robot): sp.pose},
                         wall,
                         sp.stamp,
                     )
@@ -121,6 +136,16 @@ class Sinks:
         """The transports' counters, for the recording."""
         if self.recorder is not None:
             self._record(self.recorder.json, "/mapd/links", links, time.time())
+
+    def _frames(self) -> TfFrames:
+        """The frame names of the ``ros2`` output when it runs (the defaults without one): a
+        recording played into the graph that output publishes on must name frames as it does."""
+        for o in self.outputs:
+            frames = getattr(o.options, "tf_frames", None)  # (the ros2 output's options have it)
+            got = frames() if callable(frames) else None
+            if isinstance(got, TfFrames):
+                return got
+        return TfFrames()
 
     def status(self) -> dict[str, Any]:
         return {o.name: o.stats() for o in self.outputs}

@@ -43,7 +43,7 @@ import threading
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import BaseModel, Field, ValidationInfo, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
 from mapd.errors import MapdError, UnreachableError
@@ -52,6 +52,7 @@ from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.outputs.retry import SessionRetry
 from mapd.ros2 import rmw
+from mapd.ros2.tf import TfFrames, robot_frame, static_transforms, unplaced_transforms
 from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -70,7 +71,7 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     beside_config: ClassVar[tuple[str, ...]] = ("zenoh_config",)
 
     topic: str = Field(default="/map", description="topic of the global nav_msgs/msg/OccupancyGrid")
-    frame: str = Field(default="map", description="the fleet frame's name (m-explore's world_frame)")
+    frame: str = Field(default=TfFrames.frame, description="the fleet frame's name (m-explore's world_frame)")
     distro: rmw.Distro = Field(default="jazzy", description="ROS 2 distro: sets the type hash in keys")
     namespace: str = Field(default="", description="the node's namespace (ros2dds: the bridge namespace)")
     node: str = Field(default="mapd", description="the ROS 2 node name")
@@ -78,16 +79,16 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     format: rmw.KeyFormat = Field(default="rmw_zenoh", description="rmw_zenoh, or zenoh-bridge-ros2dds keys")
     tf: bool = Field(default=True, description="publish /tf_static (robot map frames) and /tf (poses)")
     robot_map_frame: str = Field(
-        default="{robot}/map",
+        default=TfFrames.robot_map_frame,
         description="each robot's map frame, a child of `frame` on /tf_static; {robot} is its name",
     )
     unplaced_frame: str = Field(
-        default="mapd/unplaced",
+        default=TfFrames.unplaced_frame,
         description="where a robot's map frame moves on /tf_static once it is no longer placed "
         "(revoked, or its placement dropped), off the fleet's tree; empty: left where it was",
     )
     robot_pose_frame: str = Field(
-        default="{robot}/base_link",
+        default=TfFrames.robot_pose_frame,
         description="the frame a robot's pose moves on /tf, a child of its map frame. A frame has one "
         "parent: where the robots' own TF reaches this ROS graph ({robot}/odom -> {robot}/base_link), "
         "name another, e.g. {robot}/mapd_pose; empty: no poses on /tf",
@@ -104,14 +105,18 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     @field_validator("topic")
     @classmethod
     def _check_topic(cls, v: str) -> str:
-        rmw.check_name(v)
-        return v
+        return rmw.check_topic_name(v)
 
-    @field_validator("node", "frame")
+    @field_validator("node")
     @classmethod
     def _check_node(cls, v: str) -> str:
-        rmw.check_name(v, "node or frame")
+        rmw.check_name(v, "node")
         return v
+
+    @field_validator("frame")
+    @classmethod
+    def _check_frame(cls, v: str) -> str:
+        return rmw.check_frame_id(v)
 
     @field_validator("robot_map_frame", "robot_pose_frame")
     @classmethod
@@ -120,44 +125,109 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
             return v
         if "{robot}" not in v:
             raise ValueError(f"{v!r} must name the robot with {{robot}}: one frame each")
-        rmw.check_name(robot_frame(v, "robot0"), "frame")
+        rmw.check_frame_id(robot_frame(v, "robot0"), shown=v)
         return v
 
     @field_validator("unplaced_frame")
     @classmethod
-    def _check_unplaced(cls, v: str, info: ValidationInfo) -> str:
+    def _check_unplaced(cls, v: str) -> str:
         if v == "":
             return v
-        rmw.check_name(v, "frame")
-        if "{robot}" in v or v == info.data.get("frame"):
+        rmw.check_frame_id(v)
+        if "{robot}" in v:
             raise ValueError(f"{v!r} must be one frame of its own, not the fleet frame or a robot's")
         return v
 
     @field_validator("namespace")
     @classmethod
     def _check_ns(cls, v: str) -> str:
+        ns = v.strip("/")  # "/fleet", "fleet" and "fleet/" are one namespace, as before
+        if ns:
+            rmw.check_topic_name(ns, "namespace")
         rmw.fq_namespace(v)
         return v
 
+    @model_validator(mode="after")
+    def _frames_apart(self) -> Ros2OutputOptions:
+        """The fleet frame, the robots' frames and ``unplaced_frame`` must never be one frame: tf2
+        drops a transform from a frame to itself (``TF_SELF_TRANSFORM``), and a robot moved under
+        another robot's frame, or under the fleet frame, is placed again instead of off the tree."""
+        if self.robot_pose_frame == self.robot_map_frame:
+            raise ValueError(
+                f"robot_pose_frame {self.robot_pose_frame!r} is robot_map_frame: a robot's pose would "
+                "move its map frame against itself, which tf2 drops; name another, e.g. '{robot}/base_link'"
+            )
+        robots = [("robot_map_frame", self.robot_map_frame), ("robot_pose_frame", self.robot_pose_frame)]
+        for key, name in (("frame", self.frame), ("unplaced_frame", self.unplaced_frame)):
+            for field, template in robots:
+                robot = robot_of_frame(template, name) if template and name else None
+                if robot is not None:
+                    raise ValueError(
+                        f"{key} {name!r} is the {field} of a robot named {robot!r} ({template!r}); "
+                        f"{key} must be a frame of its own, apart from every robot's"
+                    )
+        if self.unplaced_frame and self.unplaced_frame == self.frame:
+            raise ValueError(
+                f"unplaced_frame {self.unplaced_frame!r} is the fleet frame: a robot no longer placed "
+                "must leave the fleet's tree, not stay under it at the origin"
+            )
+        return self
 
-def robot_frame(template: str, robot: str) -> str:
-    """``template`` with ``{robot}`` replaced (plain replacement: a config's braces never reach
-    ``str.format``)."""
-    return template.replace("{robot}", robot)
+    def tf_frames(self) -> TfFrames:
+        """The frame names set here."""
+        return TfFrames(self.frame, self.robot_map_frame, self.robot_pose_frame, self.unplaced_frame)
+
+    def map_key_expr(self) -> str:
+        """The zenoh key the global map is published on (any type hash: ``*``)."""
+        from mapd.ros2.cdr import MSGTYPE
+
+        if self.format == "rmw_zenoh":
+            return rmw.data_key(
+                rmw.fq_topic(self.topic, self.namespace), MSGTYPE, domain=self.domain_id, hash_="*"
+            )
+        return rmw.bridge_key(rmw.fq_topic(self.topic), namespace=self.namespace)
+
+    def check_with_plugins(self, chosen: dict[str, dict[str, BaseModel]]) -> None:
+        """ValueError (one line, naming ``topic``) when the chosen ``ros2`` source takes maps from
+        where this output publishes the global map.
+
+        On a robot both default to ``/map``: mapd read its own global map back in as the robot's
+        own map (and sent it to the fleet as such), and the robot's Nav2 saw two ``/map``
+        publishers in two frames. ``chosen``: the options of every chosen plugin, by section and
+        name; a hook for ``config.check`` beside ``check_files`` and ``check_for_robot``, so that
+        ``mapd check-config`` and ``mapd run`` refuse the layout in one line.
+        """
+        from mapd.sources.ros2_options import Ros2Options
+
+        source = chosen.get("source", {}).get("ros2")
+        if not isinstance(source, Ros2Options):
+            return
+        if not rmw.key_exprs_intersect(source.map_key_expr(), self.map_key_expr()):
+            return
+        topic = rmw.fq_topic(self.topic, self.namespace if self.format == "rmw_zenoh" else "")
+        where = (
+            f"ROS domain {self.domain_id}" if self.format == "rmw_zenoh" else f"key {self.map_key_expr()!r}"
+        )
+        if source.discover_robots:
+            whose, instead = "robots' maps", 'a topic that is no robot\'s map topic, e.g. topic = "/map"'
+        else:
+            whose, instead = "this robot's own map", 'e.g. topic = "/fleet/map" and frame = "fleet"'
+        raise ValueError(
+            f"topic: {topic!r} ({where}) is where [source.ros2] takes {whose} from: mapd would read "
+            "its own global map back in as a robot's map, and the robot's nodes would get two maps "
+            f"on one topic; publish the fleet's map elsewhere, {instead}"
+        )
 
 
-def static_transforms(
-    frame: str, frames: dict[str, Pose2D], stamp: float, map_frame: str = "{robot}/map"
-) -> list[tuple[str, str, Pose2D, float]]:
-    """``frame -> <robot>/map`` (``map_frame``) for each placed robot, by name."""
-    return [(frame, robot_frame(map_frame, robot), pose, stamp) for robot, pose in sorted(frames.items())]
-
-
-def unplaced_transforms(
-    unplaced: str, robots: list[str], stamp: float, map_frame: str = "{robot}/map"
-) -> list[tuple[str, str, Pose2D, float]]:
-    """``unplaced -> <robot>/map`` (``map_frame``) for each robot no longer placed, by name."""
-    return [(unplaced, robot_frame(map_frame, r), Pose2D(), stamp) for r in sorted(robots)]
+def robot_of_frame(template: str, frame: str) -> str | None:
+    """The robot name whose ``template`` frame is ``frame`` (robot names as ``[robot] name``), or None."""
+    name = NAME_PATTERN.removeprefix("^").removesuffix("$")
+    parts = template.split("{robot}")
+    regex = re.escape(parts[0])
+    for k, part in enumerate(parts[1:]):
+        regex += (f"(?P<robot>{name})" if k == 0 else "(?P=robot)") + re.escape(part)
+    m = re.fullmatch(regex, frame)
+    return m["robot"] if m and len(parts) > 1 else None
 
 
 def pose_transforms(
@@ -196,6 +266,8 @@ class Ros2Output(Output):
         self._map: Any = None
         self._tf_static: Any = None
         self._tf: Any = None
+        #: The GIDs and session id noted in :data:`~mapd.ros2.node.own_publishers` while open.
+        self._own: tuple[list[bytes], str] | None = None
         self._lock = threading.Lock()
         #: Tries again while no router answers (a client whose rmw_zenohd is not up yet), and the
         #: newest global map meanwhile
@@ -243,7 +315,7 @@ class Ros2Output(Output):
 
     def _open_session(self) -> None:
         from mapd.ros2 import cdr
-        from mapd.ros2.node import Ros2Node
+        from mapd.ros2.node import Ros2Node, own_publishers
 
         o = self.opts
         self._shown = self._load_shown()
@@ -263,6 +335,11 @@ class Ros2Output(Output):
             if o.tf:
                 self._tf_static = self._node.publisher("/tf_static", TF_TYPE, rmw.LATCHED)
                 self._tf = self._node.publisher("/tf", TF_TYPE, rmw.TF_QOS)
+            # Before the first sample: a ros2 source in this daemon tells them by these and drops
+            # them (a robot's source on the same topic took the global map as its own map).
+            pubs = (self._map, self._tf_static, self._tf)
+            self._own = ([p.gid for p in pubs if p is not None and p.gid], self._node.zid)
+            own_publishers.add(gids=self._own[0], zid=self._own[1])
         except BaseException:
             self._close()
             raise
@@ -371,15 +448,19 @@ class Ros2Output(Output):
         await asyncio.to_thread(self._close, True)
 
     def _close(self, closing: bool = False) -> None:
+        from mapd.ros2.node import own_publishers
+
         with self._put_lock:  # after an open under way on a retry's thread, which then sees this
             self._closing = self._closing or closing
-            node, session = self._node, self._session
-            self._node = self._session = self._map = self._tf = self._tf_static = None
+            node, session, own = self._node, self._session, self._own
+            self._node = self._session = self._map = self._tf = self._tf_static = self._own = None
         if node is not None:
             node.close()
         if session is not None:
             with contextlib.suppress(Exception):  # already closed; closing is best effort
                 session.close()
+        if own is not None:  # (after the session: nothing of it is on its way any more)
+            own_publishers.remove(gids=own[0], zid=own[1])
 
     def stats(self) -> dict[str, int | float | str]:
         return {

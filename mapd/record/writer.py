@@ -305,13 +305,23 @@ class Recorder:
         """A TFMessage: ``parent`` -> each child frame at its pose (x, y in m, yaw in rad), logged at
         ``wall``; its header stamp is ``stamp`` (when the pose held, as the ``ros2`` output stamps
         it), or ``wall``."""
+        self.transform_list(
+            topic, [(parent, child, pose) for child, pose in sorted(children.items())], wall, stamp
+        )
+
+    def transform_list(
+        self, topic: str, transforms: list[tuple[str, str, Pose2D]], wall: float, stamp: float | None = None
+    ) -> None:
+        """A TFMessage of (parent, child, pose) in the order given, as :meth:`transforms` writes it:
+        one message with several parents (``/tf_static``: the placed robots under the fleet frame
+        and the ones no longer placed under another, so that every file starts with both)."""
         from mapd.ros2.cdr import split_stamp
 
         t = self._ts.types
         sec, nanosec = split_stamp(wall if stamp is None else stamp)
         header_stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
         items = []
-        for child, pose in sorted(children.items()):
+        for parent, child, pose in transforms:
             items.append(
                 t["geometry_msgs/msg/TransformStamped"](
                     header=t["std_msgs/msg/Header"](stamp=header_stamp, frame_id=parent),

@@ -37,6 +37,43 @@ def _next_id(zid: str) -> int:
         return next(_counters.setdefault(zid, itertools.count(0)))
 
 
+class OwnPublishers:
+    """What this process's ``ros2`` output publishes from: its publishers' rmw GIDs and its zenoh
+    session ids, so that a ``ros2`` source in the same process can tell its samples apart.
+
+    On a robot the source and the output may meet on one topic (both default to ``/map``): the
+    source then took the fleet's global map back in as the robot's own map. rmw_zenoh samples
+    carry their publisher's GID in the attachment; ``ros2dds`` samples carry none, but their zenoh
+    timestamp names the session that stamped them (timestamping is on in every session mapd opens).
+    Thread-safe: zenoh's callback threads ask while the output's thread adds and removes.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._gids: set[bytes] = set()
+        self._zids: set[str] = set()
+
+    def add(self, *, gids: list[bytes], zid: str) -> None:
+        """Note a session and its publishers' GIDs (each unique: a GID hashes the session's id)."""
+        with self._lock:
+            self._gids.update(gids)
+            self._zids.add(zid)
+
+    def remove(self, *, gids: list[bytes], zid: str) -> None:
+        with self._lock:
+            self._gids.difference_update(gids)
+            self._zids.discard(zid)
+
+    def is_own(self, *, gid: bytes | None = None, zid: str | None = None) -> bool:
+        """True when ``gid`` is one of the output's publishers' or ``zid`` one of its sessions'."""
+        with self._lock:
+            return (gid is not None and gid in self._gids) or (zid is not None and zid in self._zids)
+
+
+#: The one registry of this process (the ros2 output adds to it, the ros2 source asks it).
+own_publishers = OwnPublishers()
+
+
 #: rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms) for reliable, transient-local publishers.
 HEARTBEAT_S = 0.5
 

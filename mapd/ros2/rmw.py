@@ -34,12 +34,14 @@ an optional namespace, with plain CDR payloads and no attachment.
 
 from __future__ import annotations
 
+import re
 import struct
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any, Literal
 
 from mapd.errors import CodecError
+from mapd.grid import short_repr
 
 Distro = Literal["humble", "jazzy", "kilted", "rolling"]
 DISTROS: tuple[str, ...] = ("humble", "jazzy", "kilted", "rolling")
@@ -151,6 +153,76 @@ def check_name(name: str, what: str = "topic") -> str:
     if not inner or any(not p for p in inner.split("/")) or any(c in inner for c in "*$?#%@ "):
         raise ValueError(f"not a ROS 2 {what} name: {name!r}")
     return inner
+
+
+#: One token of an rcl name (``rcl_validate_topic_name``): ASCII letters, digits and ``_``, not
+#: starting with a digit.
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+#: What no frame id of mapd's may hold: zenoh's wildcards and separators (refused since the first
+#: release; a frame never needs them).
+_NOT_IN_FRAMES = "*$?#%@"
+
+
+def check_topic_name(name: str, what: str = "topic") -> str:
+    """``name`` when it is a topic (or namespace) name rcl accepts, else ValueError with one line.
+
+    rcl's grammar: tokens of ``[A-Za-z_][A-Za-z0-9_]*`` separated by single ``/``, an optional
+    leading ``/`` (absolute; relative names are taken under the node's namespace), no trailing
+    ``/``. A name no ROS node can spell (``my-map``, ``/map/``, ``2d/map``) would be published
+    where nothing ever subscribes. ``~`` (the node's private namespace) and ``{}`` substitutions are
+    rcl's too, but mapd does not expand them, so they are refused rather than sent as they are.
+    """
+    if name.startswith("~") or "{" in name:
+        raise ValueError(
+            f"{what} {short_repr(name)}: mapd does not expand '~' or '{{...}}' in ROS 2 names; write it in full"
+        )
+    body = name[1:] if name.startswith("/") else name
+    if not body or not all(_TOKEN.fullmatch(t) for t in body.split("/")):
+        raise ValueError(
+            f"not a ROS 2 {what} name: {short_repr(name)} (rcl: tokens of A-Z a-z 0-9 _, none starting "
+            "with a digit, separated by single '/', no '/' at the end)"
+        )
+    return name
+
+
+def check_frame_id(frame: str, *, shown: str | None = None) -> str:
+    """``frame`` when tf2 takes it as written, else ValueError with one line.
+
+    tf2 (``buffer_core.cpp``) refuses a frame id that starts with ``/`` in every lookup and strips
+    it when a transform is set, so ``/map`` and ``map`` are one frame to it but not to mapd's own
+    comparisons; it refuses an empty one. Nothing else is tf2's rule: robot names (``robot-1``,
+    ``2nd``) make frame ids outside rcl's name grammar, which tf2 and RViz take. What is refused
+    besides: whitespace, control and non-ASCII characters (invisible or ambiguous in every tool
+    that shows frames), an empty part (``a//b``, ``map/``) and zenoh's wildcard characters.
+    ``shown``: the name the message shows (a ``{robot}`` template rather than its expansion).
+    """
+    what = short_repr(frame if shown is None else shown)
+    if not frame:
+        raise ValueError("a tf2 frame id cannot be empty")
+    if frame.startswith("/"):
+        raise ValueError(
+            f"{what}: a tf2 frame id has no leading '/' (tf2 refuses it in lookups); "
+            f"write {short_repr((frame if shown is None else shown).lstrip('/'))}"
+        )
+    if (
+        not (frame.isascii() and frame.isprintable())
+        or " " in frame
+        or any(c in frame for c in _NOT_IN_FRAMES)
+    ):
+        raise ValueError(
+            f"{what}: a frame id here is printable ASCII without spaces or any of {_NOT_IN_FRAMES}"
+        )
+    if any(not part for part in frame.split("/")):
+        raise ValueError(f"{what}: a frame id has no empty part ('a//b', or a '/' at the end)")
+    return frame
+
+
+def key_exprs_intersect(a: str, b: str) -> bool:
+    """Whether zenoh key expressions ``a`` and ``b`` can match one key (``*``, ``**``, ``$*``), as
+    zenoh itself decides it (``KeyExpr.intersects``)."""
+    import zenoh  # only where a config is checked: rmw's other helpers stay free of it
+
+    return bool(zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)))
 
 
 def fq_topic(topic: str, namespace: str = "") -> str:

@@ -66,6 +66,7 @@ from mapd.errors import CodecError, LimitError, TransportError, UnreachableError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
+from mapd.ros2.node import own_publishers
 from mapd.ros2.zenoh_config import open_when_reachable
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
 from mapd.sources.ros2_options import ROBOT_NAME, Ros2Options
@@ -90,17 +91,7 @@ class Ros2Source(MapSource):
         assert isinstance(self.options, Ros2Options)
         self.opts: Ros2Options = self.options
         o = self.opts
-        if o.discover_robots:
-            if o.key_format == "rmw_zenoh":
-                dds = rmw.dds_type(ros2cdr.MSGTYPE)
-                self.key = f"{o.domain}/*/{rmw.check_name(o.robot_map_topic)}/{dds}/*"
-            else:
-                ns = o.namespace.strip("/")
-                self.key = (f"{ns}/" if ns else "") + f"*/{rmw.check_name(o.robot_map_topic)}"
-        else:
-            self.key = o.key or ros2cdr.key_for(
-                o.topic, o.key_format, domain=o.domain, namespace=o.namespace, subscribe=True
-            )
+        self.key = o.map_key_expr()
         self._pose = (
             PoseSubscription(
                 o.pose_topic,
@@ -136,6 +127,8 @@ class Ros2Source(MapSource):
         self._inbox_due = False  # a call to _take_inbox is on its way to the loop
         self._inbox_lock = threading.Lock()
         self._bad = 0
+        #: Samples (and publisher tokens) of this daemon's own ros2 output, dropped unread.
+        self._own_dropped = 0
         self._last_error = ""
         #: Why the session is not open yet, while no router answers (tries go on)
         self._unreached: str | None = None
@@ -202,6 +195,9 @@ class Ros2Source(MapSource):
             key = str(sample.key_expr)
         except Exception:  # a sample we cannot read at all
             return
+        if _from_own_output(sample):
+            self._drop_own(key)
+            return
         # Latest wins here already, on zenoh's thread: one callback a sample queued every payload
         # on the loop while it was busy (a 16 MiB map at 100 Hz: a gigabyte a few seconds).
         with self._inbox_lock:
@@ -214,6 +210,17 @@ class Ros2Source(MapSource):
         # RuntimeError: the loop closed while zenoh was still delivering.
         with contextlib.suppress(RuntimeError):
             loop.call_soon_threadsafe(self._take_inbox)
+
+    def _drop_own(self, what: str) -> None:
+        """A sample or publisher of this daemon's own ros2 output: never taken as a robot's map."""
+        with self._inbox_lock:
+            self._own_dropped += 1
+            first = self._own_dropped == 1
+        if first:  # a layout config.check refuses: said once, should a daemon run with it anyway
+            log.warning(
+                "ros2 source: ignoring this daemon's own ros2 output on %s; give [output.ros2] another topic",
+                short_repr(what, 120),
+            )
 
     def _take_inbox(self) -> None:
         with self._inbox_lock:
@@ -230,6 +237,13 @@ class Ros2Source(MapSource):
         except ValueError:
             return
         if entity.kind != "MP" or entity.topic is None or entity.type != rmw.dds_type(ros2cdr.MSGTYPE):
+            return
+        try:
+            own = own_publishers.is_own(gid=rmw.gid_of(str(sample.key_expr)))
+        except CodecError:  # no xxhash: then no rmw_zenoh output in this process either
+            own = False
+        if own:  # its own output's /fleet/map is no robot "fleet"'s map
+            self._drop_own(entity.topic)
             return
         gone = sample.kind != zenoh.SampleKind.PUT
         with contextlib.suppress(RuntimeError):
@@ -383,6 +397,7 @@ class Ros2Source(MapSource):
             "received": self._received,
             "replaced_before_decode": self._dropped,
             "bad_payloads": self._bad,
+            "own_output_dropped": self._own_dropped,
             "last_error": self._last_error,
             # False while no router answers (a FAULTS line in mapd status)
             "session_open": self._unreached is None,
@@ -393,6 +408,23 @@ class Ros2Source(MapSource):
         if self._pose is not None:
             out.update(self._pose.stats())
         return out
+
+
+def _from_own_output(sample: Any) -> bool:
+    """Whether a sample comes from this process's ros2 output: by the publisher GID in its
+    rmw_zenoh attachment, else (``ros2dds``: no attachment) by the session its timestamp names."""
+    gid = zid = None
+    try:
+        if sample.attachment is not None:
+            gid = rmw.parse_attachment(sample.attachment.to_bytes())[2]
+    except Exception:  # CodecError: not rmw_zenoh's; anyone may attach anything
+        gid = None
+    try:
+        if sample.timestamp is not None:
+            zid = str(sample.timestamp.get_id())
+    except Exception:  # (a sample we cannot read the timestamp of: not ours, we stamp ours)
+        zid = None
+    return own_publishers.is_own(gid=gid, zid=zid)
 
 
 def _declare_sub(node: Any, topic: str) -> None:

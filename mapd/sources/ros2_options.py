@@ -68,6 +68,19 @@ class Ros2Options(ZenohConfigFiles, SourceOptions):
     def yields_own_map(self) -> bool:
         return not self.discover_robots
 
+    def map_key_expr(self) -> str:
+        """The zenoh key expression the source takes maps from: ``key``, the topic's key, or (with
+        ``discover_robots``) every robot's ``/<robot>/<robot_map_topic>``."""
+        if self.discover_robots:
+            topic = rmw.check_name(self.robot_map_topic)
+            if self.key_format == "rmw_zenoh":
+                return f"{self.domain}/*/{topic}/{rmw.dds_type(ros2cdr.MSGTYPE)}/*"
+            ns = self.namespace.strip("/")
+            return (f"{ns}/" if ns else "") + f"*/{topic}"
+        return self.key or ros2cdr.key_for(
+            self.topic, self.key_format, domain=self.domain, namespace=self.namespace, subscribe=True
+        )
+
     @field_validator("robot_map_topic")
     @classmethod
     def _check_robot_topic(cls, v: str) -> str:

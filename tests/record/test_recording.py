@@ -21,8 +21,13 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from mapd.daemon.coding import CsvLog
+from mapd.daemon.sinks import Sinks
 from mapd.demo.fleet import Fleet, write_config
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.fusion.placement import Placement
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.outputs.base import OutputContext
+from mapd.outputs.ros2 import Ros2Output, Ros2OutputOptions
 from mapd.record.info import summarize
 from mapd.record.writer import Recorder
 
@@ -187,3 +192,87 @@ def test_a_daemon_records_the_fleet_and_kill_9_leaves_a_readable_file(
     info = subprocess.run([sys.executable, "-m", "mapd", "record", "info", str(files[-1])],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert info.returncode == 0 and "messages" in info.stdout, info.stderr
+
+
+def _tf_static_and_tf(path: Path) -> tuple[list[list[tuple[str, str, float]]], list[tuple[str, str]]]:
+    """Each /tf_static message as (parent, child, x) in order, and every /tf transform as (parent, child)."""
+    static, tf = [], []
+    for topic, _, _, msg in read_all(path):
+        if topic == "/tf_static":
+            static.append(
+                [(t.header.frame_id, t.child_frame_id, t.transform.translation.x) for t in msg.transforms]
+            )
+        elif topic == "/tf":
+            tf += [(t.header.frame_id, t.child_frame_id) for t in msg.transforms]
+    return static, tf
+
+
+def _tf2_after_playback(static: list[list[tuple[str, str, float]]]) -> dict[str, str]:
+    """What tf2's static buffer holds once a bag is played: the last static parent of each child."""
+    return {child: parent for msg in static for parent, child, _ in msg}
+
+
+def test_the_recording_moves_a_dropped_placement_off_the_tree_as_the_ros2_output_does(tmp_path: Path) -> None:
+    # tf2 keeps a static transform for as long as it runs: a robot left out of the next /tf_static
+    # stayed placed on playback. It must move under unplaced_frame, as on the ros2 output.
+    rec = Recorder(tmp_path / "fleet.mcap", min_free_bytes=0)
+    sinks = Sinks([], rec, CsvLog(tmp_path / "fused.csv"))
+    g = grid(64, 64)
+    both = {
+        "robot0": Placement("robot0", Pose2D(), "anchor", True),
+        "robot1": Placement("robot1", Pose2D(4.0, -1.0, 1.5), "pose", True),
+    }
+    sinks.global_map(g, both, {})
+    sinks.global_map(g, {"robot0": both["robot0"]}, {})  # robot1 revoked: its placement is gone
+    sinks.global_map(g, {"robot0": both["robot0"]}, {})  # nothing changed: not written again
+    sinks.global_map(g, both, {})  # placed again
+    sinks.close()
+    static, _ = _tf_static_and_tf(tmp_path / "fleet.mcap")
+    assert static == [
+        [("map", "robot0/map", 0.0), ("map", "robot1/map", 4.0)],
+        [("map", "robot0/map", 0.0), ("mapd/unplaced", "robot1/map", 0.0)],
+        [("map", "robot0/map", 0.0), ("map", "robot1/map", 4.0)],
+    ]
+    assert _tf2_after_playback(static[:2]) == {"robot0/map": "map", "robot1/map": "mapd/unplaced"}
+
+
+def test_the_recording_names_frames_as_the_ros2_output_does(tmp_path: Path) -> None:
+    # A fleet that renamed robot_pose_frame so base_link keeps one parent got base_link back as a
+    # second parent when the bag was played into the same graph.
+    opts = Ros2OutputOptions(
+        frame="fleet",
+        robot_map_frame="{robot}/map_fleet",
+        robot_pose_frame="{robot}/mapd_pose",
+        unplaced_frame="fleet/gone",
+    )
+    out = Ros2Output(opts, OutputContext(robot="base", fleet="f"))  # never started: no session
+    rec = Recorder(tmp_path / "fleet.mcap", min_free_bytes=0)
+    sinks = Sinks([out], rec, CsvLog(tmp_path / "fused.csv"))
+    g = grid(64, 64)
+    both = {
+        "robot0": Placement("robot0", Pose2D(), "anchor", True),
+        "robot1": Placement("robot1", Pose2D(4.0, -1.0, 1.5), "pose", True),
+    }
+    sinks.robot_map(grid(20, 10, "robot1", 1))
+    sinks.global_map(g, both, {})
+    sinks.poses({"robot1": StampedPose(Pose2D(1.0, 2.0, 0.0), 100.0)}, {"robot1": Pose2D(4.0, -1.0, 1.5)})
+    sinks.global_map(g, {"robot0": both["robot0"]}, {})
+    sinks.close()
+    frames = {t: m.header.frame_id for t, _, _, m in read_all(tmp_path / "fleet.mcap") if t.endswith("/map")}
+    assert frames == {"/robot1/map": "robot1/map_fleet", "/map": "fleet"}
+    static, tf = _tf_static_and_tf(tmp_path / "fleet.mcap")
+    assert static == [
+        [("fleet", "robot0/map_fleet", 0.0), ("fleet", "robot1/map_fleet", 4.0)],
+        [("fleet", "robot0/map_fleet", 0.0), ("fleet/gone", "robot1/map_fleet", 0.0)],
+    ]
+    assert tf == [("robot1/map_fleet", "robot1/mapd_pose")]
+
+    # robot_pose_frame = "": the output sends no poses on /tf, and neither does the recording
+    quiet = Ros2Output(Ros2OutputOptions(robot_pose_frame=""), OutputContext(robot="base", fleet="f"))
+    rec = Recorder(tmp_path / "quiet.mcap", min_free_bytes=0)
+    sinks = Sinks([quiet], rec, CsvLog(tmp_path / "fused2.csv"))
+    sinks.global_map(g, both, {})
+    sinks.poses({"robot1": StampedPose(Pose2D(1.0, 2.0, 0.0), 100.0)}, {"robot1": Pose2D(4.0, -1.0, 1.5)})
+    sinks.close()
+    static, tf = _tf_static_and_tf(tmp_path / "quiet.mcap")
+    assert static == [[("map", "robot0/map", 0.0), ("map", "robot1/map", 4.0)]] and tf == []

@@ -301,3 +301,48 @@ def test_a_client_whose_rmw_zenohd_is_not_up_waits_and_then_latches_the_newest_m
 
     got = asyncio.run(main())
     assert (got.msg.info.width, got.msg.info.height) == (60, 43)  # update 3, latched
+
+
+def test_frame_and_topic_names_are_ones_tf2_and_rcl_read_as_written() -> None:
+    """tf2 strips a leading '/' when a transform is set and refuses it in lookups, and drops a
+    transform from a frame to itself: names it reads otherwise than mapd put the robots that
+    unplaced_frame took off the tree back on it. Topics must be names rcl accepts."""
+    for ok in (
+        {},
+        {"frame": "world", "robot_map_frame": "{robot}/map_fleet", "robot_pose_frame": "{robot}/mapd_pose"},
+        {"frame": "fleet", "topic": "/fleet/map", "unplaced_frame": "fleet/unplaced"},
+        {"topic": "merged", "namespace": "/fleet"},
+        {"topic": "fleet_map", "namespace": "robot_1/"},
+        {"robot_pose_frame": ""},
+        {"unplaced_frame": ""},
+    ):
+        Ros2OutputOptions(**ok)
+    assert Ros2OutputOptions(frame="earth-1").frame == "earth-1"  # robot names make such frames anyway
+    bad: list[tuple[dict[str, Any], str]] = [
+        ({"frame": "/map"}, "no leading '/'"),  # tf2: lookups throw; the header is '/map'
+        ({"robot_map_frame": "/{robot}/map"}, "no leading '/'"),
+        ({"robot_pose_frame": "/{robot}/base_link"}, "no leading '/'"),
+        ({"unplaced_frame": "/map"}, "no leading '/'"),  # tf2 reads it as 'map': placed again
+        ({"frame": "map/"}, "empty part"),
+        ({"frame": "map\nfoo"}, "printable ASCII"),
+        ({"frame": "ma\tp"}, "printable ASCII"),
+        ({"frame": "mäp"}, "printable ASCII"),
+        ({"frame": "my map"}, "printable ASCII"),
+        ({"unplaced_frame": "robot0/map"}, "robot_map_frame of a robot named 'robot0'"),
+        ({"unplaced_frame": "robot0/base_link"}, "robot_pose_frame of a robot named 'robot0'"),
+        ({"frame": "robot0/map"}, "robot_map_frame of a robot named 'robot0'"),
+        ({"robot_map_frame": "{robot}"}, "frame 'map' is the robot_map_frame of a robot named 'map'"),
+        ({"robot_pose_frame": "{robot}/map"}, "is robot_map_frame"),  # TF_SELF_TRANSFORM
+        ({"frame": "world", "unplaced_frame": "world"}, "is the fleet frame"),
+        ({"topic": "my-map"}, "not a ROS 2 topic name"),
+        ({"topic": "/map/"}, "not a ROS 2 topic name"),
+        ({"topic": "/2d/map"}, "not a ROS 2 topic name"),
+        ({"topic": "/map\n"}, "not a ROS 2 topic name"),
+        ({"topic": "~/map"}, "does not expand '~'"),
+        ({"namespace": "my-fleet"}, "not a ROS 2 namespace name"),
+    ]
+    for kw, why in bad:
+        with pytest.raises(ValueError) as info:
+            Ros2OutputOptions(**kw)
+        assert why in str(info.value), (kw, str(info.value))
+        assert len(info.value.errors()) == 1, kw  # type: ignore[attr-defined]  # one clear error each
