@@ -62,9 +62,15 @@ class Inbound:
     max_cells: int
     #: Called when a link became free or a peer needs a keyframe: the publisher has work.
     wake: Callable[[], None]
+    #: The roster's key of a robot now (its text), saved with each map of it the key signed: a map
+    #: whose robot has another key by the next start is not restored (the key was replaced).
+    key_of: Callable[[str], str | None] = lambda robot: None
     #: A full disk fails the save of every peer map and base (several a second in a large fleet):
     #: said once, and once when saving works again.
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
+    #: Revocations so far, and robot -> the number of its last (see :meth:`revoked`).
+    _revocations: int = 0
+    _revoked_at: dict[str, int] = field(default_factory=dict)
 
     async def run(self) -> None:
         """Take events off the queue until cancelled."""
@@ -73,8 +79,11 @@ class Inbound:
             try:
                 await self.handle(ev)
             except MapdError as exc:
-                src = ev.transport if isinstance(ev, OnAir) else ev.peer  # OnAir is about own maps
-                log.warning("event from %s dropped: %s", src, exc)
+                log.warning("event from %s dropped: %s", _source(ev), exc)
+            except Exception:
+                # A bug (or an error a save let out) must cost this event, not the daemon: the
+                # peer sends again, and a daemon ended by it would be restarted into the same.
+                log.exception("event from %s dropped: internal error", _source(ev))
 
     def transport(self, name: str) -> Transport | None:
         return next((t for t in self.transports if t.name == name), None)
@@ -130,8 +139,19 @@ class Inbound:
         await asyncio.to_thread(self.store.save_base, grid)
         self.publisher.set_base(grid.version)
 
+    def revoked(self, robot: str) -> None:
+        """``robot``'s key was revoked (removed or replaced): a map of it verified before is dropped
+        wherever on its way in it is (a new key still admits the robot, so the roster cannot say)."""
+        self._revocations += 1
+        self._revoked_at[robot] = self._revocations
+
+    def _trusted(self, robot: str, mark: int) -> bool:
+        """Whether ``robot``'s map, verified after revocation number ``mark``, may still be used."""
+        return self.roster.admits(robot) and self._revoked_at.get(robot, 0) <= mark
+
     async def _on_received(self, ev: Received) -> None:
         rx = self.receiver
+        mark = self._revocations  # the keys it is verified with: any revoked later voids it
         try:
             env = await asyncio.to_thread(
                 open_envelope, ev.data, max_bytes=self.max_message_bytes, roster=self.roster
@@ -154,7 +174,8 @@ class Inbound:
             return
         if not isinstance(plan, Decode):
             if not plan.routine:  # duplicates and echoes are; refusals are worth a line
-                log.info("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
+                say = log.warning if plan.warning else log.info
+                say("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
             if plan.forget and transport is not None:
                 await transport.request_keyframe(env.robot)
             return
@@ -166,20 +187,25 @@ class Inbound:
             if ask is not None and transport is not None:
                 await transport.request_keyframe(ask.robot)
             return
-        if not self.roster.admits(env.robot):
+        if not self._trusted(env.robot, mark):
             log.info("dropped v%d of %s: revoked while it was decoded", env.version, env.robot)
             return
         rx.accept(grid, env, ev.transport, len(ev.data), time.time())
+        # The key it was verified with (none was revoked since: _trusted), saved with it.
+        key = self.key_of(env.robot) if env.sig else None
         try:
-            await asyncio.to_thread(self.store.save_peer, grid)
+            await asyncio.to_thread(self.store.save_peer, grid, env.frame_pose, key)
         except StateError as exc:  # the map is still used; after a restart it comes again whole
             self._saves.failed(f"{exc}; trying again with each map or ack")
         else:
             self._saves.recovered("state saved again")
-        if not self.roster.admits(env.robot):
-            # Revoked while it was saved: the revocation took the map out of the receiver, but the
-            # save has put its record back in the state since.
-            self.store.forget_peer(env.robot)
+        if not self._trusted(env.robot, mark):
+            # Revoked while it was saved: the revocation took the map out of the receiver and the
+            # state directory, but the save has put it back in since.
+            try:
+                await asyncio.to_thread(self.store.remove_peer, env.robot)
+            except StateError as exc:
+                log.warning("revoked %s: %s", env.robot, exc)
             log.info("dropped v%d of %s: revoked while it was saved", env.version, env.robot)
             return
         if env.frame_pose is not None:
@@ -190,3 +216,8 @@ class Inbound:
             transport.ack(env.robot, env.version)
         for t in self.transports:
             t.held(env, ev.data)  # a relaying link may forward it, still signed by its robot
+
+
+def _source(ev: TransportEvent) -> str:
+    """Who an event came from, for a log line (OnAir is about own maps: its transport)."""
+    return ev.transport if isinstance(ev, OnAir) else ev.peer

@@ -24,13 +24,18 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.codec import decode
-from mapd.daemon.versions import VersionBounds, check_step, split
+from mapd.daemon.versions import VersionBounds, check_step, incarnation_at, split
 from mapd.envelope import Envelope, unpack
 from mapd.errors import CodecError, SignatureError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
 from mapd.identity import Roster
 
 KEEP_PEER_VERSIONS = 8
+#: A held version whose incarnation is this far ahead of our clock is more than clocks that
+#: disagree a little (chrony keeps them within milliseconds): its robot's maps refused as not newer
+#: are said, every :data:`FUTURE_SAID_EVERY_S` at most per robot.
+FUTURE_MARGIN_S = 60.0
+FUTURE_SAID_EVERY_S = 600.0
 #: Robots refused for want of room whose name is kept, so that each is logged once.
 MAX_OVER_LIMIT_NAMES = 256
 
@@ -98,6 +103,8 @@ class Drop:
     #: The link may now hold this version as the robot's newest (zenoh's core does): ask it to
     #: forget, so the robot's real next versions are not taken for stale ones.
     forget: bool = False
+    #: Worth a warning, not an info line: something an operator has to act on.
+    warning: bool = False
 
 
 def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
@@ -137,17 +144,25 @@ class Receiver:
     _history: dict[str, dict[int, OccupancyGrid]] = field(default_factory=dict)
     _held_at: dict[str, float] = field(default_factory=dict)
     _over_limit: set[str] = field(default_factory=set)
+    #: robot -> when a map refused under a held version from the future was last said
+    _future_said: dict[str, float] = field(default_factory=dict)
 
-    def restore(self, grid: OccupancyGrid) -> None:
-        """A peer's map from the state directory."""
+    def restore(self, grid: OccupancyGrid, *, held_at: float, now: float) -> None:
+        """A peer's map from the state directory, taken at wall time ``held_at`` (when it was saved).
+
+        The bound on the peer's next version counts from then, as if this robot had never stopped:
+        from the restore time instead, a peer that kept mapping through a long downtime would be
+        refused for hours; from the map's stamp (0 when read back) there was no bound at all. A
+        ``held_at`` after ``now`` (the clock was set back) counts from ``now``.
+        """
         self.maps[grid.robot] = grid
         self._history[grid.robot] = {grid.version: grid}
-        self._held_at[grid.robot] = grid.stamp
+        self._held_at[grid.robot] = min(held_at, now)
 
     def forget(self, robot: str) -> bool:
         """Drop ``robot``'s maps and what is known of it (revoked); False if nothing was held."""
         held = robot in self.maps or robot in self.info
-        for d in (self.maps, self.info, self._history, self._held_at):
+        for d in (self.maps, self.info, self._history, self._held_at, self._future_said):
             d.pop(robot, None)
         return held
 
@@ -180,7 +195,7 @@ class Receiver:
             return Drop(f"already {self.max_peers} robots (limits.max_peers)", routine=said)
         if held is not None and env.version <= held.version:
             self.counters.duplicates += 1
-            return Drop(f"v{env.version} is not newer than v{held.version}", routine=True)
+            return self._not_newer(env, held.version, now)
         why = check_step(
             held.version if held else 0, self._held_at.get(env.robot, now), env.version, now, self.bounds
         )
@@ -208,6 +223,29 @@ class Receiver:
             self.counters.keyframe_requests += 1
             return AskKeyframe(env.robot, new_incarnation=restarted)
         return Decode(base)
+
+    def _not_newer(self, env: Envelope, held: int, now: float) -> Drop:
+        """A duplicate, routine; but not when what is held comes from our clock's future.
+
+        A key that leaked can sign a version up to ``clock_tolerance_s`` ahead; held, it has every
+        real map of that robot refused as not newer until the robot's clock passes it (re-keying
+        the robot revokes it). Honest robots' clocks are seconds apart, so this is said: rarely,
+        as the robot keeps sending.
+        """
+        ahead = split(held)[0] - incarnation_at(now)
+        if ahead <= FUTURE_MARGIN_S:
+            return Drop(f"v{env.version} is not newer than v{held}", routine=True)
+        said = self._future_said.get(env.robot)
+        due = said is None or not 0 <= now - said < FUTURE_SAID_EVERY_S
+        if due:
+            self._future_said[env.robot] = now
+        return Drop(
+            f"not newer than the version held, whose incarnation is {ahead / 3600:.1f} h ahead of this "
+            f"robot's clock: a clock set wrong, or a leaked key (re-key the robot in the roster and "
+            f"reload to revoke it)",
+            routine=not due,
+            warning=True,
+        )
 
     def undecodable(self, env: Envelope, base: OccupancyGrid | None) -> AskKeyframe | None:
         """The payload did not decode; a delta may decode after a keyframe, so ask for one."""

@@ -45,7 +45,7 @@ from mapd.daemon.receiver import Receiver
 from mapd.daemon.reload import Reloads
 from mapd.daemon.reload import read as read_reload
 from mapd.daemon.sinks import Sinks, placed_frames
-from mapd.daemon.state import StateStore, lock_state_dir
+from mapd.daemon.state import SavedPeer, StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
@@ -132,6 +132,7 @@ class Daemon:
             # a base station has no map frame of its own: the anchor, or the first robot heard
             anchor=cfg.fusion.anchor or (self.me if self._own_map_source() else None),
             admits=self.keys.roster.admits,
+            key_of=self._key_of,
         )
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
         #: The state directory's lock (lock_state_dir), taken as the state is loaded.
@@ -185,6 +186,7 @@ class Daemon:
             max_message_bytes=lim.max_message_bytes,
             max_cells=lim.max_cells,
             wake=self.outbound.wake,
+            key_of=self._key_of,
         )
         # The live web view ([view] listen): an output like the others, plus the status dict.
         self.view: LiveView | None = None
@@ -194,6 +196,10 @@ class Daemon:
             ctx = OutputContext(robot=self.me, fleet=cfg.robot.fleet, state_dir=cfg.state.dir)
             self.view = LiveView(cfg.view, ctx, token=checked.view_token, snapshot=self.snapshot)
             self.sinks.map_watchers.append(self.view.robot_map)
+
+    def _key_of(self, robot: str) -> str | None:
+        """``robot``'s public key in the roster now (as the config gives it), or None."""
+        return self.reloads.config.fleet.roster.get(robot)
 
     @property
     def own(self) -> OccupancyGrid | None:
@@ -231,11 +237,17 @@ class Daemon:
             self.keys.roster.adopt(keys.roster)
             if self.view is not None:  # checked per request: a rotated token is in force at once
                 self.view.set_token(plan.view_token)
-            for robot in plan.removed:
-                if robot != self.me and not self.keys.roster.admits(robot):
-                    self._revoke(robot)
+            # A robot given a new key is revoked as one removed is: what its old key signed goes
+            # (a key is replaced because it leaked), with a version from the future it may have
+            # signed to lock the real robot out. Its new key's maps are taken from the next on.
+            revoked = [r for r in plan.removed if not self.keys.roster.admits(r)] + plan.rekeyed
+            revoked = [r for r in revoked if r != self.me]
+            for robot in revoked:
+                self._revoke(robot, rekeyed=robot in plan.rekeyed)
             said = self.reloads.applied(new, plan)
             (log.warning if plan.restart else log.info)("reloaded: %s", said)
+            for robot in revoked:  # its files too (a worker: the disk may be slow)
+                await self._remove_saved(robot)
             # A robot just admitted (or re-keyed) had its maps refused so far: ask for its newest
             # now rather than wait for its next offer to time out.
             for robot in plan.added + plan.rekeyed:
@@ -247,17 +259,31 @@ class Daemon:
         notify(f"READY=1\nSTATUS={self._status_now()}")
         return ok
 
-    def _revoke(self, robot: str) -> None:
-        """``robot`` left the roster: what it sent goes too (its map from the global map, its pose),
-        as after a restart without it; a key that had to be revoked may have signed bad maps."""
+    def _revoke(self, robot: str, *, rekeyed: bool = False) -> None:
+        """``robot`` left the roster, or got a new key: what its old key signed goes too (its map
+        from the maps held and the global map, its pose, a map of it on its way in), as after a
+        restart without it; a key that had to be revoked may have signed bad maps. Its saved map's
+        files go next (:meth:`_remove_saved`)."""
         self.receiver.forget(robot)
         self.fusion.forget(robot)
         self.poses.forget(robot)
+        self.inbound.revoked(robot)
         for t in self.transports:
             t.forget(robot)
         self.store.forget_peer(robot)
         self.store.forget_acked(robot)
-        log.warning("revoked %s: its map is out of the global map, its pose is dropped", robot)
+        log.warning(
+            "revoked %s%s: its map is out of the global map, its pose is dropped",
+            robot,
+            "'s old key" if rekeyed else "",
+        )
+
+    async def _remove_saved(self, robot: str) -> None:
+        """Remove a revoked robot's map from the state directory, so no restart brings it back."""
+        try:
+            await asyncio.to_thread(self.store.remove_peer, robot)
+        except MapdError as exc:
+            log.warning("revoked %s: %s", robot, exc)
 
     async def _reload_loop(self) -> None:
         while True:
@@ -442,25 +468,53 @@ class Daemon:
                 },
             )
 
-    def _load_state(self) -> tuple[OccupancyGrid | None, OccupancyGrid | None, list[OccupancyGrid]]:
+    def _load_state(self) -> tuple[OccupancyGrid | None, OccupancyGrid | None, list[SavedPeer]]:
         """Open the state directory and read what a previous run left (blocking: a worker thread)."""
         self._state_lock = lock_state_dir(self.cfg.state.dir)  # (held until the process exits)
         self.store.open()
         own = self.store.own_map()
         peers = []
-        for robot in list(self.store.data.peers):
+        # The robots state.json names, and roster robots whose map was saved just before a kill
+        # that came before state.json named them (their first map): trusted, as any saved map, only
+        # through what its YAML holds: its version and digest, and the key it was taken under.
+        unrecorded = [r for r in self.store.unrecorded_peers() if r != self.me]
+        for robot in [*self.store.data.peers, *unrecorded]:
             if not self.keys.roster.admits(robot):
                 # Revoked while the daemon was down: as a reload would have, leave its map out.
-                log.warning("not restoring %s's map: it is no longer on the roster", robot)
-                self.store.forget_peer(robot)
-                self.store.forget_acked(robot)
+                self._revoked_at_start(robot, "it is no longer on the roster")
                 continue
-            grid = self.store.peer_map(robot)
-            if grid is None:
+            if robot in unrecorded and robot not in self.keys.roster:
+                continue  # (an unsigned fleet admits any name: only the roster's are looked for)
+            try:
+                saved = self.store.saved_peer(robot)
+            except MapdError as exc:  # a name no folder can have, in a damaged state.json
+                log.warning("not restoring %s's map: %s", robot, exc)
+                saved = None
+            if saved is None:
                 self.store.forget_peer(robot)
-            else:
-                peers.append(grid)
+                continue
+            key = self._key_of(robot)
+            if saved.key is not None and saved.key != key:
+                # Given a new key while the daemon was down: what the old key signed goes, as a
+                # reload would have taken it (its version too, which may lock the real robot out).
+                self._revoked_at_start(robot, "it was signed by a key the roster has replaced")
+                continue
+            if robot in unrecorded and saved.key is None and key is not None:
+                # No key in it: saved by an earlier release, whose revocations left the files (a
+                # robot removed, then added again under a new key). Only state.json vouched for it.
+                self._revoked_at_start(robot, "state.json does not name it, nor does it name its key")
+                continue
+            peers.append(saved)
         return own, self.store.base_map(), peers
+
+    def _revoked_at_start(self, robot: str, why: str) -> None:
+        """Leave ``robot``'s saved map out, and remove it, so no later start restores it either."""
+        log.warning("not restoring %s's map: %s", robot, why)
+        try:
+            self.store.remove_peer(robot)
+        except MapdError as exc:
+            log.warning("revoked %s: %s", robot, exc)
+        self.store.forget_acked(robot)
 
     async def _restore(self) -> None:
         """Resume from the state directory: own version, bases, and every peer's last map."""
@@ -469,9 +523,14 @@ class Daemon:
             own = self.outbound.own = own.replace(robot=self.me)
             self.fusion.submit(own)
         self.publisher.restore(own, base, self.store.acked())
-        for grid in peers:
-            self.receiver.restore(grid)
-            self.fusion.submit(grid)
+        now = time.time()
+        for saved in peers:
+            self.receiver.restore(saved.grid, held_at=saved.saved_at, now=now)
+            # As a live map with a pose goes (Inbound): else a peer placed by the start pose it
+            # reported was searched for after a restart, and left out if its map overlaps none.
+            if saved.frame_pose is not None:
+                self.fusion.known_pose(saved.grid.robot, saved.frame_pose)
+            self.fusion.submit(saved.grid)
         if self.store.data.own_version:
             log.info(
                 "resumed from state",

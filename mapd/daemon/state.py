@@ -19,6 +19,11 @@ old map or the new one whole, and a map saved just before a crash that ``state.j
 recorded is restored with its version rather than lost. An image that does not match its YAML's
 digest is treated as absent, never as the wrong version. ``state.json`` also names each map by
 version and digest, which is all that maps saved before versions were kept in the YAML have.
+
+A peer map's YAML also holds what came with it: the pose of its map frame its robot reported
+(``mapd_frame_pose``), fused again after a restart, and the roster key it was taken under
+(``mapd_key``): a robot given a new key while the daemon was down has the maps its old key signed
+left out, as a reload would have. A revoked robot's map files are removed, not only its record.
 """
 
 from __future__ import annotations
@@ -26,8 +31,10 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import logging
+import math
 import os
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +43,8 @@ from mapd.daemon.versions import next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
 from mapd.files import atomic_write_json, make_dir, read_json_capped, remove_stale_temps
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, map_from_yaml_fields, read_map_yaml, save_map
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, map_from_yaml_fields, read_map_yaml, save_map
+from mapd.imaging.pixels import one_line
 
 log = logging.getLogger(__name__)
 #: state.json's largest size read: its records are some 100 bytes a peer, and peers are capped.
@@ -48,6 +56,22 @@ _SAFE = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
 class MapRecord:
     version: int
     digest: str
+
+
+@dataclass(frozen=True)
+class SavedPeer:
+    """A peer's map as the state directory holds it, with what was saved beside it."""
+
+    grid: OccupancyGrid
+    #: Wall time it was saved (its YAML's modification time): when this robot took that version,
+    #: from which the bound on the peer's next version counts (:func:`~mapd.daemon.versions.check_step`).
+    saved_at: float
+    #: Where the peer's map frame lies in the fleet frame, as its map reported it (its source's
+    #: start pose), or None: fused again as the live map's pose was.
+    frame_pose: Pose2D | None = None
+    #: The roster key it was taken under (``mapd_key``), or None (unsigned, or saved before keys
+    #: were kept): a map its robot's key no longer matches is not restored (the key was replaced).
+    key: str | None = None
 
 
 @dataclass
@@ -110,6 +134,23 @@ def _saved_record(extra: dict[str, Any]) -> MapRecord | None:
     version, digest = extra.get("mapd_version"), extra.get("mapd_digest")
     if isinstance(version, int) and _is_count(version) and isinstance(digest, str):
         return MapRecord(version, digest)
+    return None
+
+
+def _saved_pose(extra: dict[str, Any], where: Path) -> Pose2D | None:
+    """The reported pose a peer map's YAML holds (``mapd_frame_pose``: x, y, yaw), or None."""
+    raw = extra.get("mapd_frame_pose")
+    if raw is None:
+        return None
+    if (
+        isinstance(raw, list)
+        and len(raw) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in raw)
+    ):
+        pose = Pose2D(*(float(v) for v in raw))
+        if all(math.isfinite(v) for v in pose):
+            return pose
+    log.warning("state map %s: ignoring its reported pose %.60r (not three finite numbers)", where, raw)
     return None
 
 
@@ -240,6 +281,28 @@ class StateStore:
         with self._lock:
             self.data.peers.pop(robot, None)
 
+    def remove_peer(self, robot: str) -> None:
+        """Drop ``robot``'s map: its record and its files (blocking). It was revoked, and a key that
+        had to be revoked may have signed it: no restart may bring it back. :class:`StateError`
+        when a file cannot be removed."""
+        self.forget_peer(robot)
+        d = self._peer_dir(robot)
+        with self._io:  # after a save of it that is under way, never half-way through one
+            self.forget_peer(robot)
+            try:
+                if not d.is_dir():
+                    return
+                # The YAML first: it commits the map, so a kill part-way leaves no map behind.
+                (d / "map.yaml").unlink(missing_ok=True)
+                for image in d.glob("map*.pgm"):
+                    image.unlink(missing_ok=True)
+                with contextlib.suppress(OSError):  # not empty: something else is kept there
+                    d.rmdir()
+            except OSError as exc:
+                raise StateError(
+                    f"{d}: cannot remove the revoked map: {exc.strerror or one_line(exc)}"
+                ) from None
+
     def _peer_dir(self, robot: str) -> Path:
         if not robot or not set(robot) <= _SAFE:
             raise StateError(f"refusing unsafe robot name {robot!r} for a state path")
@@ -249,13 +312,23 @@ class StateStore:
     def _load(self, yaml_path: Path, rec: MapRecord | None) -> OccupancyGrid | None:
         """The map at ``yaml_path`` with its version, or None when it is absent, unreadable or not
         the map its YAML (or, for a YAML without a version, ``state.json``) says it is."""
-        if not yaml_path.exists():
-            return None
+        loaded = self._load_with_extra(yaml_path, rec)
+        return None if loaded is None else loaded[0]
+
+    def _load_with_extra(
+        self, yaml_path: Path, rec: MapRecord | None
+    ) -> tuple[OccupancyGrid, dict[str, Any]] | None:
+        """As :meth:`_load`, with the YAML's extra fields."""
         try:
+            if not yaml_path.exists():
+                return None
             meta = read_map_yaml(yaml_path)
             grid = map_from_yaml_fields(meta, yaml_path, max_cells=self.max_cells)
         except MapdError as exc:
             log.warning("state map %s unreadable: %s", yaml_path, exc)
+            return None
+        except OSError as exc:  # a folder that cannot be looked at: as unreadable
+            log.warning("state map %s unreadable: %s", yaml_path, exc.strerror or one_line(exc))
             return None
         digest = grid.digest().hex()
         saved = _saved_record(meta["extra"])
@@ -265,7 +338,7 @@ class StateStore:
                     "state map %s does not match state.json (interrupted write); ignoring it", yaml_path
                 )
                 return None
-            return grid.replace(version=rec.version)
+            return grid.replace(version=rec.version), meta["extra"]
         if saved.digest != digest:
             log.warning(
                 "state map %s does not match the digest in its YAML (damaged); ignoring it", yaml_path
@@ -278,7 +351,7 @@ class StateStore:
                 yaml_path,
                 saved.version,
             )
-        return grid.replace(version=saved.version)
+        return grid.replace(version=saved.version), meta["extra"]
 
     def own_map(self) -> OccupancyGrid | None:
         """The robot's latest saved map (its record and version counter follow it: never reused)."""
@@ -297,12 +370,50 @@ class StateStore:
         return grid
 
     def peer_map(self, robot: str) -> OccupancyGrid | None:
-        grid = self._load(self._peer_dir(robot) / "map.yaml", self.data.peers.get(robot))
-        if grid is None:
+        saved = self.saved_peer(robot)
+        return None if saved is None else saved.grid
+
+    def saved_peer(self, robot: str) -> SavedPeer | None:
+        """``robot``'s last saved map, with when it was saved and the pose it reported, or None.
+
+        Also a map ``state.json`` does not name (a kill between the map's save and state.json's):
+        then its YAML's own version and digest are all that is trusted, as for a newer version.
+        """
+        path = self._peer_dir(robot) / "map.yaml"
+        loaded = self._load_with_extra(path, self.data.peers.get(robot))
+        if loaded is None:
             return None
+        grid, extra = loaded
+        try:
+            saved_at = path.stat().st_mtime
+        except OSError:  # gone since it was read: nothing says when, so count from now
+            saved_at = time.time()
         with self._lock:
             self.data.peers[robot] = MapRecord(grid.version, grid.digest().hex())
-        return grid.replace(robot=robot)
+        key = extra.get("mapd_key")
+        return SavedPeer(
+            grid.replace(robot=robot),
+            saved_at,
+            _saved_pose(extra, path),
+            key if isinstance(key, str) else None,
+        )
+
+    def unrecorded_peers(self) -> list[str]:
+        """The robots (safe names only) whose folder holds a map that ``state.json`` does not name:
+        saved just before a kill that came before ``state.json`` named it, or left by a revocation
+        of a release that kept the files."""
+        try:
+            names = sorted(p.name for p in (self.root / "peers").iterdir())
+        except OSError:
+            return []
+        found = []
+        for robot in names:
+            if robot in self.data.peers or not set(robot) <= _SAFE:
+                continue
+            with contextlib.suppress(OSError):
+                if (self.root / "peers" / robot / "map.yaml").is_file():
+                    found.append(robot)
+        return found
 
     def save_own(self, grid: OccupancyGrid) -> None:
         with self._io:
@@ -319,18 +430,32 @@ class StateStore:
                 self.data.base = record
             self._write_state()
 
-    def save_peer(self, grid: OccupancyGrid) -> None:
+    def save_peer(
+        self, grid: OccupancyGrid, frame_pose: Pose2D | None = None, key: str | None = None
+    ) -> None:
+        """Save a peer's map, with the pose of its map frame its envelope reported and the roster
+        key it was taken under (``key``), if any."""
         d = self._peer_dir(grid.robot)
         with self._io:
-            make_dir(d)
-            record = self._save(grid, d / "map.yaml")
+            try:
+                make_dir(d)
+            except OSError as exc:
+                # A full disk (ENOSPC), a file in its place: a save that failed, said as one line
+                # (the daemon says it once and uses the map all the same), never a traceback.
+                raise StateError(f"{d}: cannot create the folder: {exc.strerror or one_line(exc)}") from None
+            extra: dict[str, Any] = {}
+            if frame_pose is not None:
+                extra["mapd_frame_pose"] = [float(v) for v in frame_pose]
+            if key is not None:
+                extra["mapd_key"] = key
+            record = self._save(grid, d / "map.yaml", extra)
             with self._lock:
                 self.data.peers[grid.robot] = record
             self._write_state()
 
-    def _save(self, grid: OccupancyGrid, path: Path) -> MapRecord:
+    def _save(self, grid: OccupancyGrid, path: Path, extra: dict[str, Any] | None = None) -> MapRecord:
         """Write ``grid`` at ``path`` (its image under a name of its own, then the YAML that commits
-        it), then remove the images no YAML names any more."""
+        it, with ``extra`` fields), then remove the images no YAML names any more."""
         record = MapRecord(grid.version, grid.digest().hex())
         image = f"{path.stem}-{grid.version}.pgm"
         try:
@@ -338,14 +463,17 @@ class StateStore:
                 grid,
                 path,
                 image_name=image,
-                extra={"mapd_version": record.version, "mapd_digest": record.digest},
+                extra={"mapd_version": record.version, "mapd_digest": record.digest, **(extra or {})},
             )
         except MapdError as exc:
             raise StateError(str(exc)) from None
-        for old in [path.with_suffix(".pgm"), *path.parent.glob(f"{path.stem}-*.pgm")]:
-            if old.name != image:
-                with contextlib.suppress(OSError):
-                    old.unlink(missing_ok=True)
+        except OSError as exc:  # what save_map looks at before it writes (a stat that fails)
+            raise StateError(f"{path}: cannot write map: {exc.strerror or one_line(exc)}") from None
+        with contextlib.suppress(OSError):  # best effort: the next save removes what is left
+            for old in [path.with_suffix(".pgm"), *path.parent.glob(f"{path.stem}-*.pgm")]:
+                if old.name != image:
+                    with contextlib.suppress(OSError):
+                        old.unlink(missing_ok=True)
         return record
 
     def flush(self) -> None:

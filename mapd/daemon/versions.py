@@ -11,7 +11,10 @@ incarnation 0 and keeps counting.
 Peers bound what they accept (:func:`check_step`): an incarnation from the future (beyond the
 receiver's clock plus a tolerance) or a number that jumps further than the elapsed time explains is
 refused, so a buggy or compromised robot cannot push its versions out of reach of its own future
-maps, and nothing another robot sends can lock a robot out (only its own key signs its maps).
+maps, and nothing another robot sends can lock a robot out (only its own key signs its maps). A
+leaked key can still sign a version up to the tolerance (a day) ahead; it is revoked with the key
+when the robot is re-keyed, and maps refused under it meanwhile are logged
+(:attr:`VersionBounds.clock_tolerance_s`).
 """
 
 from __future__ import annotations
@@ -58,6 +61,15 @@ class VersionBounds:
 
     max_jump: int = 1000
     max_rate: float = 10.0
+    #: How far a new incarnation may lie ahead of the receiver's clock. Not shrunk to minutes: an
+    #: incarnation is the robot's clock when its state began, kept for good, and a robot that
+    #: starts afresh before its clock is set (an RTC kept in local time, up to 14 h ahead; a board
+    #: with a wrong battery-backed clock before NTP steps it) would be refused by every peer until
+    #: their clocks catch up, that is for hours, where its only fault was an honest clock. What a
+    #: day allows a leaked key (a version up to a day ahead that holds the real robot's maps off as
+    #: "not newer") ends when the robot is re-keyed or removed: the reload revokes the held map and
+    #: version with the key (and a start revokes what the replaced key signed), and until then the
+    #: refusals are logged as warnings (:meth:`~mapd.daemon.receiver.Receiver.plan`).
     clock_tolerance_s: float = 86400.0
 
 

@@ -3,10 +3,16 @@
 Written after every merge (each file atomic: temp file, fsync, rename, so a crash leaves the old
 file or the new one, never half of one):
 
-* ``global.yaml`` + ``global.pgm``: the global map, as map_server files;
+* ``global.yaml`` + ``global-<version>.pgm``: the global map, as map_server files. The YAML is
+  the commit: it names an image written before it under a name of its own and holds the map's
+  version and digest (``mapd_version``, ``mapd_digest``), so a kill between the two renames leaves
+  the old map whole (a fixed ``global.pgm`` renamed first left the old YAML's origin over the new
+  image: a shifted map), and an image that does not match is left out, never restored shifted.
+  The images no YAML names any more are removed after each save;
 * ``transforms.json``: the placements, per robot the "fleet frame -> robot map" transform (x, y in
   meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``) with its source,
-  confidence and reason, and the global map's version;
+  confidence and reason, the global map's version, and the roster key each peer's map in it was
+  taken under (``keys``: a robot re-keyed by the next start has the global map rebuilt without it);
 * ``owner.npy`` + ``owner.json``: per cell, which robot's map weighed most (an index into the
   names in ``owner.json``; -1 where none knows), for coloured pictures.
 
@@ -17,6 +23,7 @@ roster) is the worker's decision, not this module's.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -31,7 +38,7 @@ from mapd.errors import MapdError, StateError
 from mapd.files import WriteOutage, atomic_write_bytes, read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, load_map, save_map
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, map_from_yaml_fields, read_map_yaml, save_map
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +57,8 @@ class Saved:
 
     placements: dict[str, Placement] = field(default_factory=dict)
     version: int = 0
+    #: robot -> the roster key its map in the global map was taken under (its public key's text)
+    keys: dict[str, str] = field(default_factory=dict)
 
 
 class FusionStore:
@@ -73,7 +82,11 @@ class FusionStore:
             return Saved()
         if not isinstance(doc, dict) or not isinstance(doc.get("robots"), dict):
             return Saved()
-        saved = Saved(version=doc["version"] if type(doc.get("version")) is int else 0)
+        keys = doc.get("keys")
+        saved = Saved(
+            version=doc["version"] if type(doc.get("version")) is int else 0,
+            keys={str(r): k for r, k in keys.items() if isinstance(k, str)} if isinstance(keys, dict) else {},
+        )
         for name, entry in doc["robots"].items():
             try:
                 saved.placements[str(name)] = Placement.from_dict(entry)
@@ -82,15 +95,35 @@ class FusionStore:
         return saved
 
     def load_global(self) -> OccupancyGrid | None:
-        """The saved global map, or None when there is none or it cannot be read (said once)."""
+        """The saved global map with its version, or None when there is none or it cannot be read
+        or is not the map its YAML says it is (said once)."""
         path = self.directory / GLOBAL_YAML
-        if not path.exists():
-            return None
         try:
-            return load_map(path, max_cells=self.max_cells)
+            if not path.exists():
+                return None
+            meta = read_map_yaml(path)
+            grid = map_from_yaml_fields(meta, path, max_cells=self.max_cells)
         except MapdError as exc:
             log.warning("fusion: ignoring unreadable %s: %s", path, exc)
             return None
+        except OSError as exc:
+            log.warning("fusion: ignoring unreadable %s: %s", path, exc.strerror or exc)
+            return None
+        version, digest = meta["extra"].get("mapd_version"), meta["extra"].get("mapd_digest")
+        if digest is None and version is None:
+            # An earlier release's global.yaml + global.pgm: kept, or every fleet upgrading would
+            # start with an empty global map. That release wrote them with a crash window of
+            # microseconds between two renames, and what such a crash left is only a stand-in
+            # until each robot's map comes again; from the first save on, the digest is checked.
+            return grid
+        if type(version) is not int or version < 0 or digest != grid.digest().hex():
+            log.warning(
+                "fusion: ignoring %s: its image does not match the digest in it (damaged, or an "
+                "interrupted write); starting a new global map",
+                path,
+            )
+            return None
+        return grid.replace(version=version)
 
     # -- writing ----------------------------------------------------------------------------
 
@@ -102,13 +135,34 @@ class FusionStore:
         stamp: float,
         fleet_frame: str | None,
         mode: str,
+        keys: dict[str, str] | None = None,
     ) -> None:
-        """``global.yaml``/``.pgm`` and ``transforms.json``; :class:`StateError` when they cannot be."""
+        """``global.yaml``/``.pgm`` and ``transforms.json``; :class:`StateError` when they cannot be.
+
+        ``keys``: robot -> the roster key its map was taken under, for the robots in this merge.
+        """
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StateError(f"{self.directory}: cannot create the state directory: {exc.strerror}") from None
-        save_map(result.grid, self.directory / GLOBAL_YAML)
+        grid = result.grid
+        image = f"global-{grid.version}.pgm"
+        try:
+            save_map(
+                grid,
+                self.directory / GLOBAL_YAML,
+                image_name=image,
+                extra={"mapd_version": grid.version, "mapd_digest": grid.digest().hex()},
+            )
+        except OSError as exc:  # what save_map looks at before it writes (a stat that fails)
+            raise StateError(
+                f"{self.directory / GLOBAL_YAML}: cannot write map: {exc.strerror or exc}"
+            ) from None
+        with contextlib.suppress(OSError):  # best effort: the next save removes what is left
+            for old in [self.directory / "global.pgm", *self.directory.glob("global-*.pgm")]:
+                if old.name != image:
+                    with contextlib.suppress(OSError):
+                        old.unlink(missing_ok=True)
         doc = {
             "format": FORMAT,
             "robot": self.robot,
@@ -120,6 +174,7 @@ class FusionStore:
             "resolution": result.grid.resolution,
             "origin": list(result.grid.origin),
             "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
+            "keys": dict(sorted((keys or {}).items())),
         }
         write_json_atomic(self.directory / TRANSFORMS_JSON, doc)
 

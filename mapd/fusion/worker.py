@@ -15,7 +15,7 @@ API for the daemon::
   first new map it waits ``cfg.debounce_s`` (collecting whatever else arrives), places every map with
   a :class:`~mapd.fusion.placement.Placer` and merges them in a worker thread (a large merge never
   stalls the event loop), leaving out maps the global map cannot hold (:mod:`~mapd.fusion.limits`),
-  writes ``global.yaml`` + ``global.pgm``, ``transforms.json`` and ``owner.npy`` + ``owner.json``
+  writes ``global.yaml`` + ``global-<version>.pgm``, ``transforms.json`` and ``owner.npy`` + ``owner.json``
   into the state directory (:mod:`~mapd.fusion.store`), and calls every ``on_global`` callback with
   the new grid on the event loop's thread.
 * The **fleet frame** is the frame the configured poses are given in, or this robot's own map frame
@@ -83,6 +83,7 @@ class FusionWorker:
         anchor: str | None = "",
         options: EstimateOptions | None = None,
         admits: Callable[[str], bool] | None = None,
+        key_of: Callable[[str], str | None] | None = None,
     ) -> None:
         self.robot = robot
         self.cfg = cfg
@@ -121,6 +122,12 @@ class FusionWorker:
         #: Whether a robot's map may be in the global map at all (the roster); others found in the
         #: state directory at start are left out, as :meth:`forget` leaves them out later.
         self._admits = admits or (lambda robot: True)
+        #: A robot's roster key now (None: none known), saved with the global map for the robots
+        #: in it: one given a new key by the next start has it rebuilt without it, as a reload would.
+        self._key_of = key_of or (lambda robot: None)
+        #: The keys of the maps the merge under way holds (taken on the loop as it began: a key
+        #: replaced meanwhile revokes the robot, and the merge's files must not name the new one).
+        self._merge_keys: dict[str, str] = {}
         self.forgotten = 0
         self._merging = False  # a merge runs on a worker thread (_merge_once)
         self._forget_later: list[str] = []  # robots revoked meanwhile (forget)
@@ -299,6 +306,7 @@ class FusionWorker:
 
     async def _merge_once(self, search: bool) -> None:
         maps = dict(self._latest)
+        self._merge_keys = self._keys(maps)
         self._merging = True
         self._stop_merge.clear()
         job = asyncio.ensure_future(asyncio.to_thread(self._fuse, maps, search))
@@ -334,8 +342,13 @@ class FusionWorker:
         self._apply(fused)
 
     def _fuse_and_publish_sync(self, search: bool) -> None:
-        fused = self._fuse(dict(self._latest), search)
+        maps = dict(self._latest)
+        self._merge_keys = self._keys(maps)
+        fused = self._fuse(maps, search)
         self._apply(fused, publish=False)
+
+    def _keys(self, maps: dict[str, OccupancyGrid]) -> dict[str, str]:
+        return {r: k for r in maps if r != self.robot and (k := self._key_of(r)) is not None}
 
     def _fuse(self, maps: dict[str, OccupancyGrid], search: bool) -> _Fused:
         """Place, merge and persist (runs in a worker thread)."""
@@ -391,7 +404,7 @@ class FusionWorker:
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)
         result = MergeResult(grid=grid, bounds=result.bounds, owner=result.owner)
         try:
-            self._save(result, placements, stamp)
+            self._save(result, placements, stamp, self._merge_keys)
         except MapdError as exc:
             # A full disk must not freeze the fleet's global map: the outputs and status still
             # get the new one, and the state directory keeps the last one written whole (each
@@ -480,17 +493,21 @@ class FusionWorker:
             return
         saved = self.store.load_placements()
         placements = saved.placements
-        # Robots off the roster since the last run: their placements go, and a global map built
-        # with their maps is not restored (its cells are theirs and the others' alike).
-        revoked = sorted(r for r in placements if r != self.robot and not self._admits(r))
+        # Robots off the roster since the last run, or given a new key (a key is replaced because
+        # it leaked): their placements go, and a global map built with their maps is not restored
+        # (its cells are theirs and the others' alike).
+        rekeyed = {r for r, k in saved.keys.items() if self._admits(r) and self._key_of(r) != k}
+        revoked = sorted(
+            r for r in set(placements) | rekeyed if r != self.robot and (not self._admits(r) or r in rekeyed)
+        )
         again = sorted(derived_from(placements, set(revoked)))
-        in_global = [r for r in revoked if placements.pop(r).accepted]
+        in_global = [r for r in revoked if (p := placements.pop(r, None)) is not None and p.accepted]
         for r in again:  # placed against a revoked robot's map: estimated afresh from the others
             placements.pop(r)
         if revoked:
             self.forgotten += len(revoked)
             log.warning(
-                "fusion: leaving out %s, no longer on the roster%s%s",
+                "fusion: leaving out %s, no longer on the roster or given a new key%s%s",
                 ", ".join(revoked),
                 "; the global map is built afresh" if in_global else "",
                 f"; {', '.join(again)}, placed against it, estimated afresh" if again else "",
@@ -508,16 +525,26 @@ class FusionWorker:
                 self.store.directory / GLOBAL_YAML,
             )
             return
+        # The global map saved last may be newer than transforms.json (a kill between the two):
+        # numbered on from the newer, so the next map's image never takes the name of this one's.
+        self._merges = max(self._merges, grid.version)
         self._global = grid.replace(robot=self.robot, version=self._merges, frame_id="fleet")
         self._bounds = bounds
         self._resolution = grid.resolution
         self._restored = self._global
         self._restored_robots = {r for r, p in placements.items() if p.accepted}
 
-    def _save(self, result: MergeResult, placements: dict[str, Placement], stamp: float) -> None:
+    def _save(
+        self, result: MergeResult, placements: dict[str, Placement], stamp: float, keys: dict[str, str]
+    ) -> None:
         if self.store is not None:
             self.store.save(
-                result, placements, stamp=stamp, fleet_frame=self.placer.fleet_frame, mode=self.cfg.mode
+                result,
+                placements,
+                stamp=stamp,
+                fleet_frame=self.placer.fleet_frame,
+                mode=self.cfg.mode,
+                keys=keys,
             )
 
     def _save_owner(self, result: MergeResult, names: list[str]) -> None:

@@ -103,6 +103,22 @@ async def wait_for(cond: Callable[[], bool], timeout: float = 10.0, what: str = 
         await asyncio.sleep(0.01)
 
 
+def run_until(*daemons: Daemon, until: Callable[[], bool], timeout: float = 20.0) -> None:
+    """Run ``daemons`` together until ``until()`` holds (AssertionError after ``timeout``), then
+    stop them all and wait for them."""
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d in daemons]
+        try:
+            await wait_for(until, timeout)
+        finally:
+            for d in daemons:
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+
+
 @contextlib.contextmanager
 def mapd_run(
     config: Path, log: Path, *, cwd: Path | None = None, env: dict[str, str] | None = None
@@ -135,6 +151,7 @@ def dk() -> SimpleNamespace:
         virtual_daemon=virtual_daemon,
         growing_map=growing_map,
         wait_for=wait_for,
+        run_until=run_until,
         mapd_run=mapd_run,
         channel=lambda: f"test-{next(_channels)}",
     )

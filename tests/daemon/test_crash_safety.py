@@ -7,6 +7,7 @@ disk. A kill -9 mid-write is the child killing itself between a temp file's fsyn
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import json
 import logging
@@ -358,6 +359,99 @@ FULL_DISK_FUSION = """
 
     asyncio.run(main())
 """
+
+
+def test_a_peer_folder_that_cannot_be_made_is_said_once_and_the_map_still_used(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A regular file where robot1 makes robot0's folder (as a full disk fails the mkdir): the
+    # OSError it raised ended robot1's daemon, and systemd restarted it into the same, for ever.
+    caplog.set_level(logging.INFO, logger="mapd.daemon")
+    channel = dk.channel()
+    d0, s0 = dk.virtual_daemon(tmp_path, "robot0", channel)
+    d1, _ = dk.virtual_daemon(tmp_path, "robot1", channel)
+    blocker = d1.cfg.state.dir / "peers" / "robot0"
+    blocker.parent.mkdir(parents=True)
+    blocker.write_bytes(b"")
+
+    async def main() -> None:
+        tasks = [asyncio.create_task(d.run()) for d in (d0, d1)]
+        try:
+            await dk.wait_for(
+                lambda: bool(d0.transports) and d0.transports[0].peers() == ["robot1"], what="up"
+            )
+            for v in (1, 2):
+                await s0.queue.put(dk.growing_map(v))
+                await dk.wait_for(
+                    lambda v=v: split(getattr(d1.receiver.maps.get("robot0"), "version", 0))[1] == v,
+                    20,
+                    what=f"v{v} held",
+                )
+            await dk.wait_for(lambda: "robot0" in d1.fusion.status()["robots"], 20, what="fused")
+            assert not any(t.done() for t in tasks)  # robot1 runs on
+            blocker.unlink()  # room again: the next map is saved
+            await s0.queue.put(dk.growing_map(3))
+            await dk.wait_for(lambda: "robot0" in d1.store.data.peers, 20, what="v3 saved")
+        finally:
+            for d in (d0, d1):
+                d.request_stop()
+            await asyncio.gather(*tasks)
+
+    asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records if "cannot create the folder" in r.getMessage()]
+    assert len(said) == 1 and str(blocker) in said[0] and "\n" not in said[0]
+    assert any(r.getMessage() == "state saved again" for r in caplog.records)
+    assert "Traceback" not in caplog.text
+
+
+KILLED_AT_GLOBAL = """
+    import asyncio, os, signal, sys
+    from pathlib import Path
+    import numpy as np
+    from mapd.config import FusionSection
+    from mapd.fusion.worker import FusionWorker
+    from mapd.grid import OccupancyGrid, Pose2D
+
+    state = Path(sys.argv[1])
+    worker = FusionWorker("robot0", FusionSection(debounce_s=0), state)
+    room = np.zeros((100, 100), np.int8)
+    room[50, :] = 100  # a wall 2.525 m up the fleet frame
+    worker.submit(OccupancyGrid(room, 0.05, robot="robot0", version=1))
+    asyncio.run(worker.merge_now())
+    # v2: the robot explored 10 m further to -x and -y: the global map grows, its origin moves
+    grown = np.full((300, 300), -1, np.int8)
+    grown[200:, 200:] = room
+    real = os.replace
+
+    def replace(src, dst):  # kill -9 between the new image's rename and the YAML's
+        if str(dst).endswith("global.yaml"):
+            os.kill(os.getpid(), signal.SIGKILL)
+        real(src, dst)
+
+    os.replace = replace
+    worker.submit(OccupancyGrid(grown, 0.05, origin=Pose2D(-10.0, -10.0, 0.0), robot="robot0", version=2))
+    asyncio.run(worker.merge_now())
+"""
+
+
+def test_a_kill_9_between_the_global_image_and_its_yaml_restores_the_old_map_in_place(
+    tmp_path: Path,
+) -> None:
+    # A fixed global.pgm was renamed first: the old YAML's origin over the new, larger image put
+    # the restored wall 12.8 m off, served and filling every merge until all robots sent again.
+    from mapd.config import FusionSection
+    from mapd.fusion.worker import FusionWorker
+
+    state = tmp_path / "global"
+    done = _child(KILLED_AT_GLOBAL, str(state))
+    assert done.returncode == -9, done.stderr
+    worker = FusionWorker("robot0", FusionSection(debounce_s=0), state)
+    worker._load_state()
+    g = worker.global_map
+    assert g is not None and tuple(g.origin) == (0.0, 0.0, 0.0)
+    rows = np.unique(np.nonzero(g.data == 100)[0])
+    assert [round(g.origin.y + (r + 0.5) * g.resolution, 3) for r in rows] == [2.525]
+    assert len(list(state.glob("global*.pgm"))) == 2  # the new image, which no YAML names yet
 
 
 def test_a_full_disk_does_not_freeze_the_global_map(tmp_path: Path) -> None:

@@ -286,10 +286,10 @@ def test_peer_maps_that_cannot_be_saved_are_used_and_said_once(
     assert isinstance(source, dk.QueueSource)
     save, full = d1.store.save_peer, {"disk": True}
 
-    def save_peer(grid: Any) -> None:
+    def save_peer(grid: Any, *rest: Any) -> None:
         if full["disk"]:
             raise StateError(f"{d1.cfg.state.dir}: cannot save map of {grid.robot}: No space left on device")
-        save(grid)
+        save(grid, *rest)
 
     d1.store.save_peer = save_peer  # type: ignore[method-assign]
 

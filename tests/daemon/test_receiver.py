@@ -104,3 +104,41 @@ def test_robots_beyond_max_peers_and_off_the_roster_cost_nothing() -> None:
     # robot2's next maps are refused the same, but said once (a fleet past max_peers sends many)
     again = r.plan(env(make(INC, 2), robot="robot2"), "robot2", NOW)
     assert isinstance(again, Drop) and again.routine and r.counters.too_many_robots == 2
+
+
+def test_a_restored_peer_is_bound_from_when_its_map_was_saved() -> None:
+    # Read back from the state directory, a map's stamp is 0: the bound counted from 1970 and let
+    # any jump through (2^32 numbers in one step) after every restart.
+    restored = grid(make(INC, 5))
+    assert restored.stamp == 0.0
+    r = rx(bounds=VersionBounds(max_jump=1000, max_rate=10.0))
+    r.restore(restored, held_at=NOW - 60, now=NOW)  # saved a minute before
+    assert isinstance(r.plan(env(make(INC, 5 + 1600)), "robot1", NOW), Decode)  # as if never stopped
+    plan = r.plan(env(make(INC, 5 + 1700)), "robot1", NOW)
+    assert isinstance(plan, Drop) and plan.forget and "jumps 1700 ahead" in plan.reason
+    # saved "later" than now (the clock was set back): counted from now, not from the future
+    r = rx(bounds=VersionBounds(max_jump=1000, max_rate=10.0))
+    r.restore(restored, held_at=NOW + 3600, now=NOW)
+    assert isinstance(r.plan(env(make(INC, 5 + 1000)), "robot1", NOW), Decode)
+    assert isinstance(r.plan(env(make(INC, 5 + 1001)), "robot1", NOW), Drop)
+
+
+def test_maps_refused_under_a_held_version_from_the_future_are_said_now_and_then() -> None:
+    # A leaked key signed a version 23 h ahead (inside the day's tolerance): every real map of the
+    # robot is "not newer". A routine duplicate said nothing, so the lock-out went unseen.
+    r = rx()
+    ahead = make(incarnation_at(NOW + 23 * 3600), 1)
+    take(r, ahead)
+    plan = r.plan(env(make(INC, 6)), "robot1", NOW)
+    assert isinstance(plan, Drop) and not plan.routine and plan.warning
+    assert "ahead of this robot's clock" in plan.reason and "23.0 h" in plan.reason
+    assert r.counters.duplicates == 1
+    again = r.plan(env(make(INC, 7)), "robot1", NOW + 60)
+    assert isinstance(again, Drop) and again.routine  # rate-limited: said again after a while
+    later = r.plan(env(make(INC, 8)), "robot1", NOW + 3600)
+    assert isinstance(later, Drop) and not later.routine
+    # a held version only seconds ahead (clocks that disagree a little) keeps duplicates routine
+    r = rx()
+    take(r, make(incarnation_at(NOW + 5), 3))
+    plan = r.plan(env(make(incarnation_at(NOW + 5), 3)), "robot1", NOW)
+    assert isinstance(plan, Drop) and plan.routine and not plan.warning

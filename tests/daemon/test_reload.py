@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,6 +21,7 @@ from mapd import files
 from mapd.commands.daemon import render_status
 from mapd.daemon import reload
 from mapd.daemon.server import Daemon
+from mapd.daemon.state import StateStore
 from mapd.errors import ConfigError
 from mapd.identity import Identity
 
@@ -152,9 +154,99 @@ def test_reload_admits_an_added_robot_revokes_a_removed_one_and_refuses_a_broken
     asyncio.run(main())
 
 
+def _rekey(path: Path, robot: str) -> Identity:
+    new = Identity.generate(robot)
+    text = path.read_text()
+    rekeyed = re.sub(rf'^{robot} = "[^"]*"', f'{robot} = "{new.public_text}"', text, flags=re.M)
+    assert rekeyed != text, f"no roster line for {robot}"
+    path.write_text(rekeyed)
+    return new
+
+
+def test_a_rekeyed_robot_is_revoked_like_a_removed_one_and_its_new_key_heard_at_once(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    # robot1's key leaked: the attacker signed an all-walls map at a version 23 h ahead (inside
+    # the day a clock may be ahead). Re-keying robot1 kept that map held, saved and fused, and
+    # every map of the real robot1, under its new key, was dropped as not newer, silently.
+    import logging
+
+    import numpy as np
+
+    from mapd.codec import encode
+    from mapd.daemon.versions import incarnation_at, make
+    from mapd.envelope import Envelope
+    from mapd.grid import OccupancyGrid
+    from mapd.identity import read_identity
+    from transports.virtual import VirtualChannel
+
+    caplog.set_level(logging.INFO, logger="mapd")
+    channel = dk.channel()
+    path0 = _virtual(dk, tmp_path, "robot0", channel)
+    cfg = configmod.load(path0)
+    d0 = Daemon(cfg, source=dk.QueueSource("robot0"))
+    leaked = read_identity(tmp_path / "keys" / "robot1.key", "robot1")
+    now = time.time()
+    real = make(incarnation_at(now - 3600), 5)
+    forged = make(incarnation_at(now + 23 * 3600), 1)
+
+    def env(ident: Identity, version: int, fill: int) -> Envelope:
+        grid = OccupancyGrid(np.full((60, 60), fill, np.int8), 0.05)
+        return Envelope(
+            fleet=cfg.robot.fleet, robot="robot1", version=version, base_version=0, codec="lossless",
+            width=60, height=60, resolution=0.05, origin=grid.origin, payload=encode(grid, "lossless"),
+            stamp=now,
+        ).signed(ident)  # fmt: skip
+
+    def held() -> int:
+        return getattr(d0.receiver.maps.get("robot1"), "version", 0)
+
+    async def main() -> None:
+        task = asyncio.create_task(d0.run())
+        try:
+            await dk.wait_for(lambda: bool(d0.transports), what="up")
+            link = VirtualChannel.get(channel)
+            link.deliver("robot1", env(leaked, real, 0))
+            await dk.wait_for(lambda: held() == real, what="the real map")
+            link.deliver("robot1", env(leaked, forged, 100))
+            await dk.wait_for(lambda: held() == forged, what="the forged map")
+            await dk.wait_for(lambda: "robot1" in d0.fusion.status()["robots"], 20, what="fused")
+            # the real robot's maps under the old key are refused as not newer, and now said so
+            link.deliver("robot1", env(leaked, real + 1, 0))
+            await dk.wait_for(lambda: d0.receiver.counters.duplicates == 1, what="refused")
+
+            new = _rekey(path0, "robot1")
+            assert await d0.reload()
+            assert d0.snapshot()["reload"]["last"] == "roster: new key for robot1"
+            # What the old key signed is gone, as for a robot removed: held, state, global map.
+            assert "robot1" not in d0.receiver.maps and "robot1" not in d0.snapshot()["peers"]
+            assert "robot1" not in d0.store.data.peers
+            assert not (cfg.state.dir / "peers" / "robot1").exists()  # no restart brings it back
+            assert "robot1" not in d0.fusion.status()["robots"] and d0.fusion.status()["revoked"] == 1
+            refused = d0.receiver.counters.bad_signature
+            link.deliver("robot1", env(leaked, forged + 1, 100))  # the old key: refused now
+            await dk.wait_for(lambda: d0.receiver.counters.bad_signature > refused, what="old key refused")
+            link.deliver("robot1", env(new, real + 2, 0))  # the real robot, new key, its own versions
+            await dk.wait_for(lambda: held() == real + 2, what="the new key's map")
+            await dk.wait_for(lambda: "robot1" in d0.store.data.peers, what="saved")
+        finally:
+            d0.request_stop()
+            await task
+
+    asyncio.run(main())
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any("ahead of this robot's clock" in m and "robot1" in m for m in warnings), warnings
+    assert any(m.startswith("revoked robot1's old key") for m in warnings), warnings
+    again = StateStore(cfg.state.dir)
+    again.open()
+    back = again.peer_map("robot1")
+    assert back is not None and back.version == real + 2 and int(back.data.max()) == 0
+
+
+@pytest.mark.parametrize("how", ["removed", "rekeyed"])
 @pytest.mark.parametrize("stage", ["decode_envelope", "save_peer"])
 def test_a_map_on_its_way_in_when_its_robot_is_revoked_is_dropped(
-    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch, stage: str
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch, stage: str, how: str
 ) -> None:
     # The revocation runs on the loop while the map is decoded, or saved, on a worker thread.
     import threading
@@ -188,13 +280,17 @@ def test_a_map_on_its_way_in_when_its_robot_is_revoked_is_dropped(
         try:
             await s2.queue.put(dk.growing_map(1).replace(robot="robot2"))
             await dk.wait_for(inside.is_set, 20, what=f"robot2's map in {stage}")
-            _drop_roster_line(path0, "robot2")
+            if how == "removed":
+                _drop_roster_line(path0, "robot2")
+            else:  # the key it was verified with is revoked; the robot itself is still admitted
+                _rekey(path0, "robot2")
             assert await d0.reload()
             go_on.set()
             await dk.wait_for(done.is_set, 20, what=f"{stage} done")
             await asyncio.sleep(0.3)  # the rest of the map's way in runs on the loop, without a wait
             assert "robot2" not in d0.receiver.maps and "robot2" not in d0.store.data.peers
             assert "robot2" not in d0.fusion.status()["robots"] and "robot2" not in d0.snapshot()["peers"]
+            assert not (d0.cfg.state.dir / "peers" / "robot2").exists()
         finally:
             go_on.set()
             for d in (d0, d2):
@@ -212,29 +308,54 @@ def test_a_robot_revoked_while_the_daemon_was_down_is_not_restored(
     d1, s1 = dk.virtual_daemon(tmp_path, "robot1", channel)
     s1.queue.put_nowait(dk.growing_map(1).replace(robot="robot1"))
 
-    async def run(*daemons: Daemon, until: Callable[[], bool]) -> None:
-        tasks = [asyncio.create_task(d.run()) for d in daemons]
-        try:
-            await dk.wait_for(until, 20)
-        finally:
-            for d in daemons:
-                d.request_stop()
-            await asyncio.gather(*tasks)
-
     def holds_robot1(d0: Daemon) -> bool:
         return "robot1" in d0.receiver.maps and "robot1" in d0.snapshot()["peers"]
 
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
-    asyncio.run(run(d0, d1, until=lambda: "robot1" in d0.store.data.peers))
+    dk.run_until(d0, d1, until=lambda: "robot1" in d0.store.data.peers)
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
-    asyncio.run(run(d0, until=lambda: d0.fusion._loaded))
+    dk.run_until(d0, until=lambda: d0.fusion._loaded)
     assert holds_robot1(d0)  # a plain restart brings robot1's map back from the state directory
 
     _drop_roster_line(path0, "robot1")  # revoked in the config while robot0 was down
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
-    asyncio.run(run(d0, until=lambda: d0.fusion._loaded))
+    dk.run_until(d0, until=lambda: d0.fusion._loaded)
     assert not holds_robot1(d0) and "robot1" not in d0.store.data.peers
     assert "robot1" not in d0.fusion.status()["robots"]
+
+
+def test_a_robot_rekeyed_while_the_daemon_was_down_is_not_restored(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    # The documented answer to a leaked key is a new key in every robot's roster; a robot that was
+    # off meanwhile starts with the new roster, and restored what the old key signed (its map, its
+    # version from the future, its cells in the global map) as if nothing had changed.
+    channel = dk.channel()
+    path0 = dk.write_config(
+        tmp_path, "robot0", extra='[transports]\nuse = ["virtual"]\n[fusion]\nanchor = "robot1"\n',
+        **{"transports.virtual": f'channel = "{channel}"'},
+    )  # fmt: skip
+    d1, s1 = dk.virtual_daemon(tmp_path, "robot1", channel)
+    s1.queue.put_nowait(dk.growing_map(1).replace(robot="robot1"))
+
+    def merged(d0: Daemon) -> bool:
+        return "robot1" in d0.store.data.peers and bool(
+            d0.fusion.status()["robots"].get("robot1", {}).get("accepted")
+        )
+
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    dk.run_until(d0, d1, until=lambda: merged(d0))
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    dk.run_until(d0, until=lambda: d0.fusion._loaded)
+    assert "robot1" in d0.receiver.maps and d0.fusion.global_map is not None  # a plain restart keeps it
+
+    _rekey(path0, "robot1")  # while robot0 was down
+    d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
+    dk.run_until(d0, until=lambda: d0.fusion._loaded)
+    assert "robot1" not in d0.receiver.maps and "robot1" not in d0.store.data.peers
+    assert not (d0.cfg.state.dir / "peers" / "robot1").exists()
+    assert d0.fusion.global_map is None and "robot1" not in d0.fusion.status()["robots"]
+    assert d0.fusion.status()["revoked"] == 1
 
 
 @pytest.mark.slow

@@ -164,6 +164,41 @@ def test_unsafe_peer_names_never_become_paths(tmp_path: Path, room_grid: Occupan
         store.save_peer(room_grid.replace(robot="../../etc"))
 
 
+@pytest.mark.parametrize("fault", ["file-in-its-place", "enospc", "eacces-on-stat"])
+def test_a_peer_folder_that_cannot_be_made_is_one_state_error(
+    tmp_path: Path, room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch, fault: str
+) -> None:
+    """A full disk (mkdir: ENOSPC), a stray file where the folder goes, or a folder that cannot be
+    looked at: one :class:`StateError` line, which the daemon says once and goes on; a bare
+    OSError ended the daemon."""
+    import errno
+
+    store = StateStore(tmp_path)
+    store.open()
+    if fault == "file-in-its-place":
+        (tmp_path / "peers" / "beta").write_bytes(b"")
+    elif fault == "enospc":
+
+        def full(directory: Path) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device", str(directory))
+
+        monkeypatch.setattr("mapd.daemon.state.make_dir", full)
+    else:
+        real = Path.is_dir
+
+        def denied(self: Path) -> bool:  # a stat that fails with an error is_dir does not swallow
+            if self.name == "beta" or self.parent.name == "beta":
+                raise PermissionError(errno.EACCES, "Permission denied", str(self))
+            return real(self)
+
+        monkeypatch.setattr(Path, "is_dir", denied)
+        monkeypatch.setattr("mapd.daemon.state.make_dir", lambda d: None)
+    with pytest.raises(StateError) as err:
+        store.save_peer(room_grid.replace(robot="beta", version=3))
+    assert "beta" in str(err.value) and "\n" not in str(err.value)
+    assert "beta" not in store.data.peers
+
+
 def test_a_new_peer_folder_is_made_durable_before_state_json_names_it(
     tmp_path: Path, room_grid: OccupancyGrid, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -165,3 +165,58 @@ def test_a_failing_owner_map_write_is_said_once_naming_the_file(
         store.save_owner(owner, ["a"])
     assert "again" in caplog.records[-1].getMessage()
     assert read_owner(tmp_path) is not None
+
+
+def _global_room(version: int, fill: int) -> MergeResult:
+    data = np.full((64, 64), fill, np.int8)
+    return _result(OccupancyGrid(data, 0.05, origin=ZERO, version=version, frame_id="fleet"))
+
+
+def test_the_global_map_names_an_image_of_its_own_and_keeps_one(tmp_path: Path) -> None:
+    # A fixed global.pgm renamed before global.yaml: a kill between the two left the old YAML (its
+    # origin) over the new image, a map shifted by as much as the global map grew.
+    import yaml
+
+    store = FusionStore(tmp_path, robot="a")
+    (tmp_path / "global.pgm").parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "global.pgm").write_bytes(b"P5\n1 1\n255\n\x00")  # an earlier release's image
+    for v in (1, 2, 3):
+        store.save(_global_room(v, 0 if v < 3 else 100), {}, stamp=1.0, fleet_frame=None, mode="logodds")
+    meta = yaml.safe_load((tmp_path / "global.yaml").read_text())
+    assert meta["image"] == "global-3.pgm" and meta["mapd_version"] == 3
+    assert meta["mapd_digest"] == _global_room(3, 100).grid.digest().hex()
+    assert sorted(p.name for p in tmp_path.glob("*.pgm")) == ["global-3.pgm"]  # none piles up
+    restored = store.load_global()
+    assert restored is not None and restored.version == 3 and int(restored.data.min()) == 100
+
+
+def test_a_global_image_not_matching_its_yaml_is_one_warning_and_a_new_global_map(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, building: OccupancyGrid
+) -> None:
+    import logging
+
+    store = FusionStore(tmp_path, robot="a")
+    store.save(_global_room(4, 0), {}, stamp=1.0, fleet_frame=None, mode="logodds")
+    image = tmp_path / "global-4.pgm"
+    raw = bytearray(image.read_bytes())
+    raw[-1] = 0  # one free cell now occupied: another image than the YAML's
+    image.write_bytes(bytes(raw))
+    with caplog.at_level(logging.WARNING, logger="mapd"):
+        assert store.load_global() is None
+        w = FusionWorker("a", FusionSection(debounce_s=0.0), tmp_path)
+        w.submit(building.replace(origin=ZERO, robot="a"))
+        asyncio.run(w.merge_now())  # starts a new global map
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(said) == 2 and all("global.yaml" in m and "digest" in m for m in said), said
+    assert w.status()["error"] is None and w.global_map is not None
+    assert w.global_map.same_map(store.load_global())  # type: ignore[arg-type]
+
+
+def test_a_global_map_of_an_earlier_release_is_still_restored(tmp_path: Path) -> None:
+    # global.yaml + global.pgm, no version or digest in the YAML: as an earlier release wrote them
+    from mapd.grid import save_map
+
+    grid = _global_room(7, 100).grid
+    save_map(grid, tmp_path / "global.yaml")
+    restored = FusionStore(tmp_path, robot="a").load_global()
+    assert restored is not None and restored.same_map(grid)
