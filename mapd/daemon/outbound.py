@@ -162,8 +162,20 @@ class Outbound:
                 transport = self.transport(name)
                 if transport is not None:
                     transport.offer(env)
+                    self._hold(name, transport, env)
             if self._pending is not None:
                 self._wake.set()  # a newer version came while coding
+
+    def _hold(self, name: str, transport: Transport, env: Envelope) -> None:
+        """A link that says how long it may take over ``env`` before it gives it up (uwb: its
+        deadline for a map of that size, ``offer_deadline_s``) keeps the offer that long (P1):
+        a large map is not superseded half sent."""
+        deadline_of = getattr(transport, "offer_deadline_s", None)
+        if deadline_of is None:
+            return
+        seconds = deadline_of(env)
+        if seconds is not None:
+            self.publisher.hold(name, env.version, time.monotonic() + seconds)
 
     def latest_keyframe(self) -> Envelope | None:
         """The newest own map as a keyframe, for late joiners.

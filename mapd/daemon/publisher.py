@@ -20,7 +20,9 @@ The rules:
   went out if the link never says so. Superseding a map half sent starts the next one over from
   nothing: in a building where each of 16 robots gets a sixteenth of 12.5 kb/s, keyframes took
   longer than the timeout to go out, so hardly a map reached anyone while versions were made
-  (issue #22 in the README). Holding the link a TDMA cycle longer for repairs was measured too,
+  (issue #22 in the README). If the link says by when it puts the map on the air or gives it up
+  (:meth:`hold`; uwb's deadline grows with a map's size), the offer is held until then if later.
+  Holding the link a TDMA cycle longer for repairs was measured too,
   and delivered fewer maps than moving on at once. (Freeing a broadcast
   link as soon as its last byte is on the air, NORM-style, was measured and made 32 robots on one
   channel staler, not fresher: the next delta then goes against an older base, so it is larger,
@@ -47,6 +49,13 @@ The rules:
   other in a corridor often part before then (issue #22 in the README: 4 robots in the building
   accept a fifth more maps). Such offers go at most once per ``inflight_timeout_s`` on a
   transport, however many peers seem to come and go (a holder of the link key could fake them).
+* **P7 A failed offer goes again while its peer stays in reach.** When the link gives up on the
+  newest version for a peer (uwb: the message's deadline, after a long burst of loss or one-way
+  interference) and that peer is still in reach, it is offered again as P6 offers it to an
+  arrival: no sooner than ``inflight_timeout_s`` after the failed offer went out, so a link that
+  fails every offer at once does not spin, and a newer version still wins. Otherwise a robot that
+  heard its peer throughout never saw it "arrive", and a map that no longer changes (a parked
+  robot, a base station) never reached it (``counters.failed`` says how many offers failed).
 """
 
 from __future__ import annotations
@@ -71,7 +80,8 @@ INFLIGHT_TIMEOUT_S = 30.0
 #: keyframe (the swarm bench, issue #22). Up to 6 peers it changes nothing.
 INFLIGHT_PER_PEER_S = 5.0
 #: A paced link's offer not yet wholly on the air times out after this many timeouts all the same
-#: (its link may have lost it without a word; the uwb ARQ fails it at its 120 s deadline anyway).
+#: (its link may have lost it without a word), or when the link said it would give it up, if later
+#: (:meth:`PublisherCore.hold`: the uwb ARQ fails it at its deadline anyway).
 PACED_HOLD = 4.0
 
 
@@ -94,6 +104,9 @@ class InFlight:
     timeout: float = INFLIGHT_TIMEOUT_S
     #: On a paced link: when the offer was wholly on the air (None: not yet).
     on_air: float | None = None
+    #: On a paced link: by when the link says the offer is on the air or gives it up, if it said
+    #: (uwb: its deadline for a map of that size; None: not said).
+    hold_until: float | None = None
     paced: bool = False
     keyframe: bool = False  # the offer is a whole map
 
@@ -102,7 +115,8 @@ class InFlight:
         if not self.paced:
             return self.since + self.timeout
         if self.on_air is None:
-            return self.since + PACED_HOLD * self.timeout
+            hold = self.since + PACED_HOLD * self.timeout
+            return hold if self.hold_until is None else max(hold, self.hold_until)
         return max(self.since + self.timeout, self.on_air)
 
 
@@ -112,13 +126,16 @@ class PublisherCounters:
 
     keyframes_sent: int = 0
     deltas_sent: int = 0
-    #: Versions offered again, for peers that came into reach lacking them (P6).
+    #: Versions offered again, for peers that came into reach lacking them (P6) or whose offer
+    #: failed while they stayed in reach (P7).
     reoffers: int = 0
+    #: Per transport, offers that could not reach a peer (one per peer; P7).
+    failed: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
 class PublisherCore:
-    """The publisher's state and rules (P1-P5 above). Not thread-safe: one caller at a time."""
+    """The publisher's state and rules (P1-P7 above). Not thread-safe: one caller at a time."""
 
     uses_base: bool
     keyframe_every: int
@@ -138,8 +155,8 @@ class PublisherCore:
     _held: dict[str, list[int]] = field(default_factory=dict)
     _inflight: dict[str, InFlight] = field(default_factory=dict)
     _offered: dict[str, int] = field(default_factory=dict)
-    #: Per transport, peers that came into reach lacking the newest version, and when the newest
-    #: was last offered again for such peers (P6).
+    #: Per transport, peers that came into reach lacking the newest version (or whose offer of it
+    #: failed), and when the newest was last offered again for such peers (P6, P7).
     _arrived: dict[str, set[str]] = field(default_factory=dict)
     _reoffered: dict[str, float] = field(default_factory=dict)
     _since_keyframe: int = 0
@@ -181,7 +198,25 @@ class PublisherCore:
         return free, newer
 
     def failed(self, transport: str, peer: str, version: int) -> bool:
-        """An offer could not reach ``peer``; True when the transport became free (poll again)."""
+        """An offer could not reach ``peer``; True when the transport became free (poll again).
+
+        If it was the newest version and ``peer`` is still in reach when the link is free, it is
+        offered again, a timeout after the failed offer went out at the soonest (P7)."""
+        self.counters.failed[transport] = self.counters.failed.get(transport, 0) + 1
+        busy = self._inflight.get(transport)
+        latest = self._newest_own()
+        if (
+            busy is not None
+            and busy.version == version
+            and peer in busy.unsettled
+            and latest is not None
+            and latest.version == version
+            and self._newest(peer) < version
+        ):
+            # As an arrival (P6): poll() forgets it if it is out of reach by then (it is offered
+            # again when it comes back), and the failed offer counts as the last one made for it.
+            self._arrived.setdefault(transport, set()).add(peer)
+            self._reoffered[transport] = max(self._reoffered.get(transport, -math.inf), busy.since)
         return self._settle(transport, peer, version)
 
     def peer_gone(self, transport: str, peer: str) -> bool:
@@ -215,6 +250,15 @@ class PublisherCore:
             return False
         busy.on_air = now
         return True
+
+    def hold(self, transport: str, version: int, until: float) -> None:
+        """A paced ``transport`` says it puts own ``version`` wholly on the air, or gives it up, by
+        ``until`` (P1): its offer is not superseded before then, if that is later than
+        ``PACED_HOLD`` timeouts. Else a map longer on the air than that (uwb: about 150 kB at 12.5
+        kb/s) that changes meanwhile would start over, half sent, every time, and never arrive."""
+        busy = self._inflight.get(transport)
+        if busy is not None and busy.version == version and busy.paced:
+            busy.hold_until = until
 
     def keyframe_needed(self, peer: str) -> bool:
         """``peer`` lost what it held or asked for a whole map (P4); True when there is one to send.
@@ -291,7 +335,7 @@ class PublisherCore:
 
     def next_deadline(self) -> float | None:
         """When an offer still in flight times out while a newer version (or a peer that came into
-        reach, P6) waits for its link, or None.
+        reach, P6, or whose offer failed, P7) waits for its link, or None.
 
         Poll again then: the link is free for the newer version (P1).
         """
@@ -343,13 +387,14 @@ class PublisherCore:
         return self._latest
 
     def _arrivals_lack(self, transport: str, version: int) -> bool:
-        """Whether a peer that came into reach on ``transport`` still lacks own ``version`` (P6)."""
+        """Whether a peer that came into reach on ``transport`` (or whose offer failed) still lacks
+        own ``version`` (P6, P7)."""
         return any(self._newest(p) < version for p in self._arrived.get(transport, ()))
 
     def _wants(self, transport: str, version: int, now: float) -> bool:
         """Whether ``transport`` is to be offered own ``version`` at ``now``: it never was (P1, P2),
-        or a peer that came into reach since still lacks it and the last offer made for such peers
-        is a timeout old (P6)."""
+        or a peer that came into reach since (or whose offer failed, P7) still lacks it and the last
+        offer made for such peers is a timeout old (P6)."""
         if self._offered.get(transport, 0) < version:
             return True
         if now < self._reoffered.get(transport, -math.inf) + self.inflight_timeout_s:

@@ -606,6 +606,7 @@ class Daemon:
                 "keyframes": pub.keyframes_sent,
                 "deltas": pub.deltas_sent,
                 "reoffers": pub.reoffers,
+                "failed": dict(pub.failed),  # per link: offers that could not reach a peer (P7)
             },
             "offers": self.publisher.offers(time.monotonic()),
             "peers": self.receiver.status(now, self.store.acked()),

@@ -20,7 +20,7 @@ from mapd.daemon.server import Daemon
 from mapd.daemon.versions import incarnation_at, make, split
 from mapd.envelope import Envelope
 from mapd.identity import read_identity
-from transports.base import Arrived, OnAir, Received, TransportContext, TransportEvent
+from transports.base import Arrived, Failed, OnAir, Received, TransportContext, TransportEvent
 from transports.virtual import VirtualOptions, VirtualTransport
 
 
@@ -130,6 +130,32 @@ def test_a_paced_link_keeps_its_offer_until_it_says_the_map_is_on_the_air(
     asyncio.run(main())
 
 
+def test_a_paced_link_that_says_its_deadline_for_a_map_keeps_the_offer_that_long(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A map longer on the air than PACED_HOLD timeouts (uwb: over about 150 kB at 12.5 kb/s): the
+    # link says how long it may take (uwb: its deadline, which grows with the map's size), and a
+    # newer version does not supersede it half sent before then.
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        d.publisher.paced.add("virtual")
+        d.publisher.inflight_timeout_s = 0.1  # held PACED_HOLD timeouts: 0.4 s
+        monkeypatch.setattr(publisher, "INFLIGHT_PER_PEER_S", 0.0)
+        async with one_peer(d, channel, dk, []) as (link, _):
+            monkeypatch.setattr(link, "offer_deadline_s", lambda env: 2.0, raising=False)
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            t0 = time.monotonic()
+            await source.queue.put(dk.growing_map(2))
+            await asyncio.sleep(1.2)  # three times the hold: v1 is still going out
+            assert len(link.offers) == 1
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v2 offered once v1's deadline passed")
+            assert num(link.offers[1].version) == 2 and time.monotonic() - t0 >= 1.8
+
+    asyncio.run(main())
+
+
 def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path, dk: SimpleNamespace) -> None:
     # P6 through the daemon's inbox: robot2 joins after robot1 acked v1 and nothing new is made. The
     # link says Arrived (uwb does when no map on its way reaches the robot), so v1 goes out again,
@@ -172,6 +198,32 @@ def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path,
                 assert "1 offered again to robots come into range" in line
             finally:
                 await late.close()
+
+    asyncio.run(main())
+
+
+def test_a_map_whose_offer_failed_goes_again_to_a_peer_still_in_reach(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    # P7 through the daemon's inbox: the link gives up on v1 for robot1 (uwb: its deadline passed
+    # on a one-way link) while robot1 stays in reach; the map no longer changes, yet v1 goes again,
+    # a timeout after the failed offer went out, and once robot1 acks it nothing more is sent.
+    async def main() -> None:
+        channel = dk.channel()
+        d, source = dk.virtual_daemon(tmp_path, "robot0", channel)
+        d.publisher.inflight_timeout_s = 0.3
+        async with one_peer(d, channel, dk, []) as (link, peer):
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: len(link.offers) == 1, what="v1 offered")
+            v1 = link.offers[0].version
+            link.ctx.emit(Failed("virtual", "robot1", "robot0", v1, "deadline"))
+            await dk.wait_for(lambda: len(link.offers) == 2, what="v1 offered again")
+            assert link.offers[1].version == v1 and link.offers[1].is_keyframe
+            assert d.publisher.counters.failed == {"virtual": 1}
+            assert d.snapshot()["offers"]["virtual"]["waiting"] == ["robot1"]
+            peer.ack("robot0", v1)
+            await asyncio.sleep(0.8)  # more than two timeouts
+            assert len(link.offers) == 2
 
     asyncio.run(main())
 

@@ -1,4 +1,4 @@
-"""The publisher core's rules (P1-P5 in mapd/daemon/publisher.py), with a fake clock and no asyncio."""
+"""The publisher core's rules (P1-P7 in mapd/daemon/publisher.py), with a fake clock and no asyncio."""
 
 from __future__ import annotations
 
@@ -428,3 +428,89 @@ def test_a_robot_that_seems_to_arrive_again_and_again_costs_one_offer_per_timeou
             offers.append(t)
     assert offers == list(range(1, 301, 30))  # every 30 s: one timeout each
     assert c.counters.reoffers == len(offers) and c.counters.keyframes_sent == 1 + len(offers)
+
+
+def test_a_failed_offer_to_a_peer_still_in_reach_is_offered_again() -> None:
+    # The audit's one-way link: robot0 heard robot1 throughout (so robot1 never "arrived" again),
+    # while robot1 heard nothing of robot0 until the map's deadline passed. The map no longer
+    # changes: without P7 robot1 would never get it, and mapd status would show no offer.
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, uwb)
+    assert c.on_air("uwb", 1, 100.0)
+    assert c.failed("uwb", "robot1", 1)  # the link gave up on it (its deadline)
+    assert c.counters.failed == {"uwb": 1}
+    assert c.next_deadline() is not None and c.next_deadline() <= 150.0  # type: ignore[operator]
+    job, _ = code(c, 150.0, uwb)  # robot1 is still in reach: v1 goes out again, whole
+    assert job.grid.version == 1 and job.base is None and job.transports == ("uwb",)
+    assert c.offers(150.0)["uwb"]["waiting"] == ["robot1"]
+    assert c.counters.reoffers == 1
+    c.acked("uwb", "robot1", 1)
+    assert c.poll(200.0, uwb) is None and c.next_deadline() is None  # delivered: nothing more
+
+
+def test_a_failed_offer_is_not_offered_again_to_a_peer_gone_or_holding_it() -> None:
+    c = core(inflight_timeout_s=30.0)
+    both = {"uwb": ["robot1", "robot2"]}
+    c.new_version(grid(1))
+    code(c, 0.0, both)
+    c.failed("uwb", "robot1", 1)
+    c.failed("uwb", "robot2", 1)
+    c.acked("uwb", "robot2", 1)  # a late COMPLETE: robot2 holds it after all
+    assert c.poll(200.0, {"uwb": []}) is None  # robot1 is out of reach now: P6 offers it on return
+    assert c.poll(300.0, {"uwb": ["robot2"]}) is None
+    assert c.arrived("uwb", "robot1")  # back in range
+    assert code(c, 301.0, both)[0].grid.version == 1
+
+
+def test_offers_that_fail_at_once_go_again_once_per_timeout() -> None:
+    # A link that fails every offer at once (a map over its message limit, a peer refusing it) is
+    # tried again no more often than the in-flight timeout: a dead link never spins the coder.
+    c = core(inflight_timeout_s=30.0)
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    offers = []
+    for t in range(0, 200):
+        job = c.poll(float(t), uwb)
+        if job is not None:
+            c.encoded(job, envelope(job), float(t), uwb)
+            c.failed("uwb", "robot1", 1)
+            offers.append(t)
+    assert offers == [0, 30, 60, 90, 120, 150, 180]
+    assert c.counters.failed == {"uwb": len(offers)}
+
+
+def test_after_a_failed_offer_a_newer_version_wins() -> None:
+    c = core(inflight_timeout_s=30.0)
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, uwb)
+    c.failed("uwb", "robot1", 1)
+    c.new_version(grid(2))
+    job, _ = code(c, 1.0, uwb)  # the link is free: the newest goes, not v1 again
+    assert job.grid.version == 2 and c.counters.reoffers == 0
+    c.acked("uwb", "robot1", 2)
+    assert c.poll(100.0, uwb) is None and c.next_deadline() is None
+
+
+def test_a_paced_offer_is_held_for_its_link_s_deadline_when_that_is_longer() -> None:
+    # A map longer on the air than PACED_HOLD timeouts (uwb: 187 kB at 12.5 kb/s, about 150 s):
+    # its link gives it a deadline that grows with its size (uwb arq R6) and says so; a newer
+    # version superseding it half sent would start over from nothing and never arrive either.
+    c = core(inflight_timeout_s=30.0, paced={"uwb"})
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, uwb)
+    c.hold("uwb", 1, 556.0)
+    c.new_version(grid(2))
+    assert c.poll(PACED_HOLD * 30.0 + 1.0, uwb) is None  # past the hold's timeouts, not the link's
+    assert c.next_deadline() == 556.0
+    assert c.on_air("uwb", 1, 170.0)  # wholly on the air: its timeout applies as before
+    job, _ = code(c, 170.0, uwb)
+    assert job.grid.version == 2
+    c.hold("uwb", 2, 200.0)  # a link deadline shorter than the hold changes nothing
+    c.hold("uwb", 1, 900.0)  # nor one for an offer no longer in flight
+    c.new_version(grid(3))
+    assert c.poll(170.0 + PACED_HOLD * 30.0 - 1.0, uwb) is None
+    assert c.next_deadline() == 170.0 + PACED_HOLD * 30.0

@@ -37,7 +37,11 @@ Sending
       message has a chunk to send.
   R6. A message goes to one peer (unicast) or to several (broadcast); it is delivered to a peer when
       that peer acks it COMPLETE (MessageDelivered), and closes when every intended peer has, or has
-      failed. Past its deadline every peer still pending fails (MessageFailed "deadline").
+      failed. Past its deadline every peer still pending fails (MessageFailed "deadline"). Unless
+      the caller gives one, the deadline is ``deadline_s`` after :meth:`~ArqEndpoint.send`, or
+      ``DEADLINE_AIRTIMES`` times the message's airtime at this node's share of the channel
+      (``rate_bps`` over ``slots``) if longer (:meth:`~ArqEndpoint.message_deadline_s`): a fixed
+      120 s never carried a map over about 150 kB at 12.5 kb/s, and the limits allow 8 MiB.
   R7. Chunks go in order within a window of ``window`` chunks past what the most advanced peer holds,
       so a silent peer never stops the others (no window in NACK mode, R16). Queued resends go
       before new chunks.
@@ -169,6 +173,10 @@ __all__ = [
 
 #: Superseded messages whose late COMPLETEs still count as deliveries (R5): a few versions back.
 MAX_LATE = 16
+#: A message is tried for at least this many times its airtime at the node's share of the channel
+#: (R6), if that is longer than ``deadline_s``: room for repairs, acks and others' turns. At two the
+#: maps of ``mapd bench swarm`` (a few kB, 16 robots) keep the configured deadline.
+DEADLINE_AIRTIMES = 2.0
 
 
 class ArqEndpoint(SenderSide):
@@ -294,7 +302,7 @@ class ArqEndpoint(SenderSide):
         msg = self._next_msg
         self._next_msg = (self._next_msg + 1) & wire.MASK24
         dst = targets[0] if len(targets) == 1 else wire.BROADCAST
-        when = now + self.cfg.deadline_s if deadline is None else deadline
+        when = now + self.message_deadline_s(len(data)) if deadline is None else deadline
         out = Outgoing(msg, stream, data, self.chunk_size, targets, dst, now, when)
         out.background = background
         out.reliable = reliable
@@ -306,6 +314,17 @@ class ArqEndpoint(SenderSide):
             self._rtt_of(d)
         self.counters.messages_tx += 1
         return msg
+
+    def airtime_s(self, nbytes: int) -> float:
+        """How long a message of ``nbytes`` takes on the air, each frame once, at this node's share
+        of the channel: ``rate_bps`` over ``slots`` (an equal turn of the robots on it)."""
+        frames = -(-(nbytes + HASH_LEN) // self.chunk_size)
+        return frames * self.frame_size * 8 / (self.cfg.rate_bps / max(1, self.cfg.slots))
+
+    def message_deadline_s(self, nbytes: int) -> float:
+        """How long after :meth:`send` a message of ``nbytes`` is given up without a deadline of
+        the caller's (R6): ``deadline_s``, or :data:`DEADLINE_AIRTIMES` times its airtime if longer."""
+        return max(self.cfg.deadline_s, DEADLINE_AIRTIMES * self.airtime_s(nbytes))
 
     def receive_data(self, data: bytes, now: float) -> None:
         """Bytes from the line (any split, any garbage)."""

@@ -33,6 +33,8 @@ class ArqConfig:
     rate_bps: float = 12500.0
     max_message_bytes: int = 8 << 20
     window: int = 128
+    #: A message's deadline, unless the caller gives one: at least this, longer for a message
+    #: longer on the air at the node's share of the channel (R6: ``ArqEndpoint.message_deadline_s``).
     deadline_s: float = 120.0
     initial_rto_s: float = 1.0
     min_rto_s: float = 0.3

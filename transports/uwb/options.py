@@ -45,7 +45,12 @@ class UwbOptions(TransportOptions):
         "out of range), or those of them heard within peer_timeout_s (fleets spread over a building: "
         "the others get it by relay; mapd bench swarm --acks up)",
     )
-    deadline_s: float = Field(default=120.0, ge=MIN_TIMER_S, description="give up on a map after this long")
+    deadline_s: float = Field(
+        default=120.0,
+        ge=MIN_TIMER_S,
+        description="give up on a map after this long, or after twice its time on the air at this "
+        "robot's share of the link (link_rate_bps over the slots) if longer",
+    )
     max_message_bytes: int | None = Field(
         default=None,
         ge=1024,

@@ -69,6 +69,8 @@ class UwbTransport(Transport):
         self._nonces = signed_requests.NonceClock()
         self._fresh = signed_requests.Freshness()
         self._poses = PoseThrottle(opts.pose_period_s)
+        self._said_long = False  # a map longer on the air than deadline_s was warned of
+        self._offered: tuple[str, int, float] | None = None  # the last map sent: robot, version, deadline
         self.control_counters = control.ControlCounters()
         # Multi-hop relay: only in signed fleets, where a relayed map proves its robot by signature.
         self._relay: RelayDriver | None = None
@@ -203,20 +205,55 @@ class UwbTransport(Transport):
         link = self._link
         if link is None or link.core is None:
             raise TransportError("uwb: offer() before start()")
+        self._offered = None
         dests = self._dests()
         if not dests:
             log.debug("uwb: no peer to send %s v%d to", envelope.robot, envelope.version)
             # nothing goes out, so nothing is left to wait for: the publisher's plain timeout applies
             self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
+        data = envelope.pack()
         try:
-            msg = link.send(envelope.pack(), dests, stream=self._stream(envelope.robot))
+            msg = link.send(data, dests, stream=self._stream(envelope.robot))
         except LimitError as exc:
             for d in dests:
                 self.ctx.emit(Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc)))
             self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
+        self._offered = (envelope.robot, envelope.version, link.core.message_deadline_s(len(data)))
+        if not self._said_long:
+            self._say_if_long(link.core, envelope, len(data))
+
+    def offer_deadline_s(self, envelope: Envelope) -> float | None:
+        """How long after :meth:`offer` the link may still be sending ``envelope`` before it gives
+        it up: its deadline for a map of that size (arq R6); None if it sent nothing of it. The
+        daemon's publisher holds the offer that long if that is longer than its own hold (P1), so
+        a map longer on the air than that is not superseded half sent by the next version."""
+        last = self._offered
+        if last is None or last[:2] != (envelope.robot, envelope.version):
+            return None
+        return last[2]
+
+    def _say_if_long(self, core: arq.ArqEndpoint, envelope: Envelope, nbytes: int) -> None:
+        """Warn, once a run, of a map longer on the air at this robot's share of the link than
+        ``deadline_s``: the link gives it longer (arq R6), but its peers get it that late."""
+        airtime = core.airtime_s(nbytes)
+        if airtime <= self.opts.deadline_s:
+            return
+        self._said_long = True
+        share = core.cfg.rate_bps / max(1, core.cfg.slots)
+        log.warning(
+            "uwb: map v%d (%d B) takes up to %.0f s on the air at this robot's equal share of the "
+            "link (%.0f b/s), more than deadline_s = %g s: it is given %.0f s, and peers get maps "
+            "this large late (a smaller map, or codec pooled, sends fewer bytes)",
+            envelope.seq or envelope.version,
+            nbytes,
+            airtime,
+            share,
+            self.opts.deadline_s,
+            core.message_deadline_s(nbytes),
+        )
 
     def send_pose(self, data: bytes, now: float) -> bool:
         """Broadcast this robot's pose on the pose stream, behind every map chunk (latest wins)."""
