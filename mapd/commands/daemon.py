@@ -203,7 +203,7 @@ def _num(v: Any, spec: str = ".1f") -> str:
 
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
-    from mapd.daemon.headline import LINK_FAULTS, link_faults
+    from mapd.daemon.headline import DAMAGE_KEYS, LINK_FAULTS, damage_words, link_faults
     from mapd.daemon.versions import label
 
     out = []
@@ -235,7 +235,8 @@ def render_status(s: dict[str, Any]) -> str:
         f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "
         f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
         f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
-        + (f", {c['reoffers']} offered again to robots come into range" if c.get("reoffers") else "")
+        + (f", {c['reoffers']} offered again (robots come into range, or failed)" if c.get("reoffers") else "")
+        + "".join(f", {n} failed on {link}" for link, n in sorted((c.get("failed") or {}).items()) if n)
     )
     for name, o in (s.get("offers") or {}).items():
         air = {True: ", wholly on the air", False: ", still going out", None: ""}[o.get("on_air")]
@@ -257,24 +258,22 @@ def render_status(s: dict[str, Any]) -> str:
         )
     out.append("links")
     for name, st in s.get("links", {}).items():
-        keys = (
-            "rate_bps",
-            "goodput_bps",
-            "bytes_tx",
-            "bytes_rx",
-            "resends",
-            "parity_tx",
-            "recovered",
-            "crc_errors",
-            "bad_signature",
-            "rtt_ms",
-        )
-        parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st]
+        head = ("rate_bps", "goodput_bps", "bytes_tx", "bytes_rx", "resends", "parity_tx", "recovered")
+        # A serial link's damaged frames as one total, whatever caught them: a wrong baud raises
+        # cobs_errors and oversize, a keyed link's damage lands in bad_signature; only the first 8
+        # other counters fit, and they never reached those. A zenoh link's bad_signature as it is.
+        damage = damage_words(st)
+        hidden = set(DAMAGE_KEYS) if damage is not None else set()
+        keys = (*head, "crc_errors", "bad_signature", "rtt_ms")
+        parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st and k not in hidden]
+        if damage is not None:
+            parts.insert(len([k for k in head if k in st]), damage)
         faults = link_faults(st)
         others = [
             f"{k}={v}"
             for k, v in st.items()
             if k not in keys
+            and k not in hidden
             and k not in LINK_FAULTS
             and isinstance(v, int | float)
             and not isinstance(v, bool)

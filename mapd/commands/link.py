@@ -2,9 +2,11 @@
 
 Run ``mapd link recv --port /dev/ttyUSB0 -o got.bin`` on one robot and
 ``mapd link send --port /dev/ttyUSB0 map.mapd`` on the other. Both print the bytes moved, the time,
-the goodput against the configured link rate, and the link statistics (resends, CRC errors,
-duplicates, RTT). ``recv`` exits 0 after one complete message whose hash checked out; ``send`` exits 0
-once the receiver acknowledged it, 1 when it did not before ``--deadline``.
+the goodput against the configured link rate, and the link statistics (resends, damaged frames,
+duplicates, RTT). ``recv`` exits 0 after one complete message whose hash checked out, once the sender
+has gone quiet (it answers the sender's repeats until then: ``--linger``); ``send`` exits 0 once the
+receiver acknowledged it, 1 when it did not before ``--deadline`` or the receiver fell silent after
+the whole file was on the air (it may have got it: its last acks may have been lost).
 """
 
 from __future__ import annotations
@@ -34,6 +36,19 @@ SECONDS = float_arg(0.1, DAY_S)
 MEASURABLE_BURSTS = 10
 #: Seconds between two progress lines on a terminal.
 PROGRESS_EVERY_S = 5.0
+#: ``recv``'s default ``--linger``: three of the sender's longest retransmission waits (the core's
+#: ``max_rto_s``, 4 s). Its probes back off to one such wait, so a line quiet for three of them means
+#: it heard our COMPLETE (or gave up), or that three probes in a row were lost (at 20 % loss, 1 in
+#: 125; two would be 1 in 25). A fixed 3 s was shorter than one wait: a sender whose last COMPLETEs
+#: were lost probed a receiver that had left, and reported a delivered file as not delivered.
+LINGER_S = 12.0
+#: ``send`` gives up on a receiver silent for this many of its peer timeouts (``peer_timeout_s``,
+#: 20 s) after the whole file was on the air: see :class:`Silence`.
+SILENT_TIMEOUTS = 2.0
+#: ``recv`` lingers at most this long in all: a sender that never hears it probes until its own limit.
+LINGER_MAX_S = 60.0
+#: Seconds between two looks at the link's counters and events while waiting (linger, silence).
+POLL_S = 0.1
 
 
 def _max_frame(text: str) -> int:
@@ -51,7 +66,7 @@ _SHOWN = (
     "frames_rx",
     "resends",
     "timeouts",
-    "crc_errors",
+    "damaged",  # damage_words: the total, and what caught them (on a keyed link, the tag)
     "bad_frames",
     "duplicates",
     "rtt_ms",
@@ -104,7 +119,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--peer", type=LINK_ID, help="accept only from this link id (default: any)")
     r.add_argument("--timeout", type=SECONDS, default=600.0, help="give up after this many seconds (600)")
     r.add_argument(
-        "--linger", type=float_arg(0.0, 60.0), default=3.0, help="keep answering acks this long after (3 s)"
+        "--linger",
+        type=float_arg(0.0, LINGER_MAX_S),
+        default=LINGER_S,
+        help="after the message, keep answering the sender until it has been quiet this long "
+        f"(default {LINGER_S:g} s: three of its longest retransmission waits); at most {LINGER_MAX_S:g} s in all",
     )
     r.set_defaults(func=cmd_recv)
     p.set_defaults(func=lambda args: p.print_help() or 2)
@@ -161,12 +180,88 @@ async def _progress(link: Any, what: str, total: int | None) -> None:
         print(f"link: {moved} bytes {'sent' if what == 'bytes_tx' else 'received'}{share}", file=sys.stderr)
 
 
+class Quiet:
+    """When ``recv`` may leave: once the line has been quiet for ``quiet_s`` (the sender heard our
+    COMPLETE, or gave up), or ``max_s`` after it started lingering. Sans-I/O: the caller passes the
+    bytes received so far and ``now``."""
+
+    def __init__(self, quiet_s: float, max_s: float, now: float) -> None:
+        self.quiet_s = quiet_s
+        self.until = now + max_s
+        self._count: int | None = None
+        self._last = now
+
+    def heard(self, count: int, now: float) -> None:
+        """The link's received byte count at ``now``: a change means the sender still talks."""
+        if count != self._count:
+            self._count, self._last = count, now
+
+    def over(self, now: float) -> bool:
+        return now - self._last >= self.quiet_s or now >= self.until
+
+
+class Silence:
+    """When ``send`` stops waiting for peers that fell silent. Sans-I/O: the caller passes the core's
+    events and ``now``.
+
+    A peer still to acknowledge that was heard, and then not for ``silent_s`` since the whole file
+    was on the air (or since it was last heard, if later): it got the file and left with its last
+    acks lost, or it is gone, and waiting for ``--deadline`` only repeats probes to nobody. The
+    core says a peer is down after ``timeout_s`` of silence (PeerDown), so it was last heard about
+    ``timeout_s`` before that. ``silent_s`` is longer than ``timeout_s``: a receiver still taking
+    the file answers each probe and says HELLO every few seconds, but at 50 % loss each way 20 s
+    without one of its frames happens now and then, and giving up on a transfer that goes on would
+    be the false failure this replaces. A peer never heard is waited for until the deadline (its
+    ``recv`` may not have started yet).
+    """
+
+    def __init__(self, peers: list[int], timeout_s: float, silent_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.silent_s = silent_s
+        self.pending = set(peers)
+        self.heard: set[int] = set()
+        self._down_at: dict[int, float] = {}
+        self.flushed_at: float | None = None
+
+    def event(self, e: Any, now: float) -> None:
+        from transports.uwb import arq
+
+        if isinstance(e, arq.MessageFlushed) and self.flushed_at is None:
+            self.flushed_at = now
+        elif isinstance(e, arq.PeerUp):
+            self.heard.add(e.peer)
+            self._down_at.pop(e.peer, None)
+        elif isinstance(e, arq.PeerDown):
+            self._down_at[e.peer] = now
+        elif isinstance(e, arq.MessageDelivered | arq.MessageFailed):
+            self.pending.discard(e.peer)
+
+    def gave_up(self, now: float) -> bool:
+        """True once every peer still pending was heard, and has been silent for ``silent_s``
+        since the file was wholly on the air."""
+        flushed = self.flushed_at
+        if not self.pending or flushed is None:
+            return False
+        for p in self.pending:
+            down = self._down_at.get(p)
+            if (
+                p not in self.heard
+                or down is None
+                or now - max(down - self.timeout_s, flushed) < self.silent_s
+            ):
+                return False
+        return True
+
+
 def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, Any]) -> None:
+    from mapd.daemon.headline import damage_words, damaged
+
     if args.json:
-        print(json.dumps({**summary, "stats": stats}, indent=2))
+        print(json.dumps({**summary, "damaged": damaged(stats), "stats": stats}, indent=2))
         return
     print(summary["line"])
-    print("link: " + "  ".join(f"{k}={stats.get(k)}" for k in _SHOWN))
+    words = damage_words(stats) or "damaged=None"
+    print("link: " + "  ".join(words if k == "damaged" else f"{k}={stats.get(k)}" for k in _SHOWN))
 
 
 def cmd_send(args: argparse.Namespace) -> int:
@@ -197,36 +292,45 @@ async def _send(args: argparse.Namespace, data: bytes, peers: list[int]) -> int:
 
     delivered: set[int] = set()
     failed: dict[int, str] = {}
-    closed = asyncio.Event()
+    done = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    cfg = _config(args, len(data))
+    silence = Silence(peers, cfg.peer_timeout_s, SILENT_TIMEOUTS * cfg.peer_timeout_s)
 
     def on_event(e: arq.Event) -> None:
+        silence.event(e, loop.time())
         if isinstance(e, arq.MessageDelivered):
             delivered.add(e.peer)
         elif isinstance(e, arq.MessageFailed):
             failed[e.peer] = e.reason
         elif isinstance(e, arq.MessageClosed):
-            closed.set()
+            done.set()
 
-    link = UwbLink(_config(args, len(data)), args.port, baud=args.baud, on_event=on_event)
+    async def watch() -> None:
+        while not silence.gave_up(loop.time()):
+            await asyncio.sleep(POLL_S)
+        done.set()
+
+    link = UwbLink(cfg, args.port, baud=args.baud, on_event=on_event)
     await link.start()
     print(
         f"sending {len(data)} bytes on {args.port}, waiting for peer {', '.join(map(str, peers))}",
         file=sys.stderr,
     )
     progress = asyncio.ensure_future(_progress(link, "bytes_tx", len(data)))
+    watcher = asyncio.ensure_future(watch())
     try:
-        loop = asyncio.get_running_loop()
         t0 = loop.time()
         link.send(data, peers, deadline_s=args.deadline)
-        await link.run_until(closed.wait())
+        await link.run_until(done.wait())
         dt = loop.time() - t0
         stats = link.stats()
     finally:
         progress.cancel()
+        watcher.cancel()
         await link.close()
-    if failed:
-        who = ", ".join(f"{p} ({r})" for p, r in sorted(failed.items()))
-        raise TransportError(f"uwb: {args.file} was not delivered to peer {who} after {dt:.1f} s")
+    if failed or silence.pending:
+        raise TransportError(_not_acknowledged(args, silence, failed, dt))
     words, goodput = _goodput(args, len(data), dt)
     line = (
         f"sent {args.file}: {len(data)} bytes to peer {', '.join(map(str, sorted(delivered)))} in {dt:.2f} s, "
@@ -241,6 +345,37 @@ async def _send(args: argparse.Namespace, data: bytes, peers: list[int]) -> int:
     }
     _report(args, summary, stats)
     return 0
+
+
+def _not_acknowledged(args: argparse.Namespace, silence: Silence, failed: dict[int, str], dt: float) -> str:
+    """Why ``send`` failed, in one line that tells a file sent but not acknowledged (the receiver may
+    well hold it) from one that never wholly went out, or went to a peer never heard from at all."""
+    why: dict[int, str | None] = {}  # None: sent, not acknowledged
+    for p in sorted(silence.pending | failed.keys()):
+        reason = failed.get(p)
+        if reason is not None and reason != "deadline":
+            why[p] = reason
+        elif reason is not None and p not in silence.heard:
+            why[p] = (
+                "nothing heard from it: is 'mapd link recv' running there, with the same --baud, "
+                "--rate-bps and --key?"
+            )
+        elif reason is not None and silence.flushed_at is None:
+            why[p] = "deadline: not wholly sent"
+        else:
+            why[p] = None
+    if all(w is None for w in why.values()):
+        cause = (
+            f"not within --deadline {args.deadline:g} s"
+            if failed
+            else f"nothing heard from it for {silence.silent_s:.0f} s after the whole file was on the air"
+        )
+        return (
+            f"uwb: {args.file} was sent but not acknowledged by peer {', '.join(map(str, why))}: {cause} "
+            "(its last ack may have been lost, or it left: see what recv printed)"
+        )
+    who = ", ".join(f"{p} ({w or 'sent, not acknowledged'})" for p, w in why.items())
+    return f"uwb: {args.file} was not delivered to peer {who} after {dt:.1f} s"
 
 
 def cmd_recv(args: argparse.Namespace) -> int:
@@ -266,7 +401,8 @@ async def _recv(args: argparse.Namespace) -> int:
             got.set_result(e)
 
     limit = LimitsSection().max_message_bytes
-    link = UwbLink(_config(args, limit), args.port, baud=args.baud, on_event=on_event)
+    cfg = _config(args, limit)
+    link = UwbLink(cfg, args.port, baud=args.baud, on_event=on_event)
     await link.start()
     print(f"waiting for the peer on {args.port}", file=sys.stderr)
     progress = asyncio.ensure_future(_progress(link, "bytes_rx", None))
@@ -282,7 +418,11 @@ async def _recv(args: argparse.Namespace) -> int:
         progress.cancel()
         t_first = link.first_rx_at or link.started_at
         _write(args.output, msg.data)
-        await asyncio.sleep(max(0.0, args.linger))  # answer repeats if our final ack was lost
+        # Answer the sender's repeats (our last COMPLETEs may have been lost) until it goes quiet.
+        quiet = Quiet(args.linger, LINGER_MAX_S, loop.time())
+        while not quiet.over(now := loop.time()):
+            quiet.heard(int(link.stats().get("bytes_rx") or 0), now)
+            await link.run_until(asyncio.sleep(POLL_S))
         stats = link.stats()
     finally:
         progress.cancel()

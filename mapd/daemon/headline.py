@@ -32,8 +32,49 @@ LINK_FAULTS = {
     "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",
 }
 
+#: A serial link's frames that arrived damaged, by what caught them: COBS, the length (no delimiter
+#: within ``max_frame``), a frame too short, the CRC or, on a keyed link (whose tag replaces the CRC),
+#: the tag. A wrong ``baud`` or a noisy cable raises these and nothing else.
+DAMAGE_KEYS = ("crc_errors", "cobs_errors", "oversize", "runts", "bad_signature")
+#: The keys only a serial framing reports (a zenoh link's ``bad_signature`` is a forged map, not damage).
+_FRAMING_KEYS = DAMAGE_KEYS[:4]
+
 #: systemd shows STATUS= on one line of ``systemctl status``: keep it to what fits there.
 MAX_LINE = 200
+
+
+def _count(v: Any) -> int:
+    return v if isinstance(v, int) and not isinstance(v, bool) and v > 0 else 0
+
+
+def damaged(st: dict[str, Any]) -> int | None:
+    """Frames the line delivered damaged (the sum of :data:`DAMAGE_KEYS`); None for a link without
+    serial framing."""
+    if not any(k in st for k in _FRAMING_KEYS):
+        return None
+    return sum(_count(st.get(k)) for k in DAMAGE_KEYS)
+
+
+def damage_words(st: dict[str, Any]) -> str | None:
+    """``damaged=16 (cobs_errors=11 oversize=5)`` for ``mapd status`` and ``mapd link``: the total,
+    then what caught them; None for a link without serial framing."""
+    total = damaged(st)
+    if total is None:
+        return None
+    parts = [f"{k}={st[k]}" for k in DAMAGE_KEYS if _count(st.get(k))]
+    return f"damaged={total}" + (f" ({' '.join(parts)})" if parts else "")
+
+
+def _damage_fault(st: dict[str, Any]) -> str | None:
+    """Damaged frames while no peer is heard: what a wrong baud, a noisy cable or another link key
+    looks like (the peer would otherwise merely look gone, out of range). The counts are totals since
+    start: said as a question, with the facts it rests on."""
+    total = damaged(st)
+    if not total or st.get("peers_up") != 0 or st.get("port_open") is False:
+        return None
+    if not any(_count(st.get(k)) for k in _FRAMING_KEYS):  # every frame whole, but the tag fails
+        return f"{total} frames failed the link tag, no peer heard (another link key, or a noisy line?)"
+    return f"{total} damaged frames, no peer heard (wrong baud or noisy line?)"
 
 
 def link_faults(st: dict[str, Any]) -> list[str]:
@@ -46,6 +87,8 @@ def link_faults(st: dict[str, Any]) -> list[str]:
                 out.append(words)
         elif isinstance(v, int) and not isinstance(v, bool) and v > 0:
             out.append(words.format(v))
+    if (damage := _damage_fault(st)) is not None:
+        out.append(damage)
     return out
 
 

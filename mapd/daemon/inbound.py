@@ -22,6 +22,7 @@ from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
 from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
+from mapd.daemon.versions import label
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.files import WriteOutage
 from mapd.fusion.worker import FusionWorker
@@ -122,7 +123,7 @@ class Inbound:
         elif isinstance(ev, Failed):
             if core.failed(ev.transport, ev.peer, ev.version):
                 self.wake()
-            log.info("update v%d to %s failed: %s", ev.version, ev.peer, ev.reason)
+            log.info("update %s to %s failed: %s", label(ev.version), ev.peer, ev.reason)
 
     def _lost_our_base(self, peer: str) -> None:
         """``peer`` may not hold our base any more: the next update goes out whole (P4)."""

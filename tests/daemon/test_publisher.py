@@ -195,7 +195,7 @@ def test_a_robot_that_comes_into_reach_is_offered_the_newest_map(tmp_path: Path,
                 assert snap["offers"]["virtual"]["waiting"] == ["robot2"]
                 assert snap["codec"]["reoffers"] == 1  # mapd status says so
                 line = next(x for x in render_status(snap).splitlines() if x.startswith("codec"))
-                assert "1 offered again to robots come into range" in line
+                assert "1 offered again (robots come into range, or failed)" in line
             finally:
                 await late.close()
 
@@ -221,6 +221,7 @@ def test_a_map_whose_offer_failed_goes_again_to_a_peer_still_in_reach(
             assert link.offers[1].version == v1 and link.offers[1].is_keyframe
             assert d.publisher.counters.failed == {"virtual": 1}
             assert d.snapshot()["offers"]["virtual"]["waiting"] == ["robot1"]
+            assert ", 1 failed on virtual" in render_status(d.snapshot())  # mapd status says so
             peer.ack("robot0", v1)
             await asyncio.sleep(0.8)  # more than two timeouts
             assert len(link.offers) == 2

@@ -228,3 +228,75 @@ def test_frames_from_beyond_the_clock_window_are_a_fault() -> None:
     line = status_line(_doc(links={"uwb": {"future": 3}}))
     assert line.startswith("FAULTS uwb 3 frames signed with counters over 5 min ahead of this robot's clock")
     assert not status_line(_doc(links={"uwb": {"future": 0}})).startswith("FAULTS")
+
+
+def _heard_through(scramble: bool, *, garbage: bytes = b"") -> dict[str, Any]:
+    """The stats of a keyed uwb endpoint (link id 2) after a peer's map reached it: each frame
+    scrambled as a wrong baud leaves it (``(b * 37 + 11) & 0xFF``: delimiters gone, bytes changed),
+    or intact, with ``garbage`` (line noise) fed in before."""
+    from transports.uwb.arq import ArqConfig, ArqEndpoint
+
+    key = bytes(range(32))
+    a, b = (ArqEndpoint(ArqConfig(node_id=n, key=key, rate_bps=1e6), session=n, seed=n) for n in (1, 2))
+    for ep in (a, b):
+        ep.confirm_counter(ep.counter_reservation() or 0)
+    a.send(bytes(range(256)) * 20, 0.0, dests=[2])
+    b.receive_data(garbage, 0.0)
+    now = 0.0
+    while now < 1.0:
+        now += 0.01
+        a.handle_timer(now)
+        while frame := a.data_to_send(now):
+            b.receive_data(bytes((x * 37 + 11) & 0xFF for x in frame) if scramble else frame, now)
+    return b.stats()
+
+
+def test_a_wrong_baud_is_damaged_frames_said_on_the_faults_line() -> None:
+    """Audit finding 3: a wrong baud raised only cobs_errors and oversize, which `mapd status` never
+    showed (crc_errors=0 bad_signature=0), and the peer merely looked gone."""
+    from mapd.commands.daemon import render_status
+
+    st = _heard_through(scramble=True)
+    parts = ("crc_errors", "cobs_errors", "oversize", "runts", "bad_signature")
+    total = sum(st[k] for k in parts)
+    assert total > 0 and st["peers_up"] == 0 and st["crc_errors"] == st["bad_signature"] == 0
+    shown = render_status({"links": {"uwb": st}}).splitlines()
+    link = next(ln for ln in shown if ln.strip().startswith("uwb"))
+    assert f"damaged={total} (" in link
+    for k in parts:  # what caught them is said too, whichever counters are not zero
+        assert (f"{k}={st[k]}" in link) == (st[k] > 0), link
+    faults = [ln for ln in shown if "FAULTS" in ln]
+    assert faults == [f"         FAULTS {total} damaged frames, no peer heard (wrong baud or noisy line?)"]
+    line = status_line(_doc(links={"uwb": st}))
+    assert line.startswith(
+        f"FAULTS uwb {total} damaged frames, no peer heard (wrong baud or noisy line?) | map v12"
+    )
+    assert len(line) <= MAX_LINE
+
+
+def test_damage_while_peers_are_heard_is_counted_but_not_a_fault() -> None:
+    from mapd.commands.daemon import render_status
+
+    st = _heard_through(scramble=False, garbage=bytes(range(1, 256)) * 3 + b"\x00")
+    assert st["oversize"] + st["cobs_errors"] > 0 and st["peers_up"] == 1
+    shown = render_status({"links": {"uwb": st}})
+    assert f"damaged={st['oversize'] + st['cobs_errors']} (" in shown
+    assert "FAULTS" not in shown and not status_line(_doc(links={"uwb": st})).startswith("FAULTS")
+    # A clean line says damaged=0, and a link without serial framing (zenoh) no damaged= at all.
+    clean = render_status({"links": {"uwb": _heard_through(scramble=False)}})
+    assert "damaged=0 " in clean and "FAULTS" not in clean
+    zenoh = render_status({"links": {"zenoh": {"session_open": True, "bad_signature": 2}}})
+    assert "damaged=" not in zenoh and "bad_signature=2" in zenoh
+
+
+def test_frames_failing_only_the_link_tag_suggest_another_link_key() -> None:
+    # A peer keyed with another link key: every frame decodes and fails the tag, no COBS damage.
+    st = {"port_open": True, "peers_up": 0, "crc_errors": 0, "cobs_errors": 0, "oversize": 0, "runts": 0,
+          "bad_signature": 40}  # fmt: skip
+    line = status_line(_doc(links={"uwb": st}))
+    assert line.startswith(
+        "FAULTS uwb 40 frames failed the link tag, no peer heard (another link key, or a noisy line?)"
+    )
+    # A port that is closed says so; damage from before it closed is not the fault then.
+    closed = status_line(_doc(links={"uwb": {**st, "port_open": False}}))
+    assert closed.startswith("FAULTS uwb serial port closed (reopening) | ")

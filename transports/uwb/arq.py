@@ -132,6 +132,7 @@ from typing import Any
 from mapd.errors import LimitError, ProtocolError
 from transports.rtt import RttEstimator
 from transports.uwb import wire
+from transports.uwb.arq_acks import GoodputWindow
 from transports.uwb.arq_rx import MAX_CHUNKS
 from transports.uwb.arq_tx import SenderSide
 from transports.uwb.arq_types import (
@@ -249,7 +250,7 @@ class ArqEndpoint(SenderSide):
         self._hello_due = -math.inf
         self._housekeeping_at = -math.inf
         self._rx_held = 0
-        self._goodput_bps = 0.0
+        self._delivered = GoodputWindow()
         self._proactive = 0.0  # parity sent with a broadcast's first pass, as a share (R16, fec)
         self.counters = ArqCounters()
 
@@ -484,7 +485,7 @@ class ArqEndpoint(SenderSide):
         srtts = [e.srtt for e in self._rtt.values() if e.srtt is not None]
         out["rtt_ms"] = round(1000 * sum(srtts) / len(srtts), 1) if srtts else None
         out["rto_ms"] = round(1000 * max((e.rto for e in self._rtt.values()), default=0.0), 1)
-        out["goodput_bps"] = round(self._goodput_bps, 1)
+        out["goodput_bps"] = round(self._delivered.rate_bps(self._now), 1)  # over the last 30 s
         out["fec_proactive"] = round(self._proactive, 3)  # parity sent with a first pass, per chunk
         out["peak_bps_1s"] = round(8 * self._pacer.peak_window_bytes / self._pacer.window, 1)
         out["link_rate_bps"] = self.cfg.rate_bps

@@ -25,10 +25,54 @@ from transports.uwb.arq_types import (
 from transports.uwb.receiving import PeerState, asked_by
 from transports.uwb.sending import Outgoing
 
+#: ``goodput_bps`` is what was delivered over this many seconds before ``now``: long enough to hold
+#: a few maps (one every few seconds), short enough that an outage shows as 0 within half a minute.
+GOODPUT_WINDOW_S = 30.0
+
 #: Proactive parity (R16, fec): its share of each block's chunks at most, and its steps.
 PROACTIVE_MAX = 0.5
 PROACTIVE_UP = 0.05
 PROACTIVE_DOWN = 0.01
+
+
+class GoodputWindow:
+    """Bytes delivered per second over the last ``window_s`` seconds, as bits/s. Sans-I/O: times
+    are passed in.
+
+    Each message's bytes are spread evenly over its life, from queued to delivered, and only the
+    part of that life inside the window counts: a small message that left in the pacer's first
+    burst counts as its bytes over the window (not as that burst's rate, many times the link's),
+    a long one delivered at once does not count as all of it in the last few seconds, and with
+    nothing delivered for ``window_s`` the rate is 0 (not the last message's, for ever). Bounded:
+    at most ``max_items`` messages are kept (the oldest dropped first).
+    """
+
+    def __init__(self, window_s: float = GOODPUT_WINDOW_S, max_items: int = 1024) -> None:
+        self.window_s = window_s
+        self.max_items = max_items
+        self._items: deque[tuple[float, float, int]] = deque(maxlen=max_items)  # (start, end, bytes)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def add(self, nbytes: int, start: float, end: float) -> None:
+        """A message of ``nbytes`` queued at ``start`` was delivered at ``end``."""
+        self._items.append((start, max(start, end), nbytes))
+        while self._items and self._items[0][1] <= end - self.window_s:
+            self._items.popleft()  # ended before the window: counts for nothing any more
+
+    def rate_bps(self, now: float) -> float:
+        """Bits per second delivered over ``[now - window_s, now]``."""
+        lo = now - self.window_s
+        total = 0.0
+        for start, end, n in self._items:
+            if end <= lo or start > now:
+                continue
+            if end <= start:  # delivered the moment it was queued
+                total += n
+            else:
+                total += n * (min(end, now) - max(start, lo)) / (end - start)
+        return 8 * total / self.window_s
 
 
 class AckSide:
@@ -45,7 +89,9 @@ class AckSide:
     _late: OrderedDict[int, set[int]]
     _rtt: dict[int, RttEstimator]
     _events: deque[Event]
-    _goodput_bps: float
+    _now: float
+    #: Messages delivered lately, for ``goodput_bps`` in ``stats()``.
+    _delivered: GoodputWindow
     _proactive: float
 
     def _on_done_entry(self, peer: PeerState, target: int, low: int, now: float) -> None:
@@ -175,7 +221,7 @@ class AckSide:
         if all(p.done for p in m.peers.values()):
             self.counters.messages_delivered += 1
             self.counters.bytes_delivered += m.size
-            self._goodput_bps = 8 * m.size / max(now - m.created, 1e-9)
+            self._delivered.add(m.size, m.created, now)
         self._close(m)
 
     def _close(self, m: Outgoing, outcome: str | None = None) -> None:

@@ -3,19 +3,26 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import os
+import re
 import shutil
 import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from mapd.errors import MapdError
+from transports.uwb import wire
 from transports.uwb.faults import Faults
+from transports.uwb.framing import decode_frame
 from transports.uwb.relay import FaultRelay
 
 pytestmark = [
     pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed"),
-    pytest.mark.timeout(60),
+    pytest.mark.timeout(120),
 ]
 
 EXE = [sys.executable, "-m", "mapd.cli"]
@@ -23,12 +30,18 @@ COMMON = ["--rate-bps", "100000"]
 
 
 async def _pair(
-    src: Path, out: Path, *send_args: str, faults: Faults | None = None, seed: int = 0
+    src: Path,
+    out: Path,
+    *send_args: str,
+    faults: Faults | None = None,
+    seed: int = 0,
+    recv_args: tuple[str, ...] = ("--linger", "0.5"),
+    relay_type: type[FaultRelay] = FaultRelay,
 ) -> tuple[int, str, str, int, str, str]:
     """Run ``recv -o out`` and ``send src`` on the two ends of one relay; both exit codes and outputs."""
-    async with FaultRelay(rate_bps=100_000, faults=faults or Faults(), seed=seed) as relay:
+    async with relay_type(rate_bps=100_000, faults=faults or Faults(), seed=seed) as relay:
         recv = await asyncio.create_subprocess_exec(
-            *EXE, "link", "recv", "--port", relay.ports[1], "-o", str(out), "--linger", "0.5",
+            *EXE, "link", "recv", "--port", relay.ports[1], "-o", str(out), *recv_args,
             "--timeout", "20", *COMMON,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
@@ -37,10 +50,42 @@ async def _pair(
             *EXE, "link", "send", "--port", relay.ports[0], str(src), *COMMON, *send_args,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
-        s_out, s_err = await asyncio.wait_for(send.communicate(), 40)
-        r_out, r_err = await asyncio.wait_for(recv.communicate(), 40)
+        s_out, s_err = await asyncio.wait_for(send.communicate(), 80)
+        r_out, r_err = await asyncio.wait_for(recv.communicate(), 80)
     assert send.returncode is not None and recv.returncode is not None
     return send.returncode, s_out.decode(), s_err.decode(), recv.returncode, r_out.decode(), r_err.decode()
+
+
+class _CompletesLost(FaultRelay):
+    """Drops the receiver's (robot 1's) COMPLETE acks for ``LOST_S`` after the first one (for ever
+    with ``inf``): what a lossy radio does to the last acks of a transfer, made certain."""
+
+    LOST_S = 5.0
+
+    def __init__(self, **kw: Any) -> None:
+        super().__init__(**kw)
+        self.first_complete: float | None = None
+        self.lost = 0
+
+    def _launch(self, src: int, frame: bytes, now: float) -> None:
+        if src == 1 and _is_complete(frame):
+            self.first_complete = self.first_complete if self.first_complete is not None else now
+            if now < self.first_complete + self.LOST_S:
+                self.lost += 1
+                return
+        super()._launch(src, frame, now)
+
+
+class _CompletesNeverHeard(_CompletesLost):
+    LOST_S = math.inf
+
+
+def _is_complete(frame: bytes) -> bool:
+    try:
+        body = wire.parse(decode_frame(frame.rstrip(b"\x00")))
+    except MapdError:
+        return False
+    return isinstance(body, wire.Ack) and bool(body.flags & wire.COMPLETE)
 
 
 @pytest.mark.parametrize("where", ["missing folder", "a folder"])
@@ -82,5 +127,77 @@ def test_mapd_link_send_and_recv_commands(tmp_path: Path) -> None:
     assert s_rc == 0, s_err
     assert r_rc == 0, r_err
     assert "goodput" in s_out and "resends=" in s_out
-    assert "hash verified" in r_out and "crc_errors=" in r_out
+    assert "hash verified" in r_out and "damaged=" in r_out  # crc_errors and the rest, as one total
     assert out.read_bytes() == src.read_bytes()
+
+
+def test_a_keyed_link_says_how_many_frames_the_line_damaged(tmp_path: Path) -> None:
+    """Audit finding 4: on a keyed link the tag replaces the CRC, so damage counts in bad_signature,
+    and the link line said crc_errors=0 bad_frames=0 on a line that damaged a third of its frames."""
+    key = tmp_path / "link.key"
+    key.write_text(bytes(range(32)).hex() + "\n")
+    src = tmp_path / "map.bin"
+    src.write_bytes(os.urandom(15_000))
+    out = tmp_path / "got.bin"
+    keyed = ("--key", str(key))
+    s_rc, _s_out, s_err, r_rc, r_out, r_err = asyncio.run(
+        _pair(src, out, *keyed, faults=Faults(flip=2e-3), seed=4, recv_args=("--linger", "0.5", *keyed))
+    )
+    assert s_rc == 0 and r_rc == 0, s_err + r_err
+    assert out.read_bytes() == src.read_bytes()
+    link = next(ln for ln in r_out.splitlines() if ln.startswith("link: "))
+    m = re.search(r"damaged=(\d+) \(([^)]*)\)", link)
+    assert m is not None, link
+    parts = dict(p.split("=") for p in m.group(2).split())
+    assert int(m.group(1)) == sum(map(int, parts.values())) > 5 and int(parts["bad_signature"]) > 0, link
+    assert "crc_errors=" not in link  # the total says it; crc_errors alone was 0 on every keyed link
+
+
+def test_recv_answers_the_senders_late_probes_when_its_last_acks_were_lost(tmp_path: Path) -> None:
+    """Audit finding 5: recv lingered 3 s after completing while the sender's probes back off to
+    max_rto_s (4 s); with its COMPLETEs lost meanwhile the sender, unanswered, reported a delivered
+    file as not delivered after its whole deadline."""
+    src = tmp_path / "map.bin"
+    src.write_bytes(os.urandom(15_000))
+    out = tmp_path / "got.bin"
+
+    async def run() -> tuple[tuple[int, str, str, int, str, str], float]:
+        t0 = time.monotonic()
+        res = await _pair(src, out, "--deadline", "40", recv_args=(), relay_type=_CompletesLost)
+        return res, time.monotonic() - t0
+
+    (s_rc, s_out, s_err, r_rc, r_out, r_err), took = asyncio.run(run())
+    assert r_rc == 0 and "hash verified" in r_out, r_err
+    assert s_rc == 0, s_err  # the sender heard a COMPLETE after the 5 s in which they were lost
+    assert "sent " in s_out and out.read_bytes() == src.read_bytes()
+    assert took < 30
+
+
+def test_recv_lingers_for_three_of_the_senders_longest_retransmission_waits() -> None:
+    from mapd.commands.link import LINGER_S
+    from transports.uwb.arq import ArqConfig
+
+    assert 3 * ArqConfig(node_id=1).max_rto_s <= LINGER_S
+
+
+def test_send_stops_waiting_for_a_peer_gone_silent_and_says_it_was_sent(tmp_path: Path) -> None:
+    """Audit finding 5: a receiver that got the file and left (its COMPLETEs lost) kept the sender
+    waiting its whole deadline, which then said "not delivered (deadline)"."""
+    src = tmp_path / "map.bin"
+    src.write_bytes(os.urandom(15_000))
+    out = tmp_path / "got.bin"
+
+    async def run() -> tuple[tuple[int, str, str, int, str, str], float]:
+        t0 = time.monotonic()
+        res = await _pair(
+            src, out, "--deadline", "70", recv_args=("--linger", "0"), relay_type=_CompletesNeverHeard
+        )
+        return res, time.monotonic() - t0
+
+    (s_rc, _s_out, s_err, r_rc, _r_out, r_err), took = asyncio.run(run())
+    assert r_rc == 0 and out.read_bytes() == src.read_bytes(), r_err
+    errors = [ln for ln in s_err.splitlines() if ln.startswith("mapd: error: ")]
+    assert s_rc == 1 and len(errors) == 1, s_err
+    assert "was sent but not acknowledged by peer 2" in errors[0], errors[0]
+    assert "nothing heard from it for 40 s" in errors[0] and "its last ack may have been lost" in errors[0]
+    assert took < 55  # two peer timeouts (20 s) after the whole file went out, not the 70 s deadline
