@@ -176,20 +176,20 @@ class Inbound:
         if not isinstance(plan, Decode):
             if not plan.routine:  # duplicates and echoes are; refusals are worth a line
                 say = log.warning if plan.warning else log.info
-                say("dropped v%d of %s from %s: %s", env.version, env.robot, ev.peer, plan.reason)
+                say("dropped %s of %s from %s: %s", label(env.version), env.robot, ev.peer, plan.reason)
             if plan.forget and transport is not None:
                 await transport.request_keyframe(env.robot)
             return
         try:
             grid = await asyncio.to_thread(decode_envelope, env, plan.base, max_cells=self.max_cells)
         except CodecError as exc:
-            log.info("cannot decode v%d from %s: %s", env.version, env.robot, exc)
+            log.info("cannot decode %s from %s: %s", label(env.version), env.robot, exc)
             ask = rx.undecodable(env, plan.base)
             if ask is not None and transport is not None:
                 await transport.request_keyframe(ask.robot)
             return
         if not self._trusted(env.robot, mark):
-            log.info("dropped v%d of %s: revoked while it was decoded", env.version, env.robot)
+            log.info("dropped %s of %s: revoked while it was decoded", label(env.version), env.robot)
             return
         rx.accept(grid, env, ev.transport, len(ev.data), time.time())
         # The key it was verified with (none was revoked since: _trusted), saved with it.
@@ -207,7 +207,7 @@ class Inbound:
                 await asyncio.to_thread(self.store.remove_peer, env.robot)
             except StateError as exc:
                 log.warning("revoked %s: %s", env.robot, exc)
-            log.info("dropped v%d of %s: revoked while it was saved", env.version, env.robot)
+            log.info("dropped %s of %s: revoked while it was saved", label(env.version), env.robot)
             return
         if env.frame_pose is not None:
             self.fusion.known_pose(env.robot, env.frame_pose)

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
 from mapd.daemon.versions import incarnation_at, make
-from transports.base import Failed
+from mapd.envelope import Envelope
+from mapd.grid import Pose2D
+from mapd.identity import read_identity
+from transports.base import Failed, Received
 
 
 def test_a_failed_offer_is_logged_with_the_short_version(
@@ -24,3 +28,19 @@ def test_a_failed_offer_is_logged_with_the_short_version(
         asyncio.run(d.inbound.handle(Failed("virtual", "robot1", "robot0", version, "deadline")))
     said = [r.getMessage() for r in caplog.records if "failed" in r.getMessage()]
     assert said == ["update v1 to robot1 failed: deadline"], said
+
+
+def test_a_map_that_does_not_decode_is_logged_with_the_short_version(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    robot1 = read_identity(tmp_path / "keys" / "robot1.key", "robot1")
+    version = make(incarnation_at(time.time() - 60), 4)
+    env = Envelope(
+        fleet="default", robot="robot1", version=version, base_version=0, codec="raw", width=10,
+        height=10, resolution=0.05, origin=Pose2D(0, 0, 0), payload=b"not a raw payload",
+    ).signed(robot1)  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="mapd.daemon"):
+        asyncio.run(d.inbound.handle(Received("virtual", "robot1", env.pack())))
+    said = [r.getMessage() for r in caplog.records if "decode" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("cannot decode v4 from robot1:"), said
