@@ -235,7 +235,11 @@ def render_status(s: dict[str, Any]) -> str:
         f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "
         f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
         f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
-        + (f", {c['reoffers']} offered again (robots come into range, or failed)" if c.get("reoffers") else "")
+        + (
+            f", {c['reoffers']} offered again (robots come into range, or failed)"
+            if c.get("reoffers")
+            else ""
+        )
         + "".join(f", {n} failed on {link}" for link, n in sorted((c.get("failed") or {}).items()) if n)
     )
     for name, o in (s.get("offers") or {}).items():
