@@ -240,8 +240,11 @@ class SwarmRobot:
         if not dests:
             self.pub.on_air("uwb", version, now)  # as the daemon's uwb transport: nothing goes out
             return  # no peer to send to: the next version tries again
-        msg = self.arq.send(self._message(self.id, version, base, size), now, dests=dests, stream=MAP_STREAM)
+        data = self._message(self.id, version, base, size)
+        msg = self.arq.send(data, now, dests=dests, stream=MAP_STREAM)
         self._own_msgs[msg] = version
+        # As the daemon's outbound does with the uwb transport's offer_deadline_s (P1).
+        self.pub.hold("uwb", version, now + self.arq.message_deadline_s(len(data)))
 
     @staticmethod
     def _message(origin: int, version: int, base: int, size: int) -> bytes:
