@@ -17,7 +17,7 @@ from mapd.daemon.versions import label, split
 from mapd.errors import MapdError
 from mapd.files import atomic_write_bytes, atomic_write_via
 from mapd.fusion.store import read_owner
-from mapd.grid import OccupancyGrid, load_map
+from mapd.grid import OccupancyGrid, load_map, save_map
 from mapd.tables import table
 
 UWB_RATE = 12500
@@ -210,9 +210,12 @@ def write_report(
             pic = mark_robots(pic, g, where, names)
             image = Image.fromarray(with_legend(pic, names))
             atomic_write_via(out / "global_map.png", lambda fh: image.save(fh, format="PNG"))
+            # A plain map_server pair (global.yaml + global.pgm): the state directory's own names a
+            # numbered image (crash safety), which a reader of the report need not know of.
+            save_map(g, out / "global.yaml")
             for f in gdir.iterdir():
-                if f.suffix in (".yaml", ".pgm", ".json"):
-                    shutil.copy(f, out / f"global_{f.name}" if f.suffix == ".json" else out / f.name)
+                if f.suffix == ".json":
+                    shutil.copy(f, out / f"global_{f.name}")
             c = g.counts()
             global_note = (
                 f"global map {g.width} x {g.height} cells at {g.resolution} m, "
