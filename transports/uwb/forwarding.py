@@ -46,6 +46,7 @@ import struct
 from dataclasses import dataclass, field
 
 from mapd.errors import ProtocolError
+from transports.uwb.arq import DEADLINE_AIRTIMES
 
 #: Envelopes kept per origin (the newest ones, oldest first): a neighbour a few versions behind gets
 #: the next delta in the chain rather than waiting for the origin's next keyframe.
@@ -268,8 +269,13 @@ class ForwardingCore:
         """How long a relay of ``nbytes`` may take before it is given up (None: no share known)."""
         if self.share_bps is None or not self.share_bps > 0:
             return self.max_relay_s
-        wanted = RELAY_FLOOR_S + RELAY_AIRTIMES * 8.0 * nbytes / self.share_bps
-        return wanted if self.max_relay_s is None else min(wanted, self.max_relay_s)
+        airtime = 8.0 * nbytes / self.share_bps
+        wanted = RELAY_FLOOR_S + RELAY_AIRTIMES * airtime
+        if self.max_relay_s is None:
+            return wanted
+        # Never past the link's own deadline for a message of this size (arq R6: ``deadline_s``, or
+        # twice its airtime if longer), which a relay of a map too long for ``deadline_s`` needs.
+        return min(wanted, max(self.max_relay_s, DEADLINE_AIRTIMES * airtime))
 
     def keyframes_wanted(self, now: float, hears: frozenset[int] | set[int]) -> list[int]:
         """Origins (among ``hears``, the link ids this robot hears) to ask for a whole map now: a
