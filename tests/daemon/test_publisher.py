@@ -357,7 +357,10 @@ def test_peer_maps_that_cannot_be_saved_are_used_and_said_once(
                 await dk.wait_for(
                     lambda v=v: num(getattr(d1.receiver.maps.get("robot0"), "version", 0)) == v, what=f"v{v}"
                 )
-            await dk.wait_for(lambda: d1.store.peer_map("robot0") is not None, what="v4 saved")
+            # The line comes once the save's worker returned: the saved file alone comes before it.
+            await dk.wait_for(
+                lambda: any(r.getMessage() == "state saved again" for r in caplog.records), what="v4 saved"
+            )
         finally:
             for d in daemons:
                 d.request_stop()
