@@ -66,10 +66,14 @@ def damage_words(st: dict[str, Any]) -> str | None:
 
 
 def _damage_fault(st: dict[str, Any]) -> str | None:
-    """Damaged frames while no peer is heard: what a wrong baud, a noisy cable or another link key
-    looks like (the peer would otherwise merely look gone, out of range). The counts are totals since
-    start: said as a question, with the facts it rests on."""
+    """Damaged frames since the last valid one while no peer is heard: what a wrong baud, a noisy
+    cable or another link key looks like (the peer would otherwise merely look gone, out of range).
+    Damage from before a valid frame came is not counted: a robot alone now, out of its peers'
+    range, with some noise long past, is not at fault. Said as a question, with the facts it rests
+    on."""
     total = damaged(st)
+    if total is not None and "damaged_since_valid" in st:
+        total = min(total, _count(st.get("damaged_since_valid")))
     if not total or st.get("peers_up") != 0 or st.get("port_open") is False:
         return None
     if not any(_count(st.get(k)) for k in _FRAMING_KEYS):  # every frame whole, but the tag fails

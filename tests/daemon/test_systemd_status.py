@@ -300,3 +300,34 @@ def test_frames_failing_only_the_link_tag_suggest_another_link_key() -> None:
     # A port that is closed says so; damage from before it closed is not the fault then.
     closed = status_line(_doc(links={"uwb": {**st, "port_open": False}}))
     assert closed.startswith("FAULTS uwb serial port closed (reopening) | ")
+
+
+def test_damage_from_before_the_last_valid_frame_is_no_fault_once_the_robot_is_alone() -> None:
+    """Robots go out of each other's range: noise long past, then good frames, then no peer heard
+    is a robot alone, not a wrong baud; damage after the last good frame is a fault again."""
+    from transports.uwb.arq import ArqConfig, ArqEndpoint
+
+    key = bytes(range(32))
+    a, b = (ArqEndpoint(ArqConfig(node_id=n, key=key, rate_bps=1e6), session=n, seed=n) for n in (1, 2))
+    for ep in (a, b):
+        ep.confirm_counter(ep.counter_reservation() or 0)
+    b.receive_data(bytes(range(1, 256)) * 3 + b"\x00", 0.0)  # line noise first
+    a.send(bytes(range(256)) * 4, 0.0, dests=[2])
+    now = 0.0
+    while now < 1.0:
+        now += 0.01
+        a.handle_timer(now)
+        while frame := a.data_to_send(now):
+            b.receive_data(frame, now)
+    while now < 120.0:  # robot1 walks out of range: nothing heard from it any more
+        now += 1.0
+        b.handle_timer(now)
+    st = b.stats()
+    assert st["peers_up"] == 0 and st["oversize"] + st["cobs_errors"] > 0 and st["damaged_since_valid"] == 0
+    assert not status_line(_doc(links={"uwb": st})).startswith("FAULTS")
+    b.receive_data(bytes(range(1, 256)) * 3 + b"\x00", now)  # damage again, and no peer heard
+    st = b.stats()
+    assert st["damaged_since_valid"] > 0
+    assert status_line(_doc(links={"uwb": st})).startswith(
+        f"FAULTS uwb {st['damaged_since_valid']} damaged frames, no peer heard"
+    )

@@ -212,6 +212,7 @@ class ArqEndpoint(SenderSide):
         )
         self._signer = Signer(config.key, config.counter_start) if config.key else None
         self._verifier = Verifier(config.key, config.replay_marks) if config.key else None
+        self._damage_at_valid = 0  # damaged frames counted when the last valid frame came
         self._trailer = TRAILER_LEN if config.key else 0
         # A frame size that divides the 1 s byte budget evenly: 7 frames of 223 bytes fit in the
         # 1562 bytes of 12.5 kb/s, where frames of 224 would leave room for only 6.
@@ -494,7 +495,16 @@ class ArqEndpoint(SenderSide):
         out["in_flight"] = len(self._out)
         out["rx_held_bytes"] = self._rx_held
         out["peers_up"] = len(self.peers_up())
+        # Damage since the last valid frame: a wrong baud or a broken line, not noise long past
+        # while the robot is now merely alone (mapd status raises a FAULT on this, not on totals).
+        out["damaged_since_valid"] = self._damage_total() - self._damage_at_valid
         return out
+
+    def _damage_total(self) -> int:
+        """Frames the line spoiled so far, whatever caught them (framing, CRC, the link tag)."""
+        r = self._reader.stats
+        tag = self._verifier.stats.bad_signature if self._verifier is not None else 0
+        return r.crc_errors + r.cobs_errors + r.oversize + r.runts + tag
 
     # --- receiving ------------------------------------------------------------------------------
 
@@ -517,6 +527,7 @@ class ArqEndpoint(SenderSide):
             self.counters.bad_frames += 1
             return
         self.counters.frames_rx += 1
+        self._damage_at_valid = self._damage_total()
         if frame.src == self.node:
             self.counters.own_id += 1  # another node uses our id, or the medium echoes
             return
