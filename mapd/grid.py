@@ -13,13 +13,15 @@ the comparisons are strict, trinary mode averages every channel (alpha too), sca
 pixel whose alpha is 0 as unknown, and raw mode stores the pixel value as a byte.
 
 This module holds the grid type, its cell constants and geometry bounds (:func:`geometry_problem`),
-the YAML reader (:func:`read_map_yaml`), those loading rules and :func:`save_map`. Decoding the
+the YAML reader (:func:`read_map_yaml`), those loading rules, :func:`save_map`, and
+:func:`save_committed` for maps a crash must not tear. Decoding the
 image itself (PNM, PNG and Pillow, hardened against truncated and hostile files) is
 :mod:`mapd.imaging`'s, which hands back the pixels.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import math
@@ -547,3 +549,49 @@ def save_map(
         # strerror, not str(exc): that names the hidden temp file, which means nothing to the user.
         raise MapFileError(f"{path}: cannot write map: {exc.strerror or one_line(exc)}") from None
     return path
+
+
+#: The YAML fields that commit a map saved by :func:`save_committed`.
+VERSION_KEY = "mapd_version"
+DIGEST_KEY = "mapd_digest"
+_COUNT_LIMIT = 1 << 63  # versions are whole numbers below this, as envelopes carry them
+
+
+def save_committed(grid: OccupancyGrid, yaml_path: Path, extra: dict[str, Any] | None = None) -> str:
+    """Save ``grid`` so that no crash can tear it, and return its digest (hex).
+
+    The daemon's state maps and the fusion worker's global map are saved this way: the image under
+    a name of its own (``<stem>-<version>.pgm``), then the YAML that names it and holds the map's
+    version and digest (:data:`VERSION_KEY`, :data:`DIGEST_KEY`), then the images no YAML names any
+    more are removed. A kill at any point leaves the old map or the new one whole (a fixed image
+    name renamed before its YAML left the old YAML's origin over the new image: a shifted map), and
+    a reader that checks the digest (:func:`committed_record`) never takes a mismatched image for
+    the map. :class:`MapFileError` with one line when the disk refuses.
+    """
+    digest = grid.digest().hex()
+    image = f"{yaml_path.stem}-{grid.version}.pgm"
+    try:
+        save_map(
+            grid,
+            yaml_path,
+            image_name=image,
+            extra={VERSION_KEY: grid.version, DIGEST_KEY: digest, **(extra or {})},
+        )
+    except OSError as exc:  # what save_map looks at before it writes (a stat that fails)
+        raise MapFileError(f"{yaml_path}: cannot write map: {exc.strerror or one_line(exc)}") from None
+    with contextlib.suppress(OSError):  # best effort (a listing that fails): the next save removes them
+        for old in [yaml_path.with_suffix(".pgm"), *yaml_path.parent.glob(f"{yaml_path.stem}-*.pgm")]:
+            if old.name != image:
+                with contextlib.suppress(OSError):  # one that cannot go stops none of the others
+                    old.unlink(missing_ok=True)
+    return digest
+
+
+def committed_record(extra: dict[str, Any]) -> tuple[int, str] | None:
+    """The version and digest a committed map's YAML holds (its ``extra`` fields, as
+    :func:`read_map_yaml` gives them), or None when it holds none that could be (a YAML written
+    before they were kept, or hand-edited)."""
+    version, digest = extra.get(VERSION_KEY), extra.get(DIGEST_KEY)
+    if type(version) is int and 0 <= version < _COUNT_LIMIT and isinstance(digest, str):
+        return version, digest
+    return None

@@ -43,7 +43,15 @@ from mapd.daemon.versions import next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
 from mapd.files import atomic_write_json, make_dir, read_json_capped, remove_stale_temps
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, map_from_yaml_fields, read_map_yaml, save_map
+from mapd.grid import (
+    DEFAULT_MAX_CELLS,
+    OccupancyGrid,
+    Pose2D,
+    committed_record,
+    map_from_yaml_fields,
+    read_map_yaml,
+    save_committed,
+)
 from mapd.imaging.pixels import one_line
 
 log = logging.getLogger(__name__)
@@ -131,10 +139,8 @@ class StateData:
 
 def _saved_record(extra: dict[str, Any]) -> MapRecord | None:
     """The version and digest a state map's YAML holds, or None (a YAML from before they were kept)."""
-    version, digest = extra.get("mapd_version"), extra.get("mapd_digest")
-    if isinstance(version, int) and _is_count(version) and isinstance(digest, str):
-        return MapRecord(version, digest)
-    return None
+    record = committed_record(extra)
+    return None if record is None else MapRecord(*record)
 
 
 def _saved_pose(extra: dict[str, Any], where: Path) -> Pose2D | None:
@@ -454,27 +460,12 @@ class StateStore:
             self._write_state()
 
     def _save(self, grid: OccupancyGrid, path: Path, extra: dict[str, Any] | None = None) -> MapRecord:
-        """Write ``grid`` at ``path`` (its image under a name of its own, then the YAML that commits
-        it, with ``extra`` fields), then remove the images no YAML names any more."""
-        record = MapRecord(grid.version, grid.digest().hex())
-        image = f"{path.stem}-{grid.version}.pgm"
+        """Write ``grid`` at ``path``, committed by its YAML with ``extra`` fields
+        (:func:`~mapd.grid.save_committed`)."""
         try:
-            save_map(
-                grid,
-                path,
-                image_name=image,
-                extra={"mapd_version": record.version, "mapd_digest": record.digest, **(extra or {})},
-            )
+            return MapRecord(grid.version, save_committed(grid, path, extra))
         except MapdError as exc:
             raise StateError(str(exc)) from None
-        except OSError as exc:  # what save_map looks at before it writes (a stat that fails)
-            raise StateError(f"{path}: cannot write map: {exc.strerror or one_line(exc)}") from None
-        with contextlib.suppress(OSError):  # best effort: the next save removes what is left
-            for old in [path.with_suffix(".pgm"), *path.parent.glob(f"{path.stem}-*.pgm")]:
-                if old.name != image:
-                    with contextlib.suppress(OSError):
-                        old.unlink(missing_ok=True)
-        return record
 
     def flush(self) -> None:
         """Write ``state.json`` now (blocking)."""

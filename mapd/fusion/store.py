@@ -3,12 +3,10 @@
 Written after every merge (each file atomic: temp file, fsync, rename, so a crash leaves the old
 file or the new one, never half of one):
 
-* ``global.yaml`` + ``global-<version>.pgm``: the global map, as map_server files. The YAML is
-  the commit: it names an image written before it under a name of its own and holds the map's
-  version and digest (``mapd_version``, ``mapd_digest``), so a kill between the two renames leaves
-  the old map whole (a fixed ``global.pgm`` renamed first left the old YAML's origin over the new
-  image: a shifted map), and an image that does not match is left out, never restored shifted.
-  The images no YAML names any more are removed after each save;
+* ``global.yaml`` + ``global-<version>.pgm``: the global map, as map_server files committed by
+  the YAML, as the daemon's state maps are (:func:`mapd.grid.save_committed`: a kill between the two
+  renames leaves the old map whole, and an image that does not match is left out, never restored
+  shifted);
 * ``transforms.json``: the placements, per robot the "fleet frame -> robot map" transform (x, y in
   meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``) with its source,
   confidence and reason, the global map's version, and the roster key each peer's map in it was
@@ -23,7 +21,6 @@ roster) is the worker's decision, not this module's.
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import logging
@@ -38,7 +35,16 @@ from mapd.errors import MapdError, StateError
 from mapd.files import WriteOutage, atomic_write_bytes, read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
-from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, map_from_yaml_fields, read_map_yaml, save_map
+from mapd.grid import (
+    DEFAULT_MAX_CELLS,
+    DIGEST_KEY,
+    VERSION_KEY,
+    OccupancyGrid,
+    committed_record,
+    map_from_yaml_fields,
+    read_map_yaml,
+    save_committed,
+)
 
 log = logging.getLogger(__name__)
 
@@ -109,21 +115,22 @@ class FusionStore:
         except OSError as exc:
             log.warning("fusion: ignoring unreadable %s: %s", path, exc.strerror or exc)
             return None
-        version, digest = meta["extra"].get("mapd_version"), meta["extra"].get("mapd_digest")
-        if digest is None and version is None:
+        extra = meta["extra"]
+        if VERSION_KEY not in extra and DIGEST_KEY not in extra:
             # An earlier release's global.yaml + global.pgm: kept, or every fleet upgrading would
             # start with an empty global map. That release wrote them with a crash window of
             # microseconds between two renames, and what such a crash left is only a stand-in
             # until each robot's map comes again; from the first save on, the digest is checked.
             return grid
-        if type(version) is not int or version < 0 or digest != grid.digest().hex():
+        record = committed_record(extra)
+        if record is None or record[1] != grid.digest().hex():
             log.warning(
                 "fusion: ignoring %s: its image does not match the digest in it (damaged, or an "
                 "interrupted write); starting a new global map",
                 path,
             )
             return None
-        return grid.replace(version=version)
+        return grid.replace(version=record[0])
 
     # -- writing ----------------------------------------------------------------------------
 
@@ -145,24 +152,7 @@ class FusionStore:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StateError(f"{self.directory}: cannot create the state directory: {exc.strerror}") from None
-        grid = result.grid
-        image = f"global-{grid.version}.pgm"
-        try:
-            save_map(
-                grid,
-                self.directory / GLOBAL_YAML,
-                image_name=image,
-                extra={"mapd_version": grid.version, "mapd_digest": grid.digest().hex()},
-            )
-        except OSError as exc:  # what save_map looks at before it writes (a stat that fails)
-            raise StateError(
-                f"{self.directory / GLOBAL_YAML}: cannot write map: {exc.strerror or exc}"
-            ) from None
-        with contextlib.suppress(OSError):  # best effort: the next save removes what is left
-            for old in [self.directory / "global.pgm", *self.directory.glob("global-*.pgm")]:
-                if old.name != image:
-                    with contextlib.suppress(OSError):
-                        old.unlink(missing_ok=True)
+        save_committed(result.grid, self.directory / GLOBAL_YAML)
         doc = {
             "format": FORMAT,
             "robot": self.robot,
