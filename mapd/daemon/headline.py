@@ -48,11 +48,10 @@ def _count(v: Any) -> int:
 
 
 def damaged(st: dict[str, Any]) -> int | None:
-    """Frames the line delivered damaged (the sum of :data:`DAMAGE_KEYS`); None for a link without
-    serial framing."""
-    if not any(k in st for k in _FRAMING_KEYS):
-        return None
-    return sum(_count(st.get(k)) for k in DAMAGE_KEYS)
+    """Frames the line delivered damaged (the uwb link's ``damaged``: the sum of
+    :data:`DAMAGE_KEYS`); None for a link without serial framing."""
+    v = st.get("damaged")
+    return _count(v) if isinstance(v, int) else None
 
 
 def damage_words(st: dict[str, Any]) -> str | None:
@@ -71,9 +70,7 @@ def _damage_fault(st: dict[str, Any]) -> str | None:
     Damage from before a valid frame came is not counted: a robot alone now, out of its peers'
     range, with some noise long past, is not at fault. Said as a question, with the facts it rests
     on."""
-    total = damaged(st)
-    if total is not None and "damaged_since_valid" in st:
-        total = min(total, _count(st.get("damaged_since_valid")))
+    total = _count(st.get("damaged_since_valid"))
     if not total or st.get("peers_up") != 0 or st.get("port_open") is False:
         return None
     if not any(_count(st.get(k)) for k in _FRAMING_KEYS):  # every frame whole, but the tag fails

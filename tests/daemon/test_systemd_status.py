@@ -292,7 +292,7 @@ def test_damage_while_peers_are_heard_is_counted_but_not_a_fault() -> None:
 def test_frames_failing_only_the_link_tag_suggest_another_link_key() -> None:
     # A peer keyed with another link key: every frame decodes and fails the tag, no COBS damage.
     st = {"port_open": True, "peers_up": 0, "crc_errors": 0, "cobs_errors": 0, "oversize": 0, "runts": 0,
-          "bad_signature": 40}  # fmt: skip
+          "bad_signature": 40, "damaged": 40, "damaged_since_valid": 40}  # fmt: skip
     line = status_line(_doc(links={"uwb": st}))
     assert line.startswith(
         "FAULTS uwb 40 frames failed the link tag, no peer heard (another link key, or a noisy line?)"

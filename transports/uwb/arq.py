@@ -495,9 +495,11 @@ class ArqEndpoint(SenderSide):
         out["in_flight"] = len(self._out)
         out["rx_held_bytes"] = self._rx_held
         out["peers_up"] = len(self.peers_up())
-        # Damage since the last valid frame: a wrong baud or a broken line, not noise long past
-        # while the robot is now merely alone (mapd status raises a FAULT on this, not on totals).
-        out["damaged_since_valid"] = self._damage_total() - self._damage_at_valid
+        # Frames the line spoiled, whatever caught them; and since the last valid frame: a wrong
+        # baud or a broken line, not noise long past while the robot is now merely alone (mapd
+        # status raises a FAULT on that, not on the total).
+        out["damaged"] = self._damage_total()
+        out["damaged_since_valid"] = out["damaged"] - self._damage_at_valid
         return out
 
     def _damage_total(self) -> int:
