@@ -291,10 +291,9 @@ class StateStore:
         """Drop ``robot``'s map: its record and its files (blocking). It was revoked, and a key that
         had to be revoked may have signed it: no restart may bring it back. :class:`StateError`
         when a file cannot be removed."""
-        self.forget_peer(robot)
         d = self._peer_dir(robot)
         with self._io:  # after a save of it that is under way, never half-way through one
-            self.forget_peer(robot)
+            self.forget_peer(robot)  # (here: such a save has just put its record back)
             try:
                 if not d.is_dir():
                     return
