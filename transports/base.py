@@ -228,6 +228,12 @@ class Transport(ABC):
         this default, which does nothing.
         """
 
+    def offer_deadline_s(self, envelope: Envelope) -> float | None:
+        """How long after :meth:`offer` a paced link may still be sending ``envelope`` before it
+        gives it up, or None (the default: the publisher's own hold applies). The publisher keeps
+        the offer that long if longer (P1), so a large map is not superseded half sent."""
+        return None
+
     def held(self, envelope: Envelope, data: bytes) -> None:  # noqa: B027 - optional hook
         """The daemon accepted ``envelope`` of another robot (``data``: its bytes as received, on
         any transport). A link that relays maps (``uwb``) may forward them unaltered; the default

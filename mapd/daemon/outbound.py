@@ -170,10 +170,7 @@ class Outbound:
         """A link that says how long it may take over ``env`` before it gives it up (uwb: its
         deadline for a map of that size, ``offer_deadline_s``) keeps the offer that long (P1):
         a large map is not superseded half sent."""
-        deadline_of = getattr(transport, "offer_deadline_s", None)
-        if deadline_of is None:
-            return
-        seconds = deadline_of(env)
+        seconds = transport.offer_deadline_s(env)
         if seconds is not None:
             self.publisher.hold(name, env.version, time.monotonic() + seconds)
 
