@@ -125,7 +125,8 @@ def test_a_peer_placed_by_the_pose_it_reported_is_placed_by_it_after_a_restart(
     assert isinstance(source1, dk.QueueSource)
     source1.queue.put_nowait(dk.growing_map(1).replace(robot="robot1"))
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
-    _run(dk, d0, d1, until=lambda: "robot1" in d0.store.data.peers)
+    # (the pose goes to fusion once the map is saved: wait for both, not the save alone)
+    _run(dk, d0, d1, until=lambda: "robot1" in d0.store.data.peers and "robot1" in d0.fusion.placer.poses)
     assert d0.fusion.placer.poses.get("robot1") == pose  # live: placed by the pose it reported
 
     d0 = Daemon(configmod.load(path0), source=dk.QueueSource("robot0"))
