@@ -391,7 +391,12 @@ def test_a_peer_folder_that_cannot_be_made_is_said_once_and_the_map_still_used(
             assert not any(t.done() for t in tasks)  # robot1 runs on
             blocker.unlink()  # room again: the next map is saved
             await s0.queue.put(dk.growing_map(3))
-            await dk.wait_for(lambda: "robot0" in d1.store.data.peers, 20, what="v3 saved")
+            # The line comes once the save's worker returned; the record is set inside it, before.
+            await dk.wait_for(
+                lambda: any(r.getMessage() == "state saved again" for r in caplog.records),
+                20,
+                what="v3 saved",
+            )
         finally:
             for d in (d0, d1):
                 d.request_stop()
