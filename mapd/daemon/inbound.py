@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +47,44 @@ log = logging.getLogger("mapd.daemon")
 
 
 @dataclass
+class FailedOffers:
+    """Failed offers of this robot's maps, said without repeating.
+
+    A map over a peer's message limit, or one a peer out of reach never acknowledges, fails again at
+    every in-flight timeout while that peer stays known (P7): a line each time said the same words
+    all day. The first failure to a peer is said, and a new reason for it; repeats go to DEBUG, and
+    the next delivery to that peer says how many offers failed before it.
+    """
+
+    logger: logging.Logger
+    #: (transport, peer) -> the reason last said at INFO, and failures since the last delivery.
+    _failing: dict[tuple[str, str], tuple[str, int]] = field(default_factory=dict)
+
+    def failed(self, ev: Failed) -> None:
+        key = (ev.transport, ev.peer)
+        said, count = self._failing.get(key, ("", 0))
+        level = logging.DEBUG if _reason(ev.reason) == _reason(said) else logging.INFO
+        self.logger.log(level, "update %s to %s failed: %s", label(ev.version), ev.peer, ev.reason)
+        self._failing[key] = (ev.reason if level == logging.INFO else said, count + 1)
+
+    def delivered(self, ev: Delivered) -> None:
+        _, count = self._failing.pop((ev.transport, ev.peer), ("", 0))
+        if count:
+            self.logger.info(
+                "update %s to %s delivered after %d failed offer%s",
+                label(ev.version),
+                ev.peer,
+                count,
+                "s" if count > 1 else "",
+            )
+
+
+def _reason(text: str) -> str:
+    """A failure's reason without its numbers (sizes and times differ from version to version)."""
+    return re.sub(r"\d[\d,.]*", "#", text)
+
+
+@dataclass
 class Inbound:
     """Handles every event the transports put on the daemon's queue (see the module docstring)."""
 
@@ -69,6 +108,8 @@ class Inbound:
     #: A full disk fails the save of every peer map and base (several a second in a large fleet):
     #: said once, and once when saving works again.
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
+    #: Offers failing again and again for one reason (a map over a peer's limit, P7) said once.
+    _failures: FailedOffers = field(default_factory=lambda: FailedOffers(log))
     #: Revocations so far, and robot -> the number of its last (see :meth:`revoked`).
     _revocations: int = 0
     _revoked_at: dict[str, int] = field(default_factory=dict)
@@ -98,6 +139,7 @@ class Inbound:
         elif isinstance(ev, Delivered):
             if ev.robot != self.me:
                 return
+            self._failures.delivered(ev)
             free, newer = core.acked(ev.transport, ev.peer, ev.version)
             if free:
                 self.wake()  # the link is free: the publisher sends it the newest version
@@ -123,7 +165,7 @@ class Inbound:
         elif isinstance(ev, Failed):
             if core.failed(ev.transport, ev.peer, ev.version):
                 self.wake()
-            log.info("update %s to %s failed: %s", label(ev.version), ev.peer, ev.reason)
+            self._failures.failed(ev)
 
     def _lost_our_base(self, peer: str) -> None:
         """``peer`` may not hold our base any more: the next update goes out whole (P4)."""
