@@ -31,6 +31,8 @@ TOKEN = "s3cret-token-0123456789"
 CONN = "document.getElementById('conn').textContent"
 #: The page says it is disconnected and when it tries again (the text, truthy, once it does).
 DISCONNECTED = f"(t => t.startsWith('disconnected, retrying in ') && t)({CONN})"
+#: The same, when the daemon refused the page's token (its token was rotated).
+TOKEN_REFUSED = f"(t => t.startsWith('token refused (rotated?), retrying in ') && t)({CONN})"
 LIVE_AND_DRAWN = f"{CONN} === 'live' && mapdView.seq > 0 && mapdView.drawnSeq === mapdView.seq"
 
 
@@ -73,7 +75,8 @@ def test_a_page_whose_token_was_rotated_says_so_and_comes_back_with_it(
     chromium: str, vk: Any, tmp_path: Path
 ) -> None:
     """A reload with a new token ends the page's stream; its next try is a 401 (the browser gives up
-    on the stream for good), then the page retries on its own."""
+    on the stream for good), then the page retries on its own. It says why (before: only
+    "disconnected", as for a daemon that was down, which sent people looking at the wrong thing)."""
     new = "n3w-token-9876543210"
 
     async def main() -> None:
@@ -86,7 +89,8 @@ def test_a_page_whose_token_was_rotated_says_so_and_comes_back_with_it(
                 await b.wait(LIVE_AND_DRAWN, 60, "the page live")
                 refused = server.counters["refused_token"]
                 server.set_token(new)
-                await b.wait(DISCONNECTED, 60, "the page saying it is disconnected")
+                said = await b.wait(TOKEN_REFUSED, 60, "the page saying its token was refused")
+                assert re.fullmatch(r"token refused \(rotated\?\), retrying in \d+ s", said), said
                 assert server.counters["refused_token"] > refused and server.viewers == 0
                 server.set_token(TOKEN)  # (the page holds only the token it was opened with)
                 await b.wait(f"{CONN} === 'live'", 60, "the page back")

@@ -311,16 +311,17 @@
   // again after 5, 10, then 20 s, each up to half as long again at random: pages refused together
   // by a full daemon do not all come back in the same second. (EventSource does not show the 503's
   // Retry-After, 10 s.)
-  function retryLater() {
+  // ``why``: what the page says while it waits ("disconnected", or that the token was refused).
+  function retryLater(why) {
     const base = [5, 10, 20][Math.min(st.retries, 2)];
     st.retries += 1;
     let left = Math.round(base + Math.random() * base / 2);
-    setConn("disconnected, retrying in " + left + " s", "bad");
+    setConn(why + ", retrying in " + left + " s", "bad");
     clearInterval(countdown);
     countdown = setInterval(() => {
       left -= 1;
       if (left > 0) {
-        setConn("disconnected, retrying in " + left + " s", "bad");
+        setConn(why + ", retrying in " + left + " s", "bad");
       } else {
         clearInterval(countdown);
         setConn("connecting", "bad");
@@ -335,7 +336,13 @@
     es.onerror = () => {
       if (es.readyState === EventSource.CLOSED) {
         es.close();
-        retryLater();
+        // EventSource does not show the refusal's status. A 401 (the daemon's token was rotated by
+        // a reload) needs a person with the new link, not patience: ask once, with a HEAD of an
+        // asset (every route checks the token; assets are not held to the viewer cap), and say so.
+        fetch("static/view.css" + query, { method: "HEAD", cache: "no-store" })
+          .then((r) => (r.status === 401 ? "token refused (rotated?)" : "disconnected"),
+                () => "disconnected")
+          .then(retryLater);
       } else {
         setConn("reconnecting", "bad"); // the stream broke: the browser tries again by itself
       }
