@@ -2,6 +2,8 @@
 
 * :mod:`~transports.zenoh.core` holds the rules, sans-I/O (what to publish, what to ack, when);
 * :mod:`~transports.zenoh.link` is the asyncio adapter registered as the ``zenoh`` plugin;
+  :mod:`~transports.zenoh.intake` and :mod:`~transports.zenoh.sending` are its receiving and
+  sending halves (mixins over its state);
 * :mod:`~transports.zenoh.keys` names the key expressions; :mod:`~transports.zenoh.session` builds
   the zenoh config; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
   :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads.

@@ -1,0 +1,138 @@
+"""What goes out over zenoh: own and relayed updates, poses and acks, put on the job thread.
+
+The sending half of :class:`~transports.zenoh.link.ZenohTransport`, as a mixin over the state the
+transport owns (declared here). Each send is a job on the :class:`~transports.zenoh.jobs.JobQueue`
+under a key that makes it latest-wins: ``("update", robot)``, ``("pose",)``, ``("ack", robot)``, so
+a newer offer, pose or ack replaces one still waiting and no stale version is ever queued. What
+was sent or refused is counted in :class:`SendCounters`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Hashable
+from dataclasses import dataclass
+from typing import Any
+
+from mapd.envelope import Envelope
+from transports.base import PoseThrottle, TransportContext
+from transports.zenoh import keys
+from transports.zenoh.core import ZenohCore
+from transports.zenoh.jobs import JobQueue
+from transports.zenoh.session import zenoh_message
+
+# The name these lines have always been logged under (log filters and journal searches use it).
+log = logging.getLogger("transports.zenoh.link")
+
+
+@dataclass
+class SendCounters:
+    """What the outbox thread sent or refused; :meth:`ZenohTransport.stats` shows these names."""
+
+    bytes_tx: int = 0
+    updates_tx: int = 0
+    acks_tx: int = 0
+    #: zenoh calls that raised (a put, a reply, a query).
+    errors: int = 0
+    #: Own envelopes over limits.max_message_bytes, never sent.
+    oversize: int = 0
+    poses_tx: int = 0
+
+
+class ZenohSending:
+    """The sending side (a mixin: :class:`~transports.zenoh.link.ZenohTransport` owns the state
+    declared here)."""
+
+    ctx: TransportContext
+    core: ZenohCore
+    _jobs: JobQueue | None
+    _session: Any
+    _publisher: Any
+    _closing: bool
+    _last_keyframe: bytes | None
+    _poses: PoseThrottle
+    _tx_lock: threading.Lock
+    _tx: SendCounters
+
+    # -- outbox thread -----------------------------------------------------------------------------
+
+    def _send_failed(self, key: Hashable, exc: BaseException) -> None:
+        with self._tx_lock:
+            self._tx.errors += 1
+        log.warning("zenoh: %s failed: %s", key[0] if isinstance(key, tuple) else key, zenoh_message(exc))
+
+    # -- the Transport API -------------------------------------------------------------------------
+
+    def offer(self, envelope: Envelope) -> None:
+        """Publish ``envelope`` on its robot's update key; replaces a still-unsent older one."""
+        if self._closing or self._jobs is None:
+            return
+        data = envelope.pack()
+        if len(data) > self.ctx.max_message_bytes:
+            with self._tx_lock:
+                self._tx.oversize += 1
+            log.warning(
+                "zenoh: not sending %s v%d: %d bytes is over limits.max_message_bytes",
+                envelope.robot,
+                envelope.version,
+                len(data),
+            )
+            return
+        if envelope.robot == self.ctx.robot and envelope.is_keyframe:
+            self._last_keyframe = data
+        self.core.offered(envelope, time.monotonic())
+        robot = envelope.robot
+        key = keys.update_key(self.ctx.fleet, robot)
+
+        def job() -> None:
+            if self._session is None:
+                return
+            if robot == self.ctx.robot and self._publisher is not None:
+                self._publisher.put(data)
+            else:
+                self._session.put(key, data)
+            with self._tx_lock:
+                self._tx.bytes_tx += len(data)
+                self._tx.updates_tx += 1
+
+        self._jobs.submit(("update", robot), job)
+
+    def send_pose(self, data: bytes, now: float) -> bool:
+        """Put this robot's pose message (best effort: zenoh may drop it under congestion)."""
+        if self._closing or self._jobs is None or not self._poses.due(now):
+            return False
+        key = keys.pose_key(self.ctx.fleet, self.ctx.robot)
+
+        def job() -> None:
+            if self._session is None:
+                return
+            import zenoh
+
+            self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
+            with self._tx_lock:
+                self._tx.bytes_tx += len(data)
+                self._tx.poses_tx += 1
+
+        self._jobs.submit(("pose",), job)  # latest wins: a pose not yet put is replaced
+        return True
+
+    def ack(self, robot: str, version: int) -> None:
+        """Tell ``robot`` that its ``version`` has been decoded here (call after a successful decode).
+
+        The robot's transport turns this into ``Delivered`` for us, so it may code deltas against
+        ``version``. Latest wins: a newer ack of the same robot replaces one not yet sent. A
+        ``version`` outside 1..2**63-1 is a caller bug (``ValueError``).
+        """
+        if self._closing or self._jobs is None or not keys.valid_name(robot) or robot == self.ctx.robot:
+            return
+        key, payload = self.core.ack(robot, version)
+
+        def job() -> None:
+            if self._session is not None:
+                self._session.put(key, payload)
+                with self._tx_lock:
+                    self._tx.acks_tx += 1
+
+        self._jobs.submit(("ack", robot), job)
