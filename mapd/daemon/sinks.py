@@ -22,7 +22,7 @@ from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
-from mapd.ros2.tf import TfFrames, robot_frame, static_transforms, unplaced_transforms
+from mapd.ros2.tf import Ros2Names, robot_frame, tf_static
 
 log = logging.getLogger("mapd.daemon")
 #: The most the file thread may have waiting, in bytes of the maps it holds: a disk that is slow
@@ -59,9 +59,10 @@ class Sinks:
         self._behind = WriteOutage(log)
         #: The latest known robot poses, which every GlobalUpdate carries too.
         self.poses_now: dict[str, StampedPose] = {}
-        #: The latest /tf_static recorded (parent, child, pose), and every robot it ever placed.
+        #: The latest /tf_static recorded (parent, child, pose), and every robot the recording ever
+        #: placed (in this run, or in the one before: kept beside the recording's files).
         self._recorded_tf: list[tuple[str, str, Pose2D]] = []
-        self._recorded_placed: set[str] = set()
+        self._recorded_placed: set[str] = set(recorder.placed_before) if recorder is not None else set()
         #: Called on the loop with every robot map the daemon holds (the live view notes its size).
         self.map_watchers: list[Callable[[OccupancyGrid], None]] = []
 
@@ -88,28 +89,24 @@ class Sinks:
             )
             self._to_outputs(update)
         if self.recorder is not None:
-            f = self._frames()
-            self._record(self.recorder.grid, "/map", grid, f.frame, wall)
+            names = self._names()
+            self._record(self.recorder.grid, names.map_topic, grid, names.frames.frame, wall)
             # A robot no longer placed moves under unplaced_frame, as on the ros2 output: tf2 keeps
             # a static transform for as long as it runs, so one only left out of the next message
             # stayed placed when the recording was played.
-            gone = sorted(self._recorded_placed - set(frames)) if f.unplaced_frame else []
-            self._recorded_placed |= set(frames)
-            items = [
-                (parent, child, pose)
-                for parent, child, pose, _ in static_transforms(f.frame, frames, wall, f.robot_map_frame)
-                + unplaced_transforms(f.unplaced_frame, gone, wall, f.robot_map_frame)
-            ]
+            stamped, _, placed = tf_static(names.frames, frames, self._recorded_placed, wall)
+            grown, self._recorded_placed = placed != self._recorded_placed, placed
+            items = [(parent, child, pose) for parent, child, pose, _ in stamped]
             if items != self._recorded_tf:  # latched: written again only when a placement changes
                 self._recorded_tf = items
-                self._record(self.recorder.transform_list, "/tf_static", items, wall)
+                self._record(self.recorder.tf_static, items, wall, sorted(placed) if grown else None)
 
     def robot_map(self, grid: OccupancyGrid) -> None:
         """A robot's map as this daemon now holds it (its own, or one received)."""
         for watch in self.map_watchers:
             watch(grid)
         if self.recorder is not None:
-            frame = robot_frame(self._frames().robot_map_frame, grid.robot)
+            frame = robot_frame(self._names().frames.robot_map_frame, grid.robot)
             self._record(self.recorder.grid, f"/{grid.robot}/map", grid, frame, time.time())
 
     def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
@@ -117,7 +114,7 @@ class Sinks:
         before, self.poses_now = self.poses_now, poses
         if self.outputs:
             self._to_outputs(poses=PoseUpdate(poses=poses, frames=frames))
-        f = self._frames()
+        f = self._names().frames
         if self.recorder is not None and f.robot_pose_frame:  # ("": no poses, as on the ros2 output)
             wall = time.time()
             for robot, sp in poses.items():  # /tf: <robot>/map -> <robot>/base_link, when it moved
@@ -137,15 +134,14 @@ class Sinks:
         if self.recorder is not None:
             self._record(self.recorder.json, "/mapd/links", links, time.time())
 
-    def _frames(self) -> TfFrames:
-        """The frame names of the ``ros2`` output when it runs (the defaults without one): a
-        recording played into the graph that output publishes on must name frames as it does."""
+    def _names(self) -> Ros2Names:
+        """The topic and frame names of the output that publishes on a ROS 2 graph (the ``ros2``
+        output; the defaults without one): a recording played into that graph must agree with it."""
         for o in self.outputs:
-            frames = getattr(o.options, "tf_frames", None)  # (the ros2 output's options have it)
-            got = frames() if callable(frames) else None
-            if isinstance(got, TfFrames):
-                return got
-        return TfFrames()
+            names = o.ros2_names()
+            if names is not None:
+                return names
+        return Ros2Names()
 
     def status(self) -> dict[str, Any]:
         return {o.name: o.stats() for o in self.outputs}

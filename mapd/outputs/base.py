@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict
 
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.identity import Identity
+from mapd.ros2.tf import Ros2Names
 
 
 class OutputOptions(BaseModel):
@@ -91,3 +92,8 @@ class Output(ABC):
     def stats(self) -> dict[str, int | float | str]:
         """Counters for ``mapd status``."""
         return {}
+
+    def ros2_names(self) -> Ros2Names | None:
+        """The ROS 2 graph names this output publishes under (the global map's topic, the TF
+        frames), which the MCAP recording then uses too; None (the default): it publishes on none."""
+        return None

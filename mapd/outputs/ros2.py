@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import logging
 import re
 import threading
 from pathlib import Path
@@ -46,23 +45,17 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
-from mapd.errors import MapdError, UnreachableError
-from mapd.files import atomic_write_json, read_json_capped
+from mapd.errors import UnreachableError
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.outputs.retry import SessionRetry
 from mapd.ros2 import rmw
-from mapd.ros2.tf import TfFrames, robot_frame, static_transforms, unplaced_transforms
+from mapd.ros2.tf import Ros2Names, TfFrames, load_shown, robot_frame, save_shown, tf_static
 from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
 FRAMES_FILE = "ros2_frames.json"
-#: Robot names kept there at the most (a fleet's roster is far smaller) and that file's size cap.
-MAX_SHOWN = 4096
-MAX_FRAMES_FILE_BYTES = 1 << 20
-
-log = logging.getLogger(__name__)
 
 
 class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
@@ -141,11 +134,7 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     @field_validator("namespace")
     @classmethod
     def _check_ns(cls, v: str) -> str:
-        ns = v.strip("/")  # "/fleet", "fleet" and "fleet/" are one namespace, as before
-        if ns:
-            rmw.check_topic_name(ns, "namespace")
-        rmw.fq_namespace(v)
-        return v
+        return rmw.check_namespace(v)
 
     @model_validator(mode="after")
     def _frames_apart(self) -> Ros2OutputOptions:
@@ -177,6 +166,11 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
         """The frame names set here."""
         return TfFrames(self.frame, self.robot_map_frame, self.robot_pose_frame, self.unplaced_frame)
 
+    def ros_topic(self) -> str:
+        """The global map's fully qualified topic in the ROS graph: under ``namespace`` with
+        rmw_zenoh; with ``ros2dds`` the namespace is the bridge's, on the zenoh side only."""
+        return rmw.fq_topic(self.topic, self.namespace if self.format == "rmw_zenoh" else "")
+
     def map_key_expr(self) -> str:
         """The zenoh key the global map is published on (any type hash: ``*``)."""
         from mapd.ros2.cdr import MSGTYPE
@@ -204,7 +198,7 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
             return
         if not rmw.key_exprs_intersect(source.map_key_expr(), self.map_key_expr()):
             return
-        topic = rmw.fq_topic(self.topic, self.namespace if self.format == "rmw_zenoh" else "")
+        topic = self.ros_topic()
         where = (
             f"ROS domain {self.domain_id}" if self.format == "rmw_zenoh" else f"key {self.map_key_expr()!r}"
         )
@@ -371,21 +365,17 @@ class Ros2Output(Output):
             self._send_poses(update)
 
     def _send_static(self, frames: dict[str, Pose2D], stamp: float) -> None:
-        o = self.opts
         with self._lock:
-            gone = sorted(self._shown - set(frames)) if o.unplaced_frame else []
+            items, gone, shown = tf_static(self.opts.tf_frames(), frames, self._shown, stamp)
             if frames == self._static_sent or not (frames or gone):
                 return
             self._static_sent = dict(frames)
-            grown = not set(frames) <= self._shown
-            self._shown |= set(frames)
-            shown = sorted(self._shown)
+            grown, self._shown = shown != self._shown, shown
         from mapd.ros2 import cdr
 
-        if grown:
-            self._save_shown(shown)  # before the message: a crash after it must not forget one
-        items = static_transforms(o.frame, frames, stamp, o.robot_map_frame)
-        items += unplaced_transforms(o.unplaced_frame, gone, stamp, o.robot_map_frame)
+        path = self._frames_file()
+        if grown and path is not None:  # before the message: a crash after it must not forget one
+            save_shown(path, sorted(shown), "ros2 output")
         self._tf_static.put(cdr.encode_tf(items))
         self.static_msgs += 1
         self.unplaced = len(gone)
@@ -397,31 +387,11 @@ class Ros2Output(Output):
     def _load_shown(self) -> set[str]:
         """The robots whose frames an earlier run sent (none when the file is missing or unreadable)."""
         path = self._frames_file()
-        if path is None:
-            return set()
-        try:
-            doc = read_json_capped(path, MAX_FRAMES_FILE_BYTES)
-            robots = doc.get("robots") if isinstance(doc, dict) else None
-            if not isinstance(robots, list) or not all(
-                isinstance(r, str) and re.fullmatch(NAME_PATTERN, r) for r in robots
-            ):
-                raise ValueError("no list of robot names under 'robots'")
-        except FileNotFoundError:
-            return set()
-        except (OSError, ValueError, RecursionError, MapdError) as exc:
-            # A lost list costs only the moving off of frames an earlier run sent: said, not fatal.
-            log.warning("ros2 output: ignoring %s (%s); frames sent before it are not moved off", path, exc)
-            return set()
-        return set(robots[:MAX_SHOWN])
+        return set() if path is None else load_shown(path, "ros2 output")
 
-    def _save_shown(self, robots: list[str]) -> None:
-        path = self._frames_file()
-        if path is None:
-            return
-        try:
-            atomic_write_json(path, {"robots": robots[:MAX_SHOWN]})
-        except OSError as exc:
-            log.warning("ros2 output: cannot write %s: %s", path, exc.strerror or exc)
+    def ros2_names(self) -> Ros2Names:
+        """The global map's topic and the frames set in ``[output.ros2]``."""
+        return Ros2Names(self.opts.ros_topic(), self.opts.tf_frames())
 
     def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
         from mapd.ros2 import cdr

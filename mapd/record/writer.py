@@ -1,11 +1,19 @@
 """MCAP recordings of a running fleet, readable by Foxglove and ``ros2 bag`` (ROS 2 CDR, schemas inside).
 
-Channels (REP-105 frame names: the fleet frame is ``map``, each robot's map frame ``<robot>/map``):
+Channels, named as the ``ros2`` output names its topics and frames when the daemon runs one (its
+``topic``, with its namespace; ``frame``, ``robot_map_frame``, ``robot_pose_frame`` and
+``unplaced_frame``), so that a bag plays into the same graph; else (REP-105) ``/map``, ``map``,
+``<robot>/map``, ``<robot>/base_link`` and ``mapd/unplaced``:
 
-* ``/map``: the global map, ``nav_msgs/msg/OccupancyGrid`` in the fleet frame, on every merge;
+* ``/map`` (the output's topic): the global map, ``nav_msgs/msg/OccupancyGrid`` in the fleet
+  frame, on every merge;
 * ``/<robot>/map``: each robot's map as this daemon holds it (received, or its own);
 * ``/tf_static``: ``tf2_msgs/msg/TFMessage``, fleet frame -> ``<robot>/map`` for every placed
-  robot, written again whenever a placement changes;
+  robot, written again whenever a placement changes, and ``unplaced_frame`` -> ``<robot>/map`` for
+  every robot the recording placed before that is no longer placed. Which robots it placed is kept
+  beside the files (``NAME.placed.json``, :data:`PLACED_SUFFIX`), so a restarted daemon moves the
+  ones the run before placed off the tree too, as the ``ros2`` output does with its own list;
+* ``/tf``: ``<robot>/map`` -> ``<robot>/base_link`` whenever a robot's pose changes;
 * ``/mapd/links``: the transports' counters (JSON with a JSON schema), every ``stats_every_s``.
 
 Every message is stamped with the wall clock (log time and publish time, nanoseconds). The file is
@@ -43,6 +51,7 @@ import yaml
 from mapd.errors import ConfigError, StateError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.record.files import RawFile, RecordingFiles
+from mapd.ros2.tf import load_shown, save_shown
 
 log = logging.getLogger("mapd.record")
 
@@ -57,6 +66,8 @@ LINKS_SCHEMA = {
 DEFAULT_MAX_BYTES = 256 << 20
 DEFAULT_MAX_TOTAL_BYTES = 2 << 30
 DEFAULT_MIN_FREE_BYTES = 256 << 20
+#: Beside ``NAME.mcap``: ``NAME.placed.json``, the robots the recording placed under the fleet frame.
+PLACED_SUFFIX = ".placed.json"
 
 
 def _ns(wall: float) -> int:
@@ -131,6 +142,9 @@ class Recorder:
         self.messages = 0
         self._last_tf: tuple[bytes, float] | None = None
         self._tf_owed = False  # the open file lacks the latest /tf_static (new, or it was refused)
+        #: The robots this recording placed under the fleet frame in the files of a run before this
+        #: one (a small file, read once at start).
+        self.placed_before: set[str] = load_shown(self.placed_path, "record")
 
     # ------------------------------------------------------------------ properties
     @property
@@ -142,6 +156,12 @@ class Recorder:
     def removed(self) -> int:
         """Files of the recording removed to stay within ``max_total_bytes``."""
         return self.disk.removed
+
+    @property
+    def placed_path(self) -> Path:
+        """Where the robots the recording placed are kept (``NAME.placed.json``, never a file of the
+        recording's own: those end in ``.N.mcap``)."""
+        return self.path.with_name(self.path.stem + PLACED_SUFFIX)
 
     # ------------------------------------------------------------------ files
     def _open(self) -> None:
@@ -339,6 +359,16 @@ class Recorder:
             if topic == "/tf_static":
                 self._last_tf = (data, wall)
             self._write(topic, lambda: self._ros2_channel(topic, TF_TYPE), data, wall)
+
+    def tf_static(
+        self, transforms: list[tuple[str, str, Pose2D]], wall: float, placed: list[str] | None = None
+    ) -> None:
+        """The latest ``/tf_static`` (:meth:`transform_list`). ``placed``, when the robots the
+        recording placed under the fleet frame grew: all of them, kept first (a crash after the
+        message must not forget one) for the next run's :attr:`placed_before`."""
+        if placed is not None:
+            save_shown(self.placed_path, placed, "record")
+        self.transform_list("/tf_static", transforms, wall)
 
     def json(self, topic: str, doc: dict[str, Any], wall: float) -> None:
         """A JSON document (the link counters) on ``topic``."""

@@ -185,6 +185,15 @@ def check_topic_name(name: str, what: str = "topic") -> str:
     return name
 
 
+def check_namespace(namespace: str) -> str:
+    """``namespace`` when it is a namespace rcl accepts (``/fleet``, ``fleet`` and ``fleet/`` are one
+    namespace; empty or ``/``: the root), else ValueError with one line."""
+    ns = namespace.strip("/")
+    if ns:
+        check_topic_name(ns, "namespace")
+    return namespace
+
+
 def check_frame_id(frame: str, *, shown: str | None = None) -> str:
     """``frame`` when tf2 takes it as written, else ValueError with one line.
 

@@ -81,11 +81,25 @@ class Ros2Options(ZenohConfigFiles, SourceOptions):
             self.topic, self.key_format, domain=self.domain, namespace=self.namespace, subscribe=True
         )
 
+    @field_validator("topic", "robot_map_topic")
+    @classmethod
+    def _check_topic(cls, v: str) -> str:
+        # rcl's grammar, as [output.ros2] has it: a name no ROS node can spell is never published
+        return rmw.check_topic_name(v)
+
     @field_validator("robot_map_topic")
     @classmethod
-    def _check_robot_topic(cls, v: str) -> str:
-        rmw.check_name(v)
+    def _one_name(cls, v: str) -> str:
+        # Discovery takes /<robot>/<robot_map_topic> with the robot as the first part: a deeper
+        # name ('slam/map') is a topic rcl allows, on which no robot would ever be taken.
+        if "/" in v.strip("/"):
+            raise ValueError(f"'{v}' must be one name under each robot's namespace (as 'map')")
         return v
+
+    @field_validator("namespace")
+    @classmethod
+    def _check_namespace(cls, v: str) -> str:
+        return rmw.check_namespace(v)
 
     @field_validator("init_poses")
     @classmethod
@@ -95,16 +109,10 @@ class Ros2Options(ZenohConfigFiles, SourceOptions):
                 raise ValueError(f"init pose of '{robot}' must be [x, y, yaw] (m, m, rad)")
         return v
 
-    @field_validator("topic")
-    @classmethod
-    def _check_topic(cls, v: str) -> str:
-        ros2cdr.rmw_zenoh_key(v, hash_="*")  # raises ValueError for a bad name
-        return v
-
     @field_validator("pose_topic")
     @classmethod
     def _check_pose_topic(cls, v: str | None) -> str | None:
-        return v if v is None else rmw.fq_topic(v)  # ValueError for a bad name
+        return v if v is None else rmw.fq_topic(rmw.check_topic_name(v))
 
     @model_validator(mode="after")
     def _one_robot_pose(self) -> Ros2Options:

@@ -276,3 +276,55 @@ def test_the_recording_names_frames_as_the_ros2_output_does(tmp_path: Path) -> N
     sinks.close()
     static, tf = _tf_static_and_tf(tmp_path / "quiet.mcap")
     assert static == [[("map", "robot0/map", 0.0), ("map", "robot1/map", 4.0)]] and tf == []
+
+
+def test_the_recording_puts_the_global_map_on_the_ros2_outputs_topic(tmp_path: Path) -> None:
+    # A robot-side layout publishes the fleet's map on fleet/map (its own SLAM map is /map): a bag
+    # that recorded the global map on /map played a second map onto the robot's /map.
+    for k, (opts, topic) in enumerate(
+        [
+            (Ros2OutputOptions(topic="fleet/map", frame="fleet"), "/fleet/map"),
+            (Ros2OutputOptions(topic="fleet_map", namespace="/robot1", frame="fleet"), "/robot1/fleet_map"),
+            # ros2dds: the namespace is the bridge's, on the zenoh side; in the ROS graph it is the topic
+            (Ros2OutputOptions(topic="/fleet/map", namespace="robot1", format="ros2dds"), "/fleet/map"),
+        ]
+    ):
+        out = Ros2Output(opts, OutputContext(robot="base", fleet="f"))  # never started: no session
+        path = tmp_path / f"fleet{k}.mcap"
+        sinks = Sinks([out], Recorder(path, min_free_bytes=0), CsvLog(tmp_path / "fused.csv"))
+        sinks.robot_map(grid(20, 10, "robot1", 1))
+        sinks.global_map(grid(64, 64), {"robot0": Placement("robot0", Pose2D(), "anchor", True)}, {})
+        sinks.close()
+        got = {t: m.header.frame_id for t, s, _, m in read_all(path) if s == "nav_msgs/msg/OccupancyGrid"}
+        assert got == {topic: opts.frame, "/robot1/map": "robot1/map"}, opts
+    # without a ros2 output: /map, as before
+    sinks = Sinks([], Recorder(tmp_path / "plain.mcap", min_free_bytes=0), CsvLog(tmp_path / "fused.csv"))
+    sinks.global_map(grid(64, 64), {"robot0": Placement("robot0", Pose2D(), "anchor", True)}, {})
+    sinks.close()
+    assert [t for t, s, _, _ in read_all(tmp_path / "plain.mcap") if s == "nav_msgs/msg/OccupancyGrid"] == [
+        "/map"
+    ]
+
+
+def test_a_restarted_recording_moves_the_robots_the_run_before_placed_off_the_tree(tmp_path: Path) -> None:
+    # tf2 keeps every static transform of a bag it played: robot1, placed in the files of the run
+    # before, stayed placed after a restart that no longer placed it, unless the restarted
+    # recording moves it under unplaced_frame as the restarted ros2 output does.
+    g = grid(64, 64)
+    both = {
+        "robot0": Placement("robot0", Pose2D(), "anchor", True),
+        "robot1": Placement("robot1", Pose2D(4.0, -1.0, 1.5), "pose", True),
+    }
+    sinks = Sinks([], Recorder(tmp_path / "fleet.mcap", min_free_bytes=0), CsvLog(tmp_path / "fused.csv"))
+    sinks.global_map(g, both, {})
+    sinks.close()
+    # the restart: a new recorder on the same files (it goes on in fleet.1.mcap)
+    sinks = Sinks([], Recorder(tmp_path / "fleet.mcap", min_free_bytes=0), CsvLog(tmp_path / "fused.csv"))
+    sinks.global_map(g, {"robot0": both["robot0"]}, {})  # robot1 no longer placed
+    sinks.close()
+    static, _ = _tf_static_and_tf(tmp_path / "fleet.1.mcap")
+    assert static == [[("map", "robot0/map", 0.0), ("mapd/unplaced", "robot1/map", 0.0)]]
+    assert _tf2_after_playback(_tf_static_and_tf(tmp_path / "fleet.mcap")[0] + static) == {
+        "robot0/map": "map",
+        "robot1/map": "mapd/unplaced",
+    }

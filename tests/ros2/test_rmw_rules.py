@@ -11,8 +11,9 @@ import pytest
 from mapd.errors import CodecError
 from mapd.grid import Pose2D, StampedPose
 from mapd.outputs.base import PoseUpdate
-from mapd.outputs.ros2 import Ros2OutputOptions, pose_transforms, static_transforms
+from mapd.outputs.ros2 import Ros2OutputOptions, pose_transforms
 from mapd.ros2 import cdr, rmw
+from mapd.ros2.tf import static_transforms
 
 GRID = "nav_msgs/msg/OccupancyGrid"
 TF = "tf2_msgs/msg/TFMessage"

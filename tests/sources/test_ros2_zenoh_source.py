@@ -8,6 +8,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,8 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd import plugins
+from mapd.demo.fleet import write_config
 from mapd.demo.ports import free_port
-from mapd.errors import CodecError, LimitError, TransportError
+from mapd.errors import CodecError, ConfigError, LimitError, TransportError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2.node import Ros2Sink
@@ -84,6 +86,58 @@ def test_keys() -> None:
             ros2cdr.rmw_zenoh_key(bad)
     with pytest.raises(ValueError):
         Ros2Options(topic="bad//topic")
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "says"),
+    [
+        ("topic", "my-map", "not a ROS 2 topic name"),  # the older check let these through
+        ("topic", "/map/", "not a ROS 2 topic name"),
+        ("topic", "/2d/map", "not a ROS 2 topic name"),
+        ("topic", "/ma p", "not a ROS 2 topic name"),
+        ("topic", "~/map", "does not expand '~'"),
+        ("topic", "bad//topic", "not a ROS 2 topic name"),
+        ("pose_topic", "amcl-pose", "not a ROS 2 topic name"),
+        ("pose_topic", "/1pose", "not a ROS 2 topic name"),
+        ("pose_topic", "/{node}/pose", "does not expand"),
+        ("robot_map_topic", "my-map", "not a ROS 2 topic name"),
+        ("robot_map_topic", "map/", "not a ROS 2 topic name"),
+        ("robot_map_topic", "2map", "not a ROS 2 topic name"),
+        # rcl takes it, but discovery reads /<robot>/<one name>: no robot would ever be taken
+        ("robot_map_topic", "slam/map", "one name under each robot's namespace"),
+        ("namespace", "my-fleet", "not a ROS 2 namespace name"),
+        ("namespace", "/fleet//a", "not a ROS 2 namespace name"),
+    ],
+)
+def test_the_sources_topic_options_are_names_rcl_accepts(
+    tmp_path: Path, option: str, value: str, says: str
+) -> None:
+    # [output.ros2] checks its names as rcl does; the source kept a looser check, so a name no ROS
+    # node can publish on ('my-map') was taken and the source waited for maps that never came.
+    from mapd import config as configmod
+
+    def load(options: dict[str, Any]) -> Any:
+        path = tmp_path / "mapd.toml"
+        write_config(
+            path, {"robot": {"name": "r1", "fleet": "lab"}, "source": {"use": "ros2", "ros2": options}}
+        )
+        return configmod.plugin_options(configmod.load(path), "source", "ros2")
+
+    extra = {"discover_robots": True} if option == "robot_map_topic" else {}
+    with pytest.raises(ConfigError) as info:
+        load({option: value, **extra})
+    line = str(info.value)
+    assert "\n" not in line and line.count("source.ros2.") == 1, line  # one line
+    assert f"source.ros2.{option}:" in line and says in line, line
+    good = {
+        "topic": ["/map", "map", "/robot_1/map", "fleet/map"],
+        "pose_topic": ["/amcl_pose", "amcl_pose", "/robot1/amcl_pose"],
+        "robot_map_topic": ["map", "grid_map", "/map"],
+        "namespace": ["", "/", "robot1", "/fleet/robot_1/"],
+    }[option]
+    for ok in good:
+        opts = load({option: ok, **extra})
+        assert getattr(opts, option) in (ok, "/" + ok.lstrip("/")), (option, ok)
 
 
 def test_decode_rejects_garbage_and_oversized_grids() -> None:
