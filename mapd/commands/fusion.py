@@ -183,6 +183,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
         [in_frame.get(n) for n in names],
         args.mode,
         resolution=maps[names[0]].resolution,
+        chunk=1,  # one-shot: no later merge to keep the size steady for, so no 64-cell blocks
         frame_id="map",
     )
     refused = {names[i]: why for i, why in result.left_out}  # placed, but the merge could not take it

@@ -137,6 +137,9 @@ class Daemon:
         self.status_server = StatusServer(cfg.control_socket(), self.snapshot)
         #: The state directory's lock (lock_state_dir), taken as the state is loaded.
         self._state_lock: int | None = None
+        #: Whether the state directory was read whole: only then does the shutdown write state.json
+        #: (a restore that failed has nothing to save, and must not write an empty state over one).
+        self._state_read = False
         self.outputs: list[Output] = []
         # Outputs, the MCAP recording and fused.csv, each on a worker thread, never on the loop.
         rec = cfg.record
@@ -297,8 +300,11 @@ class Daemon:
         A stop asked for during start-up (``systemctl stop`` of a start that takes long: a source
         building its world, a transport opening) ends the start-up there, without READY=1.
         """
-        await self._restore()
         try:
+            # In the try: a restore that fails after taking the state directory's lock (a file
+            # where a folder goes) held it for the rest of the process, so a daemon started again
+            # in it (an embedding, a test) found the directory "in use" by itself.
+            await self._restore()
             if not await self._unless_stopped(self._start()):
                 return
             notify(f"READY=1\nSTATUS={self._status_now()}")
@@ -448,8 +454,9 @@ class Daemon:
             log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
         t_closed = time.monotonic()
         await asyncio.to_thread(self.sinks.close)  # queued writes, then the recording's footer
-        with contextlib.suppress(MapdError, OSError):
-            await asyncio.to_thread(self.store.flush)
+        if self._state_read:
+            with contextlib.suppress(MapdError, OSError):
+                await asyncio.to_thread(self.store.flush)
         if self._state_lock is not None:  # state.json written: another daemon may take the directory
             os.close(self._state_lock)
             self._state_lock = None
@@ -505,7 +512,9 @@ class Daemon:
                 self._revoked_at_start(robot, "state.json does not name it, nor does it name its key")
                 continue
             peers.append(saved)
-        return own, self.store.base_map(), peers
+        base = self.store.base_map()
+        self._state_read = True
+        return own, base, peers
 
     def _revoked_at_start(self, robot: str, why: str) -> None:
         """Leave ``robot``'s saved map out, and remove it, so no later start restores it either."""

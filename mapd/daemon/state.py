@@ -153,9 +153,10 @@ def _saved_pose(extra: dict[str, Any], where: Path) -> Pose2D | None:
         and len(raw) == 3
         and all(isinstance(v, int | float) and not isinstance(v, bool) for v in raw)
     ):
-        pose = Pose2D(*(float(v) for v in raw))
-        if all(math.isfinite(v) for v in pose):
-            return pose
+        with contextlib.suppress(OverflowError):  # an int too large for a float (YAML reads any)
+            pose = Pose2D(*(float(v) for v in raw))
+            if all(math.isfinite(v) for v in pose):
+                return pose
     log.warning("state map %s: ignoring its reported pose %.60r (not three finite numbers)", where, raw)
     return None
 

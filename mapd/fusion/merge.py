@@ -22,6 +22,13 @@ of cells from the fleet frame's origin, and its bounds are rounded out to blocks
 Passing the previous ``bounds`` makes them only ever grow. So a point of the fleet frame stays in
 the same global cell however the maps grow, and the origin moves only when the map grows past a
 block edge towards negative x or y (the fix for m-explore's drifting merged origin).
+
+The blocks are deliberate, not slack: the daemon's global map is re-published at every merge while
+the robots explore, and a new size or origin costs its consumers more than unknown cells do (Nav2's
+static layer resizes its whole costmap when the map's size or origin changes; the live view sends
+its edge tiles again). With blocks the size changes once per 64 cells of growth rather than at
+nearly every merge, for at most 63 unknown cells beyond the maps on a side. A one-shot merge, with
+no later merge to keep steady, can ask for a tight map with ``chunk=1``.
 """
 
 from __future__ import annotations
@@ -133,6 +140,11 @@ def extent(
     allp = np.vstack(pts) / resolution
     if not np.all(np.isfinite(allp)) or np.abs(allp).max() > 2**40:
         raise FusionError("a transform places a map absurdly far from the fleet frame's origin")
+    # A corner on a lattice line comes out a hair past it (320.00000000000006 cells), and rounding
+    # out took it a whole block further: a map of whole blocks on block edges (the global map merged
+    # again) grew by 64 unknown cells on a side. Within 1e-6 cells is on the line (as Bounds.of_grid).
+    near = np.rint(allp)
+    allp = np.where(np.abs(allp - near) <= 1e-6, near, allp)
     k = max(1, chunk)
     c0 = math.floor(float(allp[:, 0].min()) / k) * k
     r0 = math.floor(float(allp[:, 1].min()) / k) * k

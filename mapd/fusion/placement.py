@@ -20,7 +20,9 @@ the ``anchor`` robot's map frame (the worker's own robot, or the first map of ``
   (dropping it would flip the map too) and says so in its reason;
 * a placement estimated against another robot's map is held *relative to that map*: when that
   robot is placed anew (its pose corrected, or it switched), the placement moves with it, unless
-  only the old fleet-frame placement still fits that robot's map (its map frame itself moved);
+  only the old fleet-frame placement still fits that robot's map (its map frame itself moved).
+  Where that robot was placed then is part of the placement (``against_at``), saved with it, so a
+  restored placement follows too;
 * an estimate below threshold is never merged; its ``reason`` says why.
 
 Pure logic over :func:`~mapd.fusion.estimate.estimate_transform`: no asyncio, no clock, no files.
@@ -38,7 +40,7 @@ import numpy as np
 from mapd.fusion.estimate import Estimate, check_transform, estimate_transform
 from mapd.fusion.options import EstimateOptions
 from mapd.fusion.transforms import IDENTITY, compose, inverse, pose_distance
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import MAX_ORIGIN_M, OccupancyGrid, Pose2D
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,10 @@ class Placement:
     """Where one robot's map goes: its map frame in the fleet frame, and why.
 
     ``source`` is ``anchor`` (its frame is the fleet frame), ``pose`` (configured), ``estimate``,
-    or ``none`` (not merged). ``accepted`` says whether it is merged.
+    or ``none`` (not merged). ``accepted`` says whether it is merged. An accepted estimate's
+    ``against_at`` is where the robot it was estimated ``against`` was placed then: the placement
+    is held relative to that map, and follows it when it is placed anew (None: not known, as in a
+    ``transforms.json`` of an earlier release).
     """
 
     robot: str
@@ -58,6 +63,7 @@ class Placement:
     reason: str = ""
     against: str | None = None
     watching: dict[str, float] | None = None
+    against_at: Pose2D | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able form (used by ``status()`` and ``transforms.json``)."""
@@ -74,6 +80,7 @@ class Placement:
             "reason": self.reason,
             "against": self.against,
             "watching": self.watching,
+            "against_at": _pose_dict(self.against_at),
         }
 
     @staticmethod
@@ -82,13 +89,8 @@ class Placement:
         read back may be damaged: not a mapping, numbers too large for a float, a text for one)."""
         if not isinstance(d, Mapping):
             raise TypeError(f"a placement is a mapping, not {type(d).__name__}")
-        xs = (d.get("x"), d.get("y"), d.get("yaw"))
-        t = None
-        if all(v is not None for v in xs):
-            vals = tuple(_number(v) for v in xs)
-            if not all(math.isfinite(v) for v in vals):
-                raise ValueError("transform is not finite")
-            t = Pose2D(*vals)
+        t = _pose(d) if all(d.get(k) is not None for k in ("x", "y", "yaw")) else None
+        at = d.get("against_at")
         agr = d.get("agreement")
         return Placement(
             robot=str(d["robot"]),
@@ -99,7 +101,37 @@ class Placement:
             agreement=None if agr is None else _number(agr),
             reason=str(d.get("reason", "")),
             against=None if d.get("against") is None else str(d["against"]),
+            against_at=None if at is None else _against_at(at),
         )
+
+
+def _pose_dict(t: Pose2D | None) -> dict[str, float] | None:
+    return None if t is None else {"x": t.x, "y": t.y, "yaw": t.yaw}
+
+
+def _pose(d: Mapping[Any, Any]) -> Pose2D:
+    """``d``'s x, y and yaw as a pose; KeyError, TypeError or ValueError when they are not finite
+    numbers, or x or y lies beyond :data:`~mapd.grid.MAX_ORIGIN_M` (no global map holds a map placed
+    there, and one at 1e308 m overflowed every merge's arithmetic to NaN: the global map froze)."""
+    vals = tuple(_number(d[k]) for k in ("x", "y", "yaw"))
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError("transform is not finite")
+    for name, v in (("x", vals[0]), ("y", vals[1])):
+        if abs(v) > MAX_ORIGIN_M:
+            raise ValueError(f"{name} {v:g} is not within +-{MAX_ORIGIN_M:g} m")
+    return Pose2D(*vals)
+
+
+def _against_at(v: object) -> Pose2D:
+    """A saved ``against_at``, as :func:`_pose` reads a transform."""
+    if not isinstance(v, Mapping):
+        raise TypeError(f"against_at is a mapping, not {type(v).__name__}")
+    try:
+        return _pose(v)
+    except KeyError as exc:
+        raise ValueError(f"against_at has no {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"against_at: {exc}") from None
 
 
 def _number(v: object) -> float:
@@ -137,9 +169,6 @@ class _Track:
     challenger: Pose2D | None = None
     #: searched updates in a row that saw ``challenger`` clearly better
     streak: int = 0
-    #: where the robot the held placement was estimated against was placed then (so the held
-    #: placement can follow it when it is placed anew); None when not known (restored)
-    against_at: Pose2D | None = None
     #: other robot -> ((digest of its map, digest of this map, other's placement, held transform),
     #: answer)
     last: dict[str, tuple[tuple[bytes, bytes, Pose2D, Pose2D | None], Placement]] = field(
@@ -404,7 +433,8 @@ class Placer:
         assert best is not None
         if best.accepted and best.source == "estimate" and best.against in placed:
             assert best.against is not None
-            track.against_at = placed[best.against]
+            # where the map it is held against lies now: it follows that map from here
+            best = replace(best, against_at=placed[best.against])
         return best
 
     def _place_against(
@@ -425,13 +455,13 @@ class Placer:
         own = held is not None and other == held.against
         prior = None if held is None else compose(inverse(t_other), held.transform or IDENTITY)
         est: Estimate | None = None
-        if held is not None and own and track.against_at is not None and track.against_at != t_other:
+        if held is not None and own and held.against_at is not None and held.against_at != t_other:
             # The map it was found against was placed anew (a corrected pose, a switch): the held
             # placement is relative to that map, and moves with it. Unless that map's frame moved
             # itself (SLAM re-anchored, and that robot switched to follow): then the old
             # fleet-frame placement is the one that still fits, and stays.
             track.challenger, track.streak = None, 0  # seen against the old placement
-            rel = compose(inverse(track.against_at), held.transform or IDENTITY)
+            rel = compose(inverse(held.against_at), held.transform or IDENTITY)
             follow = self._estimate(a, b, rel, search=False)
             if self._holds(follow, rel, b):
                 held = replace(held, transform=compose(t_other, rel))

@@ -9,8 +9,10 @@ file or the new one, never half of one):
   shifted);
 * ``transforms.json``: the placements, per robot the "fleet frame -> robot map" transform (x, y in
   meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``) with its source,
-  confidence and reason, the global map's version, and the roster key each peer's map in it was
-  taken under (``keys``: a robot re-keyed by the next start has the global map rebuilt without it);
+  confidence and reason (and for one found against another robot's map, where that map was placed
+  then, ``against_at``: a restored placement follows that map when it is placed anew), the global
+  map's version, and the roster key each peer's map in it was taken under (``keys``: a robot
+  re-keyed by the next start has the global map rebuilt without it);
 * ``owner.npy`` + ``owner.json``: per cell, which robot's map weighed most (an index into the
   names in ``owner.json``; -1 where none knows), for coloured pictures.
 

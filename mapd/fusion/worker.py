@@ -24,7 +24,9 @@ API for the daemon::
   cell lattice and only grows outward in blocks of 64 cells (:mod:`mapd.fusion.merge`).
 * ``transforms.json`` and ``status()["robots"]`` give, per robot, the "fleet frame -> robot map"
   transform (x, y in meters, yaw in radians, such that ``p_fleet = R(yaw) p_robot_map + (x, y)``),
-  its source, confidence, agreement, whether it is merged, and the reason when it is not.
+  its source, confidence, agreement, whether it is merged, and the reason when it is not; for one
+  found against another robot's map, where that map was placed then (``against_at``), so that a
+  restored placement follows that map when it is placed anew, as a live one does.
 * Until every robot named in a restored ``transforms.json`` has sent a map again, the restored global
   map fills the cells no current map knows, so a restart never shows a half-empty map.
 """

@@ -3,21 +3,25 @@ and the bound on its next version (the daemon's ``_restore``, on real daemons an
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from mapd import config as configmod
 from mapd.daemon.receiver import Decode, Drop
 from mapd.daemon.server import Daemon
-from mapd.daemon.state import StateStore
+from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.versions import incarnation_at, make, split
 from mapd.envelope import Envelope
+from mapd.errors import StateError
 from mapd.grid import OccupancyGrid, Pose2D
 
 
@@ -140,3 +144,67 @@ def test_a_peer_placed_by_the_pose_it_reported_is_placed_by_it_after_a_restart(
     assert p["reason"].startswith("start pose reported by the robot")
     assert (p["x"], p["y"], p["yaw"]) == tuple(pose)
     assert split(d0.receiver.maps["robot1"].version)[1] == 1
+
+
+def test_a_restore_that_fails_lets_go_of_the_state_directory(tmp_path: Path, dk: SimpleNamespace) -> None:
+    # run() took the state directory's lock, then the restore failed (a file where `own` goes):
+    # the restore ran outside the try whose shutdown lets go, so the daemon held the lock for
+    # the rest of the process and a daemon started again in it found the directory "in use".
+    cfg = configmod.load(_config(dk, tmp_path, "robot0", dk.channel()))
+    cfg.state.dir.mkdir(parents=True)
+    (cfg.state.dir / "own").write_text("not a folder")
+    d0 = Daemon(cfg, source=dk.QueueSource("robot0"))
+    with pytest.raises(StateError, match="is not writable"):
+        asyncio.run(d0.run())
+    assert not (cfg.state.dir / "state.json").exists()  # the shutdown saved no state it never read
+    os.close(lock_state_dir(cfg.state.dir))  # free again
+    (cfg.state.dir / "own").unlink()
+    d1 = Daemon(cfg, source=dk.QueueSource("robot0"))
+    _run(dk, d1, until=lambda: d1.fusion._loaded)
+
+
+def _running_with(word: str) -> list[int]:
+    """The processes whose command line holds ``word``."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                if word.encode() in (proc / "cmdline").read_bytes():
+                    found.append(int(proc.name))
+            except OSError:  # gone meanwhile
+                pass
+    return found
+
+
+@pytest.mark.parametrize("damage", ["in use", "a file where own goes"])
+def test_mapd_run_on_a_state_directory_it_cannot_take_is_one_line_and_leaves_nothing(
+    tmp_path: Path, dk: SimpleNamespace, damage: str
+) -> None:
+    path = _config(dk, tmp_path, "robot0", dk.channel())
+    cfg = configmod.load(path)
+    store = StateStore(cfg.state.dir)
+    store.open()
+    store.save_own(dk.growing_map(1).replace(version=5))
+    before = (cfg.state.dir / "state.json").read_bytes()
+    held = None
+    if damage == "in use":
+        held = lock_state_dir(cfg.state.dir)
+        want = f"mapd: error: state directory {cfg.state.dir} is in use by another mapd (pid {os.getpid()})"
+    else:
+        shutil.rmtree(cfg.state.dir / "own")
+        (cfg.state.dir / "own").write_text("not a folder")
+        want = f"mapd: error: state directory {cfg.state.dir} is not writable: File exists"
+    try:
+        with dk.mapd_run(path, tmp_path / "run.log") as proc:
+            assert proc.wait(60) != 0
+        out = (tmp_path / "run.log").read_text()
+        assert out.splitlines() == [want], out  # that line alone: no traceback, no other line
+        # nothing left, nothing written: state.json as it was (in use: the holder's), no control
+        # socket, no process
+        assert (cfg.state.dir / "state.json").read_bytes() == before
+        assert not cfg.control_socket().exists()
+        assert not _running_with(str(path))
+    finally:
+        if held is not None:
+            os.close(held)
+    os.close(lock_state_dir(cfg.state.dir))  # and the lock is free once its holder lets go

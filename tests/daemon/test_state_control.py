@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import socket
 import stat
@@ -21,7 +22,7 @@ from mapd.daemon.state import MAX_STATE_JSON, StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer, query
 from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
-from mapd.grid import OccupancyGrid, save_map
+from mapd.grid import OccupancyGrid, Pose2D, save_map
 
 
 def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
@@ -162,6 +163,26 @@ def test_unsafe_peer_names_never_become_paths(tmp_path: Path, room_grid: Occupan
     store.open()
     with pytest.raises(StateError, match="unsafe"):
         store.save_peer(room_grid.replace(robot="../../etc"))
+
+
+@pytest.mark.parametrize("pose", ["[1, 2]", "[.nan, 0, 0]", f"[{'9' * 400}, 0, 0]", "[0, 0, -1e400]"])
+def test_a_damaged_reported_pose_in_a_peer_map_is_one_warning_and_the_map_kept(
+    tmp_path: Path, room_grid: OccupancyGrid, caplog: pytest.LogCaptureFixture, pose: str
+) -> None:
+    # An integer too large for a float (YAML reads any) raised OverflowError out of the restore:
+    # `mapd run` on that state directory died with a traceback at every start.
+    store = StateStore(tmp_path)
+    store.open()
+    store.save_peer(room_grid.replace(robot="beta", version=3), frame_pose=Pose2D(1.0, 2.0, 0.0))
+    yaml = tmp_path / "peers" / "beta" / "map.yaml"
+    text = yaml.read_text()
+    yaml.write_text(text[: text.index("mapd_frame_pose:")] + f"mapd_frame_pose: {pose}\n")
+    with caplog.at_level(logging.WARNING, logger="mapd.daemon.state"):
+        saved = StateStore(tmp_path).saved_peer("beta")
+    assert saved is not None and saved.grid.version == 3 and saved.frame_pose is None
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert line.startswith(f"state map {yaml}: ignoring its reported pose [")
+    assert line.endswith("(not three finite numbers)")
 
 
 @pytest.mark.parametrize("fault", ["file-in-its-place", "enospc", "eacces-on-stat"])

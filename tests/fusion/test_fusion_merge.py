@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from mapd.errors import FusionError, LimitError
-from mapd.fusion.merge import Bounds, merge, merge_with_owner, save_png
+from mapd.fusion.merge import Bounds, extent, merge, merge_with_owner, save_png
 from mapd.fusion.transforms import IDENTITY
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -120,3 +120,19 @@ def test_bad_inputs_raise_one_clear_error(building: OccupancyGrid) -> None:
         merge([building], [Pose2D(1e300, 0.0, 0.0)])
     # nothing placed: an empty (all unknown) block, not an error
     assert (merge([building], [None]).data == -1).all()
+
+
+@pytest.mark.parametrize("res", [0.05, 0.1, 0.025, 0.03])
+def test_a_map_whose_edges_lie_on_block_edges_is_not_padded_by_another_block(res: float) -> None:
+    # A map's corners were computed a hair past its edges (320.00000000000006 cells), and rounding
+    # out took them to the next block: a map of whole blocks on block edges (the global map merged
+    # again, say) came back with a further 64 unknown cells on a side in 194 of 480 such cases.
+    for k in range(-20, 20):
+        for w in (64, 192):
+            m = OccupancyGrid(np.zeros((w, w), np.int8), res, origin=Pose2D(k * 64 * res, -k * 64 * res, 0.0))
+            box = extent([m], [IDENTITY], res)
+            assert box == Bounds(k * 64, -k * 64, k * 64 + w, -k * 64 + w), (k, w, box)
+    # without blocks (chunk=1), a map on its lattice merged with itself comes back as it was
+    g = OccupancyGrid(np.zeros((320, 360), np.int8), res, origin=Pose2D(-60 * res, -80 * res, 0.0))
+    out = merge_with_owner([g, g], [IDENTITY, IDENTITY], chunk=1)
+    assert out.bounds == Bounds(-60, -80, 300, 240) and out.grid.data.shape == g.data.shape

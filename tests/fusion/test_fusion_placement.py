@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 
@@ -162,6 +163,33 @@ def test_a_robot_placed_against_another_moves_with_it_when_that_one_is_placed_an
     # its own maps change too: it keeps following b's map, not the old place
     c3 = placer.update({**crops, "c": _version(crops["c"], 3)})["c"]
     assert c3.accepted and c3.reason == "tracking" and _near(c3.transform, truth_c, crops["c"]), c3
+
+
+def test_a_restored_placement_moves_with_the_map_it_was_placed_against_when_that_one_is_placed_anew(
+    crops: dict[str, OccupancyGrid],
+) -> None:
+    # As above, across a restart (b's pose corrected in the config, then the daemon restarted):
+    # transforms.json did not say where b was when c was found against it, so c stayed 3 m off
+    # b's map until two more of its map versions had been searched.
+    truth_b, truth_c = _truth(60, 110), _truth(80, 210, name="c")
+    wrong_b = compose(truth_b, Pose2D(3.0, 0.0, 0.0))
+    c1 = Placer({"a": ZERO, "b": wrong_b, "c": None}, anchor=None).update(crops)["c"]
+    assert c1.accepted and c1.against == "b"
+    saved = json.loads(json.dumps(c1.as_dict()))  # as transforms.json holds it
+    placer = Placer({"a": ZERO, "b": truth_b, "c": None}, anchor=None)
+    placer.restore({"c": Placement.from_dict(saved)})
+    c2 = placer.update(crops)["c"]
+    assert c2.accepted and c2.against == "b" and _near(c2.transform, truth_c, crops["c"]), c2
+    assert c2.against_at == truth_b  # and it is saved with where b is now
+    # A file of an earlier release (no anchor saved): held where it was, then found again by the
+    # search within two map versions, as before.
+    old = {k: v for k, v in saved.items() if k != "against_at"}
+    placer = Placer({"a": ZERO, "b": truth_b, "c": None}, anchor=None)
+    placer.restore({"c": Placement.from_dict(old)})
+    c2 = placer.update(crops)["c"]
+    assert c2.accepted and c2.transform == c1.transform and c2.watching is not None, c2
+    c3 = placer.update({**crops, "c": _version(crops["c"], 2)})["c"]
+    assert c3.accepted and "switched" in c3.reason and _near(c3.transform, truth_c, crops["c"]), c3
 
 
 def test_a_robot_placed_against_another_stays_when_that_ones_map_frame_moved(

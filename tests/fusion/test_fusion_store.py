@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import pickle
 from pathlib import Path
 
@@ -35,7 +36,17 @@ def test_what_is_saved_is_what_a_restart_reads(tmp_path: Path, building: Occupan
     grid = building.replace(origin=ZERO, version=9, frame_id="fleet")
     placed = {
         "a": Placement("a", ZERO, "anchor", True, 1.0, None, "its map frame is the fleet frame"),
-        "b": Placement("b", Pose2D(3.0, -1.0, 0.25), "estimate", True, 0.9, 0.95, "", against="a"),
+        "b": Placement(
+            "b",
+            Pose2D(3.0, -1.0, 0.25),
+            "estimate",
+            True,
+            0.9,
+            0.95,
+            "",
+            "a",
+            against_at=Pose2D(0.1, 0.2, 0.3),
+        ),
     }
     result = _result(grid)
     store.save(result, placed, stamp=12.5, fleet_frame="a/map", mode="logodds")
@@ -70,7 +81,9 @@ def test_a_store_with_nothing_in_it_restores_nothing(tmp_path: Path) -> None:
     robots=st.dictionaries(
         st.text(max_size=6),
         st.dictionaries(
-            st.sampled_from(["robot", "x", "y", "yaw", "source", "accepted", "confidence", "agreement"]),
+            st.sampled_from(
+                ["robot", "x", "y", "yaw", "source", "accepted", "confidence", "agreement", "against_at"]
+            ),
             # integers past a float's range too: JSON allows them, float() overflows on them
             st.none() | st.booleans() | st.floats() | st.text(max_size=5) | st.integers(-(10**400), 10**400),
             max_size=8,
@@ -96,13 +109,24 @@ def test_a_damaged_transforms_file_is_left_out_not_fatal(
 @pytest.mark.parametrize(
     "entry",
     [[1], "a", 7, {"robot": "b", "x": 10**400, "y": 0, "yaw": 0}, {"robot": "b", "confidence": 10**400},
-     {"robot": "b", "x": "1", "y": 0, "yaw": 0}, {"robot": "b", "agreement": [0.5]}],
+     {"robot": "b", "x": "1", "y": 0, "yaw": 0}, {"robot": "b", "agreement": [0.5]},
+     {"robot": "b", "against_at": [1, 2, 3]}, {"robot": "b", "against_at": {"x": 1, "y": 2}},
+     {"robot": "b", "against_at": {"x": 1e300, "y": 0, "yaw": 0}},
+     {"robot": "b", "against_at": {"x": 0, "y": "0", "yaw": 0}},
+     # far out: every merge's search overflowed to NaN and failed, the global map frozen for good
+     {"robot": "b", "x": 1e308, "y": 1e308, "yaw": 0.5, "source": "estimate", "accepted": True}],
 )  # fmt: skip
-def test_a_damaged_placement_is_left_out_and_the_others_kept(tmp_path: Path, entry: object) -> None:
+def test_a_damaged_placement_is_left_out_and_the_others_kept(
+    tmp_path: Path, entry: object, caplog: pytest.LogCaptureFixture
+) -> None:
     good = Placement("a", ZERO, "anchor", True, 1.0, None, "its map frame is the fleet frame")
     doc = {"version": 2, "robots": {"a": good.as_dict(), "b": entry}}
     (tmp_path / TRANSFORMS_JSON).write_text(json.dumps(doc))
-    assert FusionStore(tmp_path, robot="a").load_placements() == Saved({"a": good}, 2)
+    with caplog.at_level(logging.WARNING, logger="mapd.fusion.store"):
+        assert FusionStore(tmp_path, robot="a").load_placements() == Saved({"a": good}, 2)
+    # one line, naming the entry and the file
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == ["fusion"]
+    assert f"ignoring entry 'b' of {tmp_path / TRANSFORMS_JSON}" in caplog.text
 
 
 @pytest.mark.parametrize(

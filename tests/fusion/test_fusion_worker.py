@@ -332,3 +332,35 @@ def test_placements_that_rest_on_a_revoked_robots_map_are_not_restored(tmp_path:
     w._load_state()
     assert set(w.placements) == {"a", "d"} and set(w.placer.placements) == {"d"}
     assert w.placer.placements["d"].transform == t and w.forgotten == 1
+
+
+def test_a_placement_found_against_another_robots_map_follows_it_across_a_restart(
+    tmp_path: Path, building: OccupancyGrid
+) -> None:
+    # c overlaps b only, and is found against b's map; b's configured pose was 3 m off, and the
+    # daemon is restarted with it put right. c follows b at once (transforms.json says where b
+    # was when c was found against it), as it does when the pose is put right without a restart.
+    def crop(r0: int, r1: int, c0: int, c1: int, name: str) -> OccupancyGrid:
+        data = np.ascontiguousarray(building.data[r0:r1, c0:c1])
+        return building.replace(data=data, origin=ZERO, robot=name)
+
+    maps = [crop(0, 220, 0, 170, "a"), crop(60, 300, 110, 260, "b"), crop(80, 320, 210, 360, "c")]
+    truth_b, truth_c = Pose2D(110 * 0.05, 60 * 0.05, 0.0), Pose2D(210 * 0.05, 80 * 0.05, 0.0)
+
+    async def run(pose_b: Pose2D) -> dict[str, Placement]:
+        poses = {"a": [0.0, 0.0, 0.0], "b": list(pose_b), "c": "estimate"}
+        w = FusionWorker("a", FusionSection(debounce_s=0.0, poses=poses), tmp_path)
+        for g in maps:
+            w.submit(g)
+        await w.merge_now()
+        return w.placements
+
+    first = asyncio.run(run(Pose2D(truth_b.x + 3.0, truth_b.y, 0.0)))["c"]
+    assert first.accepted and first.against == "b" and first.transform is not None
+    assert math.isclose(first.transform.x, truth_c.x + 3.0, abs_tol=0.1)
+    doc = json.loads((tmp_path / TRANSFORMS_JSON).read_text())
+    assert doc["robots"]["c"]["against_at"] == {"x": truth_b.x + 3.0, "y": truth_b.y, "yaw": 0.0}
+    c = asyncio.run(run(truth_b))["c"]
+    assert c.accepted and c.against == "b" and c.transform is not None, c
+    assert math.isclose(c.transform.x, truth_c.x, abs_tol=0.1), c
+    assert math.isclose(c.transform.y, truth_c.y, abs_tol=0.1), c
