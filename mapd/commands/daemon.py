@@ -151,7 +151,7 @@ def _outage_arg(text: str) -> str:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from mapd import config
-    from mapd.daemon.server import run_daemon
+    from mapd.daemon.process import run_daemon
     from mapd.daemon.systemd import print_error, setup_logging
     from mapd.errors import MapdError
 

@@ -10,7 +10,8 @@ One update's way through the robot::
 The decisions live in sans-I/O cores (:mod:`~mapd.daemon.publisher`, :mod:`~mapd.daemon.receiver`);
 their asyncio adapters are :mod:`~mapd.daemon.outbound` (own maps out) and
 :mod:`~mapd.daemon.inbound` (transport events in), and this module starts them, with the
-transports, fusion and outputs, and stops them. The event loop only moves bytes and decisions:
+transports, fusion and outputs, and stops them (:mod:`~mapd.daemon.restore` reads what a previous
+run left first; :mod:`~mapd.daemon.process` is the process around it: signals and the loop). The event loop only moves bytes and decisions:
 encode, decode, verify, merge and file writes run in worker threads, so a large map never stalls
 the links, timers or ``mapd status``. Every queue is bounded and latest-wins where order does not
 matter.
@@ -20,10 +21,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import faulthandler
 import logging
 import os
-import signal
 import time
 from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -44,8 +43,9 @@ from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import Receiver
 from mapd.daemon.reload import Reloads
 from mapd.daemon.reload import read as read_reload
+from mapd.daemon.restore import SavedState, read_saved_state
 from mapd.daemon.sinks import Sinks, placed_frames
-from mapd.daemon.state import SavedPeer, StateStore, lock_state_dir
+from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
@@ -475,65 +475,23 @@ class Daemon:
                 },
             )
 
-    def _load_state(self) -> tuple[OccupancyGrid | None, OccupancyGrid | None, list[SavedPeer]]:
-        """Open the state directory and read what a previous run left (blocking: a worker thread)."""
+    def _load_state(self) -> SavedState:
+        """Take the state directory and read what a previous run left (blocking: a worker thread)."""
         self._state_lock = lock_state_dir(self.cfg.state.dir)  # (held until the process exits)
-        self.store.open()
-        own = self.store.own_map()
-        peers = []
-        # The robots state.json names, and roster robots whose map was saved just before a kill
-        # that came before state.json named them (their first map): trusted, as any saved map, only
-        # through what its YAML holds: its version and digest, and the key it was taken under.
-        unrecorded = [r for r in self.store.unrecorded_peers() if r != self.me]
-        for robot in [*self.store.data.peers, *unrecorded]:
-            if not self.keys.roster.admits(robot):
-                # Revoked while the daemon was down: as a reload would have, leave its map out.
-                self._revoked_at_start(robot, "it is no longer on the roster")
-                continue
-            if robot in unrecorded and robot not in self.keys.roster:
-                continue  # (an unsigned fleet admits any name: only the roster's are looked for)
-            try:
-                saved = self.store.saved_peer(robot)
-            except MapdError as exc:  # a name no folder can have, in a damaged state.json
-                log.warning("not restoring %s's map: %s", robot, exc)
-                saved = None
-            if saved is None:
-                self.store.forget_peer(robot)
-                continue
-            key = self._key_of(robot)
-            if saved.key is not None and saved.key != key:
-                # Given a new key while the daemon was down: what the old key signed goes, as a
-                # reload would have taken it (its version too, which may lock the real robot out).
-                self._revoked_at_start(robot, "it was signed by a key the roster has replaced")
-                continue
-            if robot in unrecorded and saved.key is None and key is not None:
-                # No key in it: saved by an earlier release, whose revocations left the files (a
-                # robot removed, then added again under a new key). Only state.json vouched for it.
-                self._revoked_at_start(robot, "state.json does not name it, nor does it name its key")
-                continue
-            peers.append(saved)
-        base = self.store.base_map()
+        saved = read_saved_state(self.store, self.me, self.keys.roster, self._key_of)
         self._state_read = True
-        return own, base, peers
-
-    def _revoked_at_start(self, robot: str, why: str) -> None:
-        """Leave ``robot``'s saved map out, and remove it, so no later start restores it either."""
-        log.warning("not restoring %s's map: %s", robot, why)
-        try:
-            self.store.remove_peer(robot)
-        except MapdError as exc:
-            log.warning("revoked %s: %s", robot, exc)
-        self.store.forget_acked(robot)
+        return saved
 
     async def _restore(self) -> None:
         """Resume from the state directory: own version, bases, and every peer's last map."""
-        own, base, peers = await asyncio.to_thread(self._load_state)
+        saved_state = await asyncio.to_thread(self._load_state)
+        own, base = saved_state.own, saved_state.base
         if own is not None:
             own = self.outbound.own = own.replace(robot=self.me)
             self.fusion.submit(own)
         self.publisher.restore(own, base, self.store.acked())
         now = time.time()
-        for saved in peers:
+        for saved in saved_state.peers:
             self.receiver.restore(saved.grid, held_at=saved.saved_at, now=now)
             # As a live map with a pose goes (Inbound): else a peer placed by the start pose it
             # reported was searched for after a restart, and left out if its map overlaps none.
@@ -641,48 +599,3 @@ class Daemon:
             "reload": self.reloads.status(),
             "state_dir": str(self.cfg.state.dir),
         }
-
-
-def run_daemon(cfg: configmod.MapdConfig) -> int:
-    """Run the daemon with signal handling: SIGTERM/SIGINT drain, a second SIGINT forces exit, SIGHUP
-    reloads the roster, SIGUSR1 writes every thread's stack to stderr (the journal)."""
-    # For a daemon that hangs (in a stop that never ends, or stuck in a driver): `systemctl kill
-    # -s USR1 mapd` shows where, without stopping it. Written by the interpreter itself, so it
-    # works when the event loop is the thing that is stuck.
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
-
-    async def main() -> None:
-        daemon = Daemon(cfg)
-        loop = asyncio.get_running_loop()
-        hits = {"int": 0}
-
-        def on_sigint() -> None:
-            hits["int"] += 1
-            if hits["int"] > 1:
-                log.warning("second SIGINT: exiting now")
-                os._exit(130)
-            daemon.request_stop()
-
-        loop.add_signal_handler(signal.SIGTERM, daemon.request_stop)
-        loop.add_signal_handler(signal.SIGHUP, daemon.request_reload)
-        loop.add_signal_handler(signal.SIGINT, on_sigint)
-        await daemon.run()
-
-    # Not asyncio.run: at its end it waits for every job on the default executor, and a job that a
-    # stop cancelled the await of (a source's start_pose, a placement search) runs on in its thread
-    # for as long as it takes, past systemd's TimeoutStopSec. The state is saved by the time run()
-    # returns (or raises), and mapd run leaves with os._exit either way, which ends such a thread.
-    loop = asyncio.new_event_loop()
-    asyncio.set_event_loop(loop)
-    try:
-        loop.run_until_complete(main())
-    finally:
-        pending = asyncio.all_tasks(loop)
-        for task in pending:
-            task.cancel()
-        if pending:
-            loop.run_until_complete(asyncio.wait(pending))
-        loop.run_until_complete(loop.shutdown_asyncgens())
-        asyncio.set_event_loop(None)
-        loop.close()  # shuts the default executor down without waiting for its threads
-    return 0
