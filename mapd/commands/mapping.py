@@ -77,7 +77,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Replay a CARMEN log with corrected poses (FLASER lines, gzip or plain) through mapd's "
             "log-odds mapper and write the growing map snapshots each robot would have sent, as "
             "map_server files DIR/robot<i>/map_<version>.yaml. Each robot's map is in its own frame "
-            "(its first laser pose); DIR/poses.yaml gives those frames in the log's world frame."
+            "(its first laser pose); DIR/poses.yaml gives those frames in the log's world frame. "
+            "A log that ends early (a gzip log cut short or damaged part-way) is replayed up to "
+            "there, with one warning, and the exit status is 0."
         ),
     )
     p.add_argument("log", type=Path, help="CARMEN log (.log or .log.gz)")

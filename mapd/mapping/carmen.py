@@ -12,6 +12,11 @@ negative range, a pose more than :data:`MAX_COORD_M` from the origin, or a messa
 not define is skipped, counted in :class:`LogStats`, and logged once per kind of fault with the file
 and line number. Other CARMEN messages (``ODOM``, ``PARAM``, ...) are
 ignored and counted separately. A log that cannot be opened or read is one :class:`SourceError`.
+
+A log that ends early (a gzip stream cut short because the robot lost power while logging or a copy
+was interrupted, a damaged stream, a failed read) is read up to there: the scans before the cut are
+good data. The cut is said once, as a warning with its line and how many bytes of the file were read,
+and kept in :attr:`LogStats.cut`. Only a log with no scan before the cut is a :class:`CutLogError`.
 """
 
 from __future__ import annotations
@@ -82,6 +87,8 @@ class LogStats:
     by_reason: dict[str, int] = field(default_factory=dict)
     #: Count, but log nothing: for a pass whose faults another pass over the same lines reports.
     quiet: bool = False
+    #: Where and why the log ended early (the warning said), or "" if it was read to its end.
+    cut: str = ""
 
     def skip(self, where: str, reason: str, key: str | None = None) -> None:
         """Count a skipped line; log it if it is the first of its ``key`` (default: ``reason``)."""
@@ -96,6 +103,15 @@ class LogStats:
             log.warning("%s: %s (skipped; further lines like it are counted, not logged)", where, reason)
 
 
+class CutLogError(SourceError):
+    """The log ends early at ``line``, the first line not read whole: its gzip stream is cut short
+    or damaged there, or a read failed. The lines before it were good; readers stop there."""
+
+    def __init__(self, path: Path, line: int, why: str) -> None:
+        super().__init__(f"{path}: line {line}: log is corrupt or truncated {why}")
+        self.path, self.line, self.why = path, line, why
+
+
 class BadLine(ValueError):
     """A line that cannot be a scan; the message says why, ``key`` names the kind of fault."""
 
@@ -104,7 +120,8 @@ class BadLine(ValueError):
         self.key = key
 
 
-def _open(path: Path) -> BinaryIO:
+def _open(path: Path) -> tuple[BinaryIO, BinaryIO]:
+    """The log's lines to read (inflated if gzip), and the file under them (for how far it got)."""
     try:
         raw = open_regular(path)  # a FIFO without a writer blocked for ever, and /dev/zero never ended
     except FileNotFoundError:
@@ -116,20 +133,32 @@ def _open(path: Path) -> BinaryIO:
     magic = raw.read(2)
     raw.seek(0)
     if magic == b"\x1f\x8b":
-        return cast(BinaryIO, gzip.GzipFile(fileobj=raw, mode="rb"))
-    return raw
+        return cast(BinaryIO, gzip.GzipFile(fileobj=raw, mode="rb")), raw
+    return raw, raw
+
+
+def _cut(path: Path, raw: BinaryIO, line: int, exc: BaseException) -> CutLogError:
+    """The error for a read that failed at ``line``, saying how far into the file it got."""
+    try:
+        where = f"after {raw.tell()} of {os.fstat(raw.fileno()).st_size} bytes "
+    except (OSError, ValueError):
+        where = ""
+    return CutLogError(path, line, f"{where}({exc})")
 
 
 def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
-    """(line number, line) pairs; overlong lines come back as b'' plus a sentinel of their own."""
-    fh = _open(path)
+    """(line number, line) pairs; overlong lines come back as b'' plus a sentinel of their own.
+
+    Raises :class:`CutLogError` where the log stops being readable, after the lines before it.
+    """
+    fh, raw = _open(path)
     try:
         number = 0
         while True:
             try:
                 chunk = fh.readline(MAX_LINE_BYTES)
             except (OSError, EOFError, zlib.error) as exc:
-                raise SourceError(f"{path}: line {number + 1}: log is corrupt or truncated: {exc}") from None
+                raise _cut(path, raw, number + 1, exc) from None
             if not chunk:
                 return
             number += 1
@@ -139,9 +168,7 @@ def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
                     try:
                         more = fh.readline(MAX_LINE_BYTES)
                     except (OSError, EOFError, zlib.error) as exc:
-                        raise SourceError(
-                            f"{path}: line {number}: log is corrupt or truncated: {exc}"
-                        ) from None
+                        raise _cut(path, raw, number, exc) from None
                     if not more or more.endswith(b"\n"):
                         break
                 yield number, b"\x00overlong"
@@ -149,6 +176,7 @@ def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
             yield number, chunk
     finally:
         fh.close()
+        raw.close()
 
 
 def _floats(tokens: list[str], what: str) -> np.ndarray:
@@ -240,48 +268,89 @@ def parse_robotlaser1(tokens: list[str], line: int) -> LaserScan:
 def read_scans(
     path: str | os.PathLike[str], *, stats: LogStats | None = None, fov_deg: float = 180.0
 ) -> Iterator[LaserScan]:
-    """Yield every scan of a CARMEN log in order; bad lines are skipped and counted in ``stats``."""
+    """Yield every scan of a CARMEN log in order; bad lines are skipped and counted in ``stats``.
+
+    A log that ends early ends the scans there: the cut is warned of once per ``stats`` and kept in
+    its ``cut``; a log with no scan before the cut raises :class:`CutLogError`.
+    """
     p = Path(path)
     st = stats if stats is not None else LogStats()
     fov = math.radians(fov_deg)
     ordinal = -1
-    for number, raw in _lines(p):
-        if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
-            ordinal += 1
-        where = f"{p}: line {number}"
-        if raw == b"\x00overlong":
-            st.skip(where, f"line longer than {MAX_LINE_BYTES} bytes")
-            continue
-        try:
-            text = raw.decode("ascii")
-        except UnicodeDecodeError:
-            st.skip(where, "line is not ASCII text")
-            continue
-        tokens = text.split()
-        if not tokens or tokens[0].startswith("#"):
-            continue
-        kind = tokens[0]
-        try:
-            if kind == "FLASER":
-                scan = parse_flaser(tokens, fov, number)
-            elif kind == "ROBOTLASER1":
-                scan = parse_robotlaser1(tokens, number)
-            elif kind in _IGNORED:
-                st.ignored += 1
+    read = 0  # scans of this pass, not of ``st``, which other passes may share
+    try:
+        for number, raw in _lines(p):
+            if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
+                ordinal += 1
+            scan = _scan(p, number, raw, fov, st)
+            if scan is None:
                 continue
-            else:
-                raise BadLine(f"unknown message type {kind[:40]!r}", "unknown message type")
-        except BadLine as exc:
-            st.skip(where, str(exc), exc.key)
-            continue
-        st.scans += 1
-        yield LaserScan(scan.ranges, scan.angles, scan.pose, scan.stamp, number, ordinal)
+            st.scans += 1
+            read += 1
+            yield LaserScan(scan.ranges, scan.angles, scan.pose, scan.stamp, number, ordinal)
+    except CutLogError as exc:
+        if read == 0:
+            raise  # nothing usable before the damage: the log is refused, as one it cannot open
+        _log_cut(st, exc, read)
+
+
+def _scan(p: Path, number: int, raw: bytes, fov: float, st: LogStats) -> LaserScan | None:
+    """Line ``number`` as a scan, or None: not one (counted in ``st`` if a bad line)."""
+    where = f"{p}: line {number}"
+    if raw == b"\x00overlong":
+        st.skip(where, f"line longer than {MAX_LINE_BYTES} bytes")
+        return None
+    try:
+        text = raw.decode("ascii")
+    except UnicodeDecodeError:
+        st.skip(where, "line is not ASCII text")
+        return None
+    tokens = text.split()
+    if not tokens or tokens[0].startswith("#"):
+        return None
+    kind = tokens[0]
+    try:
+        if kind == "FLASER":
+            return parse_flaser(tokens, fov, number)
+        if kind == "ROBOTLASER1":
+            return parse_robotlaser1(tokens, number)
+        if kind in _IGNORED:
+            st.ignored += 1
+            return None
+        raise BadLine(f"unknown message type {kind[:40]!r}", "unknown message type")
+    except BadLine as exc:
+        st.skip(where, str(exc), exc.key)
+        return None
+
+
+def _log_cut(stats: LogStats, cut: CutLogError, scans: int) -> None:
+    """Record that the log ends early at ``cut`` after ``scans`` scans; warn the first time for ``stats``.
+
+    Every pass over the log meets the same cut (``mapd replay`` reads it once per robot): one
+    warning for the run, not one per pass.
+    """
+    if stats.cut:
+        return
+    stats.cut = stats.last_error = (
+        f"{cut.path}: line {cut.line}: log ends early: corrupt or truncated {cut.why}; "
+        f"read up to there ({scans} scans)"
+    )
+    if not stats.quiet:
+        log.warning("%s", stats.cut)
 
 
 def count_scans(path: str | os.PathLike[str]) -> int:
-    """How many lines of the log look like scans (a cheap first pass, used to split a log among robots)."""
+    """How many lines of the log look like scans (a cheap first pass, used to split a log among robots).
+
+    Lines after a cut are not there to count; the pass that reads the scans says where the log ends.
+    A cut before the first scan line raises :class:`CutLogError`.
+    """
     n = 0
-    for _number, raw in _lines(Path(path)):
-        if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
-            n += 1
+    try:
+        for _number, raw in _lines(Path(path)):
+            if raw.startswith((b"FLASER ", b"ROBOTLASER1 ")):
+                n += 1
+    except CutLogError:
+        if n == 0:
+            raise
     return n

@@ -394,7 +394,9 @@ def replay_log(
     overrides ``resolution``/``max_range``; without it, a ``resolution`` :func:`resolution_problem`
     refuses or a ``max_range`` that is not positive raises ConfigError.
     Bad lines are skipped (logged and counted in ``stats``: pass one to several passes over the same
-    log to log each kind of fault once); a log that cannot be read raises SourceError.
+    log to log each kind of fault once). A log that ends early (a cut or damaged gzip stream) is
+    replayed up to the cut, which is warned of once per ``stats``; a log that cannot be read, or has
+    no scan before its cut, raises SourceError.
     """
     if every < 1:
         raise ValueError("every must be at least 1")

@@ -13,7 +13,12 @@ Frames: each robot's map frame is its first laser pose. The fleet frame is the l
 :meth:`start_pose` is the robot's map frame in it, for evaluation and known-pose fusion.
 
 Bad lines (wrong field count, NaN or negative ranges, unknown message types) are skipped, logged
-once per kind with file and line, and counted in :meth:`stats`.
+once per kind with file and line, and counted in :meth:`stats`. A log that ends early (a gzip log
+cut short by a power loss or an interrupted copy, or damaged part-way) is replayed up to the cut and
+then ends as at the log's end, with one warning that is also :meth:`stats`' ``last_error``: the
+scans before the cut are good data, and ending with an error would stop the daemon (and a
+supervisor restarting it would replay the same scans again and again). A log with no scan before
+the cut is one SourceError.
 
 Example ``config.toml`` table::
 
