@@ -21,8 +21,10 @@ Framing and trust
       it a peer (PeerUp). A new session id from a known peer means it restarted (PeerRestarted): all it
       was reassembling from us is forgotten, and all it had acked of our messages counts for nothing,
       so it gets a clean start. Frames of a session it left are stale and dropped. A peer silent for
-      ``peer_timeout_s`` is down (PeerDown) until it is heard again. Nodes announce themselves with
-      HELLO at start and after ``beacon_s`` of silence.
+      ``peer_timeout_s`` is down (PeerDown) until it is heard again; with TDMA, where a peer speaks
+      only in its own slot, silent for ``beacon_s`` and two cycles if that is longer (one lost
+      HELLO is not a peer gone). Nodes announce themselves with HELLO at start and after
+      ``beacon_s`` of silence.
 Sending
   R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
@@ -233,6 +235,11 @@ class ArqEndpoint(SenderSide):
         # With TDMA no receiver can answer a probe before its own slot comes round: the probe
         # timer never runs shorter than one cycle (each probe would take a data frame's place).
         self._cycle = config.slots * config.slot_s if config.mac == "tdma" else 0.0
+        # R3: a TDMA peer speaks only in its own slot, so an idle one is heard once in beacon_s plus
+        # a cycle, and one lost HELLO costs a cycle more. With 36 default slots at 12.5 kb/s the
+        # cycle (21 s) outgrew the 20 s timeout: every peer went down and up each cycle, and each
+        # PeerDown let the publisher supersede the map on the air (P1).
+        self._presence_s = max(config.peer_timeout_s, config.beacon_s + 2 * self._cycle)
         self._peers: dict[int, PeerState] = {}
         # R17: lending the rest of an own slot, for which a LEND and one full frame must still fit.
         self._lending = config.lend and config.mac == "tdma"
@@ -392,7 +399,7 @@ class ArqEndpoint(SenderSide):
         for m in self._out.values():
             times.append(m.deadline)
             times.extend(p.rto_at for p in m.peers.values() if p.pending and p.rto_at is not None)
-        times.extend(p.last_heard + self.cfg.peer_timeout_s for p in self._peers.values() if p.up)
+        times.extend(p.last_heard + self._presence_s for p in self._peers.values() if p.up)
         if any(p.partials for p in self._peers.values()):
             times.append(self._housekeeping_at)
         return min(times) if times else None
@@ -432,7 +439,7 @@ class ArqEndpoint(SenderSide):
                 self.counters.timeouts += 1
                 p.rto_at = now + rtt.rto if (missing or p.n_acked == m.count) else None
         for peer in self._peers.values():
-            if peer.up and now >= peer.last_heard + self.cfg.peer_timeout_s:
+            if peer.up and now >= peer.last_heard + self._presence_s:
                 peer.up = False
                 self._events.append(PeerDown(peer.id))
         if now >= self._housekeeping_at:
@@ -462,7 +469,8 @@ class ArqEndpoint(SenderSide):
         return self._verifier.marks() if self._verifier is not None else {}
 
     def peers_up(self) -> list[int]:
-        """Link ids of the peers heard within ``peer_timeout_s``."""
+        """Link ids of the peers heard within ``peer_timeout_s`` (with TDMA: within ``beacon_s``
+        and two cycles, if longer; R3)."""
         return sorted(p.id for p in self._peers.values() if p.up)
 
     def reaches(self, msg: int, peer: int) -> bool:

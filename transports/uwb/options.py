@@ -103,7 +103,12 @@ class UwbOptions(TransportOptions):
     backoff_min_ms: float = Field(default=0.0, ge=0, description="backoff: shortest random wait")
     backoff_max_ms: float = Field(default=100.0, ge=0, description="backoff: longest random wait")
     beacon_s: float = Field(default=5.0, ge=MIN_TIMER_S, description="HELLO after this long without sending")
-    peer_timeout_s: float = Field(default=20.0, ge=MIN_TIMER_S, description="a peer silent this long is down")
+    peer_timeout_s: float = Field(
+        default=20.0,
+        ge=MIN_TIMER_S,
+        description="a peer silent this long is down (tdma: at least beacon_s and two cycles, as a "
+        "peer speaks only in its own slot)",
+    )
     reopen_s: float = Field(
         default=1.0, ge=MIN_TIMER_S, description="retry a vanished serial port this often"
     )
