@@ -15,8 +15,10 @@ and :class:`MapdConfig` for the whole file); :mod:`~mapd.config.loading` reads t
 nesting and value limits, paths beside the config) and turns validation errors into one line each;
 :mod:`~mapd.config.plugin_tables` checks the plugin sections with each plugin's own options;
 :mod:`~mapd.config.checking` is the one check ``mapd run`` and ``mapd check-config`` share (plugin
-tables and files, the key files and roster, the view token). Every name is importable from
-``mapd.config`` as it was before the split.
+tables and files, the key files and roster, the view token, paths and listeners), with
+:mod:`~mapd.config.paths` and :mod:`~mapd.config.endpoints` to look at the paths and addresses a
+config names without touching them. Every name is importable from ``mapd.config`` as it was before
+the split.
 """
 
 from mapd.config.checking import Checked, Keys, check, read_keys, read_view_token

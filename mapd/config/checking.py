@@ -1,9 +1,14 @@
-"""The one check ``mapd run`` and ``mapd check-config`` share: plugin tables and files, keys, view token.
+"""The one check ``mapd run`` and ``mapd check-config`` share: plugin tables and files, keys, view
+token, the paths the start writes to and the ports it listens on.
 
 :func:`check` validates every plugin table (:mod:`mapd.config.plugin_tables`), has the chosen
 plugins read the files they name, reads the robot's key, the roster and the uwb link key
-(:func:`read_keys`) and the live view's token (:func:`read_view_token`), each refusal one
-:class:`~mapd.errors.ConfigError` line naming the file and the key.
+(:func:`read_keys`) and the live view's token (:func:`read_view_token`), looks at the state
+directory, the control socket and the recording's path (:func:`check_paths`) and at what two parts
+of the config would both listen on (:func:`check_listeners`), each refusal one
+:class:`~mapd.errors.ConfigError` line naming the file and the key. None of it creates or changes
+anything: what only the machine decides at start (a radio not plugged in yet, a port another
+program holds, who may write where) is left to the start.
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
+from mapd.config.endpoints import Listener, listening, same_socket, socket_of
+from mapd.config.paths import folder_problem, socket_problem
 from mapd.config.plugin_tables import check_plugin_files, check_plugins
 from mapd.config.sections import MIN_VIEW_TOKEN, MapdConfig, is_loopback, split_listen
 from mapd.errors import ConfigError
@@ -123,4 +130,62 @@ def check(cfg: MapdConfig) -> Checked:
     """
     options = check_plugins(cfg)
     check_plugin_files(cfg, options)
-    return Checked(options, read_keys(cfg), read_view_token(cfg))
+    checked = Checked(options, read_keys(cfg), read_view_token(cfg))
+    check_paths(cfg)
+    check_listeners(cfg, options)
+    return checked
+
+
+def check_paths(cfg: MapdConfig) -> None:
+    """ConfigError (one line naming the key) for a path the start could not make or use for what it
+    is: the state directory, the control socket, the recording's folder.
+
+    Only kinds are looked at (a file where a folder goes, a socket path too long), never made or
+    written: a folder not there yet is made by the start, as the unit's StateDirectory= is. What is
+    in the state directory is the daemon's data, not the config: its start says what is wrong there.
+    """
+    where = str(cfg.path) if cfg.path else "config"
+    if problem := folder_problem(cfg.state.dir):
+        raise ConfigError(f"{where}: state.dir: {problem}")
+    key = "control.socket" if cfg.control.socket is not None else "state.runtime_dir"
+    if problem := socket_problem(cfg.control_socket()):
+        raise ConfigError(f"{where}: {key}: {problem}")
+    if cfg.record.path is None:
+        return
+    if problem := folder_problem(cfg.record.path.parent):
+        raise ConfigError(f"{where}: record.path: {problem}")
+    try:  # what the recorder imports as the daemon starts (the optional [record] extra)
+        import mcap.writer  # noqa: F401
+        import rosbags.typesys  # noqa: F401
+    except ModuleNotFoundError as exc:
+        raise ConfigError(
+            f"{where}: record.path: recording needs {exc.name} (pip install 'mapd[record]')"
+        ) from None
+
+
+def check_listeners(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]]) -> None:
+    """ConfigError (one line) when two parts of the config would listen on one socket: the second
+    to start found its port taken by the first ("address already in use")."""
+    where = str(cfg.path) if cfg.path else "config"
+    # In the order the start opens them: transports, outputs, the view, then the source's session.
+    parts = [("transports", n) for n in cfg.transports.use] + [("output", n) for n in cfg.output.use]
+    listeners = [
+        (sock, f"{section}.{name}", shown)
+        for section, name in parts
+        for ep, shown in listening(options[section].get(name))
+        if (sock := socket_of(ep)) is not None
+    ]
+    if cfg.view.listen is not None:
+        host, port = split_listen(cfg.view.listen)
+        listeners.append((Listener("tcp", host, port), "view", cfg.view.listen))
+    listeners += [
+        (sock, f"source.{cfg.source.use}", shown)
+        for ep, shown in listening(options["source"].get(cfg.source.use))
+        if (sock := socket_of(ep)) is not None
+    ]
+    for i, (sock, who, shown) in enumerate(listeners):
+        for first, first_who, first_shown in listeners[:i]:
+            if first_who != who and same_socket(sock, first):
+                raise ConfigError(
+                    f"{where}: {who}.listen: {shown} is also where {first_who} listens ({first_shown})"
+                )

@@ -86,8 +86,9 @@ def check_plugins(cfg: MapdConfig, *, all_tables: bool = True) -> dict[str, dict
 
 def check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]]) -> None:
     """Have each chosen plugin read the files its options name (``check_files``), check what its
-    start would refuse on this robot (``check_for_robot``) and beside the other chosen plugins
-    (``check_with_plugins``), as it will at start."""
+    start would refuse on this robot (``check_for_robot``), beside the other chosen plugins
+    (``check_with_plugins``) and given the rest of the config (``check_with_config``), as it will
+    at start."""
     where = str(cfg.path) if cfg.path else "config"
     picked = (
         ("source", [cfg.source.use]),
@@ -102,12 +103,15 @@ def check_plugin_files(cfg: MapdConfig, options: dict[str, dict[str, BaseModel]]
             opts = options[section].get(name)
             # check_files(): the files its options name; check_for_robot(robot): what its start
             # would refuse on this robot (the uwb link ids); check_with_plugins(chosen): what it
-            # refuses beside the other chosen plugins (a ros2 output on its ros2 source's topic).
+            # refuses beside the other chosen plugins (a ros2 output on its ros2 source's topic);
+            # check_with_config(cfg): what it refuses given the rest of the config (a source's
+            # files, found in the data folder or beside the config, and limits.max_cells).
             # Found here, not only by mapd run.
             for hook, args in (
                 ("check_files", ()),
                 ("check_for_robot", (cfg.robot.name,)),
                 ("check_with_plugins", (chosen,)),
+                ("check_with_config", (cfg,)),
             ):
                 check = getattr(opts, hook, None)
                 if check is None:

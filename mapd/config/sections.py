@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from mapd.config.endpoints import host_problem
 from mapd.grid import DEFAULT_MAX_CELLS, short_repr
 
 #: A fleet or robot id: also a zenoh key chunk and a ROS 2 namespace part, so no separators.
@@ -267,7 +268,11 @@ class ViewSection(Strict):
     @classmethod
     def _check_listen(cls, v: str | None) -> str | None:
         if v is not None:
-            split_listen(v)
+            # a host no address can be made of stopped the view at start ("Name or service not
+            # known"); a well-formed name is resolved there
+            problem = host_problem(split_listen(v)[0].partition("%")[0])
+            if problem:
+                raise ValueError(problem)
         return v
 
 

@@ -49,8 +49,7 @@ from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
-from mapd.data import data_dir
-from mapd.errors import MapdError
+from mapd.errors import MapdError, StateError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
@@ -351,12 +350,7 @@ class Daemon:
             source_cls = plugins.load("source", self.cfg.source.use)
             self.source = source_cls(
                 self._options("source", self.cfg.source.use, source_cls.Options),
-                SourceContext(
-                    robot=self.me,
-                    max_cells=self.cfg.limits.max_cells,
-                    data_dir=data_dir(),
-                    config_dir=self.cfg.folder,
-                ),
+                SourceContext.of(self.cfg),  # as check-config's check_with_config finds its files
             )
         # Where this robot's map frame lies in the fleet frame, when the source knows (a simulated
         # or logged robot's start, or start_pose in its config): fused as a known pose here, and
@@ -368,7 +362,12 @@ class Daemon:
         for name in self.cfg.transports.use:
             cls = plugins.load("transport", name)
             state_dir = self.cfg.state.dir / "links" / name
-            state_dir.mkdir(parents=True, exist_ok=True)
+            try:  # (check-config refuses a file in the way; this is for one put there since)
+                state_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise StateError(
+                    f"state directory {self.cfg.state.dir} is not writable: {exc.strerror or exc}"
+                ) from None
             ctx = TransportContext(
                 robot=self.me,
                 fleet=self.cfg.robot.fleet,

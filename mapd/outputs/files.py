@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
+from mapd.config.paths import folder_problem
 from mapd.errors import ConfigError, MapdError
 from mapd.files import WriteOutage, atomic_write_json, remove_stale_temps
 from mapd.grid import save_map
@@ -38,6 +39,12 @@ class FilesOptions(OutputOptions):
     )
     name: str = Field(default="map", pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="file name stem")
     frame_id: str = Field(default="map", description="the fleet frame's name (REP-105), in transforms.json")
+
+    def check_files(self) -> None:
+        """ValueError when ``dir`` could not be a folder (a file there, or above it): start could
+        not make it. Looked at only; a folder not there yet is made by the start."""
+        if problem := folder_problem(self.dir):
+            raise ValueError(f"dir: {problem}")
 
 
 class FilesOutput(Output):

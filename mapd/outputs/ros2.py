@@ -45,20 +45,21 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
+from mapd.config.endpoints import ZenohEndpoints, check_tls
 from mapd.errors import UnreachableError
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.outputs.retry import SessionRetry
 from mapd.ros2 import rmw
 from mapd.ros2.tf import Ros2Names, TfFrames, load_shown, robot_frame, save_shown, tf_static
-from mapd.ros2.zenoh_config import ZenohConfigFiles
+from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
 FRAMES_FILE = "ros2_frames.json"
 
 
-class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
+class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     """``[output.ros2]``: topic, frames, ROS 2 identity, key format and how to reach zenoh."""
 
     beside_config: ClassVar[tuple[str, ...]] = ("zenoh_config",)
@@ -135,6 +136,11 @@ class Ros2OutputOptions(ZenohConfigFiles, OutputOptions):
     @classmethod
     def _check_ns(cls, v: str) -> str:
         return rmw.check_namespace(v)
+
+    def check_files(self) -> None:
+        """ValueError for a zenoh config, or TLS files it names, the session could not open with."""
+        super().check_files()
+        check_tls(self.zenoh_config, self.listen, zenoh_config_text, field="zenoh_config")
 
     @model_validator(mode="after")
     def _frames_apart(self) -> Ros2OutputOptions:

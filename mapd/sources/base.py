@@ -7,11 +7,15 @@ from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mapd.data import data_dir
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid, Pose2D, StampedPose
+
+if TYPE_CHECKING:
+    from mapd.config import MapdConfig
 
 
 def is_pose(v: list[float]) -> bool:
@@ -61,6 +65,15 @@ class SourceContext:
     data_dir: Path | None = None
     #: Folder of the config file: a relative path not found in ``data_dir`` is taken from here.
     config_dir: Path | None = None
+
+    @classmethod
+    def of(cls, cfg: MapdConfig) -> SourceContext:
+        """The context the daemon hands the source ``cfg`` names (its robot, ``limits.max_cells``,
+        the shared data folder, the config's folder): the source's ``check_with_config`` looks up
+        its files with it, as the source will at start."""
+        return cls(
+            robot=cfg.robot.name, max_cells=cfg.limits.max_cells, data_dir=data_dir(), config_dir=cfg.folder
+        )
 
     def resolve(self, p: Path) -> Path:
         """A path an option names: as is when absolute, else in the data folder when it is there,

@@ -37,6 +37,7 @@ import logging
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import Field, model_validator
 
@@ -45,6 +46,9 @@ from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, first_pose, relative, replay_scans
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
+
+if TYPE_CHECKING:
+    from mapd.config import MapdConfig
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +77,16 @@ class LaserLogOptions(FleetSliceOptions, MapperOptions):
         if self.every is None and self.every_s is None:
             raise ValueError("set every (scans) or every_s (log seconds), or both")
         return self
+
+    def check_with_config(self, cfg: MapdConfig) -> None:
+        """ValueError for a log the replay could not open at start (missing, not a regular file,
+        unreadable, damaged before its first scan), looked up as the source will."""
+        path = SourceContext.of(cfg).resolve(self.log)
+        try:
+            # the first scan only (the generator, dropped here, closes the file)
+            next(carmen.read_scans(path, stats=carmen.LogStats(quiet=True)), None)
+        except SourceError as exc:
+            raise ValueError(f"log: {exc}") from None
 
 
 class LaserLogSource(MapSource):

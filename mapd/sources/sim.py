@@ -40,6 +40,7 @@ from mapd.mapping.mapper import MapperOptions, relative
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions, is_pose
 
 if TYPE_CHECKING:
+    from mapd.config import MapdConfig
     from mapd.mapping.simrobot import SimRobot
 
 log = logging.getLogger(__name__)
@@ -88,6 +89,28 @@ class SimOptions(FleetSliceOptions, MapperOptions):
             raise ValueError("start must be [x, y, yaw] (m, m, rad), 'auto' or 'random'")
         return v
 
+    def check_with_config(self, cfg: MapdConfig) -> None:
+        """ValueError for a world the source could not build at start: ``world`` missing or not a
+        map within ``limits.max_cells``, or a generated building of more cells than that."""
+        ctx = SourceContext.of(cfg)
+        if self.world is not None:
+            try:
+                load_map(ctx.resolve(self.world), max_cells=ctx.max_cells)
+            except (MapFileError, LimitError) as exc:
+                raise ValueError(f"world: {exc}") from None
+        elif (cells := generated_cells(self)) > ctx.max_cells:
+            raise ValueError(
+                f"width_m: a {self.width_m} x {self.height_m} m building at {self.world_resolution} "
+                f"m/cell has {int(cells)} cells, over limits.max_cells ({ctx.max_cells})"
+            )
+
+
+def generated_cells(o: SimOptions) -> float:
+    """How many cells the generated building of ``o`` has (margin included)."""
+    from mapd.mapping.worldgen import MARGIN
+
+    return (o.width_m + 2 * MARGIN) * (o.height_m + 2 * MARGIN) / o.world_resolution**2
+
 
 class SimSource(MapSource):
     """Simulated robot ``index`` of ``robots`` mapping a generated or loaded building."""
@@ -129,9 +152,7 @@ class SimSource(MapSource):
                 raise SourceError(f"sim world: {exc}") from None
             world = worldgen.from_map(grid, seed=o.seed)
         else:
-            cells = (
-                (o.width_m + 2 * worldgen.MARGIN) * (o.height_m + 2 * worldgen.MARGIN) / o.world_resolution**2
-            )
+            cells = generated_cells(o)
             if cells > self.ctx.max_cells:
                 raise SourceError(
                     f"sim world of {o.width_m} x {o.height_m} m at {o.world_resolution} m/cell has "

@@ -177,8 +177,9 @@ def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None
 @pytest.mark.parametrize("case", ["serial port", "key file", "state dir", "no key", "state in use"])
 def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     (tmp_path / "file").write_text("x")
-    # a port that is there but is no serial port (one not there yet is waited for: test_uwb_serial)
-    port = str(tmp_path / "file")
+    # a port that is there but is no serial port (one not there yet is waited for: test_uwb_serial);
+    # the other cases name one not there, which the config check (and so mapd run) takes
+    port = str(tmp_path / ("file" if case == "serial port" else "no-such-tty"))
     state = tmp_path / "file" / "state" if case == "state dir" else tmp_path / "s"
     me = Identity.generate("a")
     me.write(tmp_path / "a.key")
@@ -207,9 +208,10 @@ def test_bad_config_is_one_line(tmp_path: Path, case: str) -> None:
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("mapd: error:")]
     expect = {
-        "serial port": f"cannot open serial port {tmp_path / 'file'}",
+        # refused by the check mapd check-config runs too, before the daemon starts anything
+        "serial port": f"transports.uwb.port: {tmp_path / 'file'} is not a serial device",
         "key file": "no-such.key",
-        "state dir": "not writable",
+        "state dir": f"state.dir: {tmp_path / 'file'} is not a folder",
         "no key": "a signed fleet needs this robot's key",
         "state in use": f"is in use by another mapd (pid {os.getpid()})",
     }[case]
@@ -245,11 +247,11 @@ def test_sigusr1_writes_every_thread_stack_and_the_daemon_runs_on(
         log = f.run_dir / "robot0" / "daemon.log"
         f.procs["robot0"].send_signal(signal.SIGUSR1)
         deadline = time.monotonic() + 10
-        while "mapd/daemon/server.py" not in log.read_text(errors="replace") and time.monotonic() < deadline:
+        while "mapd/daemon/process.py" not in log.read_text(errors="replace") and time.monotonic() < deadline:
             time.sleep(0.1)
         text = log.read_text(errors="replace")
         assert "Current thread" in text
-        assert text.count("Thread 0x") >= 2 and "mapd/daemon/server.py" in text
+        assert text.count("Thread 0x") >= 2 and "mapd/daemon/process.py" in text
         before = fk.held(f.status(), "robot0", "robot1")
         fk.wait_for(lambda s: fk.held(s, "robot0", "robot1") > before, 60, f)  # still at work
     finally:

@@ -208,3 +208,21 @@ def test_mapd_run_on_a_state_directory_it_cannot_take_is_one_line_and_leaves_not
         if held is not None:
             os.close(held)
     os.close(lock_state_dir(cfg.state.dir))  # and the lock is free once its holder lets go
+
+
+def test_mapd_run_with_a_file_where_a_links_state_folder_goes_is_one_line(
+    tmp_path: Path, dk: SimpleNamespace
+) -> None:
+    """Found by the check-config audit: a file at state/links (where each transport keeps its
+    state) ended mapd run with a NotADirectoryError traceback."""
+    path = _config(dk, tmp_path, "robot0", dk.channel())
+    cfg = configmod.load(path)
+    cfg.state.dir.mkdir(parents=True, exist_ok=True)
+    (cfg.state.dir / "links").write_text("not a folder")
+    with dk.mapd_run(path, tmp_path / "run.log") as proc:
+        assert proc.wait(60) != 0
+    out = (tmp_path / "run.log").read_text()
+    assert "Traceback" not in out, out
+    want = f"mapd: error: state directory {cfg.state.dir} is not writable: "
+    assert out.splitlines()[-1].startswith(want), out
+    assert not _running_with(str(path))

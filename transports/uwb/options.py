@@ -3,6 +3,9 @@ when the config loads (one :class:`~mapd.errors.ConfigError` line for a bad valu
 
 from __future__ import annotations
 
+import os
+import stat
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, model_validator
@@ -183,6 +186,18 @@ class UwbOptions(TransportOptions):
         if node in peer_ids:
             raise ConfigError(f"transports.uwb.peers: this robot's own link id {node} is listed as a peer")
         return node, peer_ids
+
+    def check_files(self) -> None:
+        """ValueError when ``port`` names something that is there and no serial device (a regular
+        file, a folder): the start stopped on it. A port not there yet is waited for at start, and
+        a relative name is the daemon's working directory's (``/`` under systemd) to find."""
+        port = Path(self.port)
+        try:
+            mode = os.stat(port).st_mode if port.is_absolute() else None
+        except OSError:  # not there (yet), or not ours to look at: the start says
+            mode = None
+        if mode is not None and not stat.S_ISCHR(mode):
+            raise ValueError(f"port: {port} is not a serial device (it exists, and is no character device)")
 
     def check_for_robot(self, robot: str) -> None:
         """ValueError for what the transport would refuse at start on robot ``robot``."""

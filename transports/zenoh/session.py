@@ -12,23 +12,21 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
+from mapd.config.endpoints import ZenohEndpoints, check_tls
 from mapd.errors import TransportError
 from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text, zenoh_message
 from transports.base import TransportOptions
 
-# <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
-_ENDPOINT = re.compile(r"[a-z][a-z0-9+\-]*/[^\s]+")
 # Room for zenoh's own framing around an envelope of max_message_bytes.
 _RX_MARGIN = 64 * 1024
 
 
-class ZenohOptions(ZenohConfigFiles, TransportOptions):
+class ZenohOptions(ZenohEndpoints, ZenohConfigFiles, TransportOptions):
     """Options of the ``zenoh`` transport."""
 
     mode: Literal["peer", "client", "router"] = Field(
@@ -67,15 +65,10 @@ class ZenohOptions(ZenohConfigFiles, TransportOptions):
         default=256, ge=8, le=65536, description="zenoh operations (acks, queries, replies) waiting at once"
     )
 
-    @field_validator("listen", "connect")
-    @classmethod
-    def _check_endpoints(cls, v: list[str]) -> list[str]:
-        for ep in v:
-            if not _ENDPOINT.fullmatch(ep):
-                raise ValueError(
-                    f"'{ep}' is not a zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
-                )
-        return v
+    def check_files(self) -> None:
+        """ValueError for a config file, or TLS files it names, the session could not open with."""
+        super().check_files()
+        check_tls(self.config_file, self.listen, zenoh_config_text)
 
 
 def build_config(options: ZenohOptions, max_message_bytes: int) -> object:

@@ -175,7 +175,10 @@ def _ctx() -> TransportContext:
 
 @pytest.mark.parametrize("endpoint", ["tcp/no-such-host.invalid:7447", "nosuchproto/127.0.0.1:1"])
 def test_start_with_bad_endpoint_is_one_line(endpoint: str) -> None:
-    t = ZenohTransport(ZenohOptions(listen=[endpoint], multicast_scouting=False), _ctx())
+    # (not validated: the options refuse a protocol zenoh lacks since check-config does, and the
+    # start must still say in one line whatever reaches it, from an embedding as from a config)
+    options = ZenohOptions.model_construct(listen=[endpoint], multicast_scouting=False)
+    t = ZenohTransport(options, _ctx())
     with pytest.raises(TransportError, match="cannot open session") as info:
         asyncio.run(t.start())
     assert "\n" not in str(info.value) and ".rs:" not in str(info.value)

@@ -1,0 +1,207 @@
+"""Addresses a config names, checked as the start will use them, without opening anything.
+
+A zenoh endpoint (``listen``, ``connect`` of the zenoh transport and output and of the ros2 source
+and output) was checked for its shape alone: ``tcp/notanaddress``, a port past 65535 or a protocol
+zenoh does not have passed ``mapd check-config`` and stopped ``mapd run`` when the session opened;
+so did TLS files a zenoh config names that are missing or hold no PEM key, and two parts of one
+config (the view, the zenoh transport, a zenoh output) listening on one port. Host names are not
+resolved here: DNS, like the machine's interfaces and who else holds a port, is the start's to meet.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from pydantic import field_validator
+
+from mapd.files import NotRegularFileError, open_regular
+
+# <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
+_ENDPOINT = re.compile(r"[a-z][a-z0-9+\-]*/[^\s]+")
+#: Every link protocol zenoh has (a build may lack some: unixpipe, serial and vsock are not in the
+#: eclipse-zenoh wheel, and its session says so at start).
+PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+#: The protocols whose address is HOST:PORT, and the socket kind each listens with.
+_ON_IP = {"tcp": "tcp", "tls": "tcp", "ws": "tcp", "udp": "udp", "quic": "udp"}
+#: Where a zenoh router listens when nothing says otherwise.
+ROUTER_DEFAULT = "tcp/[::]:7447"
+# (an underscore too: /etc/hosts and some DNS zones hold such names, and getaddrinfo takes them)
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9_-]{1,63}(?<!-)")
+_TLS_FILES = {
+    "root_ca_certificate": "CERTIFICATE-----",
+    "listen_certificate": "CERTIFICATE-----",
+    "connect_certificate": "CERTIFICATE-----",
+    "listen_private_key": "PRIVATE KEY-----",
+    "connect_private_key": "PRIVATE KEY-----",
+}
+_MAX_PEM = 1 << 20
+
+
+def host_problem(host: str) -> str | None:
+    """Why no socket can be bound or connected at ``host`` (brackets stripped), or None: it is an
+    IP address or a well-formed host name (which the start resolves)."""
+    try:
+        ipaddress.ip_address(host)
+        return None
+    except ValueError:
+        pass
+    if re.fullmatch(r"[0-9.]+", host):
+        return f"'{host}' is not an IP address"
+    name = host.removesuffix(".")
+    if len(name) > 253 or not all(_LABEL.fullmatch(label) for label in name.split(".")):
+        return f"'{host}' is neither an IP address nor a host name"
+    return None
+
+
+def _split(ep: str) -> tuple[str, str, int] | None:
+    """``(protocol, host, port)`` of an endpoint on IP, or None for one of another kind."""
+    proto, _, rest = ep.partition("/")
+    if proto not in _ON_IP:
+        return None
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    host, sep, port = address.rpartition(":")
+    bracketed = host.startswith("[") and host.endswith("]")
+    if not sep or not host or not (port.isascii() and port.isdigit()) or int(port) > 65535:
+        raise ValueError(f"'{ep}': {proto} needs HOST:PORT with a port 0-65535")
+    if ":" in host and not bracketed:
+        raise ValueError(f"'{ep}': an IPv6 address goes in brackets, as in {proto}/[::1]:{port}")
+    return proto, host[1:-1] if bracketed else host, int(port)
+
+
+def check_endpoints(endpoints: list[str]) -> list[str]:
+    """``endpoints`` if zenoh can use each; ValueError with one line for the first it cannot."""
+    for ep in endpoints:
+        if not _ENDPOINT.fullmatch(ep):
+            raise ValueError(
+                f"'{ep}' is not a zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
+            )
+        proto = ep.partition("/")[0]
+        if proto not in PROTOCOLS:
+            raise ValueError(f"'{ep}': zenoh has no link protocol '{proto}' (it has {', '.join(PROTOCOLS)})")
+        split = _split(ep)
+        if split is not None and (problem := host_problem(split[1].partition("%")[0])):
+            raise ValueError(f"'{ep}': {problem}")
+    return endpoints
+
+
+class ZenohEndpoints:
+    """For plugin options whose ``listen`` and ``connect`` are zenoh endpoints (the zenoh transport
+    and output, the ros2 source and output): each is checked as the session will use it."""
+
+    @field_validator("listen", "connect", check_fields=False)
+    @classmethod
+    def _check_endpoints(cls, v: list[str]) -> list[str]:
+        return check_endpoints(v)
+
+
+def listening(options: object) -> list[tuple[str, str]]:
+    """The zenoh endpoints a plugin's options listen on, each with how to name it: its ``listen``,
+    else a router's default (unless a zenoh config file it names may set another)."""
+    listen = getattr(options, "listen", None)
+    if isinstance(listen, list) and listen:
+        return [(ep, ep) for ep in listen if isinstance(ep, str)]
+    files = [getattr(options, name, None) for name in getattr(options, "beside_config", ())]
+    if getattr(options, "mode", None) == "router" and not any(files):
+        return [(ROUTER_DEFAULT, f"{ROUTER_DEFAULT} (a router's default)")]
+    return []
+
+
+def socket_of(ep: str) -> Listener | None:
+    """What listening on zenoh endpoint ``ep`` binds, or None (not on IP, or port 0: any free port).
+
+    zenoh's IPv6 wildcard (``[::]``, a router's default) takes IPv4 too, as Linux binds it unless
+    ``net.ipv6.bindv6only`` is set: a view on 127.0.0.1 found its port taken by a router's 7447.
+    """
+    try:
+        split = _split(ep)
+    except ValueError:
+        return None
+    if split is None or split[2] == 0:
+        return None
+    return Listener(_ON_IP[split[0]], split[1], split[2], both_families=True)
+
+
+class Listener(NamedTuple):
+    """A listening socket: ``tcp`` or ``udp``, the host as written, the port, and whether an IPv6
+    wildcard there takes IPv4 as well (zenoh's does; asyncio's, the view's, is IPv6 only)."""
+
+    kind: str
+    host: str
+    port: int
+    both_families: bool = False
+
+
+def same_socket(a: Listener, b: Listener) -> bool:
+    """Whether two listeners would take one socket: the same kind and port, and the same address
+    or one the other's wildcard (host names are compared as written, never resolved)."""
+    if a.kind != b.kind or a.port != b.port:
+        return False
+    try:
+        ha, hb = ipaddress.ip_address(a.host), ipaddress.ip_address(b.host)
+    except ValueError:
+        return a.host == b.host
+    if ha == hb or (ha.version == hb.version and (ha.is_unspecified or hb.is_unspecified)):
+        return True
+    # an IPv6 wildcard that takes both families, beside an IPv4 address
+    return any(x.version == 6 and x.is_unspecified and lx.both_families for x, lx in ((ha, a), (hb, b)))
+
+
+def check_tls(
+    path: Path | None, listen: list[str], read: Callable[[Path], str], field: str = "config_file"
+) -> None:
+    """ValueError with one line for TLS files the zenoh config at ``path`` (read by ``read``) names
+    that the session could not load, or a tls/quic listener in ``listen`` with none to listen with.
+
+    A relative file name is zenoh's to look up from the daemon's working directory (``/`` under
+    systemd), which the check cannot stand in for: only absolute names are read here.
+    """
+    tls: dict[str, Any] = {}
+    if path is not None:
+        try:
+            import zenoh
+        except ImportError:  # the optional dependency: nothing opens a session either
+            return
+        try:
+            conf = zenoh.Config.from_json5(read(path))
+            tls = json.loads(conf.get_json("transport/link/tls")) or {}
+        except (zenoh.ZError, ValueError, TypeError):
+            return  # said by the file's own check
+        for key, marker in _TLS_FILES.items():
+            name = tls.get(key)
+            problem = (
+                _pem_problem(Path(name), marker)
+                if isinstance(name, str) and Path(name).is_absolute()
+                else None
+            )
+            if problem:
+                raise ValueError(f"{field}: {path}: transport.link.tls.{key}: {problem}")
+    for ep in listen:
+        proto = ep.partition("/")[0]
+        if (
+            proto in ("tls", "quic")
+            and "#" not in ep
+            and not (tls.get("listen_private_key") and tls.get("listen_certificate"))
+        ):
+            raise ValueError(
+                f"listen: {ep}: a {proto} listener needs transport.link.tls.listen_private_key and "
+                f"listen_certificate in a zenoh config ({field})"
+            )
+
+
+def _pem_problem(path: Path, marker: str) -> str | None:
+    try:
+        with open_regular(path) as fh:
+            text = fh.read(_MAX_PEM).decode("ascii", "replace")
+    except NotRegularFileError:
+        return f"{path}: not a regular file"
+    except OSError as exc:
+        return f"{path}: cannot read it: {exc.strerror or exc}"
+    if "-----BEGIN " not in text or marker not in text:
+        what = "private key" if "KEY" in marker else "certificate"
+        return f"{path}: holds no PEM {what}"
+    return None
