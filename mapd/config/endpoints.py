@@ -3,23 +3,18 @@
 A zenoh endpoint (``listen``, ``connect`` of the zenoh transport and output and of the ros2 source
 and output) was checked for its shape alone: ``tcp/notanaddress``, a port past 65535 or a protocol
 zenoh does not have passed ``mapd check-config`` and stopped ``mapd run`` when the session opened;
-so did TLS files a zenoh config names that are missing or hold no PEM key, and two parts of one
-config (the view, the zenoh transport, a zenoh output) listening on one port. Host names are not
+so did two parts of one config (the view, the zenoh transport, a zenoh output) listening on one
+port. (TLS files a zenoh config names: :mod:`mapd.ros2.zenoh_config`, with the config files.) Host names are not
 resolved here: DNS, like the machine's interfaces and who else holds a port, is the start's to meet.
 """
 
 from __future__ import annotations
 
 import ipaddress
-import json
 import re
-from collections.abc import Callable
-from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from pydantic import field_validator
-
-from mapd.files import NotRegularFileError, open_regular
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447, tls/host:7447, udp/[::1]:7447
 _ENDPOINT = re.compile(r"[a-z][a-z0-9+\-]*/[^\s]+")
@@ -32,14 +27,6 @@ _ON_IP = {"tcp": "tcp", "tls": "tcp", "ws": "tcp", "udp": "udp", "quic": "udp"}
 ROUTER_DEFAULT = "tcp/[::]:7447"
 # (an underscore too: /etc/hosts and some DNS zones hold such names, and getaddrinfo takes them)
 _LABEL = re.compile(r"(?!-)[A-Za-z0-9_-]{1,63}(?<!-)")
-_TLS_FILES = {
-    "root_ca_certificate": "CERTIFICATE-----",
-    "listen_certificate": "CERTIFICATE-----",
-    "connect_certificate": "CERTIFICATE-----",
-    "listen_private_key": "PRIVATE KEY-----",
-    "connect_private_key": "PRIVATE KEY-----",
-}
-_MAX_PEM = 1 << 20
 
 
 def host_problem(host: str) -> str | None:
@@ -149,59 +136,3 @@ def same_socket(a: Listener, b: Listener) -> bool:
         return True
     # an IPv6 wildcard that takes both families, beside an IPv4 address
     return any(x.version == 6 and x.is_unspecified and lx.both_families for x, lx in ((ha, a), (hb, b)))
-
-
-def check_tls(
-    path: Path | None, listen: list[str], read: Callable[[Path], str], field: str = "config_file"
-) -> None:
-    """ValueError with one line for TLS files the zenoh config at ``path`` (read by ``read``) names
-    that the session could not load, or a tls/quic listener in ``listen`` with none to listen with.
-
-    A relative file name is zenoh's to look up from the daemon's working directory (``/`` under
-    systemd), which the check cannot stand in for: only absolute names are read here.
-    """
-    tls: dict[str, Any] = {}
-    if path is not None:
-        try:
-            import zenoh
-        except ImportError:  # the optional dependency: nothing opens a session either
-            return
-        try:
-            conf = zenoh.Config.from_json5(read(path))
-            tls = json.loads(conf.get_json("transport/link/tls")) or {}
-        except (zenoh.ZError, ValueError, TypeError):
-            return  # said by the file's own check
-        for key, marker in _TLS_FILES.items():
-            name = tls.get(key)
-            problem = (
-                _pem_problem(Path(name), marker)
-                if isinstance(name, str) and Path(name).is_absolute()
-                else None
-            )
-            if problem:
-                raise ValueError(f"{field}: {path}: transport.link.tls.{key}: {problem}")
-    for ep in listen:
-        proto = ep.partition("/")[0]
-        if (
-            proto in ("tls", "quic")
-            and "#" not in ep
-            and not (tls.get("listen_private_key") and tls.get("listen_certificate"))
-        ):
-            raise ValueError(
-                f"listen: {ep}: a {proto} listener needs transport.link.tls.listen_private_key and "
-                f"listen_certificate in a zenoh config ({field})"
-            )
-
-
-def _pem_problem(path: Path, marker: str) -> str | None:
-    try:
-        with open_regular(path) as fh:
-            text = fh.read(_MAX_PEM).decode("ascii", "replace")
-    except NotRegularFileError:
-        return f"{path}: not a regular file"
-    except OSError as exc:
-        return f"{path}: cannot read it: {exc.strerror or exc}"
-    if "-----BEGIN " not in text or marker not in text:
-        what = "private key" if "KEY" in marker else "certificate"
-        return f"{path}: holds no PEM {what}"
-    return None

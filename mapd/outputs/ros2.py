@@ -45,14 +45,14 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
-from mapd.config.endpoints import ZenohEndpoints, check_tls
+from mapd.config.endpoints import ZenohEndpoints
 from mapd.errors import UnreachableError
 from mapd.grid import Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.outputs.retry import SessionRetry
 from mapd.ros2 import rmw
 from mapd.ros2.tf import Ros2Names, TfFrames, load_shown, robot_frame, save_shown, tf_static
-from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: In the state directory: the robots whose map frames went out on /tf_static.
@@ -136,11 +136,6 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     @classmethod
     def _check_ns(cls, v: str) -> str:
         return rmw.check_namespace(v)
-
-    def check_files(self) -> None:
-        """ValueError for a zenoh config, or TLS files it names, the session could not open with."""
-        super().check_files()
-        check_tls(self.zenoh_config, self.listen, zenoh_config_text, field="zenoh_config")
 
     @model_validator(mode="after")
     def _frames_apart(self) -> Ros2OutputOptions:

@@ -21,12 +21,12 @@ from typing import Any, Literal
 from pydantic import Field
 
 from mapd.codec import encode, read_header
-from mapd.config.endpoints import ZenohEndpoints, check_tls
+from mapd.config.endpoints import ZenohEndpoints
 from mapd.envelope import Envelope
 from mapd.errors import TransportError, UnreachableError
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
 from mapd.outputs.retry import SessionRetry
-from mapd.ros2.zenoh_config import ZenohConfigFiles, open_zenoh, zenoh_config_text
+from mapd.ros2.zenoh_config import ZenohConfigFiles, open_zenoh
 from transports.zenoh.keys import global_key
 
 MAX_MESSAGE_BYTES = 64 << 20
@@ -38,11 +38,6 @@ class ZenohOutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     multicast_scouting: bool = Field(default=True, description="find peers on the LAN by UDP multicast")
     config_file: Path | None = Field(default=None, description="zenoh JSON5 config (TLS, access control)")
-
-    def check_files(self) -> None:
-        """ValueError for a config file, or TLS files it names, the session could not open with."""
-        super().check_files()
-        check_tls(self.config_file, self.listen, zenoh_config_text)
 
 
 class ZenohOutput(Output):

@@ -22,6 +22,15 @@ from mapd.files import NotRegularFileError, open_regular
 
 #: zenoh's own example config, every option commented, is about 30 KiB.
 MAX_ZENOH_CONFIG_BYTES = 1 << 20
+#: The TLS files a zenoh config may name, with what each must hold, and the most read of one.
+_TLS_FILES = {
+    "root_ca_certificate": "CERTIFICATE-----",
+    "listen_certificate": "CERTIFICATE-----",
+    "connect_certificate": "CERTIFICATE-----",
+    "listen_private_key": "PRIVATE KEY-----",
+    "connect_private_key": "PRIVATE KEY-----",
+}
+_MAX_PEM = 1 << 20
 
 
 def zenoh_config_text(path: Path) -> str:
@@ -150,12 +159,67 @@ def check_zenoh_config(path: Path) -> None:
         raise ValueError(zenoh_message(exc)) from None
 
 
+def check_tls(path: Path | None, listen: list[str], field: str = "config_file") -> None:
+    """ValueError with one line for TLS files the zenoh config at ``path`` names that the session
+    could not load, or a tls/quic listener in ``listen`` with none to listen with.
+
+    A relative file name is zenoh's to look up from the daemon's working directory (``/`` under
+    systemd), which the check cannot stand in for: only absolute names are read here.
+    """
+    tls: dict[str, Any] = {}
+    if path is not None:
+        try:
+            import zenoh
+        except ImportError:  # the optional dependency: nothing opens a session either
+            return
+        try:
+            conf = zenoh.Config.from_json5(zenoh_config_text(path))
+            tls = json.loads(conf.get_json("transport/link/tls")) or {}
+        except (zenoh.ZError, ValueError, TypeError):
+            return  # said by the file's own check
+        for key, marker in _TLS_FILES.items():
+            name = tls.get(key)
+            problem = (
+                _pem_problem(Path(name), marker)
+                if isinstance(name, str) and Path(name).is_absolute()
+                else None
+            )
+            if problem:
+                raise ValueError(f"{field}: {path}: transport.link.tls.{key}: {problem}")
+    for ep in listen:
+        proto = ep.partition("/")[0]
+        if (
+            proto in ("tls", "quic")
+            and "#" not in ep
+            and not (tls.get("listen_private_key") and tls.get("listen_certificate"))
+        ):
+            raise ValueError(
+                f"listen: {ep}: a {proto} listener needs transport.link.tls.listen_private_key and "
+                f"listen_certificate in a zenoh config ({field})"
+            )
+
+
+def _pem_problem(path: Path, marker: str) -> str | None:
+    try:
+        with open_regular(path) as fh:
+            text = fh.read(_MAX_PEM).decode("ascii", "replace")
+    except NotRegularFileError:
+        return f"{path}: not a regular file"
+    except OSError as exc:
+        return f"{path}: cannot read it: {exc.strerror or exc}"
+    if "-----BEGIN " not in text or marker not in text:
+        what = "private key" if "KEY" in marker else "certificate"
+        return f"{path}: holds no PEM {what}"
+    return None
+
+
 class ZenohConfigFiles:
     """For plugin options that name zenoh config files, in the fields ``beside_config`` lists.
 
     A relative path there is taken from the mapd config's folder, as ``robot.key_file`` is (under
     systemd the working directory is ``/``), and ``mapd check-config`` reads and parses each file
-    (``check_files``), so a missing, malformed or non-regular one is caught before ``mapd run``.
+    (``check_files``), so a missing, malformed or non-regular one is caught before ``mapd run``,
+    and so are the TLS key and certificate files it names (:func:`check_tls`).
     """
 
     beside_config: ClassVar[tuple[str, ...]] = ("config_file",)
@@ -170,3 +234,7 @@ class ZenohConfigFiles:
                 check_zenoh_config(path)
             except ValueError as exc:
                 raise ValueError(f"{name}: {path}: {exc}") from None
+        # The TLS files the config names, and a tls/quic listener without them: the session's
+        # open refused those at start (every such options class has ``listen``).
+        field = self.beside_config[0]
+        check_tls(getattr(self, field), list(getattr(self, "listen", [])), field=field)

@@ -13,10 +13,10 @@ from typing import ClassVar, Literal
 from pydantic import Field, field_validator, model_validator
 
 from mapd.config import NAME_PATTERN
-from mapd.config.endpoints import ZenohEndpoints, check_tls
+from mapd.config.endpoints import ZenohEndpoints
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
-from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text
+from mapd.ros2.zenoh_config import ZenohConfigFiles
 from mapd.sources.base import SourceOptions, check_start_pose, is_pose
 from mapd.sources.ros2_pose import PoseType
 
@@ -128,8 +128,3 @@ class Ros2Options(ZenohEndpoints, ZenohConfigFiles, SourceOptions):
     @classmethod
     def _check_pose(cls, v: list[float] | None) -> list[float] | None:
         return check_start_pose(v)
-
-    def check_files(self) -> None:
-        """ValueError for a zenoh config, or TLS files it names, the session could not open with."""
-        super().check_files()
-        check_tls(self.zenoh_config, self.listen, zenoh_config_text, field="zenoh_config")

@@ -17,7 +17,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from mapd.config.endpoints import ZenohEndpoints, check_tls
+from mapd.config.endpoints import ZenohEndpoints
 from mapd.errors import TransportError
 from mapd.ros2.zenoh_config import ZenohConfigFiles, zenoh_config_text, zenoh_message
 from transports.base import TransportOptions
@@ -64,11 +64,6 @@ class ZenohOptions(ZenohEndpoints, ZenohConfigFiles, TransportOptions):
     max_pending: int = Field(
         default=256, ge=8, le=65536, description="zenoh operations (acks, queries, replies) waiting at once"
     )
-
-    def check_files(self) -> None:
-        """ValueError for a config file, or TLS files it names, the session could not open with."""
-        super().check_files()
-        check_tls(self.config_file, self.listen, zenoh_config_text)
 
 
 def build_config(options: ZenohOptions, max_message_bytes: int) -> object:
