@@ -48,13 +48,16 @@ class Delivered:
 
 @dataclass(frozen=True)
 class Failed:
-    """An offered version could not be delivered to ``peer`` by its deadline."""
+    """An offered version could not be delivered to ``peer`` by its deadline. ``again``: whether
+    offering that same version again may succeed (False: it was refused for its size, by the peer
+    or by this link's own limit, and would be every time)."""
 
     transport: str
     peer: str
     robot: str
     version: int
     reason: str
+    again: bool = True
 
 
 @dataclass(frozen=True)

@@ -50,9 +50,9 @@ log = logging.getLogger("mapd.daemon")
 class FailedOffers:
     """Failed offers of this robot's maps, said without repeating.
 
-    A map over a peer's message limit, or one a peer out of reach never acknowledges, fails again at
-    every in-flight timeout while that peer stays known (P7): a line each time said the same words
-    all day. The first failure to a peer is said, and a new reason for it; repeats go to DEBUG, and
+    Each new version of a map over a peer's message limit is refused again, and a map a one-way
+    link never gets acknowledged fails again at every in-flight timeout while that peer stays
+    known (P7): a line each time said the same words all day. The first failure to a peer is said, and a new reason for it; repeats go to DEBUG, and
     the next delivery to that peer says how many offers failed before it.
     """
 
@@ -108,7 +108,7 @@ class Inbound:
     #: A full disk fails the save of every peer map and base (several a second in a large fleet):
     #: said once, and once when saving works again.
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
-    #: Offers failing again and again for one reason (a map over a peer's limit, P7) said once.
+    #: Offers failing again and again for one reason (each version over a peer's limit) said once.
     _failures: FailedOffers = field(default_factory=lambda: FailedOffers(log))
     #: Revocations so far, and robot -> the number of its last (see :meth:`revoked`).
     _revocations: int = 0
@@ -163,7 +163,7 @@ class Inbound:
             if core.arrived(ev.transport, ev.peer):
                 self.wake()  # back in reach and behind: the newest goes out again (P6)
         elif isinstance(ev, Failed):
-            if core.failed(ev.transport, ev.peer, ev.version):
+            if core.failed(ev.transport, ev.peer, ev.version, again=ev.again):
                 self.wake()
             self._failures.failed(ev)
 

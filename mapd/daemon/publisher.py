@@ -56,6 +56,8 @@ The rules:
   fails every offer at once does not spin, and a newer version still wins. Otherwise a robot that
   heard its peer throughout never saw it "arrive", and a map that no longer changes (a parked
   robot, a base station) never reached it (``counters.failed`` says how many offers failed).
+  A failure the transport calls final (``Failed.again`` False: refused for its size, by the peer
+  or by the link's own limit, as it would be every time) is not offered again; the next version is.
 """
 
 from __future__ import annotations
@@ -197,16 +199,18 @@ class PublisherCore:
             del held[:-KEEP_PEER_VERSIONS]
         return free, newer
 
-    def failed(self, transport: str, peer: str, version: int) -> bool:
+    def failed(self, transport: str, peer: str, version: int, *, again: bool = True) -> bool:
         """An offer could not reach ``peer``; True when the transport became free (poll again).
 
         If it was the newest version and ``peer`` is still in reach when the link is free, it is
-        offered again, a timeout after the failed offer went out at the soonest (P7)."""
+        offered again, a timeout after the failed offer went out at the soonest (P7); not when the
+        failure was final (``again`` False: refused for its size, as it would be every time)."""
         self.counters.failed[transport] = self.counters.failed.get(transport, 0) + 1
         busy = self._inflight.get(transport)
         latest = self._newest_own()
         if (
-            busy is not None
+            again
+            and busy is not None
             and busy.version == version
             and peer in busy.unsettled
             and latest is not None

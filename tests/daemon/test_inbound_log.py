@@ -49,8 +49,8 @@ def test_a_map_that_does_not_decode_is_logged_with_the_short_version(
 def test_an_offer_failing_again_for_the_same_reason_is_said_once_until_it_goes_through(
     tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """A map over a peer's limit fails again at every in-flight timeout (P7): one INFO line each
-    time filled a day's log with the same words. The first failure and a change of reason are
+    """Each version of a map over a peer's limit is refused again: one INFO line each time filled
+    a day's log with the same words. The first failure and a change of reason are
     said; repeats go to DEBUG, and the first delivery after them says how many there were."""
     d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
     versions = [make(incarnation_at(1.8e9), n) for n in (1, 2, 3, 4, 5)]

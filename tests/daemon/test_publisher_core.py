@@ -514,3 +514,17 @@ def test_a_paced_offer_is_held_for_its_link_s_deadline_when_that_is_longer() -> 
     c.new_version(grid(3))
     assert c.poll(170.0 + PACED_HOLD * 30.0 - 1.0, uwb) is None
     assert c.next_deadline() == 170.0 + PACED_HOLD * 30.0
+
+
+def test_an_offer_refused_for_its_size_is_not_offered_again_until_a_new_version() -> None:
+    # A map over the peer's (or this link's) message limit is refused the same way every time: P7
+    # offered that very version again at every in-flight timeout, each try certain to fail. A
+    # failure that says it is final is settled without a re-offer; the next version still goes.
+    c = core(inflight_timeout_s=30.0)
+    uwb = {"uwb": ["robot1"]}
+    c.new_version(grid(1))
+    code(c, 0.0, uwb)
+    assert c.failed("uwb", "robot1", 1, again=False)
+    assert c.poll(100.0, uwb) is None and c.counters.reoffers == 0
+    c.new_version(grid(2))
+    assert code(c, 101.0, uwb)[0].grid.version == 2

@@ -135,7 +135,9 @@ class AckSide:
         if a.flags & wire.REJECT:
             prog.failed = True
             self.counters.messages_failed += 1
-            self._events.append(MessageFailed(m.msg, peer.id, "refused by peer (over its message limit)"))
+            self._events.append(
+                MessageFailed(m.msg, peer.id, "refused by peer (over its message limit)", final=True)
+            )
             self._maybe_close(m, now)
             return
         if prog.gen is not None and a.gen != prog.gen:

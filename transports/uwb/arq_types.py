@@ -113,11 +113,13 @@ class MessageDelivered:
 
 @dataclass(frozen=True)
 class MessageFailed:
-    """Our message ``msg`` will not reach ``peer`` (deadline, or the peer refused it)."""
+    """Our message ``msg`` will not reach ``peer`` (deadline, or the peer refused it). ``final``:
+    the peer refused it (over its message limit), and would refuse the same message again."""
 
     msg: int
     peer: int
     reason: str
+    final: bool = False
 
 
 @dataclass(frozen=True)

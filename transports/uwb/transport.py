@@ -217,7 +217,9 @@ class UwbTransport(Transport):
             msg = link.send(data, dests, stream=self._stream(envelope.robot))
         except LimitError as exc:
             for d in dests:
-                self.ctx.emit(Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc)))
+                self.ctx.emit(
+                    Failed("uwb", self._name(d), envelope.robot, envelope.version, str(exc), again=False)
+                )
             self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
@@ -346,7 +348,7 @@ class UwbTransport(Transport):
         elif isinstance(e, arq.MessageFailed):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]
-                emit(Failed("uwb", self._name(e.peer), robot, version, e.reason))
+                emit(Failed("uwb", self._name(e.peer), robot, version, e.reason, again=not e.final))
         elif isinstance(e, arq.MessageFlushed):
             meta = self._msgs.get(e.msg)
             if meta is not None:

@@ -272,7 +272,7 @@ class SwarmRobot:
                         self._poll(now)
             elif isinstance(e, arq.MessageFailed):
                 v = self._own_msgs.get(e.msg)
-                if v is not None and self.pub.failed("uwb", str(e.peer), v):
+                if v is not None and self.pub.failed("uwb", str(e.peer), v, again=not e.final):
                     self._poll(now)
             elif isinstance(e, arq.MessageFlushed):
                 v = self._own_msgs.get(e.msg)

@@ -317,6 +317,7 @@ def test_oversized_message_is_refused_not_retried() -> None:
     assert net.run(10, stop=lambda: closed(net, 1, msg))
     (f,) = kinds(net.events[1], arq.MessageFailed)
     assert f.peer == 2 and "refused" in f.reason
+    assert f.final  # the same message would be refused again: not worth offering twice
     assert net.now < 1.0
     assert b.stats()["rejected"] == 1 and b.stats()["rx_held_bytes"] == 0
 

@@ -116,7 +116,10 @@ def test_an_offer_that_goes_to_nobody_is_on_the_air_at_once() -> None:
     events.clear()
     t._link = SimpleNamespace(core=SimpleNamespace(peers_up=lambda: [2]), send=too_large)  # type: ignore[assignment]
     t.offer(env)
-    assert events == [Failed("uwb", "b", "a", 3, "uwb: message over the limit"), OnAir("uwb", "a", 3)]
+    assert events == [
+        Failed("uwb", "b", "a", 3, "uwb: message over the limit", again=False),
+        OnAir("uwb", "a", 3),
+    ]
 
 
 @pytest.mark.parametrize(

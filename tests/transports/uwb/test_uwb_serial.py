@@ -340,6 +340,24 @@ def test_unsigned_robot_is_ignored_by_a_signed_one() -> None:
                 assert not b.of(Received) and not b.of(PeerUp)
                 assert b.t.stats()["unsigned"] > 0
                 assert [f.reason for f in a.of(Failed)] == ["deadline"]
+                assert [f.again for f in a.of(Failed)] == [True]  # a deadline may pass next time
+
+    asyncio.run(main())
+
+
+def test_a_map_the_peer_refuses_for_its_size_fails_for_good() -> None:
+    # The peer refuses a message over its limit at the first chunk, and would every time: the
+    # publisher must not offer that very version again (P7), as it does after a deadline.
+    async def main() -> None:
+        async with FaultRelay(rate_bps=RATE) as relay:
+            a = Robot("alpha", relay.ports[0], names=["alpha", "beta"])
+            b = Robot("beta", relay.ports[1], names=["alpha", "beta"], max_message_bytes=2048)
+            async with started(a, b):
+                await until(lambda: bool(a.of(PeerUp)), 10)
+                a.t.offer(envelope("alpha", 1, 5000))
+                await until(lambda: bool(a.of(Failed)), 10)
+                (f,) = a.of(Failed)
+                assert "refused" in f.reason and f.again is False and not b.of(Received)
 
     asyncio.run(main())
 
