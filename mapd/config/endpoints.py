@@ -45,19 +45,41 @@ def host_problem(host: str) -> str | None:
     return None
 
 
+def split_host_port(address: str, *, lowest_port: int = 0) -> tuple[str, int]:
+    """``"HOST:PORT"`` (``"[::1]:8080"`` for IPv6) -> ``(host, port)``, brackets stripped; ValueError
+    (a phrase, for the caller to name the option) when malformed.
+
+    The one reading of HOST:PORT for the view's ``listen`` and zenoh's endpoints on IP, so both take
+    and refuse the same addresses: an IPv6 address without brackets is refused rather than split at
+    its last colon. The view needs a port a browser can be told (``lowest_port=1``); a zenoh listener
+    may take port 0 (any free port).
+    """
+    host, sep, port = address.rpartition(":")
+    bracketed = host.startswith("[") and host.endswith("]")
+    if (
+        not sep
+        or not host
+        or not (port.isascii() and port.isdigit())
+        or not lowest_port <= int(port) <= 65535
+    ):
+        raise ValueError(f"needs HOST:PORT with a port {lowest_port}-65535")
+    if ":" in host and not bracketed:
+        raise ValueError(f"needs an IPv6 address in brackets, as in [::1]:{port}")
+    if host.startswith("[") != host.endswith("]"):
+        raise ValueError(f"needs HOST:PORT, and '{host}' has an unpaired bracket")
+    return host[1:-1] if bracketed else host, int(port)
+
+
 def _split(ep: str) -> tuple[str, str, int] | None:
     """``(protocol, host, port)`` of an endpoint on IP, or None for one of another kind."""
     proto, _, rest = ep.partition("/")
     if proto not in _ON_IP:
         return None
-    address = re.split(r"[?#]", rest, maxsplit=1)[0]
-    host, sep, port = address.rpartition(":")
-    bracketed = host.startswith("[") and host.endswith("]")
-    if not sep or not host or not (port.isascii() and port.isdigit()) or int(port) > 65535:
-        raise ValueError(f"'{ep}': {proto} needs HOST:PORT with a port 0-65535")
-    if ":" in host and not bracketed:
-        raise ValueError(f"'{ep}': an IPv6 address goes in brackets, as in {proto}/[::1]:{port}")
-    return proto, host[1:-1] if bracketed else host, int(port)
+    try:
+        host, port = split_host_port(re.split(r"[?#]", rest, maxsplit=1)[0])
+    except ValueError as exc:
+        raise ValueError(f"'{ep}': {proto} {exc}") from None
+    return proto, host, port
 
 
 def check_endpoints(endpoints: list[str]) -> list[str]:

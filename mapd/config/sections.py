@@ -17,7 +17,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mapd.config.endpoints import host_problem
+from mapd.config.endpoints import host_problem, split_host_port
 from mapd.grid import DEFAULT_MAX_CELLS, short_repr
 
 #: A fleet or robot id: also a zenoh key chunk and a ROS 2 namespace part, so no separators.
@@ -235,10 +235,10 @@ MIN_VIEW_TOKEN = 16
 
 def split_listen(listen: str) -> tuple[str, int]:
     """``"HOST:PORT"`` (``"[::1]:8080"`` for IPv6) -> ``(host, port)``; ValueError when malformed."""
-    host, sep, port = listen.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ValueError(f"listen must be HOST:PORT with a port 1-65535 (got {listen!r})")
-    return host.removeprefix("[").removesuffix("]"), int(port)
+    try:
+        return split_host_port(listen, lowest_port=1)
+    except ValueError as exc:
+        raise ValueError(f"{listen!r} {exc}") from None
 
 
 def is_loopback(host: str) -> bool:

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from mapd import config as configmod
+from mapd.config.endpoints import check_endpoints
+from mapd.config.sections import split_listen
 from mapd.errors import ConfigError, DaemonError
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import GlobalUpdate
@@ -261,10 +263,31 @@ def test_a_url_safe_token_works_pasted_raw_into_the_url(tmp_path: Path) -> None:
     serve(body, token=token)
 
 
-@pytest.mark.parametrize("listen", ["8080", "127.0.0.1", "127.0.0.1:0", "127.0.0.1:99999", ":80"])
+@pytest.mark.parametrize(
+    "listen",
+    ["8080", "127.0.0.1", "127.0.0.1:0", "127.0.0.1:99999", ":80", "::1:8080", "[::1:8080", "::1]:8080"],
+)
 def test_config_refuses_a_malformed_listen(tmp_path: Path, listen: str) -> None:
     with pytest.raises(ConfigError, match=r"view\.listen"):
         configmod.load(_config(tmp_path, f'listen = "{listen}"'))
+
+
+@pytest.mark.parametrize(
+    "address", ["[::1]:8080", "127.0.0.1:8080", "::1:8080", "[::1:8080", "::1]:8080", "h:x"]
+)
+def test_the_view_and_zenoh_read_host_port_alike(address: str) -> None:
+    """One reading of HOST:PORT: before, the view split ``::1:8080`` at its last colon (a zenoh
+    endpoint refused it for want of brackets), so the same address passed in one option and not in
+    the other."""
+
+    def taken(check: Callable[[], object]) -> bool:
+        try:
+            check()
+        except ValueError:
+            return False
+        return True
+
+    assert taken(lambda: split_listen(address)) == taken(lambda: check_endpoints([f"tcp/{address}"]))
 
 
 def test_view_is_off_by_default(tmp_path: Path) -> None:
