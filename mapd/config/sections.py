@@ -18,7 +18,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from mapd.config.endpoints import host_problem, split_host_port
-from mapd.grid import DEFAULT_MAX_CELLS, short_repr
+from mapd.grid import DEFAULT_MAX_CELLS, MAX_RESOLUTION, MIN_RESOLUTION, short_repr
 
 #: A fleet or robot id: also a zenoh key chunk and a ROS 2 namespace part, so no separators.
 NAME_PATTERN = r"^[A-Za-z0-9_\-]{1,32}$"
@@ -158,6 +158,13 @@ class FusionSection(Strict):
         le=1e7,
         description="a map placed with any corner farther than this from the fleet frame's origin (m) "
         "is left out of the global map (the others keep merging)",
+    )
+    resolution: float | None = Field(
+        default=None,
+        ge=MIN_RESOLUTION,
+        le=MAX_RESOLUTION,
+        description="m a cell of the global map; unset: this robot's own map's, or on a base station "
+        "(source none) the median of the first maps placed, kept from then on",
     )
     search_budget_s: float = Field(
         default=10.0,

@@ -369,7 +369,11 @@ class FusionWorker:
         )
         names = within_extent(maps, placements, names, self.cfg.max_extent_m)
         kept = self._resolution
-        if self.robot in names:
+        if self.cfg.resolution is not None:
+            # said by the config: a base station whose first maps came from the odd robot at another
+            # resolution kept that one for good
+            self._resolution = self.cfg.resolution
+        elif self.robot in names:
             # This robot's own map's, whatever set it before: the first placed robot by name once
             # did, and one at 1e-4 m a cell left every normal map out, for good (restored from
             # global.yaml too). A new resolution of its own map is taken the same way.

@@ -364,3 +364,24 @@ def test_features_drawn_shrunk_still_propose_the_true_placement_on_a_large_map(
         errors.append((d / pair.b.resolution, math.degrees(yaw)))
     # a proposal within a few cells and a degree or two: refinement takes it the rest of the way
     assert any(d <= 3.0 and yaw <= 2.0 for d, yaw in errors), errors
+
+
+def test_a_base_station_takes_the_global_resolution_the_config_says() -> None:
+    # A base station took the median of the first maps placed and kept it: a fleet whose first map
+    # came from the odd robot at 0.1 m a cell had a 0.1 m global map for good.
+    from mapd.mapping.synthetic import building as make_building
+
+    fine = make_building(seed=3).replace(robot="a", origin=Pose2D(0.0, 0.0, 0.0))
+    coarse = fine.replace(
+        robot="c", data=np.ascontiguousarray(fine.data[::2, ::2]), resolution=fine.resolution * 2
+    )
+    said = FusionWorker("base", FusionSection(debounce_s=0.0, resolution=fine.resolution), None)
+    default = FusionWorker("base", FusionSection(debounce_s=0.0), None)
+    for w in (said, default):
+        w.known_pose("a", Pose2D(0.0, 0.0, 0.0))
+        w.known_pose("c", Pose2D(0.0, 0.0, 0.0))
+        w._apply(w._fuse({"c": coarse}, False), publish=False)
+        w._apply(w._fuse({"c": coarse, "a": fine}, False), publish=False)
+    assert default.global_map is not None and default.global_map.resolution == coarse.resolution
+    assert said.global_map is not None and said.global_map.resolution == fine.resolution
+    assert said.global_map.counts()["free"] > default.global_map.counts()["free"]  # 4 cells each
