@@ -7,10 +7,13 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mapd.commands.common import path_or_stdio
 from mapd.errors import ConfigError
+
+if TYPE_CHECKING:
+    from mapd.grid import OccupancyGrid, Pose2D
 
 #: Exit status of a merge that wrote its output but left some input maps out of it (each listed,
 #: with why): scripts can tell a partial merge from a whole one without parsing the output.
@@ -117,6 +120,22 @@ def parse_poses(specs: list[str], names: list[str]) -> dict[str, Any]:
     return out
 
 
+def _lattice_of(grid: OccupancyGrid) -> Pose2D:
+    """Where a frame whose lattice holds ``grid``'s cells lies in ``grid``'s frame: moved by what
+    its origin has past a whole cell (identity for an origin on the lattice, or one turned by a yaw,
+    whose cells no lattice of the frame holds)."""
+    from mapd.grid import Pose2D
+
+    def past(v: float, r: float) -> float:
+        rest = v - r * round(v / r)
+        return 0.0 if abs(rest) < 1e-9 * r else rest  # on the lattice but for float rounding
+
+    o = grid.origin
+    if o.yaw != 0.0:
+        return Pose2D(0.0, 0.0, 0.0)
+    return Pose2D(past(o.x, grid.resolution), past(o.y, grid.resolution), 0.0)
+
+
 def cmd_merge(args: argparse.Namespace) -> int:
     from mapd.commands.common import check_writable, map_inputs, map_outputs, refuse_overwrite, refuse_stdio
     from mapd.fusion.merge import NO_OWNER, merge_with_owner, save_png
@@ -178,16 +197,20 @@ def cmd_merge(args: argparse.Namespace) -> int:
         frame = "frame of the --pose options (" + ", ".join(sorted(poses)) + ")"
         units = "x, y in meters, yaw in radians: p_pose_frame = R(yaw) p_input + (x, y)"
     in_frame = {n: compose(back, placements[n].transform) for n in placed}  # type: ignore[arg-type]
+    # The merge lays cells on its frame's lattice (multiples of the resolution from the origin): a
+    # first map whose origin is off it (x = 0.025 at 5 cm) came back resampled, up to half a cell
+    # off. Merged in a frame moved by that remainder, the first map's cells stay as they are.
+    lattice = _lattice_of(maps[names[0]]) if names[0] in in_frame else IDENTITY
     result = merge_with_owner(
         [maps[n] for n in names],
-        [in_frame.get(n) for n in names],
+        [compose(inverse(lattice), in_frame[n]) if n in in_frame else None for n in names],
         args.mode,
         resolution=maps[names[0]].resolution,
         chunk=1,  # one-shot: no later merge to keep the size steady for, so no 64-cell blocks
         frame_id="map",
     )
     refused = {names[i]: why for i, why in result.left_out}  # placed, but the merge could not take it
-    grid = result.grid
+    grid = result.grid.replace(origin=compose(lattice, result.grid.origin))
     save_map(grid, args.output)
     if args.png:
         save_png(result, str(args.png))

@@ -158,11 +158,17 @@ def test_a_first_map_left_out_is_reported_with_the_frame_the_output_is_in(
     assert "x     0.500" in text.stdout  # the merged map is listed as merged, with its transform
 
 
-def test_a_map_merged_with_itself_comes_back_as_it_was(tmp_path: Path, building: OccupancyGrid) -> None:
+@pytest.mark.parametrize("x, y", [(-10.0, -10.0), (-10.025, 3.0137)])
+def test_a_map_merged_with_itself_comes_back_as_it_was(
+    tmp_path: Path, building: OccupancyGrid, x: float, y: float
+) -> None:
     """The one-shot merge padded its output out to the daemon's 64-cell blocks: a map merged with
     itself came back larger, with an unknown border and its origin moved. Blocks keep a live global
-    map's size steady across merges; a one-shot merge has no later merge to keep steady."""
-    g = building.replace(origin=Pose2D(-10.0, -10.0, 0.0))  # on its 5 cm lattice, off the blocks
+    map's size steady across merges; a one-shot merge has no later merge to keep steady. And a map
+    whose origin is off its frame's lattice (-10.025 at 5 cm) came back resampled, walls moved by
+    half a cell."""
+    assert building.resolution == 0.05
+    g = building.replace(origin=Pose2D(x, y, 0.0))  # off the blocks; on or off its 5 cm lattice
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     a, b = save_map(g, tmp_path / "a" / "map.yaml"), save_map(g, tmp_path / "b" / "map.yaml")
@@ -170,5 +176,5 @@ def test_a_map_merged_with_itself_comes_back_as_it_was(tmp_path: Path, building:
     assert r.returncode == 0, r.stderr
     out = load_map(tmp_path / "m.yaml")
     assert (out.width, out.height) == (g.width, g.height)
-    assert math.isclose(out.origin.x, -10.0, abs_tol=1e-9) and math.isclose(out.origin.y, -10.0, abs_tol=1e-9)
+    assert math.isclose(out.origin.x, x, abs_tol=1e-9) and math.isclose(out.origin.y, y, abs_tol=1e-9)
     assert np.array_equal(out.data, g.data)
