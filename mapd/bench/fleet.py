@@ -3,7 +3,8 @@
 For each fleet size it reports the update latency from publish (the sender encodes and offers an
 update) to fused (a receiver's fusion worker has merged that version into its global map), at the
 median and 95th percentile over every (sender, receiver, version); the bytes each robot sends per
-second; and the CPU each daemon used per second of wall time. All daemons share this machine's
+second (its map payloads, and all it puts on the wire: updates, poses, acks and keyframe replies,
+and of that its poses); and the CPU each daemon used per second of wall time. All daemons share this machine's
 clock, so latencies need no clock sync. The single-robot-pair run (N = 2) is the baseline the
 larger fleets are compared with, as ratios.
 """
@@ -138,7 +139,9 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
             key = (r["robot"], int(r["version"]))
             if r["robot"] != name and key in published:
                 latencies.append(1000.0 * (float(r["time"]) - published[key]))
-    tx = [s.get("links", {}).get("zenoh", {}).get("bytes_tx", 0) for s in snaps.values()]
+    links = [s.get("links", {}).get("zenoh", {}) for s in snaps.values()]
+    tx = [link.get("bytes_tx", 0) for link in links]  # updates, poses, acks and keyframe replies
+    pose_tx = [link.get("pose_bytes_tx", 0) for link in links]
     return {
         "robots": n,
         "latency_p50_ms": _percentile(latencies, 50),
@@ -146,6 +149,7 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
         "samples": len(latencies),
         "payload_bps_per_robot": 8 * sum(sent_bytes.values()) / max(len(sent_bytes), 1) / wall,
         "wire_bps_per_robot": 8 * sum(tx) / max(len(tx), 1) / wall if tx else float("nan"),
+        "pose_bps_per_robot": 8 * sum(pose_tx) / max(len(pose_tx), 1) / wall if pose_tx else float("nan"),
         "cpu_per_daemon": sum(cpu.values()) / len(cpu) / wall,
         "rss_mb_per_daemon": sum(rss.values()) / len(rss),
         "router_cpu": router_cpu / wall,
@@ -182,6 +186,7 @@ def _text(rows: list[dict[str, Any]]) -> str:
         ("latency_p95_ms_x", f"p95 x N={base}", ".2f"),
         ("payload_bps_per_robot", "payload b/s/robot", ".0f"),
         ("wire_bps_per_robot", "wire b/s/robot", ".0f"),
+        ("pose_bps_per_robot", "of it poses", ".0f"),
         ("cpu_per_daemon", "CPU/daemon", ".2f"),
         ("cpu_per_daemon_x", f"CPU x N={base}", ".2f"),
         ("rss_mb_per_daemon", "MB/daemon", ".0f"),

@@ -32,6 +32,7 @@ from transports.zenoh.checks import CheckQueue
 from transports.zenoh.core import NAME, Step, ZenohCore
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.sending import SendCounters
 from transports.zenoh.session import ZenohOptions
 
 # The name these lines have always been logged under (log filters and journal searches use it).
@@ -78,6 +79,8 @@ class ZenohIntake:
     _handlers: HandlerSet
     _rx_lock: threading.Lock
     _rx: IntakeCounters
+    _tx_lock: threading.Lock
+    _tx: SendCounters
     _presence: dict[str, list[bool]]
     _reply_slots: threading.BoundedSemaphore
 
@@ -273,6 +276,10 @@ class ZenohIntake:
                 payload = self._keyframe_bytes()
                 if payload is not None:
                     query.reply(reply_key, payload)
+                    with self._tx_lock:
+                        self._tx.bytes_tx += len(payload)
+                        self._tx.replies_tx += 1
+                        self._tx.reply_bytes_tx += len(payload)
             finally:
                 query.drop()  # finalizes the query so the asker is not left waiting
                 self._reply_slots.release()

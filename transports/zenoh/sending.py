@@ -31,9 +31,16 @@ log = logging.getLogger("transports.zenoh.link")
 class SendCounters:
     """What the outbox thread sent or refused; :meth:`ZenohTransport.stats` shows these names."""
 
+    #: Every byte this robot put or answered with: updates, poses, acks and keyframe replies (the
+    #: three after updates also by themselves below; zenoh's own framing is not counted).
     bytes_tx: int = 0
     updates_tx: int = 0
     acks_tx: int = 0
+    ack_bytes_tx: int = 0
+    pose_bytes_tx: int = 0
+    #: Keyframes sent as answers to late joiners' queries.
+    replies_tx: int = 0
+    reply_bytes_tx: int = 0
     #: zenoh calls that raised (a put, a reply, a query).
     errors: int = 0
     #: Own envelopes over limits.max_message_bytes, never sent.
@@ -113,6 +120,7 @@ class ZenohSending:
             self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
             with self._tx_lock:
                 self._tx.bytes_tx += len(data)
+                self._tx.pose_bytes_tx += len(data)
                 self._tx.poses_tx += 1
 
         self._jobs.submit(("pose",), job)  # latest wins: a pose not yet put is replaced
@@ -134,5 +142,7 @@ class ZenohSending:
                 self._session.put(key, payload)
                 with self._tx_lock:
                     self._tx.acks_tx += 1
+                    self._tx.bytes_tx += len(payload)  # not counted before: the wire figure lacked acks
+                    self._tx.ack_bytes_tx += len(payload)
 
         self._jobs.submit(("ack", robot), job)

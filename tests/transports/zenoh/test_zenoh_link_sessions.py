@@ -49,6 +49,10 @@ def test_an_update_arrives_and_decodes(zk, room_grid) -> None:
             b.t.ack("a", 1)
             await a.wait(lambda: a.of(Delivered))
             assert a.of(Delivered) == [Delivered("zenoh", "b", "a", 1)]
+            # The ack is on b's wire: bytes_tx, which mapd bench fleet reports, once lacked acks.
+            await b.wait(lambda: b.t.stats()["acks_tx"] == 1)
+            st_b = b.t.stats()
+            assert st_b["bytes_tx"] == st_b["ack_bytes_tx"] > 0
 
     run(main())
 
@@ -57,10 +61,14 @@ def test_late_joiner_gets_the_keyframe_then_deltas(zk) -> None:
     async def main() -> None:
         async with zk.fleet() as f:
             a = await f.start("a", listen=[f.ep])
-            a.offer(zk.envelope("a", 1))
-            a.offer(zk.envelope("a", 2, 1))  # nobody hears these two
-            a.offer(zk.envelope("a", 3))
-            a.offer(zk.envelope("a", 4, 3))
+            offered = [
+                zk.envelope("a", 1),
+                zk.envelope("a", 2, 1),
+                zk.envelope("a", 3),
+                zk.envelope("a", 4, 3),
+            ]
+            for env in offered:  # nobody hears the first two
+                a.offer(env)
             b = await f.start("b", connect=[f.ep])
             # b asks for a's latest keyframe (v3) as soon as it sees a.
             await b.wait(lambda: b.received("a"))
@@ -72,6 +80,15 @@ def test_late_joiner_gets_the_keyframe_then_deltas(zk) -> None:
             await b.wait(lambda: len(b.received("a")) == 2)
             assert b.received("a") == [("a", 3, 0), ("a", 5, 3)]
             assert b.t.stats()["keyframe_queries"] == 1 and b.t.stats()["gaps"] == 0
+            # The keyframe a answered with is on its wire too (bytes_tx once lacked replies).
+            st_a = a.t.stats()
+            keyframe = len(offered[2].pack())
+            assert st_a["replies_tx"] == 1 and st_a["reply_bytes_tx"] == keyframe
+            # (an offer not yet put is replaced by the next, so count the updates put: all are the
+            # same size, and each is counted with its bytes under one lock)
+            assert {len(e.pack()) for e in offered} == {keyframe}
+            updates = st_a["updates_tx"] * keyframe
+            assert st_a["bytes_tx"] == updates + keyframe + st_a["ack_bytes_tx"] + st_a["pose_bytes_tx"]
 
     run(main())
 
