@@ -73,5 +73,10 @@ class StateError(MapdError):
     """The state directory cannot be read or written."""
 
 
+class DiskFullError(StateError):
+    """A write found no room (ENOSPC, EDQUOT): unlike a permission, it may go through once the disk
+    has room again, so whoever meets it at start-up runs on and tries again."""
+
+
 class DaemonError(MapdError):
     """The daemon cannot start, or no daemon answers on the control socket."""

@@ -203,7 +203,7 @@ def _num(v: Any, spec: str = ".1f") -> str:
 
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
-    from mapd.daemon.headline import DAMAGE_KEYS, LINK_FAULTS, damage_words, link_faults
+    from mapd.daemon.headline import DAMAGE_KEYS, LINK_FAULTS, damage_words, link_faults, state_faults
     from mapd.daemon.versions import label
 
     out = []
@@ -312,6 +312,14 @@ def render_status(s: dict[str, Any]) -> str:
     for name, st in (s.get("outputs") or {}).items():
         if isinstance(st, dict) and (faults := link_faults(st)):
             out.append(f"output  {name}: FAULTS " + ", ".join(faults))
+    if faults := state_faults(s):
+        st = s["state"]
+        failing = [x for x in (st, st.get("global_map") or {}) if x.get("writing") is False]
+        since = max((x.get("failing_s") or 0 for x in failing), default=0)
+        out.append(
+            f"state   FAULTS {'; '.join(faults)}, for {_age(since)} ({st.get('dir')}): "
+            f"{next((x.get('error') for x in failing if x.get('error')), '-')}"
+        )
     rec = s.get("recording")
     if rec and (rec.get("failures") or rec.get("dropped")):
         out.append(

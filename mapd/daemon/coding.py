@@ -57,6 +57,7 @@ class CsvLog:
         if not rows:
             return
         with self._lock:
+            end: int | None = None  # where the file ended before this append
             try:
                 if not self._checked:
                     _cut_torn_line(self.path)
@@ -65,11 +66,21 @@ class CsvLog:
                     if self.path.stat().st_size >= self.max_bytes:
                         os.replace(self.path, self.path.with_suffix(".1" + self.path.suffix))
                 with open(self.path, "a", newline="") as fh:
+                    end = fh.tell()
                     w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-                    if fh.tell() == 0:
+                    if end == 0:
                         w.writeheader()
                     w.writerows(rows)
             except OSError as exc:
+                # A full disk takes part of the rows (the room left in the file's last block): cut
+                # back to the last whole row, or the next append, once there is room, runs into it
+                # (a torn row in the middle of the log). Cutting needs no room; if it fails all the
+                # same, the next write's first look cuts it.
+                if end is not None:
+                    try:
+                        os.truncate(self.path, end)
+                    except OSError:
+                        self._checked = False
                 self._outage.failed(
                     f"cannot write {self.path} (rows dropped until it can): {exc.strerror or exc}"
                 )

@@ -25,6 +25,8 @@ LINK_FAULTS = {
     "write_stalls": "port took no bytes {} times",
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
     "replay_save_errors": "replay marks not saved {} times (disk full or read-only?)",
+    # an output that writes files (``files``): False while its newest map cannot be written
+    "writing": "not writing (disk full?)",
     "out_of_turn": "{} frames of others on the air in this robot's own TDMA slot (do the clocks agree?)",
     # A counter over 5 minutes ahead of this clock: clocks far apart, or a link-key holder's forgery.
     "future": "{} frames signed with counters over 5 min ahead of this robot's clock (clocks apart, or a forged link key?)",
@@ -93,6 +95,20 @@ def link_faults(st: dict[str, Any]) -> list[str]:
     return out
 
 
+def state_faults(s: dict[str, Any]) -> list[str]:
+    """The state directory's saves that fail now (a full disk), in words; [] when they go through."""
+    st = s.get("state")
+    if not isinstance(st, dict):
+        return []
+    out = []
+    if st.get("writing") is False:
+        out.append("state dir not writable (disk full?): own maps held back")
+    g = st.get("global_map")
+    if isinstance(g, dict) and g.get("writing") is False:
+        out.append("global map not saved")
+    return out
+
+
 def status_line(s: dict[str, Any]) -> str:
     """``FAULTS uwb port reopened 2 times | map v12; peers beta v9, gamma v4 (gone); global 3 maps 812x604``.
 
@@ -129,6 +145,7 @@ def status_line(s: dict[str, Any]) -> str:
         for name, st in (s.get("outputs") or {}).items()
         if isinstance(st, dict) and (words := link_faults(st))
     ]
+    faults += state_faults(s)
     rec = s.get("recording") or {}
     if rec.get("failures") or rec.get("dropped"):
         faults.append("recording: messages not written")

@@ -221,6 +221,8 @@ class Inbound:
                 say("dropped %s of %s from %s: %s", label(env.version), env.robot, ev.peer, plan.reason)
             if plan.forget and transport is not None:
                 await transport.request_keyframe(env.robot)
+            if plan.held and transport is not None and env.robot == ev.peer:
+                transport.ack(env.robot, env.version)  # (from its robot: not for each relay's copy)
             return
         try:
             grid = await asyncio.to_thread(decode_envelope, env, plan.base, max_cells=self.max_cells)

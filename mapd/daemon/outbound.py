@@ -37,6 +37,9 @@ from mapd.sources.base import MapSource
 from transports.base import Transport
 
 log = logging.getLogger("mapd.daemon")
+#: Seconds between tries to save the newest own version after a save failed (a full disk), while
+#: the source makes no newer one: a finished log, a parked robot, a map file that no longer changes.
+SAVE_RETRY_S = 5.0
 
 
 @dataclass
@@ -58,9 +61,15 @@ class Outbound:
     fleet_robot: Callable[[str], bool] = lambda robot: False
     #: The newest own version (numbered), or None before the first.
     own: OccupancyGrid | None = None
+    #: The newest own version saved: the only kind sent, and so the only one a late joiner's
+    #: keyframe query is answered with (``own`` may be one a full disk kept from being saved, whose
+    #: number a restart could give again).
+    saved: OccupancyGrid | None = None
     #: The source has no more maps (a finished log); the daemon still serves its peers.
     source_finished: bool = False
     _pending: OccupancyGrid | None = None  # the newest own version, not yet saved
+    _unsaved: OccupancyGrid | None = None  # the newest own version, whose save failed: tried again
+    _retry_at: float = 0.0  # (monotonic) when _unsaved is tried again
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))  # a full disk, said once
     _kf_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -135,20 +144,28 @@ class Outbound:
         core = self.publisher
         while True:
             deadline = core.next_deadline()
+            if self._unsaved is not None:
+                deadline = self._retry_at if deadline is None else min(deadline, self._retry_at)
             timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._wake.wait(), timeout)
             self._wake.clear()
             grid, self._pending = self._pending, None
+            if grid is None and self._unsaved is not None and time.monotonic() >= self._retry_at:
+                grid = self._unsaved  # no newer version came: the one that failed, again
             if grid is not None:
                 try:
                     await asyncio.to_thread(self.store.save_own, grid)
                 except StateError as exc:
                     # A full disk: the version is not sent unsaved (after a restart its number could
-                    # come again), and the robot runs on; the next version tries again.
+                    # come again), and the robot runs on; it is tried again every SAVE_RETRY_S, and
+                    # a newer version replaces it.
                     self._saves.failed(f"{exc}; new versions are not sent until one is saved")
+                    self._unsaved, self._retry_at = grid, time.monotonic() + SAVE_RETRY_S
                 else:
                     self._saves.recovered("own map saved again")
+                    self._unsaved = None
+                    self.saved = grid
                     core.new_version(grid)
             job = core.poll(time.monotonic(), self.peers())
             if job is None:
@@ -175,13 +192,13 @@ class Outbound:
             self.publisher.hold(name, env.version, time.monotonic() + seconds)
 
     def latest_keyframe(self) -> Envelope | None:
-        """The newest own map as a keyframe, for late joiners.
+        """The newest own map saved, as a keyframe, for late joiners.
 
         Called by transports from worker threads (a zenoh query is answered on its job thread): it
         may encode, so it must never run on the event loop. One encode per version however many
         queries wait; the publisher's own keyframes are reused.
         """
-        own = self.own
+        own = self.saved
         if own is None:
             return None
         with self._kf_lock:

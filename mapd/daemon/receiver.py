@@ -105,6 +105,10 @@ class Drop:
     forget: bool = False
     #: Worth a warning, not an info line: something an operator has to act on.
     warning: bool = False
+    #: This very version is the one held: ack it again. Its robot offers it again after a restart
+    #: whose state lost our ack (a full disk, a kill), and waited out its in-flight timeout (30 s)
+    #: for an ack that a dropped duplicate never got.
+    held: bool = False
 
 
 def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
@@ -234,7 +238,7 @@ class Receiver:
         """
         ahead = split(held)[0] - incarnation_at(now)
         if ahead <= FUTURE_MARGIN_S:
-            return Drop(f"v{env.version} is not newer than v{held}", routine=True)
+            return Drop(f"v{env.version} is not newer than v{held}", routine=True, held=env.version == held)
         said = self._future_said.get(env.robot)
         due = said is None or not 0 <= now - said < FUTURE_SAID_EVERY_S
         if due:

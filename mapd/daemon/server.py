@@ -486,7 +486,7 @@ class Daemon:
         saved_state = await asyncio.to_thread(self._load_state)
         own, base = saved_state.own, saved_state.base
         if own is not None:
-            own = self.outbound.own = own.replace(robot=self.me)
+            own = self.outbound.own = self.outbound.saved = own.replace(robot=self.me)
             self.fusion.submit(own)
         self.publisher.restore(own, base, self.store.acked())
         now = time.time()
@@ -597,4 +597,9 @@ class Daemon:
             },
             "reload": self.reloads.status(),
             "state_dir": str(self.cfg.state.dir),
+            # Saves that fail now (a full disk): the state's, and the global map's beside it.
+            "state": {
+                **self.store.health(),
+                "global_map": self.fusion.store.health() if self.fusion.store is not None else None,
+            },
         }

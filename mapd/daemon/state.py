@@ -42,7 +42,7 @@ from typing import Any
 from mapd.daemon.versions import next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
-from mapd.files import atomic_write_json, make_dir, read_json_capped, remove_stale_temps
+from mapd.files import WriteOutage, atomic_write_json, make_dir, read_json_capped, remove_stale_temps
 from mapd.grid import (
     DEFAULT_MAX_CELLS,
     OccupancyGrid,
@@ -213,6 +213,9 @@ class StateStore:
         # (state.json written last, from a copy of the records taken under ``_lock``).
         self._lock = threading.Lock()
         self._io = threading.Lock()
+        #: The writes of the state directory that fail now (a full disk), for ``mapd status``. Not
+        #: logged here: whoever saved says it once (its line says what the failure costs).
+        self.outage = WriteOutage(None)
 
     # ------------------------------------------------------------------ setup
     def open(self) -> StateData:
@@ -421,8 +424,14 @@ class StateStore:
                     found.append(robot)
         return found
 
+    def health(self) -> dict[str, Any]:
+        """The state directory's writes for ``mapd status --json``: its ``dir``, ``writing`` (False
+        while saves fail: a full disk), ``failures`` (saves failed in all), ``failing_s`` and
+        ``error`` (see :meth:`~mapd.files.WriteOutage.status`)."""
+        return {"dir": str(self.root), **self.outage.status()}
+
     def save_own(self, grid: OccupancyGrid) -> None:
-        with self._io:
+        with self._io, self.outage.counted(StateError):
             record = self._save(grid, self.root / "own" / "map.yaml")
             with self._lock:
                 self.data.own = record
@@ -430,7 +439,7 @@ class StateStore:
             self._write_state()
 
     def save_base(self, grid: OccupancyGrid) -> None:
-        with self._io:
+        with self._io, self.outage.counted(StateError):
             record = self._save(grid, self.root / "own" / "base.yaml")
             with self._lock:
                 self.data.base = record
@@ -442,7 +451,7 @@ class StateStore:
         """Save a peer's map, with the pose of its map frame its envelope reported and the roster
         key it was taken under (``key``), if any."""
         d = self._peer_dir(grid.robot)
-        with self._io:
+        with self._io, self.outage.counted(StateError):
             try:
                 make_dir(d)
             except OSError as exc:
@@ -469,7 +478,7 @@ class StateStore:
 
     def flush(self) -> None:
         """Write ``state.json`` now (blocking)."""
-        with self._io:
+        with self._io, self.outage.counted(StateError):
             self._write_state()
 
     def _write_state(self) -> None:

@@ -76,9 +76,17 @@ class FusionStore:
         self.directory = directory
         self.robot = robot
         self.max_cells = max_cells
+        #: Saves of the global map that fail now (a full disk), for ``mapd status``. Not logged
+        #: here: the worker says it once, with what it costs.
+        self.outage = WriteOutage(None)
         self._owner_outage = WriteOutage(log)
 
     # -- reading ----------------------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        """The global map's saves for ``mapd status --json`` (see
+        :meth:`~mapd.files.WriteOutage.status`)."""
+        return self.outage.status()
 
     def load_placements(self) -> Saved:
         """The placements and version of ``transforms.json``; entries that do not parse are left out."""
@@ -150,41 +158,49 @@ class FusionStore:
 
         ``keys``: robot -> the roster key its map was taken under, for the robots in this merge.
         """
-        try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StateError(f"{self.directory}: cannot create the state directory: {exc.strerror}") from None
-        save_committed(result.grid, self.directory / GLOBAL_YAML)
-        doc = {
-            "format": FORMAT,
-            "robot": self.robot,
-            "fleet_frame": fleet_frame,
-            "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
-            "mode": mode,
-            "version": result.grid.version,
-            "stamp": stamp,
-            "resolution": result.grid.resolution,
-            "origin": list(result.grid.origin),
-            "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
-            "keys": dict(sorted((keys or {}).items())),
-        }
-        write_json_atomic(self.directory / TRANSFORMS_JSON, doc)
+        with self.outage.counted(MapdError):
+            try:
+                self.directory.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise StateError(
+                    f"{self.directory}: cannot create the state directory: {exc.strerror}"
+                ) from None
+            save_committed(result.grid, self.directory / GLOBAL_YAML)
+            doc = {
+                "format": FORMAT,
+                "robot": self.robot,
+                "fleet_frame": fleet_frame,
+                "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
+                "mode": mode,
+                "version": result.grid.version,
+                "stamp": stamp,
+                "resolution": result.grid.resolution,
+                "origin": list(result.grid.origin),
+                "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
+                "keys": dict(sorted((keys or {}).items())),
+            }
+            write_json_atomic(self.directory / TRANSFORMS_JSON, doc)
 
     def save_owner(self, owner: np.ndarray, names: list[str]) -> None:
-        """``owner.npy`` and the names it indexes; a failed write is a warning (pictures only)."""
+        """``owner.npy`` and the names it indexes; a failed write is an error line once per outage
+        (pictures only), none while the global map's own save fails too (a full disk: the worker
+        has said so, and a second line for the same disk says nothing more)."""
         buf = io.BytesIO()
         np.save(buf, _owner_names(owner, names))
         try:
             atomic_write_bytes(self.directory / OWNER_NPY, buf.getvalue())
             write_json_atomic(self.directory / OWNER_JSON, {"robots": names})
-        except OSError as exc:  # said once per outage, naming the file (not its hidden temp)
-            self._owner_outage.failed(
-                f"fusion: cannot write owner map {self.directory / OWNER_NPY}: {exc.strerror or exc}"
-            )
+        except OSError as exc:  # naming the file (not its hidden temp)
+            self._owner_failed(f"{self.directory / OWNER_NPY}: {exc.strerror or exc}")
         except StateError as exc:
-            self._owner_outage.failed(f"fusion: cannot write owner map: {exc}")
+            self._owner_failed(str(exc))
         else:
             self._owner_outage.recovered("fusion: writing the owner map again")
+
+    def _owner_failed(self, why: str) -> None:
+        if self.outage.failing:
+            return  # the global map's save failed just before: the worker said it, once
+        self._owner_outage.failed(f"fusion: cannot write owner map {why}")
 
 
 def read_owner(directory: Path) -> tuple[np.ndarray, list[str]] | None:

@@ -56,6 +56,11 @@ from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, geometr
 log = logging.getLogger(__name__)
 #: How many times the area its maps now cover the global map may keep (see FusionWorker._kept_bounds).
 SHRINK_AREA = 4
+#: Seconds between tries to save the newest global map after its save failed (a full disk), while
+#: no new map comes to merge (a fleet at rest): the state directory kept the one before the outage.
+SAVE_RETRY_S = 5.0
+#: A merge not saved yet: its result, placements, stamp, the keys of its maps, the robots in it.
+_Unsaved = tuple[MergeResult, dict[str, Placement], float, dict[str, str], list[str]]
 
 
 class _Stopped(Exception):
@@ -119,6 +124,10 @@ class FusionWorker:
         self._error: str | None = None
         #: The global map could not be written (said once, not at every merge).
         self._saves = WriteOutage(log)
+        #: The newest merge whose save failed, tried again every SAVE_RETRY_S (under _save_lock: a
+        #: retry must never write an older map over one a merge saved meanwhile).
+        self._unsaved: _Unsaved | None = None
+        self._save_lock = threading.Lock()
         self._dropped = 0
         self._loaded = False
         #: Whether a robot's map may be in the global map at all (the roster); others found in the
@@ -283,7 +292,12 @@ class FusionWorker:
             self._loaded = True
         try:
             while True:
-                await self._wake.wait()
+                retry = SAVE_RETRY_S if self._unsaved is not None else None
+                try:
+                    await asyncio.wait_for(self._wake.wait(), retry)
+                except TimeoutError:
+                    await asyncio.to_thread(self._save_unsaved)
+                    continue
                 if self.cfg.debounce_s > 0:
                     await asyncio.sleep(self.cfg.debounce_s)
                 self._wake.clear()
@@ -409,16 +423,22 @@ class FusionWorker:
         stamp = time.time()
         grid = result.grid.replace(robot=self.robot, version=self._merges + 1, stamp=stamp)
         result = MergeResult(grid=grid, bounds=result.bounds, owner=result.owner)
-        try:
-            self._save(result, placements, stamp, self._merge_keys)
-        except MapdError as exc:
-            # A full disk must not freeze the fleet's global map: the outputs and status still
-            # get the new one, and the state directory keeps the last one written whole (each
-            # file is atomic), which a restart restores.
-            self._saves.failed(f"fusion: global map not saved (saving again at each merge): {exc}")
-        else:
-            self._saves.recovered("fusion: global map saved again")
-        self._save_owner(result, names)
+        with self._save_lock:
+            try:
+                self._save(result, placements, stamp, self._merge_keys)
+            except MapdError as exc:
+                # A full disk must not freeze the fleet's global map: the outputs and status still
+                # get the new one, and the state directory keeps the last one written whole (each
+                # file is atomic), which a restart restores.
+                self._saves.failed(
+                    f"fusion: global map not saved (saving again at each merge, and every "
+                    f"{SAVE_RETRY_S:g} s): {exc}"
+                )
+                self._unsaved = (result, placements, stamp, dict(self._merge_keys), names)
+            else:
+                self._saves.recovered("fusion: global map saved again")
+                self._unsaved = None
+            self._save_owner(result, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
 
     def _give_up_if_stopping(self, _placement: Placement) -> None:
@@ -552,6 +572,20 @@ class FusionWorker:
                 mode=self.cfg.mode,
                 keys=keys,
             )
+
+    def _save_unsaved(self) -> None:
+        """The newest global map again, after its save failed (runs in a worker thread)."""
+        with self._save_lock:
+            if self._unsaved is None:
+                return  # a merge saved a newer one meanwhile
+            result, placements, stamp, keys, names = self._unsaved
+            try:
+                self._save(result, placements, stamp, keys)
+            except MapdError:
+                return  # (said when the outage began)
+            self._unsaved = None
+            self._saves.recovered("fusion: global map saved again")
+            self._save_owner(result, names)
 
     def _save_owner(self, result: MergeResult, names: list[str]) -> None:
         if self.store is not None:

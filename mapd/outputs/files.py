@@ -8,6 +8,11 @@ name an update between those two reads (about one a second) gave it the new imag
 origin and size. Older images are removed. The daemon's own state directory keeps its copy
 regardless (``state/global``); this output is for another place, say where a ``map_server`` on the
 same robot or a web server looks.
+
+A map that cannot be written (a full or read-only disk) leaves the files before it whole (each is
+atomic), is said once per outage and shown in ``mapd status`` (``writing`` false), and is tried
+again every :data:`RETRY_S` until it or a newer one is written: a fleet at rest makes no new global
+map, and the folder kept the one from before the disk filled.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import asyncio
 import contextlib
 import logging
 import re
+import threading
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -28,6 +34,8 @@ from mapd.grid import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
 
 log = logging.getLogger("mapd.outputs.files")
+#: Seconds between tries of a global map that could not be written, while no newer one comes.
+RETRY_S = 5.0
 
 
 class FilesOptions(OutputOptions):
@@ -59,9 +67,14 @@ class FilesOutput(Output):
             raise TypeError("files output needs FilesOptions")
         self.opts: FilesOptions = self.options
         self.written = 0
-        #: Updates that could not be written (a full or read-only disk, a path that is a folder).
+        #: Writes that failed (a full or read-only disk, a path that is a folder), tries again included.
         self.failures = 0
         self._outage = WriteOutage(log)
+        #: The newest map while it is not written yet; publish (the outputs' thread) and the retry
+        #: (a worker thread) write it in turn, under ``_lock``.
+        self._unwritten: GlobalUpdate | None = None
+        self._lock = threading.Lock()
+        self._retry: asyncio.Task[None] | None = None
         # as _write names them (no leading zero: "fleet-007.pgm" is someone else's file)
         self._image = re.compile(re.escape(self.opts.name) + r"-([1-9]\d{0,17})\.pgm")
         self._seq = 1  # the next image's number; set past those in the folder at start
@@ -81,6 +94,25 @@ class FilesOutput(Output):
         for n in sorted(images)[:-2]:
             self._unlink(self._image_path(n))
         self._unlink(self.opts.dir / f"{self.opts.name}.pgm")
+        self._retry = asyncio.create_task(self._retry_unwritten(), name="output.files retry")
+
+    async def close(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._retry
+            self._retry = None
+
+    async def _retry_unwritten(self) -> None:
+        """Every :data:`RETRY_S`, write the newest map again if it could not be written."""
+        while True:
+            await asyncio.sleep(RETRY_S)
+            if self._unwritten is None:
+                continue
+            try:
+                await asyncio.to_thread(self._write_unwritten)
+            except Exception as exc:  # a bug: one line, and the output still takes new maps
+                log.error("output.files: writing the map again failed: %s: %s", type(exc).__name__, exc)
 
     def _images(self) -> list[int]:
         """The numbers of the ``<name>-<n>.pgm`` images in the folder."""
@@ -99,17 +131,30 @@ class FilesOutput(Output):
             path.unlink(missing_ok=True)
 
     def publish(self, update: GlobalUpdate) -> None:
-        try:
-            self._write(update)
-        except (MapdError, OSError) as exc:
-            # A full or read-only disk fails every update (about one a second): said once, with
-            # the cause and not the hidden temp file's name, and counted; the next map tries again.
-            self.failures += 1
-            why = str(exc) if isinstance(exc, MapdError) else f"{exc.filename}: {exc.strerror or exc}"
-            self._outage.failed(f"output.files: cannot write the global map ({why}); trying each new map")
-            return
-        self._outage.recovered(f"output.files: writing to {self.opts.dir} again")
-        self.written += 1
+        with self._lock:
+            self._unwritten = update  # (one not written before is older: this one replaces it)
+        self._write_unwritten()
+
+    def _write_unwritten(self) -> None:
+        with self._lock:
+            update = self._unwritten
+            if update is None:
+                return  # written since the retry looked
+            try:
+                self._write(update)
+            except (MapdError, OSError) as exc:
+                # A full or read-only disk fails every update (about one a second): said once, with
+                # the cause and not the hidden temp file's name, and counted; tried again.
+                self.failures += 1
+                why = str(exc) if isinstance(exc, MapdError) else f"{exc.filename}: {exc.strerror or exc}"
+                self._outage.failed(
+                    f"output.files: cannot write the global map ({why}); trying again every "
+                    f"{RETRY_S:g} s and with each new map"
+                )
+                return
+            self._unwritten = None
+            self._outage.recovered(f"output.files: writing to {self.opts.dir} again")
+            self.written += 1
 
     def _write(self, update: GlobalUpdate) -> None:
         seq = self._seq
@@ -134,4 +179,15 @@ class FilesOutput(Output):
             raise OSError(exc.errno, exc.strerror, str(path)) from None  # (not the temp file's name)
 
     def stats(self) -> dict[str, int | float | str]:
-        return {"written": self.written, "failures": self.failures, "dir": str(self.opts.dir)}
+        """Maps written, writes failed, the folder, and ``writing``: False while the newest map
+        cannot be written (``error`` then says why)."""
+        out: dict[str, int | float | str] = {
+            "written": self.written,
+            "failures": self.failures,
+            "dir": str(self.opts.dir),
+            "writing": not self._outage.failing,
+        }
+        error = self._outage.error
+        if error is not None:
+            out["error"] = error
+        return out

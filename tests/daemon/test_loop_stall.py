@@ -126,6 +126,9 @@ def test_loop_never_stalls_on_a_4m_cell_map_and_a_keyframe_query(
             cpu = CallbackCpu(monkeypatch)
             await asyncio.sleep(0.2)
             await source.queue.put(grid)
+            # (a late joiner is answered only with a version saved: one a full disk kept unsaved
+            # is not sent, as a restart could give its number again)
+            await dk.wait_for(lambda: daemon.outbound.saved is not None, 60.0, "v1 saved")
             reply = await asyncio.to_thread(query)  # while the publisher still encodes v1
             await dk.wait_for(lambda: daemon.publisher.counters.keyframes_sent >= 1, 60.0, "v1 coded")
             await dk.wait_for(lambda: daemon.fusion.global_map is not None, 60.0, "global map")

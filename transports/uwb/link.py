@@ -21,7 +21,7 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-from mapd.errors import MapdError, StateError, TransportError
+from mapd.errors import DiskFullError, MapdError, StateError, TransportError
 from transports.uwb import arq, wallclock
 from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import (
@@ -223,7 +223,10 @@ class UwbLink:
                 "fleet's clocks to agree within guard_ms (run chrony: docs/uwb.md)",
                 self.port,
             )
-        await self._persist_counter(strict=True)  # a state dir that cannot be written fails here
+        # A state dir that cannot be written fails here, but not a full disk: a robot restarted on
+        # one went down again every 2 s under systemd, where it can run on (receiving, fusing)
+        # and sign once a save goes through, as a link whose disk fills later does.
+        await self._persist_counter(strict=True)
         try:
             await self._open()
         except TransportError:
@@ -390,9 +393,10 @@ class UwbLink:
     async def _persist_counter(self, *, strict: bool = False) -> None:
         """Save the counter bound the core asks for, then let it sign below it.
 
-        Only at start (``strict``) does a failed save raise. Later the loop goes on: the core still
-        has the rest of the block saved before (half a block, minutes of frames), after which it
-        sends nothing signed; each wake retries, and a save that goes through resumes it. The save
+        Only at start (``strict``) does a failed save raise, unless the disk is full: then, as
+        later, the loop goes on. The core still has the rest of the block saved before (half a
+        block, minutes of frames; none at start), after which it sends nothing signed; each wake
+        retries, and a save that goes through resumes it. The save
         (two fsyncs, which an SD card under load can take seconds over) runs on a worker thread:
         this link waits for it, the event loop does not.
         """
@@ -406,13 +410,18 @@ class UwbLink:
         try:
             await asyncio.to_thread(self._store.save, upto)
         except StateError as exc:
-            if strict:
+            if strict and not isinstance(exc, DiskFullError):
                 raise
             self._counter_retry_at = now + COUNTER_RETRY_S
             self.counter_save_errors += 1
             if str(exc) != self._counter_fault:
                 self._counter_fault = str(exc)
-                log.warning("%s; signing on within the counters saved before, retrying", exc)
+                if strict:
+                    log.warning(
+                        "%s; this link signs and sends nothing until a save goes through, retrying", exc
+                    )
+                else:
+                    log.warning("%s; signing on within the counters saved before, retrying", exc)
             return
         if self._counter_fault:
             self._counter_fault = ""

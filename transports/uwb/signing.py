@@ -25,6 +25,7 @@ touch files.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import hmac
 import logging
@@ -32,7 +33,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapd.errors import StateError
+from mapd.errors import DiskFullError, StateError
 from mapd.files import atomic_write_bytes, atomic_write_json, read_capped, read_json_capped
 
 log = logging.getLogger(__name__)
@@ -228,7 +229,8 @@ class CounterStore:
             # file and directory fsynced: a power cut never brings back a lower counter
             atomic_write_bytes(self.path, f"{value}\n".encode("ascii"))
         except OSError as exc:
-            raise StateError(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None
+            cls = DiskFullError if exc.errno in (errno.ENOSPC, errno.EDQUOT) else StateError
+            raise cls(f"uwb: cannot write signing counter {self.path}: {exc.strerror}") from None
 
 
 #: A replay file holds at most one mark a sender id (256), about 30 bytes each, and a key fingerprint.

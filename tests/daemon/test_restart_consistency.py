@@ -1,0 +1,107 @@
+"""A robot restarted on a state that lost its last word (a full disk, a kill) and its peers agree
+on which version it holds: duplicates it offers again are acked, and only saved versions go out."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mapd.codec.api import encode
+from mapd.daemon.versions import incarnation_at, make
+from mapd.envelope import Envelope
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.identity import read_identity
+from transports.base import Received
+
+
+@pytest.mark.parametrize("relayed", [False, True])
+def test_a_version_held_and_offered_again_by_its_robot_is_acked_again(
+    tmp_path: Path, dk: SimpleNamespace, relayed: bool
+) -> None:
+    """A robot restarted with a state that lost our ack (a full disk, a kill) offers the version
+    again and waits for an ack; the duplicate was dropped unacked, and it waited out its in-flight
+    timeout (30 s). A copy another robot relays is not acked: its robot did not ask."""
+    d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    robot1 = read_identity(tmp_path / "keys" / "robot1.key", "robot1")
+    grid = OccupancyGrid(np.zeros((10, 10), np.int8), 0.05)
+    env = Envelope(
+        fleet="default", robot="robot1", version=make(incarnation_at(time.time() - 60), 4),
+        base_version=0, codec="raw", width=10, height=10, resolution=0.05,
+        origin=Pose2D(0, 0, 0), payload=encode(grid, "raw"),
+    ).signed(robot1)  # fmt: skip
+    acks: list[tuple[str, int]] = []
+
+    class Link:  # what the receiving half asks of the map's transport
+        name = "virtual"
+
+        def ack(self, robot: str, version: int) -> None:
+            acks.append((robot, version))
+
+        def relayed(self, env: Envelope) -> None:
+            pass
+
+        def held(self, env: Envelope, data: bytes) -> None:
+            pass
+
+    link = Link()
+    d.transports.append(link)  # type: ignore[arg-type]
+
+    async def main() -> None:
+        await d.inbound.handle(Received(link.name, "robot1", env.pack()))
+        assert acks == [("robot1", env.version)]
+        await d.inbound.handle(Received(link.name, "robot2" if relayed else "robot1", env.pack()))
+
+    asyncio.run(main())
+    assert d.receiver.counters.duplicates == 1
+    assert acks == [("robot1", env.version)] * (1 if relayed else 2)
+
+
+def test_a_late_joiner_is_answered_only_with_an_own_version_saved(
+    tmp_path: Path, dk: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A version a full disk kept from being saved is not sent (after a restart its number could
+    come again with another map), yet a zenoh keyframe query was answered with it."""
+    from mapd.errors import StateError
+
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    full = False
+    save = d.store.save_own
+
+    def save_own(grid: OccupancyGrid) -> None:
+        if full:
+            raise StateError("state: no room (a full disk)")
+        save(grid)
+
+    monkeypatch.setattr(d.store, "save_own", save_own)
+
+    async def main() -> tuple[int | None, int | None, int | None]:
+        nonlocal full
+        await d._restore()
+        tasks = [asyncio.create_task(d.outbound.take_source(source)), asyncio.create_task(d.outbound.run())]
+        try:
+            await source.queue.put(dk.growing_map(1))
+            await dk.wait_for(lambda: d.outbound.saved is not None, what="the first map saved")
+            first = await asyncio.to_thread(d.outbound.latest_keyframe)
+            full = True
+            await source.queue.put(dk.growing_map(2))
+            await dk.wait_for(lambda: d.outbound.own is not d.outbound.saved, what="the second map made")
+            await asyncio.sleep(0.2)  # (its save tried and failed)
+            second = await asyncio.to_thread(d.outbound.latest_keyframe)
+            own = d.outbound.own
+            return (
+                None if first is None else first.version,
+                None if second is None else second.version,
+                None if own is None else own.version,
+            )
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    first, second, own = asyncio.run(main())
+    assert first is not None and second == first and own is not None and own != first
