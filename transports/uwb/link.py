@@ -186,6 +186,7 @@ class UwbLink:
         self._clock_read: tuple[float, float] | None = None
         self._counter_fault = ""
         self._counter_retry_at = 0.0
+        self._replay_fault = False  # the last save of the replay marks failed
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot
@@ -311,9 +312,13 @@ class UwbLink:
             await asyncio.to_thread(self._replay.save, marks, self._cfg.key)
         except StateError as exc:
             self.replay_save_errors += 1
-            if self.replay_save_errors == 1:
+            if not self._replay_fault:  # said once an outage (it was once a process), not each try
                 log.warning("%s; frames from before a restart may be taken again after it", exc)
+            self._replay_fault = True
             return
+        if self._replay_fault:
+            self._replay_fault = False
+            log.warning("uwb: replay marks saved again on %s", self.port)
         self._replay_saved = marks
 
     def send(

@@ -197,3 +197,35 @@ def test_a_signing_counter_saved_far_ahead_of_the_clock_is_said_at_start(
         _marks_at_start(_link(tmp_path, KEY))
     said = [r.getMessage() for r in caplog.records if "signing counter" in r.getMessage()]
     assert len(said) == 1 and "ahead of the wall clock" in said[0]
+
+
+def test_replay_marks_not_saved_are_said_once_an_outage_and_when_saved_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A failed save was said once a process: a second outage went unsaid, and the end of one
+    too, so a log read later could not tell whether the marks were being saved."""
+    path = tmp_path / "uwb-2.replay"
+
+    async def main() -> None:
+        link = _link(tmp_path, KEY)
+        await link.start()
+        assert link.core is not None
+        now, wall = asyncio.get_running_loop().time(), time.time()
+        link.core.set_clock_offset(wall - now)
+        for outage, sender in ((1, 1), (2, 3)):
+            path.unlink(missing_ok=True)
+            path.mkdir()  # the save's rename onto it fails, as on a full or read-only disk
+            for k in range(3):  # three tries, each with marks that changed
+                link.core.receive_data(_forged_hello(sender, clock_floor(wall) + 10 * outage + k), now)
+                await link._save_replay(force=True)
+            path.rmdir()
+            link.core.receive_data(_forged_hello(sender, clock_floor(wall) + 10 * outage + 5), now)
+            await link._save_replay(force=True)
+            assert link.stats()["replay_save_errors"] == 3 * outage
+        await link.close()
+
+    with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records if "replay marks" in r.getMessage()]
+    assert len([m for m in said if "cannot write replay marks" in m]) == 2, said
+    assert len([m for m in said if "saved again" in m]) == 2, said
