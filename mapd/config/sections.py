@@ -89,6 +89,14 @@ class LimitsSection(Strict):
 class StateSection(Strict):
     dir: Path = Field(default=Path("/var/lib/mapd"), description="state directory (systemd StateDirectory)")
     runtime_dir: Path = Field(default=Path("/run/mapd"), description="control socket dir (RuntimeDirectory)")
+    clock_wait_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=3600.0,
+        description="with a new (or lost) state directory, wait up to this long for the kernel to say "
+        "the clock is synchronized before the first own map: the robot's versions start from its "
+        "clock, and a clock behind makes them older than those its peers hold (0: do not wait)",
+    )
 
 
 class PluginSection(BaseModel):

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from mapd import wallclock
 from mapd.codec.api import encode_problem
 from mapd.daemon.coding import Coder
 from mapd.daemon.publisher import PublisherCore
@@ -59,6 +60,10 @@ class Outbound:
     peers: Callable[[], dict[str, list[str]]]
     #: Whether a name is a fleet robot's (on the roster, or heard from): not the source's to give.
     fleet_robot: Callable[[str], bool] = lambda robot: False
+    #: ``[state] clock_wait_s``: how long a new state waits for a synchronized clock (see
+    #: :meth:`_clock_for_a_new_state`), and how it asks the kernel.
+    clock_wait_s: float = 0.0
+    clock_synchronized: Callable[[], bool | None] = lambda: wallclock.synchronized()
     #: The newest own version (numbered), or None before the first.
     own: OccupancyGrid | None = None
     #: The newest own version saved: the only kind sent, and so the only one a late joiner's
@@ -93,6 +98,8 @@ class Outbound:
             if problem is not None:  # no codec could send it: skip it rather than fail on it later
                 log.warning("source map skipped: %s", problem)
                 continue
+            if self.store.new_state():
+                await self._clock_for_a_new_state()
             own = grid.replace(
                 robot=self.me,
                 version=self.store.next_own_version(time.time()),
@@ -105,6 +112,37 @@ class Outbound:
             self.fusion.submit(own)
         self.source_finished = True
         log.info("source finished; still serving peers")
+
+    async def _clock_for_a_new_state(self) -> None:
+        """Before the first own version of a new (or lost) state directory, whose versions start
+        from the wall clock (:mod:`mapd.daemon.versions`): wait up to ``clock_wait_s`` for the
+        kernel to say the clock is synchronized, and say it when it is not.
+
+        A clock behind (a board without a battery-backed clock boots at its image's date, before
+        NTP sets it) made every version of the robot older than those of its lost state, which its
+        peers still hold: each of its maps was refused, for good. Once is enough: the state has an
+        own version after this.
+        """
+        if self.clock_synchronized() is not False:
+            return  # synchronized, or the kernel cannot be asked (not Linux)
+        if self.clock_wait_s > 0:
+            log.info(
+                "the wall clock is not synchronized: waiting up to %g s for it before the first map "
+                "of this new state (its versions start from the clock)",
+                self.clock_wait_s,
+            )
+            end = time.monotonic() + self.clock_wait_s
+            while time.monotonic() < end:
+                await asyncio.sleep(min(1.0, max(0.0, end - time.monotonic())))
+                if self.clock_synchronized() is not False:
+                    log.info("the wall clock is synchronized: the first map goes out")
+                    return
+        log.warning(
+            "the wall clock is not synchronized%s; this new state's versions start from it: if it is "
+            "behind, peers holding maps of this robot from before refuse its new ones (they say so; "
+            "fix: set the clock, then restart with an empty state directory)",
+            f" after {self.clock_wait_s:g} s" if self.clock_wait_s > 0 else "",
+        )
 
     def _local_peer_map(self, source: MapSource, grid: OccupancyGrid) -> None:
         """A map of another robot from this daemon's source (a map_merge drop-in): fused and

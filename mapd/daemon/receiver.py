@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.codec import decode
-from mapd.daemon.versions import VersionBounds, check_step, incarnation_at, split
+from mapd.daemon.versions import EPOCH, VersionBounds, check_step, incarnation_at, split
 from mapd.envelope import Envelope, unpack
 from mapd.errors import CodecError, SignatureError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
@@ -36,6 +36,16 @@ KEEP_PEER_VERSIONS = 8
 #: are said, every :data:`FUTURE_SAID_EVERY_S` at most per robot.
 FUTURE_MARGIN_S = 60.0
 FUTURE_SAID_EVERY_S = 600.0
+
+
+def _incarnation_date(incarnation: int) -> str:
+    """When a robot's state began, from its versions' incarnation (UTC, to the minute)."""
+    import datetime
+
+    at = datetime.datetime.fromtimestamp(EPOCH + incarnation, tz=datetime.UTC)
+    return at.strftime("%Y-%m-%d %H:%M UTC")
+
+
 #: Robots refused for want of room whose name is kept, so that each is logged once.
 MAX_OVER_LIMIT_NAMES = 256
 
@@ -150,6 +160,8 @@ class Receiver:
     _over_limit: set[str] = field(default_factory=set)
     #: robot -> when a map refused under a held version from the future was last said
     _future_said: dict[str, float] = field(default_factory=dict)
+    #: robot -> when its maps of an older incarnation than the one held were last said
+    _older_said: dict[str, float] = field(default_factory=dict)
 
     def restore(self, grid: OccupancyGrid, *, held_at: float, now: float) -> None:
         """A peer's map from the state directory, taken at wall time ``held_at`` (when it was saved).
@@ -166,7 +178,7 @@ class Receiver:
     def forget(self, robot: str) -> bool:
         """Drop ``robot``'s maps and what is known of it (revoked); False if nothing was held."""
         held = robot in self.maps or robot in self.info
-        for d in (self.maps, self.info, self._history, self._held_at, self._future_said):
+        for d in (self.maps, self.info, self._history, self._held_at, self._future_said, self._older_said):
             d.pop(robot, None)
         return held
 
@@ -199,7 +211,7 @@ class Receiver:
             return Drop(f"already {self.max_peers} robots (limits.max_peers)", routine=said)
         if held is not None and env.version <= held.version:
             self.counters.duplicates += 1
-            return self._not_newer(env, held.version, now)
+            return self._not_newer(env, held.version, now, direct=env.robot == link_peer)
         why = check_step(
             held.version if held else 0, self._held_at.get(env.robot, now), env.version, now, self.bounds
         )
@@ -228,8 +240,9 @@ class Receiver:
             return AskKeyframe(env.robot, new_incarnation=restarted)
         return Decode(base)
 
-    def _not_newer(self, env: Envelope, held: int, now: float) -> Drop:
-        """A duplicate, routine; but not when what is held comes from our clock's future.
+    def _not_newer(self, env: Envelope, held: int, now: float, *, direct: bool) -> Drop:
+        """A duplicate, routine; but not when what is held comes from our clock's future, nor when
+        the robot itself (``direct``) sends an older incarnation (:meth:`_older_incarnation`).
 
         A key that leaked can sign a version up to ``clock_tolerance_s`` ahead; held, it has every
         real map of that robot refused as not newer until the robot's clock passes it (re-keying
@@ -237,6 +250,8 @@ class Receiver:
         as the robot keeps sending.
         """
         ahead = split(held)[0] - incarnation_at(now)
+        if ahead <= FUTURE_MARGIN_S and direct and split(env.version)[0] < split(held)[0]:
+            return self._older_incarnation(env, held, now)
         if ahead <= FUTURE_MARGIN_S:
             return Drop(f"v{env.version} is not newer than v{held}", routine=True, held=env.version == held)
         said = self._future_said.get(env.robot)
@@ -247,6 +262,24 @@ class Receiver:
             f"not newer than the version held, whose incarnation is {ahead / 3600:.1f} h ahead of this "
             f"robot's clock: a clock set wrong, or a leaked key (re-key the robot in the roster and "
             f"reload to revoke it)",
+            routine=not due,
+            warning=True,
+        )
+
+    def _older_incarnation(self, env: Envelope, held: int, now: float) -> Drop:
+        """The robot itself sends maps of an incarnation older than the one held: it lost its state
+        and began again while its clock was behind (a board without a battery-backed clock, before
+        NTP set it). Its versions stay below the held one, so every map it makes is refused, which
+        a routine duplicate said nowhere: said now and then, with the fix."""
+        said = self._older_said.get(env.robot)
+        due = said is None or not 0 <= now - said < FUTURE_SAID_EVERY_S
+        if due:
+            self._older_said[env.robot] = now
+        return Drop(
+            f"its maps are of a state begun {_incarnation_date(split(env.version)[0])}, before the one "
+            f"held ({_incarnation_date(split(held)[0])}): it lost its state while its clock was behind, "
+            f"and every map it makes is refused as older; set its clock, then restart it with an "
+            f"empty state directory",
             routine=not due,
             warning=True,
         )

@@ -173,6 +173,7 @@ class Daemon:
             transport=lambda name: self.inbound.transport(name),
             peers=lambda: {t.name: t.peers() for t in self.transports},
             fleet_robot=lambda r: r in self.keys.roster.robots or r in self.receiver.maps,
+            clock_wait_s=cfg.state.clock_wait_s,
         )
         self.inbound = Inbound(
             me=self.me,

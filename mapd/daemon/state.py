@@ -252,6 +252,12 @@ class StateStore:
             log.info("removed %d temp file(s) an interrupted write left in %s", removed, self.root)
 
     # ------------------------------------------------------------------ counters (no file I/O)
+    def new_state(self) -> bool:
+        """Whether no own version was ever numbered here: the next starts a new incarnation from
+        the wall clock (a new or lost state directory)."""
+        with self._lock:
+            return self.data.own_version == 0
+
     def next_own_version(self, wall_time: float) -> int:
         """Reserve the next own map version (see :mod:`mapd.daemon.versions`).
 

@@ -142,3 +142,22 @@ def test_maps_refused_under_a_held_version_from_the_future_are_said_now_and_then
     take(r, make(incarnation_at(NOW + 5), 3))
     plan = r.plan(env(make(incarnation_at(NOW + 5), 3)), "robot1", NOW)
     assert isinstance(plan, Drop) and plan.routine and not plan.warning
+
+
+def test_a_robot_that_began_again_with_its_clock_behind_is_said_now_and_then() -> None:
+    # A robot that lost its state and started again before NTP set its clock (a board without a
+    # battery-backed clock boots at its image's date) makes versions below the one held: each of
+    # its maps was dropped as a routine duplicate, said nowhere, for good.
+    r = rx()
+    take(r, make(INC, 40))
+    behind = incarnation_at(NOW - 200 * 86400)  # its clock says 200 days ago
+    plan = r.plan(env(make(behind, 1)), "robot1", NOW)
+    assert isinstance(plan, Drop) and plan.warning and not plan.routine
+    assert "lost its state while its clock was behind" in plan.reason and "empty state directory" in plan.reason
+    assert isinstance(again := r.plan(env(make(behind, 2)), "robot1", NOW + 60), Drop) and again.routine
+    assert not r.plan(env(make(behind, 3)), "robot1", NOW + 700).routine  # said again after a while
+    # a copy of its older maps that another robot relays, and a plain duplicate, stay routine
+    relayed = r.plan(env(make(behind, 4), signed=True), "robot2", NOW + 800)
+    assert isinstance(relayed, Drop) and relayed.routine
+    same = r.plan(env(make(INC, 39)), "robot1", NOW + 900)
+    assert isinstance(same, Drop) and same.routine and not same.warning

@@ -105,3 +105,48 @@ def test_a_late_joiner_is_answered_only_with_an_own_version_saved(
 
     first, second, own = asyncio.run(main())
     assert first is not None and second == first and own is not None and own != first
+
+
+@pytest.mark.parametrize("synced_after", [0.6, None], ids=["synchronized-later", "never"])
+def test_a_new_state_waits_for_a_synchronized_clock_before_its_first_map(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture, synced_after: float | None
+) -> None:
+    """A new (or lost) state's versions start from the wall clock. A board without a battery-backed
+    clock boots at its image's date until NTP sets it: a first map then made every version older
+    than those of its lost state, which its peers hold, and they refused its maps for good. With
+    ``[state] clock_wait_s`` the first map waits for the kernel to say the clock is synchronized;
+    a clock never synchronized is said, and the map goes out when the wait is over."""
+    import logging
+
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    d.outbound.clock_wait_s = 1.5
+    t0 = time.monotonic()
+    d.outbound.clock_synchronized = lambda: synced_after is not None and time.monotonic() - t0 >= synced_after
+
+    async def main() -> tuple[float, float]:
+        await d._restore()
+        task = asyncio.create_task(d.outbound.take_source(source))
+        try:
+            await source.queue.put(dk.growing_map(1))
+            await asyncio.sleep(0.3)
+            assert d.outbound.own is None  # not numbered while the clock is not synchronized
+            await dk.wait_for(lambda: d.outbound.own is not None, 5.0, "the first map")
+            first = time.monotonic() - t0
+            await source.queue.put(dk.growing_map(2))  # the state is not new now: no wait
+            t1 = time.monotonic()
+            await dk.wait_for(lambda: d.outbound.own is not None and d.outbound.own.version % 2**32 == 2)
+            return first, time.monotonic() - t1
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    with caplog.at_level(logging.INFO, logger="mapd.daemon"):
+        first, second = asyncio.run(main())
+    said = [r for r in caplog.records if "wall clock" in r.getMessage()]
+    if synced_after is not None:
+        assert synced_after <= first < 1.5, first
+        assert [r.levelname for r in said] == ["INFO", "INFO"], [r.getMessage() for r in said]
+    else:
+        assert 1.5 <= first < 3.0, first
+        assert said[-1].levelname == "WARNING" and "after 1.5 s" in said[-1].getMessage()
+    assert second < 0.5

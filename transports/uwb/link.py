@@ -21,8 +21,9 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+from mapd import wallclock
 from mapd.errors import DiskFullError, MapdError, StateError, TransportError
-from transports.uwb import arq, wallclock
+from transports.uwb import arq
 from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import (
     MAX_AHEAD_S,

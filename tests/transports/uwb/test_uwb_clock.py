@@ -94,7 +94,7 @@ def test_the_rx_latency_is_a_frames_time_on_the_serial_line_unless_configured() 
 def test_the_kernels_word_on_the_clock_is_read_without_changing_it(monkeypatch: pytest.MonkeyPatch) -> None:
     import sys
 
-    from transports.uwb import wallclock
+    from mapd import wallclock
 
     got = wallclock.synchronized()  # the real call: asks, changes nothing (no privilege needed)
     assert isinstance(got, bool) if sys.platform.startswith("linux") else got is None
@@ -109,7 +109,7 @@ def test_the_kernels_word_on_the_clock_is_read_without_changing_it(monkeypatch: 
 def test_a_tdma_link_says_whether_its_clock_is_synchronized(
     monkeypatch: pytest.MonkeyPatch, synced: bool
 ) -> None:
-    from transports.uwb import wallclock
+    from mapd import wallclock
     from transports.uwb.link import UwbLink
 
     monkeypatch.setattr(wallclock, "synchronized", lambda: synced)
