@@ -46,6 +46,16 @@ def _incarnation_date(incarnation: int) -> str:
     return at.strftime("%Y-%m-%d %H:%M UTC")
 
 
+def _due(said: dict[str, float], robot: str, now: float) -> bool:
+    """Whether a warning about ``robot`` is due (none in the last :data:`FUTURE_SAID_EVERY_S`, or
+    the clock went back since); if so, noted as said now."""
+    last = said.get(robot)
+    due = last is None or not 0 <= now - last < FUTURE_SAID_EVERY_S
+    if due:
+        said[robot] = now
+    return due
+
+
 #: Robots refused for want of room whose name is kept, so that each is logged once.
 MAX_OVER_LIMIT_NAMES = 256
 
@@ -254,15 +264,11 @@ class Receiver:
             return self._older_incarnation(env, held, now)
         if ahead <= FUTURE_MARGIN_S:
             return Drop(f"v{env.version} is not newer than v{held}", routine=True, held=env.version == held)
-        said = self._future_said.get(env.robot)
-        due = said is None or not 0 <= now - said < FUTURE_SAID_EVERY_S
-        if due:
-            self._future_said[env.robot] = now
         return Drop(
             f"not newer than the version held, whose incarnation is {ahead / 3600:.1f} h ahead of this "
             f"robot's clock: a clock set wrong, or a leaked key (re-key the robot in the roster and "
             f"reload to revoke it)",
-            routine=not due,
+            routine=not _due(self._future_said, env.robot, now),
             warning=True,
         )
 
@@ -271,16 +277,12 @@ class Receiver:
         and began again while its clock was behind (a board without a battery-backed clock, before
         NTP set it). Its versions stay below the held one, so every map it makes is refused, which
         a routine duplicate said nowhere: said now and then, with the fix."""
-        said = self._older_said.get(env.robot)
-        due = said is None or not 0 <= now - said < FUTURE_SAID_EVERY_S
-        if due:
-            self._older_said[env.robot] = now
         return Drop(
             f"its maps are of a state begun {_incarnation_date(split(env.version)[0])}, before the one "
             f"held ({_incarnation_date(split(held)[0])}): it lost its state while its clock was behind, "
             f"and every map it makes is refused as older; set its clock, then restart it with an "
             f"empty state directory",
-            routine=not due,
+            routine=not _due(self._older_said, env.robot, now),
             warning=True,
         )
 
