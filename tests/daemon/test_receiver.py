@@ -153,7 +153,9 @@ def test_a_robot_that_began_again_with_its_clock_behind_is_said_now_and_then() -
     behind = incarnation_at(NOW - 200 * 86400)  # its clock says 200 days ago
     plan = r.plan(env(make(behind, 1)), "robot1", NOW)
     assert isinstance(plan, Drop) and plan.warning and not plan.routine
-    assert "lost its state while its clock was behind" in plan.reason and "empty state directory" in plan.reason
+    assert (
+        "lost its state while its clock was behind" in plan.reason and "empty state directory" in plan.reason
+    )
     assert isinstance(again := r.plan(env(make(behind, 2)), "robot1", NOW + 60), Drop) and again.routine
     assert not r.plan(env(make(behind, 3)), "robot1", NOW + 700).routine  # said again after a while
     # a copy of its older maps that another robot relays, and a plain duplicate, stay routine

@@ -464,6 +464,12 @@ class ArqEndpoint(SenderSide):
         if self._signer is not None:
             self._signer.confirm(upto)
 
+    def raise_counter(self, floor: int) -> bool:
+        """Sign on from counter ``floor`` if that is higher than the next (the wall clock stepped
+        ahead: the counter began from a clock behind, under the marks peers hold from before).
+        Nothing is signed until :meth:`counter_reservation` past it is saved. True when it rose."""
+        return self._signer is not None and self._signer.raise_to(floor)
+
     def replay_marks(self) -> dict[int, int]:
         """Sender id -> the highest signed counter accepted: for the adapter to keep across restarts."""
         return self._verifier.marks() if self._verifier is not None else {}

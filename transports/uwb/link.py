@@ -188,6 +188,8 @@ class UwbLink:
         self._counter_fault = ""
         self._counter_retry_at = 0.0
         self._replay_fault = False  # the last save of the replay marks failed
+        #: The signing counter began from the wall clock, none being saved (see _follow_clock).
+        self._counter_from_clock = False
 
     async def start(self) -> None:
         """Open the port and start the loop; :class:`TransportError` with one line when it cannot
@@ -196,6 +198,7 @@ class UwbLink:
             wall = self._wall()
             stored = await asyncio.to_thread(self._store.load)
             start = max(stored, clock_floor(wall))
+            self._counter_from_clock = stored == 0  # none saved: a new or lost state
             if stored > counter_bound(wall):
                 # Never lowered (a restart must not reuse a counter): the clock was set ahead while
                 # this node signed, and its peers refuse its frames until the clock catches up.
@@ -494,6 +497,13 @@ class UwbLink:
         if abs(jump) >= CLOCK_STEP_S + MAX_SLEW_RATE * max(0.0, now - last[0]):
             self.clock_steps += 1
             log.warning("uwb %s: the wall clock stepped %+.3f s; TDMA slots follow it", self.port, jump)
+            # A step ahead (NTP setting a clock that booted behind) left a counter begun from the
+            # clock behind, with no saved one (a new or lost state), under the marks peers hold
+            # from before: all its frames were "replayed" until a restart. It goes on from the
+            # clock. Not a counter that was saved: a wrong step ahead (a GPS glitch) would put it
+            # in the future, where peers refuse it even once the clock is right again.
+            if jump > 0 and self._counter_from_clock and core.raise_counter(clock_floor(now + offset)):
+                log.warning("uwb %s: the signing counter (begun from the clock) goes on from it", self.port)
 
     async def _run(self) -> None:
         core = self.core

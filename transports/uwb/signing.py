@@ -119,6 +119,14 @@ class Signer:
         """The adapter has persisted ``upto``: counters below it may be used."""
         self.limit = max(self.limit, upto)
 
+    def raise_to(self, floor: int) -> bool:
+        """Go on from counter ``floor`` if that is higher (never lower: a counter is never used
+        twice); nothing is signed with it before a block past it is saved. True when it rose."""
+        if floor <= self.next:
+            return False
+        self.next = min(floor, COUNTER_MAX)
+        return True
+
     def sign(self, body: bytes) -> bytes:
         if not self.can_sign():
             raise RuntimeError("uwb: signing counter not reserved")  # core checks can_sign first

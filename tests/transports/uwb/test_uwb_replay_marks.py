@@ -229,3 +229,52 @@ def test_replay_marks_not_saved_are_said_once_an_outage_and_when_saved_again(
     said = [r.getMessage() for r in caplog.records if "replay marks" in r.getMessage()]
     assert len([m for m in said if "cannot write replay marks" in m]) == 2, said
     assert len([m for m in said if "saved again" in m]) == 2, said
+
+
+def test_a_counter_begun_from_a_clock_behind_goes_on_from_the_clock_once_ntp_steps_it(tmp_path: Path) -> None:
+    """A robot that lost its state (its saved counter with it) and booted with its clock a month
+    behind began signing a month below the marks its peers hold from before: every frame was
+    "replayed" until a restart. When NTP steps its clock ahead, the counter goes on from it; a
+    counter that was saved is never raised by a step (a wrong step ahead would push it into the
+    future, where peers refuse it even after the clock is put right)."""
+    wall = 1.8e9
+    behind = _endpoint(1, KEY, wall - 30 * 86400)
+    peer = _endpoint(2, KEY, wall, marks={1: clock_floor(wall) - 10})
+    peer.set_clock_offset(wall)
+    assert _delivered(behind, peer, b"map" * 40) == 0 and peer.stats()["replayed"] > 0
+    assert behind.raise_counter(clock_floor(wall))
+    upto = behind.counter_reservation()
+    assert upto is not None and upto > clock_floor(wall)
+    behind.confirm_counter(upto)  # what the link does once it saved the block
+    assert _delivered(behind, peer, b"map" * 41) == 1
+
+    async def stepped(saved: int) -> tuple[int, int]:
+        """The link's counter reservations before and after a step ahead of 30 days."""
+        now = [wall - 30 * 86400]
+        store = CounterStore(tmp_path / f"uwb-2-{saved}.counter")
+        if saved:
+            store.save(saved)
+        link = UwbLink(
+            ArqConfig(node_id=2, rate_bps=100_000.0, key=KEY, check_counter_clock=True),
+            str(tmp_path / "no-radio"),
+            counter_store=store,
+            wall_clock=lambda: now[0],
+            wait_for_port=True,
+        )
+        await link.start()
+        try:
+            assert link.core is not None
+            loop = asyncio.get_running_loop().time()
+            link._follow_clock(link.core, loop)
+            before = int(store.path.read_text())  # type: ignore[union-attr]
+            now[0] = wall
+            link._follow_clock(link.core, loop)
+            after = link.core.counter_reservation() or 0
+            return before, after
+        finally:
+            await link.close()
+
+    before, after = asyncio.run(stepped(0))
+    assert before < clock_floor(wall - 29 * 86400) and after > clock_floor(wall)
+    before, after = asyncio.run(stepped(clock_floor(wall - 30 * 86400) + 5))
+    assert after < clock_floor(wall - 29 * 86400)  # a saved counter: not raised
