@@ -41,6 +41,9 @@ log = logging.getLogger("mapd.daemon")
 #: Seconds between tries to save the newest own version after a save failed (a full disk), while
 #: the source makes no newer one: a finished log, a parked robot, a map file that no longer changes.
 SAVE_RETRY_S = 5.0
+#: A step of the wall clock ahead this large, after a new state's versions began from it, begins
+#: them again (see Outbound._began_behind): more than clocks that disagree a little, or a slew.
+STEP_AHEAD_S = 60.0
 
 
 @dataclass
@@ -64,6 +67,10 @@ class Outbound:
     #: :meth:`_clock_for_a_new_state`), and how it asks the kernel.
     clock_wait_s: float = 0.0
     clock_synchronized: Callable[[], bool | None] = lambda: wallclock.synchronized()
+    #: The wall clock versions are numbered by (a test steps its own).
+    wall: Callable[[], float] = time.time
+    #: (wall, monotonic) when this process began a new state's versions (see _began_behind).
+    _began: tuple[float, float] | None = None
     #: The newest own version (numbered), or None before the first.
     own: OccupancyGrid | None = None
     #: The newest own version saved: the only kind sent, and so the only one a late joiner's
@@ -100,9 +107,13 @@ class Outbound:
                 continue
             if self.store.new_state():
                 await self._clock_for_a_new_state()
+                self._began = (self.wall(), time.monotonic())
+            elif self._began_behind():
+                self._began = (self.wall(), time.monotonic())
+                self.store.begin_again(self._began[0])
             own = grid.replace(
                 robot=self.me,
-                version=self.store.next_own_version(time.time()),
+                version=self.store.next_own_version(self.wall()),
                 stamp=grid.stamp or time.time(),
             )
             self.own = own
@@ -143,6 +154,25 @@ class Outbound:
             "fix: set the clock, then restart with an empty state directory)",
             f" after {self.clock_wait_s:g} s" if self.clock_wait_s > 0 else "",
         )
+
+    def _began_behind(self) -> bool:
+        """Whether the wall clock stepped ahead (more than :data:`STEP_AHEAD_S`) since this process
+        began a new state's versions from it: they began from a clock behind (NTP set it since),
+        below those of the lost state its peers hold, so every map would be refused. Said; the
+        versions then begin again from the clock (a new incarnation, newer than anything before:
+        versions only rise)."""
+        if self._began is None:
+            return False
+        wall0, mono0 = self._began
+        ahead = (self.wall() - wall0) - (time.monotonic() - mono0)
+        if ahead <= STEP_AHEAD_S:
+            return False
+        log.warning(
+            "the wall clock stepped %.0f s ahead since this new state's versions began from it: they "
+            "begin again from the clock, so peers holding maps of this robot from before take them",
+            ahead,
+        )
+        return True
 
     def _local_peer_map(self, source: MapSource, grid: OccupancyGrid) -> None:
         """A map of another robot from this daemon's source (a map_merge drop-in): fused and

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mapd.daemon.versions import next_version
+from mapd.daemon.versions import incarnation_at, make, next_version
 from mapd.envelope import COUNT_LIMIT
 from mapd.errors import MapdError, StateError
 from mapd.files import WriteOutage, atomic_write_json, make_dir, read_json_capped, remove_stale_temps
@@ -257,6 +257,12 @@ class StateStore:
         the wall clock (a new or lost state directory)."""
         with self._lock:
             return self.data.own_version == 0
+
+    def begin_again(self, wall_time: float) -> None:
+        """Number the next own version in a new incarnation from ``wall_time``, if that is newer
+        (a state begun from a clock behind: see ``Outbound._began_behind``); never lower."""
+        with self._lock:
+            self.data.own_version = max(self.data.own_version, make(incarnation_at(wall_time), 0))
 
     def next_own_version(self, wall_time: float) -> int:
         """Reserve the next own map version (see :mod:`mapd.daemon.versions`).

@@ -150,3 +150,45 @@ def test_a_new_state_waits_for_a_synchronized_clock_before_its_first_map(
         assert 1.5 <= first < 3.0, first
         assert said[-1].levelname == "WARNING" and "after 1.5 s" in said[-1].getMessage()
     assert second < 0.5
+
+
+def test_a_new_states_versions_begin_again_when_the_clock_steps_ahead(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Without a wait for the clock (``clock_wait_s`` 0, the default), a new state's versions began
+    from a clock a month behind, below those of the lost state its peers hold; NTP setting the
+    clock later changed nothing, and every map stayed refused. A step ahead since they began makes
+    them begin again from the clock: a newer incarnation, and numbers from 1."""
+    import logging
+
+    from mapd.daemon.versions import split
+
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    clock = [1.8e9 - 30 * 86400]
+    d.outbound.wall = lambda: clock[0]
+    d.outbound.clock_synchronized = lambda: True
+
+    async def main() -> list[int]:
+        await d._restore()
+        task = asyncio.create_task(d.outbound.take_source(source))
+        versions: list[int] = []
+        try:
+            for n in (1, 2, 3, 4):
+                if n == 3:
+                    clock[0] = 1.8e9  # NTP sets the clock
+                await source.queue.put(dk.growing_map(n))
+                await dk.wait_for(lambda n=n: len(versions) < n and d.outbound.own is not None
+                                  and d.outbound.own.version not in versions, what=f"map {n}")  # fmt: skip
+                assert d.outbound.own is not None
+                versions.append(d.outbound.own.version)
+            return versions
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    with caplog.at_level(logging.WARNING, logger="mapd.daemon"):
+        versions = asyncio.run(main())
+    (inc0, n1), (inc1, n2), (inc2, n3), (inc3, n4) = (split(v) for v in versions)
+    assert inc0 == inc1 < inc2 == inc3 and (n1, n2, n3, n4) == (1, 2, 1, 2), versions
+    said = [r.getMessage() for r in caplog.records if "stepped" in r.getMessage()]
+    assert len(said) == 1 and "2592000 s ahead" in said[0], said
