@@ -203,7 +203,14 @@ def _num(v: Any, spec: str = ".1f") -> str:
 
 def render_status(s: dict[str, Any]) -> str:
     """A readable summary of one status document."""
-    from mapd.daemon.headline import DAMAGE_KEYS, LINK_FAULTS, damage_words, link_faults, state_faults
+    from mapd.daemon.headline import (
+        DAMAGE_KEYS,
+        LINK_FAULTS,
+        damage_words,
+        link_faults,
+        recording_failing,
+        state_faults,
+    )
     from mapd.daemon.versions import label
 
     out = []
@@ -322,10 +329,12 @@ def render_status(s: dict[str, Any]) -> str:
         )
     rec = s.get("recording")
     if rec and (rec.get("failures") or rec.get("dropped")):
-        out.append(
-            f"record  FAULTS {rec.get('failures', 0)} messages not written (disk full?), "
-            f"{rec.get('dropped', 0)} left out behind a slow disk ({rec.get('queued_bytes', 0) >> 20} MiB waiting)"
+        counts = (
+            f"{rec.get('failures', 0)} messages not written (disk full?), {rec.get('dropped', 0)} left "
+            f"out behind a slow disk ({rec.get('queued_bytes', 0) >> 20} MiB waiting)"
         )
+        # a fault while it lasts; afterwards the totals, on a line of their own but not a fault
+        out.append(f"record  FAULTS {counts}" if recording_failing(rec) else f"record  so far: {counts}")
     bad = {k: v for k, v in s.get("counters", {}).items() if v}
     if bad:
         out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))

@@ -109,6 +109,16 @@ def state_faults(s: dict[str, Any]) -> list[str]:
     return out
 
 
+def recording_failing(rec: dict[str, Any] | None) -> bool:
+    """Whether the recording fails to write now (or leaves messages out behind a slow disk). A
+    document without ``writing`` (a daemon from before it) counts any failure so far."""
+    if not isinstance(rec, dict):
+        return False
+    if "writing" in rec:
+        return rec.get("writing") is False or rec.get("behind") is True
+    return bool(rec.get("failures") or rec.get("dropped"))
+
+
 def status_line(s: dict[str, Any]) -> str:
     """``FAULTS uwb port reopened 2 times | map v12; peers beta v9, gamma v4 (gone); global 3 maps 812x604``.
 
@@ -146,8 +156,7 @@ def status_line(s: dict[str, Any]) -> str:
         if isinstance(st, dict) and (words := link_faults(st))
     ]
     faults += state_faults(s)
-    rec = s.get("recording") or {}
-    if rec.get("failures") or rec.get("dropped"):
+    if recording_failing(s.get("recording")):
         faults.append("recording: messages not written")
     if not (s.get("security") or {}).get("signed", True):
         faults.append("UNSIGNED fleet")

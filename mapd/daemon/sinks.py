@@ -146,14 +146,20 @@ class Sinks:
     def status(self) -> dict[str, Any]:
         return {o.name: o.stats() for o in self.outputs}
 
-    def recording(self) -> dict[str, int] | None:
+    def recording(self) -> dict[str, int | bool] | None:
         """The recording's faults and backlog for ``mapd status``, and how many of its oldest files
-        were removed to keep it within ``max_total_bytes`` (not a fault); None without one."""
+        were removed to keep it within ``max_total_bytes`` (not a fault); None without one.
+
+        ``failures`` and ``dropped`` are totals since the start; ``writing`` (False while its
+        writes fail) and ``behind`` (True while messages are left out) say whether that is now,
+        so a disk that filled once is not a fault for the rest of the run."""
         if self.recorder is None:
             return None
         return {
             "failures": self.record_failures,
             "dropped": self.record_dropped,
+            "writing": not self._record_outage.failing,
+            "behind": self._behind.failing,
             "queued_bytes": self._queued,
             "removed_files": self.recorder.removed,
         }

@@ -469,6 +469,7 @@ def test_a_daemon_whose_disk_fills_runs_on_says_it_once_keeps_its_files_and_writ
             and "No space left on device" in during["outputs"]["files"]["error"]
         )
         assert during["recording"]["failures"] >= 1 and during["recording"]["queued_bytes"] < 16 << 20
+        assert during["recording"]["writing"] is False
         assert "recording: messages not written" in status_line(during)
         text = subprocess.run(
             [sys.executable, "-m", "mapd", "status", "--config", str(c1)],
@@ -524,6 +525,12 @@ def test_a_daemon_whose_disk_fills_runs_on_says_it_once_keeps_its_files_and_writ
         assert snap2.global_map.version > snap1.global_map.version
         line = status_line(after)
         assert not any(f in line for f in ("state dir", "global map not saved", "not writing"))
+        # The recording's outage is over too: its totals stay, but no longer as a fault.
+        rec = _wait(
+            "the recording's status writing", lambda: (s := _status(sock)) and s["recording"]["writing"] and s
+        )
+        assert rec["recording"]["failures"] >= 1 and "recording" not in status_line(rec)
+        assert "record  so far:" in render_status(rec) and "record  FAULTS" not in render_status(rec)
 
         # ---- new maps: every writer writes again
         for robot in ("robot0", "robot1"):

@@ -331,3 +331,13 @@ def test_damage_from_before_the_last_valid_frame_is_no_fault_once_the_robot_is_a
     assert status_line(_doc(links={"uwb": st})).startswith(
         f"FAULTS uwb {st['damaged_since_valid']} damaged frames, no peer heard"
     )
+
+
+def test_a_recording_that_failed_once_is_a_fault_only_while_it_fails() -> None:
+    # A disk that filled once left "recording: messages not written" on every status line for the
+    # rest of the run: the totals said so, whether it wrote again or not.
+    over = status_line(_doc(recording={"failures": 3, "dropped": 1, "writing": True, "behind": False}))
+    assert "recording" not in over and not over.startswith("FAULTS")
+    for now in ({"writing": False, "behind": False}, {"writing": True, "behind": True}):
+        line = status_line(_doc(recording={"failures": 3, "dropped": 1, **now}))
+        assert line.startswith("FAULTS recording: messages not written |"), (now, line)
