@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TOP_LEVEL = {
     "__init__", "__main__", "cli", "errors", "config", "plugins", "grid", "envelope",
     "files", "data", "keys", "tables", "identity", "poses",
+    "wallclock",  # the daemon (a new state's versions) and the uwb link (TDMA turns) both ask it
 }  # fmt: skip
 
 
