@@ -42,7 +42,7 @@ log = logging.getLogger("mapd.daemon")
 #: the source makes no newer one: a finished log, a parked robot, a map file that no longer changes.
 SAVE_RETRY_S = 5.0
 #: A step of the wall clock ahead this large, after a new state's versions began from it, begins
-#: them again (see Outbound._began_behind): more than clocks that disagree a little, or a slew.
+#: them again (see Outbound._versions_to_begin_again): more than clocks that disagree a little, or a slew.
 STEP_AHEAD_S = 60.0
 
 
@@ -69,7 +69,7 @@ class Outbound:
     clock_synchronized: Callable[[], bool | None] = lambda: wallclock.synchronized()
     #: The wall clock versions are numbered by (a test steps its own).
     wall: Callable[[], float] = time.time
-    #: (wall, monotonic) when this process began a new state's versions (see _began_behind).
+    #: (wall, monotonic) when this process began a new state's versions (see _versions_to_begin_again).
     _began: tuple[float, float] | None = None
     #: The newest own version (numbered), or None before the first.
     own: OccupancyGrid | None = None
@@ -105,12 +105,11 @@ class Outbound:
             if problem is not None:  # no codec could send it: skip it rather than fail on it later
                 log.warning("source map skipped: %s", problem)
                 continue
-            if self.store.new_state():
-                await self._clock_for_a_new_state()
+            if self.store.new_state() or self._versions_to_begin_again():
+                if self.store.new_state():
+                    await self._clock_for_a_new_state()
                 self._began = (self.wall(), time.monotonic())
-            elif self._began_behind():
-                self._began = (self.wall(), time.monotonic())
-                self.store.begin_again(self._began[0])
+                self.store.begin_again(self._began[0], synchronized=self.clock_synchronized() is not False)
             own = grid.replace(
                 robot=self.me,
                 version=self.store.next_own_version(self.wall()),
@@ -155,24 +154,35 @@ class Outbound:
             f" after {self.clock_wait_s:g} s" if self.clock_wait_s > 0 else "",
         )
 
-    def _began_behind(self) -> bool:
-        """Whether the wall clock stepped ahead (more than :data:`STEP_AHEAD_S`) since this process
-        began a new state's versions from it: they began from a clock behind (NTP set it since),
-        below those of the lost state its peers hold, so every map would be refused. Said; the
-        versions then begin again from the clock (a new incarnation, newer than anything before:
-        versions only rise)."""
-        if self._began is None:
-            return False
-        wall0, mono0 = self._began
-        ahead = (self.wall() - wall0) - (time.monotonic() - mono0)
-        if ahead <= STEP_AHEAD_S:
-            return False
-        log.warning(
-            "the wall clock stepped %.0f s ahead since this new state's versions began from it: they "
-            "begin again from the clock, so peers holding maps of this robot from before take them",
-            ahead,
-        )
-        return True
+    def _versions_to_begin_again(self) -> bool:
+        """Whether this state's versions may have begun from a clock behind, which is right now:
+        below those of the lost state its peers hold, every map would be refused. Said; they then
+        begin again from the clock (a new incarnation, newer than anything before: versions only
+        rise; it costs each peer a whole map). Two signs, as the kernel or this process can tell:
+
+        * the wall clock stepped ahead (more than :data:`STEP_AHEAD_S`) since this process began
+          the state's versions from it (NTP set it since);
+        * they began from a clock the kernel did not say was synchronized (saved in the state, so
+          a restart between the two still tells), and now it says it is.
+        """
+        if self._began is not None:
+            wall0, mono0 = self._began
+            ahead = (self.wall() - wall0) - (time.monotonic() - mono0)
+            if ahead > STEP_AHEAD_S:
+                log.warning(
+                    "the wall clock stepped %.0f s ahead since this new state's versions began from it: "
+                    "they begin again from the clock, so peers holding maps of this robot from before "
+                    "take them",
+                    ahead,
+                )
+                return True
+        if self.store.began_unsynchronized() and self.clock_synchronized() is True:
+            log.warning(
+                "this state's versions began from a clock that was not synchronized, and now it is: "
+                "they begin again from it, so peers holding maps of this robot from before take them"
+            )
+            return True
+        return False
 
     def _local_peer_map(self, source: MapSource, grid: OccupancyGrid) -> None:
         """A map of another robot from this daemon's source (a map_merge drop-in): fused and

@@ -93,6 +93,9 @@ class StateData:
     #: peer -> newest own version that peer acknowledged
     acked: dict[str, int] = field(default_factory=dict)
     seq: int = 0
+    #: The versions' incarnation began from a clock the kernel did not say was synchronized: it
+    #: may have been behind (see ``Outbound._versions_to_begin_again``).
+    began_unsynchronized: bool = False
 
     def to_json(self) -> dict[str, Any]:
         rec = lambda r: None if r is None else {"version": r.version, "digest": r.digest}  # noqa: E731
@@ -103,6 +106,7 @@ class StateData:
             "peers": {k: rec(v) for k, v in self.peers.items()},
             "acked": dict(self.acked),
             "seq": self.seq,
+            "began_unsynchronized": self.began_unsynchronized,
         }
 
     @classmethod
@@ -134,6 +138,7 @@ class StateData:
             peers={str(k): r for k, v in peers.items() if (r := rec(v)) is not None},
             acked={str(k): v for k, v in acked.items() if _is_count(v)},
             seq=counters["seq"],
+            began_unsynchronized=d.get("began_unsynchronized") is True,
         )
 
 
@@ -258,11 +263,18 @@ class StateStore:
         with self._lock:
             return self.data.own_version == 0
 
-    def begin_again(self, wall_time: float) -> None:
+    def begin_again(self, wall_time: float, *, synchronized: bool) -> None:
         """Number the next own version in a new incarnation from ``wall_time``, if that is newer
-        (a state begun from a clock behind: see ``Outbound._began_behind``); never lower."""
+        (a state begun from a clock behind: see ``Outbound._versions_to_begin_again``); never lower.
+        ``synchronized``: whether the kernel says the clock is, now (saved with the next state)."""
         with self._lock:
             self.data.own_version = max(self.data.own_version, make(incarnation_at(wall_time), 0))
+            self.data.began_unsynchronized = not synchronized
+
+    def began_unsynchronized(self) -> bool:
+        """Whether this state's versions began from a clock not said to be synchronized."""
+        with self._lock:
+            return self.data.began_unsynchronized
 
     def next_own_version(self, wall_time: float) -> int:
         """Reserve the next own map version (see :mod:`mapd.daemon.versions`).

@@ -7,6 +7,7 @@ import asyncio
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -192,3 +193,59 @@ def test_a_new_states_versions_begin_again_when_the_clock_steps_ahead(
     assert inc0 == inc1 < inc2 == inc3 and (n1, n2, n3, n4) == (1, 2, 1, 2), versions
     said = [r.getMessage() for r in caplog.records if "stepped" in r.getMessage()]
     assert len(said) == 1 and "2592000 s ahead" in said[0], said
+
+
+def test_versions_begun_from_a_clock_not_synchronized_begin_again_once_it_is_after_a_restart(
+    tmp_path: Path, dk: SimpleNamespace, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A robot that lost its state made its first maps with its clock a month behind, and was
+    restarted before NTP set it: the step was never seen, and its versions stayed below those its
+    peers hold. The state says its versions began from a clock the kernel did not say was
+    synchronized; once the kernel says it is, they begin again from it, once."""
+    import logging
+    import os
+
+    from mapd.daemon.versions import split
+
+    synced = [False]
+    clock = [1.8e9 - 30 * 86400]
+
+    async def run(d: Any, source: Any, maps: list[int]) -> list[int]:
+        d.outbound.wall = lambda: clock[0]
+        d.outbound.clock_synchronized = lambda: synced[0]
+        await d._restore()
+        restored = [] if d.outbound.saved is None else [d.outbound.saved.version]
+        tasks = [asyncio.create_task(d.outbound.take_source(source)), asyncio.create_task(d.outbound.run())]
+        versions: list[int] = []
+        try:
+            for n in maps:
+                await source.queue.put(dk.growing_map(n))
+                await dk.wait_for(
+                    lambda: (
+                        d.outbound.saved is not None and d.outbound.saved.version not in versions + restored
+                    ),
+                    what=f"map {n} saved",
+                )
+                assert d.outbound.saved is not None
+                versions.append(d.outbound.saved.version)
+            return versions
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            if d._state_lock is not None:
+                os.close(d._state_lock)  # (what the stop does: another run may take the directory)
+                d._state_lock = None
+
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    first = asyncio.run(run(d, source, [1, 2]))
+    clock[0], synced[0] = 1.8e9, True  # NTP set the clock while the daemon was down
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    with caplog.at_level(logging.WARNING, logger="mapd.daemon"):
+        after = asyncio.run(run(d, source, [3, 4]))
+    d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
+    later = asyncio.run(run(d, source, [5]))  # began synchronized now: no new start again
+    (i1, n1), (i2, n2), (i3, n3), (i4, n4), (i5, n5) = (split(v) for v in first + after + later)
+    assert i1 == i2 < i3 == i4 == i5 and (n1, n2, n3, n4, n5) == (1, 2, 1, 2, 3), (first, after, later)
+    said = [r.getMessage() for r in caplog.records if "not synchronized, and now it is" in r.getMessage()]
+    assert len(said) == 1, said
