@@ -18,6 +18,8 @@ from mapd.daemon.versions import label
 LINK_FAULTS = {
     "port_open": "serial port closed (reopening)",
     "session_open": "zenoh session not open yet (trying again)",
+    # a session that lost its router(s) later: zenoh reconnects by itself (None: peers, no router)
+    "router_connected": "router lost (zenoh reconnects by itself)",
     # an output's tries that a router answered and refused (it keeps trying: see outputs.zenoh)
     "session_refusals": "{} session tries refused by the router (its certificate, ACL or version?)",
     "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",

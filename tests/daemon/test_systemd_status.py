@@ -341,3 +341,12 @@ def test_a_recording_that_failed_once_is_a_fault_only_while_it_fails() -> None:
     for now in ({"writing": False, "behind": False}, {"writing": True, "behind": True}):
         line = status_line(_doc(recording={"failures": 3, "dropped": 1, **now}))
         assert line.startswith("FAULTS recording: messages not written |"), (now, line)
+
+
+def test_a_zenoh_link_that_lost_its_router_is_a_fault_while_it_is_lost() -> None:
+    # mapd status listed the peers as gone and said nothing of why: the router they are reached by
+    lost = status_line(_doc(links={"zenoh": {"router_connected": False, "router_losses": 1}}))
+    assert lost.startswith("FAULTS zenoh router lost (zenoh reconnects by itself) |"), lost
+    for connected in (True, None):  # back, or a fleet of peers without a router
+        line = status_line(_doc(links={"zenoh": {"router_connected": connected, "router_losses": 1}}))
+        assert not line.startswith("FAULTS"), line

@@ -5,6 +5,7 @@
   :mod:`~transports.zenoh.intake` and :mod:`~transports.zenoh.sending` are its receiving and
   sending halves (mixins over its state);
 * :mod:`~transports.zenoh.keys` names the key expressions; :mod:`~transports.zenoh.session` builds
-  the zenoh config; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
+  the zenoh config; :mod:`~transports.zenoh.routers` follows the routers the session is connected
+  to; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
   :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads.
 """

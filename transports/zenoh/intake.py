@@ -32,6 +32,7 @@ from transports.zenoh.checks import CheckQueue
 from transports.zenoh.core import NAME, Step, ZenohCore
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.routers import RouterLink
 from transports.zenoh.sending import SendCounters
 from transports.zenoh.session import ZenohOptions
 
@@ -83,6 +84,7 @@ class ZenohIntake:
     _tx: SendCounters
     _presence: dict[str, list[bool]]
     _reply_slots: threading.BoundedSemaphore
+    _routers: RouterLink
 
     # -- zenoh threads: copy and hand over, nothing else -------------------------------------------
 
@@ -216,6 +218,18 @@ class ZenohIntake:
             for alive in changes:
                 self._on_presence(key, alive)
 
+    def _cb_transport(self, event: Any) -> None:
+        """A transport to another zenoh node opened or closed: routers' go to the loop, one post each.
+
+        Not bounded by dropping, as acks are: a router's coming or going is state, and each follows
+        a whole zenoh handshake or close, far slower than the loop takes the post."""
+        import zenoh
+
+        transport = event.transport
+        if transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        self._post(self._on_router, str(transport.zid), event.kind == zenoh.SampleKind.PUT)
+
     def _cb_query(self, query: Any) -> None:
         if not self._post_bounded(self._on_query, query):
             query.drop()  # finalize it, so the asker is not left waiting for its timeout
@@ -255,6 +269,14 @@ class ZenohIntake:
 
     def _on_presence(self, key_expr: str, alive: bool) -> None:
         self._apply(self.core.on_presence(key_expr, alive, time.monotonic()))
+
+    def _on_router(self, zid: str, up: bool) -> None:
+        # One line when the last router goes and one when a router is back, whatever zenoh's tries
+        # in between (see transports.zenoh.routers).
+        now = time.monotonic()
+        said = self._routers.opened(zid, now) if up else self._routers.closed(zid, now)
+        if said is not None:
+            log.log(*said)
 
     def _on_query(self, query: Any) -> None:
         params = query.parameters

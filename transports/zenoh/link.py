@@ -33,6 +33,13 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, signed with the acking robot's Ed25519 key). The robot
   that sent it hears the ack and emits ``Delivered(peer=us, robot=it, version)``, which makes that
   version a delta base for us. Acks are only accepted for versions that robot actually offered.
+* **Routers.** zenoh reconnects a client to its router by itself, without a word, while the robots
+  reached through it are gone (their tokens vanish: ``PeerDown``). A transport events listener
+  follows the session's router transports (:mod:`transports.zenoh.routers`): the last router going
+  is said once (WARNING), a router there again once (INFO), however many tries zenoh makes in
+  between (a loss within a minute of the last one said goes to DEBUG), and ``router_connected``
+  in :meth:`ZenohTransport.stats` is False meanwhile. The robots that come back query each other's
+  latest keyframe as late joiners do, which also makes each send its next map whole.
 * **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
   outbox thread, bounded by ``close_timeout_s``) undeclares the liveliness token first, so peers
   see us leave at once, then subscribers, queryable and publisher, closes the session, and waits
@@ -72,6 +79,7 @@ from transports.zenoh.intake import (
     ZenohIntake,
 )
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.routers import RouterLink
 from transports.zenoh.sending import SendCounters, ZenohSending
 from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
 
@@ -140,6 +148,8 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         #: The session config while no router could be reached (``watch`` tries it again), and why.
         self._retry_conf: Any = None
         self.unreached: str | None = None
+        #: The routers the session is connected to (zenoh's transport events; loop thread only).
+        self._routers = RouterLink()
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -198,6 +208,11 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
                 else zenoh.CongestionControl.DROP
             )
             ents = self._entities
+            # First, so the router the session has just connected to is seen (history) before it
+            # can go. Without it (a zenoh older than the listener), router losses go unsaid.
+            listen = getattr(session.info, "declare_transport_events_listener", None)
+            if listen is not None:
+                ents.append(listen(cb(self._cb_transport), history=True))
             ents.append(
                 session.declare_subscriber(
                     keys.all_updates(fleet), cb(self._cb_update), allowed_origin=remote
@@ -322,6 +337,10 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         (past its byte budget while waiting to be checked); ``unadmitted``: those of robots off the roster, refused unread (and their
         poses and liveliness tokens), and keyframe queries from such robots (answered, but no
         ``KeyframeNeeded``); ``dropped`` also counts acks, poses and queries past the loop's backlog.
+        ``session_open``: False while no router could be reached at start (tries go on);
+        ``router_connected``: False while the session has lost its router(s) and zenoh reconnects,
+        None where no router was ever connected (a fleet of peers); ``router_losses``: how many
+        times it lost them.
         """
         with self._tx_lock:
             tx = asdict(self._tx)
@@ -330,6 +349,10 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         out: dict[str, Any] = {**tx, **self.core.stats(), "replaced": 0, "superseded": 0}
         # False while no router could be reached (and tries go on): a FAULTS line in mapd status
         out["session_open"] = self._retry_conf is None
+        # False while the session has lost its router(s) and zenoh reconnects; None in a fleet
+        # that never had a router (peers only)
+        out["router_connected"] = self._routers.connected
+        out["router_losses"] = self._routers.losses
         out["dropped"] += rx[0]
         out["unadmitted"] += rx[1]
         if self._checks is not None:
