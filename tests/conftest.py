@@ -136,6 +136,23 @@ def wait_for_fleet(pred: Any, timeout: float, fleet: Any) -> dict[str, dict[str,
     raise AssertionError(f"condition not met in {timeout} s: {json.dumps(snaps)[:3000]}")
 
 
+def router_fleet(out: Path, robots: int = 3) -> Any:
+    """A prepared demo fleet (:class:`mapd.demo.fleet.Fleet`) of ``robots`` zenoh clients of one
+    router process, lossless maps of the sim building; the router runs, the daemons not yet."""
+    import argparse
+
+    from mapd.demo.fleet import Fleet
+
+    fleet = Fleet(
+        argparse.Namespace(
+            robots=robots, transport="zenoh", codec="lossless", log=None, seed=7, out=out, duration=60.0,
+            router=True,
+        )
+    )  # fmt: skip
+    fleet.prepare()
+    return fleet
+
+
 def held_version(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
     """The version of ``of``'s map that ``who`` holds (0: none), incarnation and all."""
     return int(snaps.get(who, {}).get("peers", {}).get(of, {}).get("version", 0))
@@ -168,4 +185,6 @@ def zenoh_linked() -> Callable[..., None]:
 @pytest.fixture
 def fk() -> SimpleNamespace:
     """The fleet helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
-    return SimpleNamespace(wait_for=wait_for_fleet, held=held_number, version=held_version)
+    return SimpleNamespace(
+        wait_for=wait_for_fleet, held=held_number, version=held_version, router_fleet=router_fleet
+    )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 from pathlib import Path
@@ -11,24 +10,12 @@ from types import SimpleNamespace
 import pytest
 
 from mapd.data import REPO_ROOT
-from mapd.demo.fleet import Fleet
 
 pytestmark = pytest.mark.slow
 
 
 def test_three_daemons_through_one_router(tmp_path: Path, fk: SimpleNamespace) -> None:
-    args = argparse.Namespace(
-        robots=3,
-        transport="zenoh",
-        codec="lossless",
-        log=None,
-        seed=7,
-        out=tmp_path,
-        duration=60.0,
-        router=True,
-    )
-    f = Fleet(args)
-    f.prepare()
+    f = fk.router_fleet(tmp_path)
     assert f.router is not None and f.router.poll() is None
     cfg = (f.run_dir / "robot0" / "config.toml").read_text()
     assert 'mode = "client"' in cfg and "listen" not in cfg.split("[transports.zenoh]")[1].split("[")[0]

@@ -17,7 +17,6 @@ the peers' tokens vanish with the router, which settles every offer waiting for 
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import logging
 import signal
@@ -254,21 +253,9 @@ def _zenoh(s: dict[str, Any]) -> dict[str, Any]:
 def test_daemons_ride_out_a_router_gone_for_20_s(tmp_path: Path, fk: SimpleNamespace) -> None:
     from mapd.codec.api import warm_up
     from mapd.daemon.versions import split
-    from mapd.demo.fleet import Fleet
 
     warm_up("lossless")  # compiled once into the cache the daemons read, not by each in its window
-    args = argparse.Namespace(
-        robots=3,
-        transport="zenoh",
-        codec="lossless",
-        log=None,
-        seed=7,
-        out=tmp_path,
-        duration=60.0,
-        router=True,
-    )
-    f = Fleet(args)
-    f.prepare()
+    f = fk.router_fleet(tmp_path)
     assert f.router is not None
     cmd = [str(x) for x in f.router.args]  # to start it again on the same port
     pairs = [(a, b) for a in f.names for b in f.names if a != b]
