@@ -153,6 +153,19 @@ def router_fleet(out: Path, robots: int = 3) -> Any:
     return fleet
 
 
+def status_text(sock: Path) -> str:
+    """What ``mapd status --socket SOCK`` prints, as a user runs it."""
+    import subprocess
+    import sys
+
+    return subprocess.run(
+        [sys.executable, "-m", "mapd", "status", "--socket", str(sock)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    ).stdout
+
+
 def held_version(snaps: dict[str, dict[str, Any]], who: str, of: str) -> int:
     """The version of ``of``'s map that ``who`` holds (0: none), incarnation and all."""
     return int(snaps.get(who, {}).get("peers", {}).get(of, {}).get("version", 0))
@@ -186,5 +199,9 @@ def zenoh_linked() -> Callable[..., None]:
 def fk() -> SimpleNamespace:
     """The fleet helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
     return SimpleNamespace(
-        wait_for=wait_for_fleet, held=held_number, version=held_version, router_fleet=router_fleet
+        wait_for=wait_for_fleet,
+        held=held_number,
+        version=held_version,
+        router_fleet=router_fleet,
+        status_text=status_text,
     )

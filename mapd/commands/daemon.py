@@ -260,13 +260,33 @@ def render_status(s: dict[str, Any]) -> str:
     if not peers:
         out.append("  (none yet)")
     for name, p in peers.items():
-        state = "up" if p.get("present", True) else "gone"
+        refused = p.get("refused") if isinstance(p.get("refused"), dict) else None
+        # a robot known only by maps refused (off the roster, say): heard, not a peer "up"
+        state = "heard" if refused and "present" not in p else "up" if p.get("present", True) else "gone"
         if p.get("restored"):
             state += " (map from state dir)"
         out.append(
             f"  {name:<12} {label(p.get('version')):<6} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
             f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our {label(p.get('acked_our_version', 0))}"
         )
+        # What disagrees between its config and ours, on lines of its own: with the fix, in the
+        # words of the log line that said it once.
+        if refused:
+            out.append(
+                f"  {'':<12} FAULTS {refused.get('maps', '?')} maps refused for {_age(refused.get('for_s'))}, "
+                f"last {_age(refused.get('last_s'))} ago: {refused.get('fix') or refused.get('why')}"
+            )
+        if p.get("takes_ours") is False:
+            out.append(
+                f"  {'':<12} FAULTS takes none of this robot's maps for {_age(p.get('unacked_s'))} while its "
+                f"own come: on {name}, is this robot's key in its [fleet.roster] (the current one), are "
+                f"its limits as large as this robot's maps?"
+            )
+        if isinstance(p.get("heard_as"), str):
+            out.append(
+                f"  {'':<12} FAULTS its link knows it as '{p['heard_as']}': the robots' [transports.uwb] "
+                f"nodes lists differ; make them the same on every robot"
+            )
     out.append("links")
     for name, st in s.get("links", {}).items():
         head = ("rate_bps", "goodput_bps", "bytes_tx", "bytes_rx", "resends", "parity_tx", "recovered")

@@ -43,6 +43,11 @@ DAMAGE_KEYS = ("crc_errors", "cobs_errors", "oversize", "runts", "bad_signature"
 #: The keys only a serial framing reports (a zenoh link's ``bad_signature`` is a forged map, not damage).
 _FRAMING_KEYS = DAMAGE_KEYS[:4]
 
+#: Counters of messages a link without serial framing (zenoh) refused before the daemon saw them,
+#: for a reason the roster fixes: a robot off it (``unadmitted``), or a signature its keys refuse
+#: (``bad_signature``: a key there that is old, an ack of a robot off it, or a forgery).
+ROSTER_REFUSALS = ("unadmitted", "bad_signature")
+
 #: systemd shows STATUS= on one line of ``systemctl status``: keep it to what fits there.
 MAX_LINE = 200
 
@@ -94,6 +99,36 @@ def link_faults(st: dict[str, Any]) -> list[str]:
             out.append(words.format(v))
     if (damage := _damage_fault(st)) is not None:
         out.append(damage)
+    if refused := roster_refusals(st):
+        out.append(
+            f"{refused} messages refused by this roster (a robot's key missing there, or old; or forged?)"
+        )
+    return out
+
+
+def roster_refusals(st: dict[str, Any]) -> int:
+    """Messages a link without serial framing refused for the roster (:data:`ROSTER_REFUSALS`); 0
+    for a serial link, whose ``bad_signature`` counts frames the line damaged."""
+    if "damaged" in st:
+        return 0
+    return sum(_count(st.get(k)) for k in ROSTER_REFUSALS)
+
+
+def peer_faults(s: dict[str, Any]) -> list[str]:
+    """What the peers' entries of a status document say is wrong between this robot's config and
+    theirs (:mod:`mapd.daemon.receiver`: a refusal, a peer taking none of our maps, a link that knows
+    a robot by a name the roster does not), in words."""
+    out = []
+    for name, p in (s.get("peers") or {}).items():
+        if not isinstance(p, dict):
+            continue
+        refused = p.get("refused")
+        if isinstance(refused, dict):
+            out.append(f"maps of {name} refused ({refused.get('why')})")
+        if p.get("takes_ours") is False:
+            out.append(f"{name} takes none of this robot's maps")
+        if isinstance(p.get("heard_as"), str):
+            out.append(f"{name} heard as '{p['heard_as']}' (nodes lists differ?)")
     return out
 
 
@@ -157,6 +192,7 @@ def status_line(s: dict[str, Any]) -> str:
         for name, st in (s.get("outputs") or {}).items()
         if isinstance(st, dict) and (words := link_faults(st))
     ]
+    faults += peer_faults(s)
     faults += state_faults(s)
     if recording_failing(s.get("recording")):
         faults.append("recording: messages not written")

@@ -6,6 +6,13 @@ a peer's map, :class:`~mapd.daemon.publisher.PublisherCore` learns what each pee
 :class:`~transports.base.Received` map, in order: verify (worker thread), plan (loop), decode
 (worker), accept (loop), then save (worker), fusion, outputs, ack, and each transport may relay
 it. Nothing CPU-heavy runs on the loop, and one bad event costs one log line, never the daemon.
+
+Refusals that a config fixes (a robot missing from the roster, an old key, another fleet, limits
+smaller than a peer's maps, ``nodes`` lists that differ, a codec model this robot lacks) come with
+every map the peer sends: each is said once per robot and cause with the fix, as a warning
+(:class:`~mapd.daemon.receiver.Refusal`), and again only after that robot's maps were taken in
+between. What a link refuses before the daemon sees it (zenoh: robots off the roster, signatures
+the roster's keys refuse) is said once per link and cause, from its counters (:class:`LinkRefusals`).
 """
 
 from __future__ import annotations
@@ -18,12 +25,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from mapd.daemon.events import EventQueue
+from mapd.daemon.headline import roster_refusals
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
+from mapd.daemon.refusals import decode_cause, shown
 from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.daemon.versions import label
+from mapd.envelope import peek_robot
 from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
 from mapd.files import WriteOutage
 from mapd.fusion.worker import FusionWorker
@@ -84,6 +94,42 @@ def _reason(text: str) -> str:
     return re.sub(r"\d[\d,.]*", "#", text)
 
 
+#: A link's refusals for the roster that have not risen for this long are over: the next are said anew.
+LINK_QUIET_S = 600.0
+
+
+@dataclass
+class LinkRefusals:
+    """What links refuse for the roster before the daemon sees it (zenoh checks updates, acks and
+    queries itself: robots off the roster, signatures its keys refuse), said once per link while
+    it goes on (:func:`~mapd.daemon.headline.roster_refusals`); names are not known here.
+
+    Pure bookkeeping: :meth:`look` takes each link's stats and ``now`` and gives the lines to say.
+    """
+
+    #: link -> its count at the last look, and when it last rose
+    _seen: dict[str, tuple[int, float]] = field(default_factory=dict)
+
+    def look(self, stats: dict[str, dict[str, object]], now: float) -> list[str]:
+        lines = []
+        for link, st in stats.items():
+            n = roster_refusals(st)
+            last, rose = self._seen.get(link, (0, -LINK_QUIET_S))
+            if n > last:
+                if now - rose >= LINK_QUIET_S:
+                    lines.append(
+                        f"{link}: messages refused for this robot's [fleet.roster] ({n} so far): a robot "
+                        f"of this fleet missing there, or its key there old (it was re-keyed)? put the "
+                        f"line 'mapd keygen <robot> --public <its key file>' prints on it in "
+                        f"[fleet.roster], then 'systemctl reload mapd' (a robot removed on purpose that "
+                        f"still runs, an outsider or a forgery look the same)"
+                    )
+                self._seen[link] = (n, now)
+            elif n < last:  # the link started again: count from there
+                self._seen[link] = (n, rose)
+        return lines
+
+
 @dataclass
 class Inbound:
     """Handles every event the transports put on the daemon's queue (see the module docstring)."""
@@ -113,11 +159,24 @@ class Inbound:
     #: Revocations so far, and robot -> the number of its last (see :meth:`revoked`).
     _revocations: int = 0
     _revoked_at: dict[str, int] = field(default_factory=dict)
+    #: What the links refuse before the daemon sees it (zenoh), said once per link and cause.
+    _link_refusals: LinkRefusals = field(default_factory=LinkRefusals)
+    #: How often to look at the links' counters while no event comes (a robot off the roster
+    #: sends nothing the daemon sees: only the link counts it).
+    look_every_s: float = 2.0
+    _looked_at: float = 0.0
 
     async def run(self) -> None:
         """Take events off the queue until cancelled."""
         while True:
-            ev = await self.events.get()
+            try:
+                async with asyncio.timeout(self.look_every_s):  # get() is cancel-safe
+                    ev = await self.events.get()
+            except TimeoutError:
+                self.look_at_links()
+                continue
+            if time.monotonic() - self._looked_at >= self.look_every_s:
+                self.look_at_links()
             try:
                 await self.handle(ev)
             except MapdError as exc:
@@ -126,6 +185,16 @@ class Inbound:
                 # A bug (or an error a save let out) must cost this event, not the daemon: the
                 # peer sends again, and a daemon ended by it would be restarted into the same.
                 log.exception("event from %s dropped: internal error", _source(ev))
+
+    def look_at_links(self) -> None:
+        """Say what the links refused on their own since the last look (:class:`LinkRefusals`)."""
+        self._looked_at = time.monotonic()
+        try:
+            stats = {t.name: t.stats() for t in self.transports}
+        except Exception:  # a link's stats must not stop its events (status shows the error)
+            return
+        for line in self._link_refusals.look(stats, time.monotonic()):
+            log.warning("%s", line)
 
     def transport(self, name: str) -> Transport | None:
         return next((t for t in self.transports if t.name == name), None)
@@ -140,6 +209,8 @@ class Inbound:
             if ev.robot != self.me:
                 return
             self._failures.delivered(ev)
+            if (line := self.receiver.acked(ev.transport, ev.peer)) is not None:
+                log.info("%s", line)
             free, newer = core.acked(ev.transport, ev.peer, ev.version)
             if free:
                 self.wake()  # the link is free: the publisher sends it the newest version
@@ -200,8 +271,15 @@ class Inbound:
                 open_envelope, ev.data, max_bytes=self.max_message_bytes, roster=self.roster
             )
         except EnvelopeError as exc:
-            rx.refused(exc)
-            log.info("dropped envelope from %s: %s", ev.peer, exc)
+            # Said once per robot and cause with the fix, not once per map it sends (the name is
+            # read unverified from the bytes, only to say whose they claim to be).
+            peeked = peek_robot(ev.data)
+            robot = peeked if peeked and shown(peeked) == peeked else ev.peer
+            line = rx.refused_bytes(exc, robot, time.time())
+            if line is not None:
+                log.warning("%s (from %s on %s)", line, ev.peer, ev.transport)
+            else:
+                log.debug("dropped envelope from %s: %s", ev.peer, exc)
             return
         plan = rx.plan(env, ev.peer, time.time())
         if isinstance(plan, Decode | AskKeyframe) and plan.new_incarnation:
@@ -218,7 +296,12 @@ class Inbound:
         if not isinstance(plan, Decode):
             if not plan.routine:  # duplicates and echoes are; refusals are worth a line
                 say = log.warning if plan.warning else log.info
-                say("dropped %s of %s from %s: %s", label(env.version), env.robot, ev.peer, plan.reason)
+                if plan.refusal:  # names the robot and the fix already
+                    say("%s (%s from %s on %s)", plan.reason, label(env.version), ev.peer, ev.transport)
+                else:
+                    say("dropped %s of %s from %s: %s", label(env.version), env.robot, ev.peer, plan.reason)
+            else:
+                log.debug("dropped %s of %s from %s: %s", label(env.version), env.robot, ev.peer, plan.reason)
             if plan.forget and transport is not None:
                 await transport.request_keyframe(env.robot)
             if plan.held and transport is not None and env.robot == ev.peer:
@@ -227,7 +310,16 @@ class Inbound:
         try:
             grid = await asyncio.to_thread(decode_envelope, env, plan.base, max_cells=self.max_cells)
         except CodecError as exc:
-            log.info("cannot decode %s from %s: %s", label(env.version), env.robot, exc)
+            # A codec (or model) this robot lacks fails every map of that robot: said once, with
+            # the fix. Damage or a base that differs (healed by the keyframe asked for) as before.
+            line = f"cannot decode {label(env.version)} from {env.robot}: {exc}"
+            cause = decode_cause(str(exc))
+            if cause is None:
+                log.info("%s", line)
+            elif rx.refuse(env.robot, cause[0], f"{line}{cause[1]}", time.time()):
+                log.warning("%s%s", line, cause[1])
+            else:
+                log.debug("%s", line)
             ask = rx.undecodable(env, plan.base)
             if ask is not None and transport is not None:
                 await transport.request_keyframe(ask.robot)
@@ -235,7 +327,23 @@ class Inbound:
         if not self._trusted(env.robot, mark):
             log.info("dropped %s of %s: revoked while it was decoded", label(env.version), env.robot)
             return
-        rx.accept(grid, env, ev.transport, len(ev.data), time.time())
+        now = time.time()
+        if (line := rx.stranger_link(env, ev.peer)) is not None:
+            log.warning("%s", line)
+        ended = rx.accept(grid, env, ev.transport, len(ev.data), now)
+        if ended is not None:
+            log.info("maps of %s taken again, after %d refused (%s)", env.robot, ended.maps, ended.why)
+        if env.robot == ev.peer and ev.transport not in self.publisher.paced:
+            # A link whose acks say the peer took the map (not a radio's frame acks): a peer whose
+            # maps come while it acks none of ours refuses them, and only this side can tell.
+            offer = self.publisher.offers(time.monotonic()).get(ev.transport) or {}
+            waiting = env.robot in (offer.get("waiting") or ())
+            if (line := rx.unacked(ev.transport, env.robot, waiting, now)) is not None:
+                log.warning("%s", line)
+            if (ev.transport, env.robot) in rx.deaf and self.publisher.peer_gone(ev.transport, env.robot):
+                # Waiting for it would hold our maps back from every other peer on this link for
+                # the whole in-flight timeout, each version: stop at each map it sends instead.
+                self.wake()
         # The key it was verified with (none was revoked since: _trusted), saved with it.
         key = self.key_of(env.robot) if env.sig else None
         try:

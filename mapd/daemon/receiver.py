@@ -16,6 +16,14 @@ For every :class:`~transports.base.Received` the daemon calls, in order:
 The receiver keeps, per peer robot, the newest map, up to :data:`KEEP_PEER_VERSIONS` recent
 versions (a sender may code a delta against a version it saw acked while newer ones were still in
 flight), and what ``mapd status`` shows about it.
+
+**Configs that disagree.** Robots of one fleet whose configs drifted apart (a roster without a
+robot's key or with its old one, another ``robot.fleet``, smaller ``limits``, ``[transports.uwb]
+nodes`` lists that differ) refuse each other's maps with every map they send. Each such cause is
+said once per robot (:class:`~mapd.daemon.refusals.Refusal`: a warning naming the robot and the fix), not once per map,
+and ``mapd status`` shows it on that robot's line until one of its maps is taken again. A peer
+that takes our maps no more (its acks stopped while its own maps keep coming, :meth:`Receiver.unacked`)
+is said the same way, on the side that cannot see why.
 """
 
 from __future__ import annotations
@@ -24,9 +32,17 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.codec import decode
+from mapd.daemon.refusals import (
+    MAX_REFUSED_NAMES,
+    MAX_REFUSED_SHOWN,
+    UNACKED_S,
+    Refusal,
+    envelope_refusal,
+    shown,
+)
 from mapd.daemon.versions import EPOCH, VersionBounds, check_step, incarnation_at, split
 from mapd.envelope import Envelope, unpack
-from mapd.errors import CodecError, SignatureError
+from mapd.errors import CodecError, EnvelopeError, SignatureError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
 from mapd.identity import Roster
 
@@ -129,6 +145,8 @@ class Drop:
     #: whose state lost our ack (a full disk, a kill), and waited out its in-flight timeout (30 s)
     #: for an ack that a dropped duplicate never got.
     held: bool = False
+    #: ``reason`` is a :class:`Refusal`'s whole line (it names the robot and the fix): said as it is.
+    refusal: bool = False
 
 
 def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
@@ -172,6 +190,19 @@ class Receiver:
     _future_said: dict[str, float] = field(default_factory=dict)
     #: robot -> when its maps of an older incarnation than the one held were last said
     _older_said: dict[str, float] = field(default_factory=dict)
+    #: robot -> why its maps are refused now (said once; cleared when one is taken)
+    refusals: dict[str, Refusal] = field(default_factory=dict)
+    #: robot -> the name its link knows it by when that is no robot of the roster (uwb: its link
+    #: id is not in this robot's ``nodes``, or under another name): said once
+    aliases: dict[str, str] = field(default_factory=dict)
+    #: (link, robot) -> since when its maps arrive while it acks none of ours (see :meth:`unacked`)
+    _ack_wait: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: (link, robot) -> since when it has acked none of our maps while its maps arrived, once that
+    #: lasted UNACKED_S (until it acks one again)
+    deaf: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: (link, robot) -> when that was last said: a peer that refuses only some maps (each keyframe
+    #: over its message limit) would otherwise be said with each of them
+    _deaf_said: dict[tuple[str, str], float] = field(default_factory=dict)
 
     def restore(self, grid: OccupancyGrid, *, held_at: float, now: float) -> None:
         """A peer's map from the state directory, taken at wall time ``held_at`` (when it was saved).
@@ -188,9 +219,98 @@ class Receiver:
     def forget(self, robot: str) -> bool:
         """Drop ``robot``'s maps and what is known of it (revoked); False if nothing was held."""
         held = robot in self.maps or robot in self.info
-        for d in (self.maps, self.info, self._history, self._held_at, self._future_said, self._older_said):
+        for d in (
+            self.maps,
+            self.info,
+            self._history,
+            self._held_at,
+            self._future_said,
+            self._older_said,
+            self.refusals,
+            self.aliases,
+        ):
             d.pop(robot, None)
+        for key in [k for k in (*self._ack_wait, *self.deaf, *self._deaf_said) if k[1] == robot]:
+            for times in (self._ack_wait, self.deaf, self._deaf_said):
+                times.pop(key, None)
         return held
+
+    def refuse(self, robot: str, why: str, fix: str, now: float) -> bool:
+        """Note that a map of ``robot`` was refused for ``why``; True when that is to be said (the
+        first such refusal since one of its maps was last taken, or a new cause)."""
+        if robot == self.me:
+            return False  # bytes that claim to be ours: not a config of ours to fix (counted)
+        r = self.refusals.get(robot)
+        if r is not None and r.why == why:
+            r.maps += 1
+            r.last = now
+            return False
+        if r is None and len(self.refusals) >= MAX_REFUSED_NAMES:
+            return False  # counted by the caller's counter all the same
+        self.refusals[robot] = Refusal(why, fix, since=now, last=now)
+        return True
+
+    def refused_bytes(self, exc: EnvelopeError, robot: str, now: float) -> str | None:
+        """:func:`open_envelope` refused bytes that name ``robot`` (or came from it): count why;
+        the line to say with the fix, or None when it was said already."""
+        self.refused(exc)
+        why, fix = envelope_refusal(exc, robot, self.me)
+        return fix if self.refuse(robot, why, fix, now) else None
+
+    def stranger_link(self, env: Envelope, link_peer: str) -> str | None:
+        """A signed map of ``env.robot`` (a roster robot) came straight from ``link_peer``, a name
+        its link gives and the roster does not know: the link knows that robot by another name or
+        id than its own config does. The line to say once, else None."""
+        if (
+            env.robot == link_peer
+            or not env.sig
+            or link_peer in self.roster
+            or self.aliases.get(env.robot) == link_peer
+        ):
+            return None
+        self.aliases[env.robot] = link_peer
+        return (
+            f"maps of {env.robot} come from '{link_peer}' on its link, a name this robot's roster does "
+            f"not know: the robots' [transports.uwb] nodes lists differ (its link id, or its name); "
+            f"its maps are taken (it signed them), but acks, poses and relays to and from it go "
+            f"astray: make nodes the same on every robot"
+        )
+
+    def acked(self, link: str, robot: str) -> str | None:
+        """``robot`` acked one of our maps on ``link``: if it was said to take none, the line that
+        says it takes them again."""
+        self._ack_wait.pop((link, robot), None)
+        since = self.deaf.pop((link, robot), None)
+        said = self._deaf_said.get((link, robot))
+        if since is None or said is None or said < since:
+            return None  # not said this time: its coming back is not either
+        return f"{robot} takes this robot's maps again over {link}"
+
+    def unacked(self, link: str, robot: str, waiting: bool, now: float) -> str | None:
+        """A map of ``robot`` came over ``link`` (``now``: wall seconds) while our offer on that link
+        waits (``waiting``) or not for its ack. When it has acked none of our maps for
+        :data:`UNACKED_S` while its own keep coming, it refuses them (its roster lacks our key or has
+        an old one, its limits are smaller than our maps, ...): the line to say once, else None.
+        Only for links whose acks mean the peer took the map (zenoh), not a radio's frame acks."""
+        key = (link, robot)
+        if not waiting:
+            self._ack_wait.pop(key, None)
+            return None
+        since = self._ack_wait.setdefault(key, now)
+        if key in self.deaf or now - since < UNACKED_S:
+            return None
+        self.deaf[key] = since
+        said = self._deaf_said.get(key)
+        if said is not None and 0 <= now - said < FUTURE_SAID_EVERY_S:
+            return None
+        self._deaf_said[key] = now
+        return (
+            f"{robot} has taken none of this robot's maps for {now - since:.0f} s while its own maps "
+            f"keep coming over {link}: it refuses them (or does not get them). On {robot}: is "
+            f"{self.me}'s key in its [fleet.roster], and the current one (the line 'mapd keygen "
+            f"{self.me} --public <key file>' prints here)? are its limits.max_message_bytes and "
+            f"limits.max_cells as large as this robot's maps?"
+        )
 
     def refused(self, exc: Exception) -> None:
         """:func:`open_envelope` refused the bytes: count why."""
@@ -203,13 +323,31 @@ class Receiver:
         """What to do with a verified envelope that came from ``link_peer`` (``now``: wall seconds)."""
         if env.fleet != self.fleet:
             self.counters.foreign_fleet += 1
-            return Drop("another fleet", routine=True)
+            # Signed by a robot of our roster: one of ours, configured with another robot.fleet (a
+            # robot of another fleet that shares the radio could not sign as one of ours).
+            robot, fleet = shown(env.robot), shown(env.fleet)
+            cause = f"of fleet '{fleet}'" if fleet == env.fleet else f"of fleet {fleet}"  # (quoted)
+            fix = (
+                f"maps of {robot} refused: {robot} is {cause}, this robot of fleet '{self.fleet}': "
+                f"set robot.fleet the same on every robot of one fleet"
+            )
+            said = self.refuse(env.robot, cause, fix, now)
+            return Drop(
+                fix, routine=not said, warning=bool(env.sig) and env.robot in self.roster, refusal=True
+            )
         if env.robot == self.me:
             return Drop("our own map", routine=True)
         if env.robot != link_peer and not (env.sig and env.robot in self.roster):
             # Only a signature shows who made a map that another robot carries; unsigned, the link is all.
             self.counters.wrong_link += 1
-            return Drop(f"an unsigned map of '{env.robot}' came from '{link_peer}'")
+            robot = shown(env.robot)
+            fix = (
+                f"an unsigned map of '{robot}' came from '{link_peer}' on its link, and unsigned, "
+                f"only the link says who sent it: refused (if '{link_peer}' is {robot}, the robots' "
+                f"[transports.uwb] nodes lists differ: make them the same on every robot)"
+            )
+            said = self.refuse(env.robot, f"came from '{link_peer}'", fix, now)
+            return Drop(fix, routine=not said, warning=True, refusal=True)
         held = self.maps.get(env.robot)
         if held is None and len(self.maps) >= self.max_peers:
             self.counters.too_many_robots += 1
@@ -236,7 +374,23 @@ class Receiver:
         )
         if cells > allowed:
             self.counters.refused_sizes += 1
-            return Drop(f"a map of {env.width} x {env.height} cells is over the {allowed} allowed")
+            if allowed == self.max_cells:
+                cause = "over limits.max_cells"
+                fix = (
+                    f"maps of {shown(env.robot)} refused: a map of {env.width} x {env.height} = {cells} cells "
+                    f"is over the {allowed} allowed by this robot's limits.max_cells: raise it on "
+                    f"{self.me} to at least {cells} (the same on every robot)"
+                )
+            else:
+                assert held is not None
+                cause = "over limits.max_growth"
+                fix = (
+                    f"maps of {shown(env.robot)} refused: a map of {env.width} x {env.height} = {cells} cells "
+                    f"is over the {allowed} allowed by this robot's limits.max_growth "
+                    f"({self.max_growth:g}) after one of {held.cells}: raise it on {self.me}"
+                )
+            said = self.refuse(env.robot, cause, fix, now)
+            return Drop(fix, routine=not said, warning=True, refusal=True)
         restarted = held is not None and split(env.version)[0] != split(held.version)[0]
         if restarted:
             # The robot lost its state and started again: what we hold of it is no base any more.
@@ -294,8 +448,11 @@ class Receiver:
         self.counters.keyframe_requests += 1
         return AskKeyframe(env.robot)
 
-    def accept(self, grid: OccupancyGrid, env: Envelope, transport: str, nbytes: int, now: float) -> None:
-        """Keep a decoded map (``now``: wall-clock seconds, for the age ``mapd status`` shows)."""
+    def accept(
+        self, grid: OccupancyGrid, env: Envelope, transport: str, nbytes: int, now: float
+    ) -> Refusal | None:
+        """Keep a decoded map (``now``: wall-clock seconds, for the age ``mapd status`` shows);
+        returns the refusal of its robot's maps this ends, if any."""
         self.maps[env.robot] = grid
         history = self._history.setdefault(env.robot, {})
         history[env.version] = grid
@@ -311,6 +468,7 @@ class Receiver:
         info.bytes += nbytes
         info.updates += 1
         info.last_kind = "keyframe" if env.is_keyframe else "delta"
+        return self.refusals.pop(env.robot, None)
 
     def presence(self, peer: str, transport: str, present: bool) -> None:
         """A transport saw ``peer`` come or go (robots the roster does not admit, or too many, are not kept)."""
@@ -323,7 +481,13 @@ class Receiver:
     def status(self, now: float, acked: dict[str, int]) -> dict[str, dict[str, Any]]:
         """Per peer robot: what ``mapd status`` shows."""
         peers = {}
-        for robot in sorted(set(self.info) | set(self.maps)):
+        # Robots off the roster (their names unverified) only with a refusal, and a few at most.
+        strangers = sorted(
+            (r for r in self.refusals if r not in self.info and r not in self.maps),
+            key=lambda r: -self.refusals[r].last,
+        )[:MAX_REFUSED_SHOWN]
+        deaf_robots = {r for _, r in self.deaf}
+        for robot in sorted(set(self.info) | set(self.maps) | set(strangers) | deaf_robots):
             info = self.info.get(robot, PeerInfo()).to_json()
             received_at = info.pop("received_at", None)
             if received_at is not None:
@@ -335,5 +499,14 @@ class Receiver:
                 info["version"] = held.version
                 info["restored"] = "age_s" not in info  # nothing received from it since this start
             info["acked_our_version"] = acked.get(robot, 0)
+            if (refusal := self.refusals.get(robot)) is not None:
+                info["refused"] = refusal.to_json(now)
+            if robot in self.aliases:
+                info["heard_as"] = self.aliases[robot]
+            deaf = {link: since for (link, r), since in self.deaf.items() if r == robot}
+            if deaf:
+                # it acks none of our maps while its own come: it refuses them (said once)
+                info["takes_ours"] = False
+                info["unacked_s"] = round(now - min(deaf.values()), 1)
             peers[robot] = info
         return peers

@@ -90,12 +90,7 @@ def test_two_daemons_exchange_and_fuse(tmp_path: Path, transport: str, fk: Simpl
             x0, y0 = g["origin"]["x"], g["origin"]["y"]  # inside the global map the robots are building
             assert x0 <= p["fleet"][0] <= x0 + g["width"] * g["resolution"], (p, g)
             assert y0 <= p["fleet"][1] <= y0 + g["height"] * g["resolution"], (p, g)
-        text = subprocess.run(
-            [sys.executable, "-m", "mapd", "status", "--socket", str(sock)],
-            capture_output=True,
-            text=True,
-            timeout=30,
-        ).stdout
+        text = fk.status_text(sock)
         assert "poses" in text and "robot1" in text
     finally:
         codes = f.stop(timeout=10)
