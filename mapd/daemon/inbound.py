@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+from mapd.codec.base import CodecOptions
 from mapd.daemon.events import EventQueue
 from mapd.daemon.headline import roster_refusals
 from mapd.daemon.poses import PoseRelay
@@ -151,6 +152,9 @@ class Inbound:
     #: The roster's key of a robot now (its text), saved with each map of it the key signed: a map
     #: whose robot has another key by the next start is not restored (the key was replaced).
     key_of: Callable[[str], str | None] = lambda robot: None
+    #: This robot's codec and its options (``[codec] use`` and ``[codec.<use>]``): maps in that
+    #: codec are decoded with them (a paper model other than the default one), others with defaults.
+    codec_options: tuple[str, CodecOptions | None] | None = None
     #: A full disk fails the save of every peer map and base (several a second in a large fleet):
     #: said once, and once when saving works again.
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
@@ -308,7 +312,14 @@ class Inbound:
                 transport.ack(env.robot, env.version)  # (from its robot: not for each relay's copy)
             return
         try:
-            grid = await asyncio.to_thread(decode_envelope, env, plan.base, max_cells=self.max_cells)
+            own_codec = self.codec_options is not None and env.codec == self.codec_options[0]
+            grid = await asyncio.to_thread(
+                decode_envelope,
+                env,
+                plan.base,
+                max_cells=self.max_cells,
+                options=self.codec_options[1] if own_codec and self.codec_options is not None else None,
+            )
         except CodecError as exc:
             # A codec (or model) this robot lacks fails every map of that robot: said once, with
             # the fix. Damage or a base that differs (healed by the keyframe asked for) as before.

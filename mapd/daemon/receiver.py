@@ -32,6 +32,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from mapd.codec import decode
+from mapd.codec.base import CodecOptions
 from mapd.daemon.refusals import (
     MAX_REFUSED_NAMES,
     MAX_REFUSED_SHOWN,
@@ -154,13 +155,19 @@ def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
     return unpack(data, max_bytes=max_bytes, roster=roster)
 
 
-def decode_envelope(env: Envelope, base: OccupancyGrid | None, *, max_cells: int) -> OccupancyGrid:
+def decode_envelope(
+    env: Envelope, base: OccupancyGrid | None, *, max_cells: int, options: CodecOptions | None = None
+) -> OccupancyGrid:
     """Decode ``env``'s payload and check it against the envelope (CPU work: a worker thread).
 
     The decoder may allocate no more cells than the envelope claims (which :meth:`Receiver.plan`
-    has bounded), so a payload cannot claim more than its signed envelope does.
+    has bounded), so a payload cannot claim more than its signed envelope does. ``options``: this
+    robot's own codec's (``[codec.<use>]``), for a map in that codec: a fleet on a paper model
+    other than the default one coded with it, and every receiver decoded with the default.
     """
-    grid = decode(env.payload, base, max_cells=min(max_cells, max(1, env.width * env.height)))
+    grid = decode(
+        env.payload, base, max_cells=min(max_cells, max(1, env.width * env.height)), options=options
+    )
     if (grid.width, grid.height) != (env.width, env.height):
         raise CodecError(
             f"payload decodes to {grid.width} x {grid.height}, the envelope says {env.width} x {env.height}"

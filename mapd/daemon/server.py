@@ -190,6 +190,7 @@ class Daemon:
             max_cells=lim.max_cells,
             wake=self.outbound.wake,
             key_of=self._key_of,
+            codec_options=(cfg.codec.use, self.coder.options),
         )
         # The live web view ([view] listen): an output like the others, plus the status dict.
         self.view: LiveView | None = None

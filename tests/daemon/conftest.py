@@ -141,11 +141,29 @@ def mapd_run(
             proc.wait(10)
 
 
+class AckingLink:
+    """What the daemon's receiving half asks of a map's transport, keeping the acks it is given."""
+
+    def __init__(self, name: str = "virtual") -> None:
+        self.name = name
+        self.acks: list[tuple[str, int]] = []
+
+    def ack(self, robot: str, version: int) -> None:
+        self.acks.append((robot, version))
+
+    def relayed(self, env: object) -> None:
+        pass
+
+    def held(self, env: object, data: bytes) -> None:
+        pass
+
+
 @pytest.fixture
 def dk() -> SimpleNamespace:
     """The helpers above, for test modules (importlib mode keeps conftest out of reach of imports)."""
     return SimpleNamespace(
         QueueSource=QueueSource,
+        AckingLink=AckingLink,
         write_config=write_config,
         fleet_keys=fleet_keys,
         virtual_daemon=virtual_daemon,

@@ -35,22 +35,9 @@ def test_a_version_held_and_offered_again_by_its_robot_is_acked_again(
         base_version=0, codec="raw", width=10, height=10, resolution=0.05,
         origin=Pose2D(0, 0, 0), payload=encode(grid, "raw"),
     ).signed(robot1)  # fmt: skip
-    acks: list[tuple[str, int]] = []
-
-    class Link:  # what the receiving half asks of the map's transport
-        name = "virtual"
-
-        def ack(self, robot: str, version: int) -> None:
-            acks.append((robot, version))
-
-        def relayed(self, env: Envelope) -> None:
-            pass
-
-        def held(self, env: Envelope, data: bytes) -> None:
-            pass
-
-    link = Link()
-    d.transports.append(link)  # type: ignore[arg-type]
+    link = dk.AckingLink()
+    d.transports.append(link)
+    acks = link.acks
 
     async def main() -> None:
         await d.inbound.handle(Received(link.name, "robot1", env.pack()))
