@@ -246,6 +246,11 @@ def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True, default=str) + "\n").encode())
 
 
+#: Seconds between tries of a write that failed (a full disk) while nothing newer comes to write: a
+#: parked robot or a fleet at rest makes no new map, and the disk may have room again meanwhile.
+WRITE_RETRY_S = 5.0
+
+
 @dataclass
 class WriteOutage:
     """A run of failed writes (a full disk) said in two lines, not one a try: the first failure as

@@ -31,16 +31,13 @@ from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
 from mapd.errors import MapdError, StateError
-from mapd.files import WriteOutage
+from mapd.files import WRITE_RETRY_S, WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.sources.base import MapSource
 from transports.base import Transport
 
 log = logging.getLogger("mapd.daemon")
-#: Seconds between tries to save the newest own version after a save failed (a full disk), while
-#: the source makes no newer one: a finished log, a parked robot, a map file that no longer changes.
-SAVE_RETRY_S = 5.0
 #: A step of the wall clock ahead this large, after a new state's versions began from it, begins
 #: them again (see Outbound._versions_to_begin_again): more than clocks that disagree a little, or a slew.
 STEP_AHEAD_S = 60.0
@@ -105,8 +102,9 @@ class Outbound:
             if problem is not None:  # no codec could send it: skip it rather than fail on it later
                 log.warning("source map skipped: %s", problem)
                 continue
-            if self.store.new_state() or self._versions_to_begin_again():
-                if self.store.new_state():
+            new = self.store.new_state()
+            if new or self._versions_to_begin_again():
+                if new:
                     await self._clock_for_a_new_state()
                 self._began = (self.wall(), time.monotonic())
                 self.store.begin_again(self._began[0], synchronized=self.clock_synchronized() is not False)
@@ -236,10 +234,10 @@ class Outbound:
                     await asyncio.to_thread(self.store.save_own, grid)
                 except StateError as exc:
                     # A full disk: the version is not sent unsaved (after a restart its number could
-                    # come again), and the robot runs on; it is tried again every SAVE_RETRY_S, and
+                    # come again), and the robot runs on; it is tried again every WRITE_RETRY_S, and
                     # a newer version replaces it.
                     self._saves.failed(f"{exc}; new versions are not sent until one is saved")
-                    self._unsaved, self._retry_at = grid, time.monotonic() + SAVE_RETRY_S
+                    self._unsaved, self._retry_at = grid, time.monotonic() + WRITE_RETRY_S
                 else:
                     self._saves.recovered("own map saved again")
                     self._unsaved = None

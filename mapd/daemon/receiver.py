@@ -29,7 +29,7 @@ is said the same way, on the side that cannot see why.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from mapd.codec import decode
 from mapd.codec.base import CodecOptions
@@ -48,6 +48,7 @@ from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
 from mapd.identity import Roster
 
 KEEP_PEER_VERSIONS = 8
+K = TypeVar("K")
 #: A held version whose incarnation is this far ahead of our clock is more than clocks that
 #: disagree a little (chrony keeps them within milliseconds): its robot's maps refused as not newer
 #: are said, every :data:`FUTURE_SAID_EVERY_S` at most per robot.
@@ -63,13 +64,13 @@ def _incarnation_date(incarnation: int) -> str:
     return at.strftime("%Y-%m-%d %H:%M UTC")
 
 
-def _due(said: dict[str, float], robot: str, now: float) -> bool:
-    """Whether a warning about ``robot`` is due (none in the last :data:`FUTURE_SAID_EVERY_S`, or
-    the clock went back since); if so, noted as said now."""
-    last = said.get(robot)
+def _due(said: dict[K, float], about: K, now: float) -> bool:
+    """Whether a warning ``about`` a robot (or a link and robot) is due (none in the last
+    :data:`FUTURE_SAID_EVERY_S`, or the clock went back since); if so, noted as said now."""
+    last = said.get(about)
     due = last is None or not 0 <= now - last < FUTURE_SAID_EVERY_S
     if due:
-        said[robot] = now
+        said[about] = now
     return due
 
 
@@ -307,10 +308,8 @@ class Receiver:
         if key in self.deaf or now - since < UNACKED_S:
             return None
         self.deaf[key] = since
-        said = self._deaf_said.get(key)
-        if said is not None and 0 <= now - said < FUTURE_SAID_EVERY_S:
+        if not _due(self._deaf_said, key, now):
             return None
-        self._deaf_said[key] = now
         return (
             f"{robot} has taken none of this robot's maps for {now - since:.0f} s while its own maps "
             f"keep coming over {link}: it refuses them (or does not get them). On {robot}: is "

@@ -45,7 +45,7 @@ from typing import Any
 
 from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError
-from mapd.files import WriteOutage
+from mapd.files import WRITE_RETRY_S, WriteOutage
 from mapd.fusion.estimate import EstimateOptions
 from mapd.fusion.limits import leave_out, say_left_out, within_cell_limit, within_extent, within_merge_limits
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult, extent, merge_with_owner
@@ -56,9 +56,6 @@ from mapd.grid import DEFAULT_MAX_CELLS, UNKNOWN, OccupancyGrid, Pose2D, geometr
 log = logging.getLogger(__name__)
 #: How many times the area its maps now cover the global map may keep (see FusionWorker._kept_bounds).
 SHRINK_AREA = 4
-#: Seconds between tries to save the newest global map after its save failed (a full disk), while
-#: no new map comes to merge (a fleet at rest): the state directory kept the one before the outage.
-SAVE_RETRY_S = 5.0
 #: A merge not saved yet: its result, placements, stamp, the keys of its maps, the robots in it.
 _Unsaved = tuple[MergeResult, dict[str, Placement], float, dict[str, str], list[str]]
 
@@ -124,7 +121,7 @@ class FusionWorker:
         self._error: str | None = None
         #: The global map could not be written (said once, not at every merge).
         self._saves = WriteOutage(log)
-        #: The newest merge whose save failed, tried again every SAVE_RETRY_S (under _save_lock: a
+        #: The newest merge whose save failed, tried again every WRITE_RETRY_S (under _save_lock: a
         #: retry must never write an older map over one a merge saved meanwhile).
         self._unsaved: _Unsaved | None = None
         self._save_lock = threading.Lock()
@@ -292,7 +289,7 @@ class FusionWorker:
             self._loaded = True
         try:
             while True:
-                retry = SAVE_RETRY_S if self._unsaved is not None else None
+                retry = WRITE_RETRY_S if self._unsaved is not None else None
                 try:
                     await asyncio.wait_for(self._wake.wait(), retry)
                 except TimeoutError:
@@ -432,7 +429,7 @@ class FusionWorker:
                 # file is atomic), which a restart restores.
                 self._saves.failed(
                     f"fusion: global map not saved (saving again at each merge, and every "
-                    f"{SAVE_RETRY_S:g} s): {exc}"
+                    f"{WRITE_RETRY_S:g} s): {exc}"
                 )
                 self._unsaved = (result, placements, stamp, dict(self._merge_keys), names)
             else:

@@ -11,7 +11,7 @@ same robot or a web server looks.
 
 A map that cannot be written (a full or read-only disk) leaves the files before it whole (each is
 atomic), is said once per outage and shown in ``mapd status`` (``writing`` false), and is tried
-again every :data:`RETRY_S` until it or a newer one is written: a fleet at rest makes no new global
+again every :data:`~mapd.files.WRITE_RETRY_S` until it or a newer one is written: a fleet at rest makes no new global
 map, and the folder kept the one from before the disk filled.
 """
 
@@ -29,13 +29,11 @@ from pydantic import Field
 
 from mapd.config.paths import folder_problem
 from mapd.errors import ConfigError, MapdError
-from mapd.files import WriteOutage, atomic_write_json, remove_stale_temps
+from mapd.files import WRITE_RETRY_S, WriteOutage, atomic_write_json, remove_stale_temps
 from mapd.grid import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
 
 log = logging.getLogger("mapd.outputs.files")
-#: Seconds between tries of a global map that could not be written, while no newer one comes.
-RETRY_S = 5.0
 
 
 class FilesOptions(OutputOptions):
@@ -104,9 +102,9 @@ class FilesOutput(Output):
             self._retry = None
 
     async def _retry_unwritten(self) -> None:
-        """Every :data:`RETRY_S`, write the newest map again if it could not be written."""
+        """Every :data:`~mapd.files.WRITE_RETRY_S`, write the newest map again if it could not be written."""
         while True:
-            await asyncio.sleep(RETRY_S)
+            await asyncio.sleep(WRITE_RETRY_S)
             if self._unwritten is None:
                 continue
             try:
@@ -149,7 +147,7 @@ class FilesOutput(Output):
                 why = str(exc) if isinstance(exc, MapdError) else f"{exc.filename}: {exc.strerror or exc}"
                 self._outage.failed(
                     f"output.files: cannot write the global map ({why}); trying again every "
-                    f"{RETRY_S:g} s and with each new map"
+                    f"{WRITE_RETRY_S:g} s and with each new map"
                 )
                 return
             self._unwritten = None

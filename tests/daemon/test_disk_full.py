@@ -850,7 +850,7 @@ def test_the_files_output_writes_its_last_map_again_once_there_is_room(
 ) -> None:
     """A fleet at rest makes no new global map: the folder kept the map from before the disk
     filled until the next one came, which for a parked fleet was never."""
-    monkeypatch.setattr(files_output, "RETRY_S", 0.05)
+    monkeypatch.setattr(files_output, "WRITE_RETRY_S", 0.05)
     full = [True]
     real_save = files_output.save_map
 
