@@ -44,7 +44,9 @@ from mapd.daemon.receiver import Receiver
 from mapd.daemon.reload import Reloads
 from mapd.daemon.reload import read as read_reload
 from mapd.daemon.restore import SavedState, read_saved_state
+from mapd.daemon.revocation import Revocation
 from mapd.daemon.sinks import Sinks, placed_frames
+from mapd.daemon.snapshot import snapshot
 from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.status_socket import StatusServer
 from mapd.daemon.systemd import notify, watchdog_interval
@@ -94,7 +96,7 @@ class Daemon:
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
-        self._events = EventQueue(EVENT_QUEUE, max_peers=EVENT_QUEUE)
+        self.events = EventQueue(EVENT_QUEUE, max_peers=EVENT_QUEUE)
         codec_opts = self.options["codec"].get(cfg.codec.use)
         options = codec_opts if isinstance(codec_opts, CodecOptions) else None
         codec = get_codec(cfg.codec.use, options)
@@ -177,7 +179,7 @@ class Daemon:
         )
         self.inbound = Inbound(
             me=self.me,
-            events=self._events,
+            events=self.events,
             transports=self.transports,  # the same list: filled once the transports start
             publisher=self.publisher,
             receiver=self.receiver,
@@ -191,6 +193,9 @@ class Daemon:
             wake=self.outbound.wake,
             key_of=self._key_of,
             codec_options=(cfg.codec.use, self.coder.options),
+        )
+        self.revocation = Revocation(
+            self.receiver, self.fusion, self.poses, self.inbound, self.transports, self.store
         )
         # The live web view ([view] listen): an output like the others, plus the status dict.
         self.view: LiveView | None = None
@@ -247,11 +252,11 @@ class Daemon:
             revoked = [r for r in plan.removed if not self.keys.roster.admits(r)] + plan.rekeyed
             revoked = [r for r in revoked if r != self.me]
             for robot in revoked:
-                self._revoke(robot, rekeyed=robot in plan.rekeyed)
+                self.revocation.revoke(robot, rekeyed=robot in plan.rekeyed)
             said = self.reloads.applied(new, plan)
             (log.warning if plan.restart else log.info)("reloaded: %s", said)
             for robot in revoked:  # its files too (a worker: the disk may be slow)
-                await self._remove_saved(robot)
+                await self.revocation.remove_saved(robot)
             # A robot just admitted (or re-keyed) had its maps refused so far: ask for its newest
             # now rather than wait for its next offer to time out.
             for robot in plan.added + plan.rekeyed:
@@ -262,32 +267,6 @@ class Daemon:
         # says a line again only when it changes, so a steady robot's FAULTS would vanish)
         notify(f"READY=1\nSTATUS={self._status_now()}")
         return ok
-
-    def _revoke(self, robot: str, *, rekeyed: bool = False) -> None:
-        """``robot`` left the roster, or got a new key: what its old key signed goes too (its map
-        from the maps held and the global map, its pose, a map of it on its way in), as after a
-        restart without it; a key that had to be revoked may have signed bad maps. Its saved map's
-        files go next (:meth:`_remove_saved`)."""
-        self.receiver.forget(robot)
-        self.fusion.forget(robot)
-        self.poses.forget(robot)
-        self.inbound.revoked(robot)
-        for t in self.transports:
-            t.forget(robot)
-        self.store.forget_peer(robot)
-        self.store.forget_acked(robot)
-        log.warning(
-            "revoked %s%s: its map is out of the global map, its pose is dropped",
-            robot,
-            "'s old key" if rekeyed else "",
-        )
-
-    async def _remove_saved(self, robot: str) -> None:
-        """Remove a revoked robot's map from the state directory, so no restart brings it back."""
-        try:
-            await asyncio.to_thread(self.store.remove_peer, robot)
-        except MapdError as exc:
-            log.warning("revoked %s: %s", robot, exc)
 
     async def _reload_loop(self) -> None:
         while True:
@@ -377,7 +356,7 @@ class Daemon:
                 roster=self.keys.roster,
                 link_key=self.keys.link_key,
                 max_message_bytes=self.cfg.limits.max_message_bytes,
-                emit=self._events.put,
+                emit=self.events.put,
                 state_dir=state_dir,
                 latest_keyframe=self.outbound.latest_keyframe,
             )
@@ -553,55 +532,5 @@ class Daemon:
 
     # ------------------------------------------------------------------ status
     def snapshot(self) -> dict[str, Any]:
-        """Everything ``mapd status`` shows, as JSON-able data."""
-        now = time.time()
-        own = self.own
-        pub = self.publisher.counters
-        return {
-            "robot": self.me,
-            "fleet": self.cfg.robot.fleet,
-            "pid": os.getpid(),
-            "uptime_s": round(now - self.started, 1),
-            "source": {
-                "name": self.cfg.source.use,
-                "version": own.version if own else 0,
-                "size": [own.width, own.height] if own else None,
-                "finished": self.outbound.source_finished,
-                "stats": self.source.stats() if self.source else {},
-            },
-            "codec": {
-                **self.coder.stats,
-                "keyframes": pub.keyframes_sent,
-                "deltas": pub.deltas_sent,
-                "reoffers": pub.reoffers,
-                "failed": dict(pub.failed),  # per link: offers that could not reach a peer (P7)
-            },
-            "offers": self.publisher.offers(time.monotonic()),
-            "peers": self.receiver.status(now, self.store.acked()),
-            "links": {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports},
-            "outputs": self.sinks.status(),
-            "recording": self.sinks.recording(),
-            "fusion": self.fusion.status(),
-            "poses": self.poses.status(now),
-            "counters": {
-                **vars(self.receiver.counters),
-                "keyframes_sent": pub.keyframes_sent,
-                "deltas_sent": pub.deltas_sent,
-                # a flood: older updates replaced by newer ones before decoding, or events dropped
-                "superseded_updates": self._events.counters.superseded,
-                "dropped_events": self._events.counters.dropped,
-            },
-            "security": {
-                "signed": self.keys.signed,
-                "public_key": self.keys.identity.public_text if self.keys.identity else None,
-                "roster": self.keys.roster.robots,
-                "link_key": self.keys.link_key is not None,
-            },
-            "reload": self.reloads.status(),
-            "state_dir": str(self.cfg.state.dir),
-            # Saves that fail now (a full disk): the state's, and the global map's beside it.
-            "state": {
-                **self.store.health(),
-                "global_map": self.fusion.store.health() if self.fusion.store is not None else None,
-            },
-        }
+        """Everything ``mapd status`` shows, as JSON-able data (:mod:`~mapd.daemon.snapshot`)."""
+        return snapshot(self)

@@ -119,14 +119,14 @@ def test_a_relayed_map_and_the_relayers_own_map_both_reach_the_daemon(
         r0, r1 = read_identity(keys / "robot0.key", "robot0"), read_identity(keys / "robot1.key", "robot1")
         # Both wait in the inbox before the daemon takes any (it was busy): robot1's own map, then
         # robot0's, relayed over robot1's radio.
-        d._events.put(Received("uwb", "robot1", _map("robot1", version, r1)))
-        d._events.put(Received("uwb", "robot1", _map("robot0", version, r0)))
+        d.events.put(Received("uwb", "robot1", _map("robot1", version, r1)))
+        d.events.put(Received("uwb", "robot1", _map("robot0", version, r0)))
         task = asyncio.create_task(d.run())
         try:
             await dk.wait_for(lambda: {"robot0", "robot1"} <= set(d.receiver.maps), 10, "both maps held")
         finally:
             d.request_stop()
             await task
-        assert d._events.counters.superseded == 0
+        assert d.events.counters.superseded == 0
 
     asyncio.run(main())
