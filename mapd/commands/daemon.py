@@ -237,6 +237,10 @@ def render_status(s: dict[str, Any]) -> str:
     )
     if isinstance(src.get("stats"), dict) and (faults := link_faults(src["stats"])):
         out.append("        FAULTS " + ", ".join(faults))
+    if isinstance(skipped := src.get("skipped"), dict):
+        out.append(
+            f"        FAULTS own map not shared: its last {skipped.get('maps')} maps skipped ({skipped.get('why')})"
+        )
     c = s.get("codec", {})
     out.append(
         f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "

@@ -187,6 +187,8 @@ def status_line(s: dict[str, Any]) -> str:
     ]
     if isinstance(src.get("stats"), dict) and (words := link_faults(src["stats"])):
         faults.insert(0, f"source {', '.join(words)}")  # a source on zenoh (ros2) waits as a link does
+    if isinstance(skipped := src.get("skipped"), dict):
+        faults.insert(0, f"own map not shared ({skipped.get('why')})")
     faults += [
         f"output.{name} {', '.join(words)}"
         for name, st in (s.get("outputs") or {}).items()

@@ -83,6 +83,9 @@ class Outbound:
     _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))  # a full disk, said once
     _kf_lock: threading.Lock = field(default_factory=threading.Lock)
     _refused: set[str] = field(default_factory=set)  # fleet robots' names from the source, said once
+    #: Why the source's newest maps are skipped (None: the newest was taken), and how many in a row.
+    skipped: str | None = None
+    skipped_maps: int = 0
 
     def wake(self) -> None:
         """The publisher has something to look at: a link became free, or a peer needs a keyframe."""
@@ -96,12 +99,19 @@ class Outbound:
                 self._local_peer_map(source, grid)
                 continue
             if grid.cells > self.max_cells:
-                log.warning("source map of %d cells is over the limit; skipped", grid.cells)
+                self._skip(
+                    f"the map of {grid.cells} cells is over limits.max_cells ({self.max_cells})",
+                    "raise limits.max_cells on every robot (each refuses larger maps), or make the "
+                    "source's map coarser",
+                )
                 continue
             problem = encode_problem(grid)
             if problem is not None:  # no codec could send it: skip it rather than fail on it later
-                log.warning("source map skipped: %s", problem)
+                self._skip(problem, "no codec can send such a map")
                 continue
+            if self.skipped is not None:
+                log.info("source maps fit again, after %d skipped: shared and fused again", self.skipped_maps)
+                self.skipped, self.skipped_maps = None, 0
             new = self.store.new_state()
             if new or self._versions_to_begin_again():
                 if new:
@@ -120,6 +130,15 @@ class Outbound:
             self.fusion.submit(own)
         self.source_finished = True
         log.info("source finished; still serving peers")
+
+    def _skip(self, why: str, fix: str) -> None:
+        """The source's newest map cannot be taken: neither shared nor fused, so the robot's map
+        as its peers and global map see it stops at the last one taken. Said once while its maps
+        keep being skipped (one a period, all day, said nothing new), and shown in ``mapd status``."""
+        if self.skipped is None:
+            log.warning("source map skipped: %s; this robot's map is not shared until one fits: %s", why, fix)
+        self.skipped = why
+        self.skipped_maps += 1
 
     async def _clock_for_a_new_state(self) -> None:
         """Before the first own version of a new (or lost) state directory, whose versions start

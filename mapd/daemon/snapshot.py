@@ -30,6 +30,10 @@ def snapshot(d: Daemon) -> dict[str, Any]:
             "version": own.version if own else 0,
             "size": [own.width, own.height] if own else None,
             "finished": d.outbound.source_finished,
+            # its newest maps skipped (over limits.max_cells, or unsendable): not shared, not fused
+            "skipped": (
+                {"why": d.outbound.skipped, "maps": d.outbound.skipped_maps} if d.outbound.skipped else None
+            ),
             "stats": d.source.stats() if d.source else {},
         },
         "codec": {
