@@ -45,8 +45,8 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
         await daemon.run()
 
     # Not asyncio.run: at its end it waits for every job on the default executor, and a job that a
-    # stop cancelled the await of (a source's start_pose, a placement search) runs on in its thread
-    # for as long as it takes, past systemd's TimeoutStopSec. The state is saved by the time run()
+    # stop cancelled the await of (a source's start_pose) runs on in its thread for as long as it
+    # takes, past systemd's TimeoutStopSec (a placement search gives up at its next stage). The state is saved by the time run()
     # returns (or raises), and mapd run leaves with os._exit either way, which ends such a thread.
     loop = asyncio.new_event_loop()
     asyncio.set_event_loop(loop)

@@ -45,6 +45,12 @@ How (each stage keeps several hypotheses, so one wrong peak cannot decide):
 
 An estimate is accepted only when confidence >= ``min_confidence`` and agreement >= ``min_agreement``;
 otherwise ``reason`` says which test failed and why.
+
+A search takes seconds on a large map (10 s for two 2,500-cell-wide maps that do not match).
+``stop``, when given, is asked between its stages (before each candidate source, each heading of
+the correlation search, each candidate refined); once it says so, :class:`SearchStopped` is raised
+and there is no answer. The module reads no clock: the caller's ``stop`` decides (an event's
+``is_set``: the daemon stops).
 """
 
 from __future__ import annotations
@@ -57,7 +63,8 @@ import numpy as np
 
 from mapd.fusion import candidates as cand
 from mapd.fusion import refine
-from mapd.fusion.candidates import Hyp
+from mapd.fusion.candidates import Hyp, Stop, check_stop
+from mapd.fusion.candidates import SearchStopped as SearchStopped  # raised here, caught by callers
 from mapd.fusion.judge import Result, Verdict, agree_factor, confidence_factors, effective_fit, judge, weakest
 from mapd.fusion.options import EstimateOptions
 from mapd.fusion.transforms import from_matrix, to_matrix
@@ -170,6 +177,7 @@ def estimate_transform(
     search: bool = True,
     options: EstimateOptions | None = None,
     seed: int = 0,
+    stop: Stop | None = None,
 ) -> Estimate:
     """b's map frame expressed in a's map frame, with confidence and overlap agreement.
 
@@ -178,7 +186,7 @@ def estimate_transform(
     ``search=False`` only the prior is refined (cheap tracking as maps grow; no rivals are looked
     for, so the confidence is not discounted for them). Empty, all-unknown, structureless,
     non-overlapping or incompatible maps give ``accepted=False`` and a reason. Deterministic for a
-    given ``seed``.
+    given ``seed``. ``stop`` is asked between stages: :class:`SearchStopped` once it says so.
     """
     opt = options or EstimateOptions()
     min_conf = opt.min_confidence if min_confidence is None else min_confidence
@@ -193,6 +201,7 @@ def estimate_transform(
             return rejected(
                 f"map {name} has {v.n_walls} wall cells, too few to match (needs {opt.min_walls})"
             )
+    check_stop(stop)  # (preparing a new map's view, before, takes a tenth of a second at most)
     rng = np.random.default_rng(seed)
     at = vb.centre()
     results: list[Result] = []
@@ -207,6 +216,7 @@ def estimate_transform(
         # cheap alignment and ranking of all, full refinement and check of the best few
         ranked: list[tuple[float, float, Hyp]] = []
         for h in hyps:
+            check_stop(stop)  # a few milliseconds each, but up to hundreds of candidates
             if any(cand.same(h, r.hyp, at, 2.0, 1.0) for r in results):
                 continue
             aligned = refine.polish(va, vb, h, rng, iters=20, gate0=gate0, npts=1500)
@@ -219,6 +229,7 @@ def estimate_transform(
         for _e, _f, h in by_fit + by_evidence:
             if any(cand.same(h, d, at, 2.0, 1.0) for d in done):
                 continue
+            check_stop(stop)
             done.append(h)
             final = refine.polish(va, vb, refine.icp(va, vb, h, 3.0, rng), rng)
             if any(cand.same(final, r.hyp, at, 1.0, 0.5) for r in results):
@@ -242,7 +253,9 @@ def estimate_transform(
         prior_fit = results[0].key if results else 0.0
     if search or prior is None:
         if opt.use_features:
+            check_stop(stop)
             consider(cand.feature_hyps(va, vb, rng), 4.0)
+        check_stop(stop)
         # The signature search always runs: besides finding matches, it finds the rivals that show
         # an aliased feature match for the doubtful thing it is.
         corr = cand.Correlator(va.coarse(f), vb.coarse(f), opt.coarse_floor / f)
@@ -251,13 +264,23 @@ def estimate_transform(
         offsets = (-3.0, -1.5, 0.0, 1.5, 3.0)
         headings = [h + math.radians(d) for h in cand.signature_angles(va, vb) for d in offsets]
         peaks = corr.search(
-            headings, opt.search_peaks[0], at_coarse, k=6, group=len(offsets), per_group=opt.heading_peaks
+            headings,
+            opt.search_peaks[0],
+            at_coarse,
+            k=6,
+            group=len(offsets),
+            per_group=opt.heading_peaks,
+            stop=stop,
         )
         consider([cand.to_fine(h, f) for h in peaks], gate)
         if opt.exhaustive and not good_enough():
             headings = [math.radians(float(d)) for d in np.arange(-180.0, 180.0, 2.0)]
             consider(
-                [cand.to_fine(h, f) for h in corr.search(headings, opt.search_peaks[1], at_coarse)], gate
+                [
+                    cand.to_fine(h, f)
+                    for h in corr.search(headings, opt.search_peaks[1], at_coarse, stop=stop)
+                ],
+                gate,
             )
     if not results:
         return rejected("no candidate placement: the maps share no recognisable structure")

@@ -23,7 +23,9 @@ the ``anchor`` robot's map frame (the worker's own robot, or the first map of ``
   only the old fleet-frame placement still fits that robot's map (its map frame itself moved).
   Where that robot was placed then is part of the placement (``against_at``), saved with it, so a
   restored placement follows too;
-* an estimate below threshold is never merged; its ``reason`` says why.
+* an estimate below threshold is never merged; its ``reason`` says why;
+* a search can be given up (``stop``: the daemon stops): the robots not placed yet keep what they
+  held, as when the time budget is spent, and are searched again at the next update.
 
 Pure logic over :func:`~mapd.fusion.estimate.estimate_transform`: no asyncio, no clock, no files.
 """
@@ -37,10 +39,15 @@ from typing import Any
 
 import numpy as np
 
-from mapd.fusion.estimate import Estimate, check_transform, estimate_transform
+from mapd.fusion.estimate import Estimate, SearchStopped, Stop, check_transform, estimate_transform
 from mapd.fusion.options import EstimateOptions
 from mapd.fusion.transforms import IDENTITY, compose, inverse, pose_distance
 from mapd.grid import MAX_ORIGIN_M, OccupancyGrid, Pose2D
+
+#: The reason of a robot left unestimated because the update's time budget (``enough``) was spent.
+SPENT = "not estimated yet (this merge's search time was spent)"
+#: ... because the update was stopped (``stop``: the daemon stops); its map is searched next time.
+STOPPED = "not estimated yet (the search was stopped; it is searched again at the next merge)"
 
 
 @dataclass(frozen=True)
@@ -264,6 +271,7 @@ class Placer:
         estimate: bool = True,
         tried: Callable[[Placement], None] | None = None,
         enough: Callable[[], bool] | None = None,
+        stop: Stop | None = None,
     ) -> dict[str, Placement]:
         """Place every map of ``maps`` (robot -> latest map); returns robot -> placement.
 
@@ -276,6 +284,11 @@ class Placer:
         places against no map was searched against every placed one at each new version, so one
         merge of a fleet with a few of them took minutes, and the placed robots' maps waited as
         long.
+        ``stop`` is asked more often, between the stages of each search as well (see
+        :func:`~mapd.fusion.estimate.estimate_transform`): once it says so, the search under way is
+        given up, and the update ends as when ``enough`` says so, at once (a daemon that stops does
+        not wait seconds for a search). An accepted placement found before stands; the rest keep
+        what they held, with the reason :data:`STOPPED` if they held nothing.
         """
         out: dict[str, Placement] = {}
         placed: dict[str, Pose2D] = {}
@@ -325,15 +338,16 @@ class Placer:
         while pending and progress:
             progress = False
             for robot in list(pending):
+                if stop is not None and stop():
+                    return self._cut_short(pending, out, STOPPED)
                 if enough is not None and enough():
-                    self._defer([r for r in pending if r not in out], out)
-                    self.placements.update(out)
-                    return out
-                p = self._place(robot, maps, placed, enough)
+                    return self._cut_short(pending, out, SPENT)
+                try:
+                    p = self._place(robot, maps, placed, enough, stop)
+                except SearchStopped:  # within this robot's search: it holds what it held
+                    return self._cut_short(pending, out, STOPPED)
                 if p is None:  # the time ran out within this robot's search: it goes first next time
-                    self._defer([r for r in pending if r not in out], out)
-                    self.placements.update(out)
-                    return out
+                    return self._cut_short(pending, out, SPENT)
                 if tried is not None:
                     tried(p)
                 if p.accepted and p.transform is not None:
@@ -355,13 +369,17 @@ class Placer:
             p = self.placements.get(p.against)
         return n
 
-    def _defer(self, robots: list[str], out: dict[str, Placement]) -> None:
-        """Leave ``robots`` to the next update, holding what they had."""
+    def _cut_short(self, pending: list[str], out: dict[str, Placement], why: str) -> dict[str, Placement]:
+        """End an update before ``pending`` robots were all estimated (see ``enough``, ``stop``)."""
+        self._defer([r for r in pending if r not in out], out, why)
+        self.placements.update(out)
+        return out
+
+    def _defer(self, robots: list[str], out: dict[str, Placement], why: str) -> None:
+        """Leave ``robots`` to the next update, holding what they had (``why``: if nothing)."""
         self._deferred = set(robots)
         for robot in robots:
-            out[robot] = self.placements.get(robot) or Placement(
-                robot, reason="not estimated yet (this merge's search time was spent)"
-            )
+            out[robot] = self.placements.get(robot) or Placement(robot, reason=why)
 
     # -----------------------------------------------------------------------------------------
 
@@ -408,9 +426,11 @@ class Placer:
         maps: Mapping[str, OccupancyGrid],
         placed: Mapping[str, Pose2D],
         enough: Callable[[], bool] | None = None,
+        stop: Stop | None = None,
     ) -> Placement | None:
         """The best placement of ``robot`` against the placed maps; None when ``enough`` said so
-        before one was found (one pair at least is tried first, so every update gets on)."""
+        before one was found (one pair at least is tried first, so every update gets on).
+        :class:`SearchStopped` when ``stop`` said so before an accepted one was found."""
         track = self._tracks.setdefault(robot, _Track())
         held = self.placements.get(robot)
         if held is not None and not (
@@ -423,8 +443,15 @@ class Placer:
         best: Placement | None = None
         for other in others:
             if best is not None and enough is not None and enough():
-                return best if best.accepted else None
-            p = self._place_against(robot, other, maps, placed, held, track)
+                if not best.accepted:
+                    return None
+                break  # (on to what follows: an accepted one says where its map lies now)
+            try:
+                p = self._place_against(robot, other, maps, placed, held, track, stop)
+            except SearchStopped:
+                if best is None or not best.accepted:
+                    raise
+                break  # an accepted placement was found already: it stands
             track.tried.add(other)
             if best is None or (p.accepted and (not best.accepted or p.confidence > best.confidence)):
                 best = p
@@ -445,7 +472,10 @@ class Placer:
         placed: Mapping[str, Pose2D],
         held: Placement | None,
         track: _Track,
+        stop: Stop | None = None,
     ) -> Placement:
+        # A SearchStopped from an estimate leaves the track as it was but for a watched challenger
+        # dropped (it is dropped again next time: the map it follows has not moved back).
         a, b = maps[other], maps[robot]
         t_other = placed[other]
         key = (a.digest(), b.digest(), t_other, None if held is None else held.transform)
@@ -462,7 +492,7 @@ class Placer:
             # fleet-frame placement is the one that still fits, and stays.
             track.challenger, track.streak = None, 0  # seen against the old placement
             rel = compose(inverse(held.against_at), held.transform or IDENTITY)
-            follow = self._estimate(a, b, rel, search=False)
+            follow = self._estimate(a, b, rel, search=False, stop=stop)
             if self._holds(follow, rel, b):
                 held = replace(held, transform=compose(t_other, rel))
                 prior, est = rel, follow
@@ -474,20 +504,22 @@ class Placer:
             or track.updates_since_search + 1 >= self.research_every
         )
         if est is None or search:
-            est = self._estimate(a, b, prior, search=search)
+            est = self._estimate(a, b, prior, search=search, stop=stop)
         if not search and own and not self._holds(est, prior, b):
             # The held placement fails its check against the map it was placed against: look for
             # a better one now, not at the next scheduled search (between those, a robot whose
             # SLAM restarted elsewhere was held wrong for good). It costs no more than a robot
             # that is not placed yet, which is searched at every new map.
             search = True
-            est = self._estimate(a, b, prior, search=True)
+            est = self._estimate(a, b, prior, search=True, stop=stop)
         track.updates_since_search = 0 if search else track.updates_since_search + 1
         result = self._judge(robot, other, b, t_other, est, held, prior, track, search)
         track.last[other] = (key, result)
         return result
 
-    def _estimate(self, a: OccupancyGrid, b: OccupancyGrid, prior: Pose2D | None, search: bool) -> Estimate:
+    def _estimate(
+        self, a: OccupancyGrid, b: OccupancyGrid, prior: Pose2D | None, search: bool, stop: Stop | None
+    ) -> Estimate:
         return estimate_transform(
             a,
             b,
@@ -496,6 +528,7 @@ class Placer:
             prior=prior,
             search=search,
             options=self.options,
+            stop=stop,
         )
 
     def _holds(self, est: Estimate, prior: Pose2D | None, b: OccupancyGrid) -> bool:

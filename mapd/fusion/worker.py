@@ -18,6 +18,12 @@ API for the daemon::
   writes ``global.yaml`` + ``global-<version>.pgm``, ``transforms.json`` and ``owner.npy`` + ``owner.json``
   into the state directory (:mod:`~mapd.fusion.store`), and calls every ``on_global`` callback with
   the new grid on the event loop's thread.
+* A stop (``task.cancel()``) during a merge gives up its placement search within a fraction of a
+  second (:class:`~mapd.fusion.estimate.SearchStopped`, between the search's stages): that merge
+  goes on with the placements found and held so far, which is cheap, and is saved; the robots it did
+  not place keep what they held and are searched again at the next start, whose daemon submits their
+  maps again from its state directory. (A search of a large map takes seconds: a stop waited 10 s
+  and more for it, and saved nothing of that merge.)
 * The **fleet frame** is the frame the configured poses are given in, or this robot's own map frame
   when no pose is configured (``cfg.poses``: robot -> ``[x m, y m, yaw rad]`` of that robot's map
   frame in the fleet frame, or ``"estimate"``). The global map's origin lies on the fleet frame's
@@ -58,10 +64,6 @@ log = logging.getLogger(__name__)
 SHRINK_AREA = 4
 #: A merge not saved yet: its result, placements, stamp, the keys of its maps, the robots in it.
 _Unsaved = tuple[MergeResult, dict[str, Placement], float, dict[str, str], list[str]]
-
-
-class _Stopped(Exception):
-    """Raised in a merge's thread, between two estimates, when the daemon stops (see ``_merge_once``)."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +110,8 @@ class FusionWorker:
         self._global: OccupancyGrid | None = None
         self._placements: dict[str, Placement] = {}
         self._bounds: Bounds | None = None
-        #: Set when the daemon stops during a merge: its thread gives up at the next estimate.
+        #: Set when the daemon stops during a merge: its thread gives up its search (the placer's
+        #: ``stop``, asked between a search's stages) and merges what is placed.
         self._stop_merge = threading.Event()
         #: robot -> why its map is left out, as last said (the merge thread's; merges never overlap)
         self._said_left_out: dict[str, str] = {}
@@ -323,20 +326,24 @@ class FusionWorker:
         self._merging = True
         self._stop_merge.clear()
         job = asyncio.ensure_future(asyncio.to_thread(self._fuse, maps, search))
+        stopped: asyncio.CancelledError | None = None
         try:
             try:
                 fused = await asyncio.shield(job)
-            except asyncio.CancelledError:
-                # A thread cannot be stopped, but it gives up at its next estimate: a merge with
-                # robots that do not place takes minutes, past systemd's stop timeout. Wait for it
-                # (once; a second cancel is not waited out), so that the stop's flush (run) never
-                # shares the placer with it, and it does not save a map after the flush has saved
-                # a newer one.
+            except asyncio.CancelledError as exc:
+                # A thread cannot be stopped, but its search gives up at its next stage (a fraction
+                # of a second; a search took up to 13 s, and a merge with robots that do not place
+                # minutes, past systemd's stop timeout) and the merge goes on with what is placed,
+                # which is cheap. Wait for it (once; a second cancel is not waited out), so that the
+                # stop's flush (run) never shares the placer with it, and it does not save a map
+                # after the flush has saved a newer one.
                 self._stop_merge.set()
+                stopped = exc
                 with contextlib.suppress(BaseException):
                     await asyncio.wait({job})
-                    job.exception()  # retrieved: the flush that follows reports its own
-                raise
+                if not job.done() or job.cancelled() or job.exception() is not None:
+                    raise  # (its error, retrieved, is not news now: the flush reports its own)
+                fused = job.result()
         except MapdError as exc:
             self._error = str(exc)
             log.warning("fusion: %s", exc)
@@ -350,9 +357,11 @@ class FusionWorker:
             revoked, self._forget_later = self._forget_later, []
             for robot in revoked:
                 self._forget_placement(robot)
-        if revoked:
-            return  # it holds a revoked map: the next merge (woken by forget) goes without it
-        self._apply(fused)
+        if not revoked:  # (one that holds a revoked map is not kept: forget woke the next merge)
+            # Saved already; not published on the way out, as the stop's flush is not either.
+            self._apply(fused, publish=stopped is None)
+        if stopped is not None:
+            raise stopped
 
     def _fuse_and_publish_sync(self, search: bool) -> None:
         maps = dict(self._latest)
@@ -370,8 +379,8 @@ class FusionWorker:
         self.placer.update(
             maps,
             estimate=search,
-            tried=self._give_up_if_stopping,
             enough=lambda: time.perf_counter() >= budget,
+            stop=self._stop_merge.is_set,
         )
         # every robot the placer knows, also those restored but not heard from since the restart
         placements = dict(self.placer.placements)
@@ -437,10 +446,6 @@ class FusionWorker:
                 self._unsaved = None
             self._save_owner(result, names)
         return _Fused(result, placements, time.perf_counter() - t0, {r: maps[r].version for r in maps})
-
-    def _give_up_if_stopping(self, _placement: Placement) -> None:
-        if self._stop_merge.is_set():
-            raise _Stopped
 
     def _kept_bounds(
         self, maps: dict[str, OccupancyGrid], placements: dict[str, Placement], names: list[str]

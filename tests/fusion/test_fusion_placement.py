@@ -336,3 +336,17 @@ def test_a_robot_whose_map_changes_every_merge_is_searched_against_every_placed_
         n = len(calls)
         placer.update({**{r: crops[r] for r in "abc"}, "u": lone}, enough=lambda n=n: len(calls) > n)  # type: ignore[misc]
     assert calls == ["a", "b", "c", "a", "b", "c"]
+
+
+def test_a_placement_found_before_the_search_budget_ran_out_follows_the_map_it_was_found_against(
+    crops: dict[str, OccupancyGrid], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A robot placed against the first placed map, whose search against the others was then cut by
+    # the budget, came back without ``against_at``: it never followed that map when it moved.
+    calls = _calls(monkeypatch, "estimate_transform", lambda a, b: a.robot)
+    poses = {"a": Pose2D(0.0, 0.0, 0.0), "c": _truth(80, 210, name="c")}
+    placer = Placer(poses, anchor=None)
+    out = placer.update(crops, enough=lambda: len(calls) >= 1)
+    b = out["b"]
+    assert calls == ["a"] and b.accepted and b.against == "a", (calls, b)
+    assert b.against_at == poses["a"]
