@@ -2,7 +2,8 @@
 
 Each subcommand lives in a module of :mod:`mapd.commands` with a ``register(subparsers)`` function;
 modules import their heavy dependencies inside the handlers, so ``mapd --help`` stays fast. Any
-:class:`~mapd.errors.MapdError` becomes one line on stderr and a non-zero exit.
+:class:`~mapd.errors.MapdError` becomes one line on stderr and a non-zero exit
+(:func:`~mapd.errors.exit_code`: 2 for what no retry heals, 1 for what one may).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from mapd import __version__
-from mapd.errors import MapdError
+from mapd.errors import MapdError, exit_code
 
 COMMAND_MODULES = [
     "mapd.commands.maps",  # plugins, check-config, info, encode, decode
@@ -76,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from mapd.daemon.systemd import print_error
 
         print_error(exc)
-        return exc.exit_code
+        return exit_code(exc)
     except KeyboardInterrupt:
         print("mapd: interrupted", file=sys.stderr)
         return 130

@@ -427,3 +427,15 @@ def write_new_secret(path: Path, data: bytes) -> None:
         path.unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)  # the new name survives a power cut too, not just the key's bytes
+
+
+def from_workdir(name: str) -> tuple[Path | None, str]:
+    """Where a relative ``name`` that mapd hands on as written (a uwb port to pyserial, a TLS file
+    to zenoh) is found: from the working directory of the process, ``/`` under systemd. Returns
+    the path and the words for where it was looked for; the path is None when this process has no
+    working directory any more (a folder removed under it), where the start cannot find it either."""
+    try:
+        cwd = Path.cwd()
+    except OSError:
+        return None, "the working directory, which no longer exists"
+    return cwd / name, f"the working directory ({cwd}; / under systemd)"

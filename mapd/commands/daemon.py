@@ -153,7 +153,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mapd import config
     from mapd.daemon.process import run_daemon
     from mapd.daemon.systemd import print_error, setup_logging
-    from mapd.errors import MapdError
+    from mapd.errors import MapdError, exit_code
 
     cfg = config.load(args.config)
     setup_logging(cfg.log.level)
@@ -163,7 +163,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         # Said here, not by cli.main, so that this path too leaves with os._exit below: returning
         # would make the interpreter join every executor thread first (a search, a start_pose).
         print_error(exc)
-        code = exc.exit_code
+        code = exit_code(exc)
     # By now the state directory is written and fsynced, the transports and the control socket are
     # closed. All the interpreter's finalization would add is tearing down native extensions (numba's
     # LLVM, zenoh's runtime, OpenCV): 1-3 s on a loaded 2-core robot, measured after the "stopped"

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from mapd.errors import TransportError, UnreachableError
-from mapd.files import NotRegularFileError, open_regular
+from mapd.files import NotRegularFileError, from_workdir, open_regular
 
 #: zenoh's own example config, every option commented, is about 30 KiB.
 MAX_ZENOH_CONFIG_BYTES = 1 << 20
@@ -163,8 +163,10 @@ def check_tls(path: Path | None, listen: list[str], field: str = "config_file") 
     """ValueError with one line for TLS files the zenoh config at ``path`` names that the session
     could not load, or a tls/quic listener in ``listen`` with none to listen with.
 
-    A relative file name is zenoh's to look up from the daemon's working directory (``/`` under
-    systemd), which the check cannot stand in for: only absolute names are read here.
+    A relative file name is looked up from the working directory, where zenoh looks (``/`` under
+    systemd): in ``mapd run`` exactly, in ``mapd check-config`` as a ``mapd run`` started from the
+    same folder would (a relative key that check-config passed stopped the start, where zenoh could
+    not read it).
     """
     tls: dict[str, Any] = {}
     if path is not None:
@@ -179,10 +181,10 @@ def check_tls(path: Path | None, listen: list[str], field: str = "config_file") 
             return  # said by the file's own check
         for key, marker in _TLS_FILES.items():
             name = tls.get(key)
+            if not isinstance(name, str) or not name:
+                continue
             problem = (
-                _pem_problem(Path(name), marker)
-                if isinstance(name, str) and Path(name).is_absolute()
-                else None
+                _pem_problem(Path(name), marker) if Path(name).is_absolute() else _relative_pem(name, marker)
             )
             if problem:
                 raise ValueError(f"{field}: {path}: transport.link.tls.{key}: {problem}")
@@ -197,6 +199,16 @@ def check_tls(path: Path | None, listen: list[str], field: str = "config_file") 
                 f"listen: {ep}: a {proto} listener needs transport.link.tls.listen_private_key and "
                 f"listen_certificate in a zenoh config ({field})"
             )
+
+
+def _relative_pem(name: str, marker: str) -> str | None:
+    """Why zenoh could not load relative ``name`` from the working directory, or None."""
+    path, where = from_workdir(name)
+    said = f"'{name}' is relative, so mapd run's zenoh session reads it from {where}"
+    if path is None:
+        return said
+    problem = _pem_problem(path, marker)
+    return f"{said}: {problem}" if problem else None
 
 
 def _pem_problem(path: Path, marker: str) -> str | None:

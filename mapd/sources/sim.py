@@ -32,7 +32,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, PrivateAttr, field_validator
 
 from mapd.errors import LimitError, MapFileError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose, load_map
@@ -81,6 +81,11 @@ class SimOptions(FleetSliceOptions, MapperOptions):
         default=5.0, ge=0.0, description="sim seconds per wall second (1: live-like, 0: flat out)"
     )
     duration: float | None = Field(default=None, gt=0.0, description="stop after this many sim seconds")
+    #: The world map :meth:`check_with_config` loaded, with its path and the cell limit it was read
+    #: under, until the source these options start takes it (:meth:`take_world`): the daemon checks
+    #: its config, then starts the source with the same options, and read the map twice (a large
+    #: map_server world, twice the seconds and, while both were held, twice the memory).
+    _checked_world: tuple[Path, int, OccupancyGrid] | None = PrivateAttr(default=None)
 
     @field_validator("start")
     @classmethod
@@ -93,16 +98,27 @@ class SimOptions(FleetSliceOptions, MapperOptions):
         """ValueError for a world the source could not build at start: ``world`` missing or not a
         map within ``limits.max_cells``, or a generated building of more cells than that."""
         ctx = SourceContext.of(cfg)
+        self._checked_world = None
         if self.world is not None:
+            path = ctx.resolve(self.world)
             try:
-                load_map(ctx.resolve(self.world), max_cells=ctx.max_cells)
+                grid = load_map(path, max_cells=ctx.max_cells)
             except (MapFileError, LimitError) as exc:
                 raise ValueError(f"world: {exc}") from None
+            self._checked_world = (path, ctx.max_cells, grid)
         elif (cells := generated_cells(self)) > ctx.max_cells:
             raise ValueError(
                 f"width_m: a {self.width_m} x {self.height_m} m building at {self.world_resolution} "
                 f"m/cell has {int(cells)} cells, over limits.max_cells ({ctx.max_cells})"
             )
+
+    def take_world(self, path: Path, max_cells: int) -> OccupancyGrid | None:
+        """The world map :meth:`check_with_config` loaded from ``path`` under ``max_cells``, handed
+        over once (not kept here as well); None when it loaded none, or another path or limit."""
+        held, self._checked_world = self._checked_world, None
+        if held is not None and held[0] == path and held[1] == max_cells:
+            return held[2]
+        return None
 
 
 def generated_cells(o: SimOptions) -> float:
@@ -146,10 +162,13 @@ class SimSource(MapSource):
 
         o = self.opts
         if o.world is not None:
-            try:
-                grid = load_map(self._world_path(), max_cells=self.ctx.max_cells)
-            except (MapFileError, LimitError) as exc:
-                raise SourceError(f"sim world: {exc}") from None
+            path = self._world_path()
+            grid = o.take_world(path, self.ctx.max_cells)  # read by the config's check already?
+            if grid is None:
+                try:
+                    grid = load_map(path, max_cells=self.ctx.max_cells)
+                except (MapFileError, LimitError) as exc:
+                    raise SourceError(f"sim world: {exc}") from None
             world = worldgen.from_map(grid, seed=o.seed)
         else:
             cells = generated_cells(o)

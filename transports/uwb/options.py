@@ -11,6 +11,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from mapd.errors import ConfigError
+from mapd.files import from_workdir
 from transports.base import TransportOptions
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.pacing import SLOT_FRAMES
@@ -189,14 +190,36 @@ class UwbOptions(TransportOptions):
 
     def check_files(self) -> None:
         """ValueError when ``port`` names something that is there and no serial device (a regular
-        file, a folder): the start stopped on it. A port not there yet is waited for at start, and
-        a relative name is the daemon's working directory's (``/`` under systemd) to find."""
+        file, a folder): the start stopped on it. An absolute port not there yet is waited for at
+        start (a radio the kernel names late at boot). A relative one is looked up from the working
+        directory, where pyserial opens it (``/`` under systemd): it names nothing the kernel makes
+        at boot (device nodes are in ``/dev``), so missing it is a mistake (``ttyUSB0`` for
+        ``/dev/ttyUSB0``) that the start waited for in vain. Only ``stat`` is used: a pty or a link
+        to a device is a character device too, and the port (a running daemon's) is never opened."""
         port = Path(self.port)
+        if not port.is_absolute():
+            found, where = from_workdir(self.port)
+            said = f"'{self.port}' is relative, so mapd run opens it from {where}"
+            if found is None:
+                raise ValueError(f"port: {said}")
+            try:
+                mode = os.stat(found).st_mode
+            except FileNotFoundError:
+                raise ValueError(
+                    f"port: {said}: {found} does not exist (name the device by its full path, such as /dev/ttyUSB0)"
+                ) from None
+            except OSError as exc:
+                raise ValueError(f"port: {said}: {found}: {exc.strerror or exc}") from None
+            if not stat.S_ISCHR(mode):
+                raise ValueError(
+                    f"port: {said}: {found} is not a serial device (it exists, and is no character device)"
+                )
+            return
         try:
-            mode = os.stat(port).st_mode if port.is_absolute() else None
+            mode = os.stat(port).st_mode
         except OSError:  # not there (yet), or not ours to look at: the start says
-            mode = None
-        if mode is not None and not stat.S_ISCHR(mode):
+            return
+        if not stat.S_ISCHR(mode):
             raise ValueError(f"port: {port} is not a serial device (it exists, and is no character device)")
 
     def check_for_robot(self, robot: str) -> None:
