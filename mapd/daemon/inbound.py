@@ -13,11 +13,15 @@ every map the peer sends: each is said once per robot and cause with the fix, as
 (:class:`~mapd.daemon.receiver.Refusal`), and again only after that robot's maps were taken in
 between. What a link refuses before the daemon sees it (zenoh: robots off the roster, signatures
 the roster's keys refuse) is said once per link and cause, from its counters (:class:`LinkRefusals`).
+
+A peer's map whose save fails (a full disk) is used and acked all the same; it is saved again
+until it goes through, as the base and ``state.json`` (acks) are (:mod:`~mapd.daemon.peer_saves`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 import time
@@ -27,6 +31,7 @@ from dataclasses import dataclass, field
 from mapd.codec.base import CodecOptions
 from mapd.daemon.events import EventQueue
 from mapd.daemon.headline import roster_refusals
+from mapd.daemon.peer_saves import PeerSaves, UnsavedPeer
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
@@ -35,7 +40,7 @@ from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.daemon.versions import label
 from mapd.envelope import peek_robot
-from mapd.errors import CodecError, EnvelopeError, MapdError, StateError
+from mapd.errors import CodecError, EnvelopeError, MapdError
 from mapd.files import WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.identity import Roster
@@ -155,9 +160,6 @@ class Inbound:
     #: This robot's codec and its options (``[codec] use`` and ``[codec.<use>]``): maps in that
     #: codec are decoded with them (a paper model other than the default one), others with defaults.
     codec_options: tuple[str, CodecOptions | None] | None = None
-    #: A full disk fails the save of every peer map and base (several a second in a large fleet):
-    #: said once, and once when saving works again.
-    _saves: WriteOutage = field(default_factory=lambda: WriteOutage(log))
     #: Offers failing again and again for one reason (each version over a peer's limit) said once.
     _failures: FailedOffers = field(default_factory=lambda: FailedOffers(log))
     #: Revocations so far, and robot -> the number of its last (see :meth:`revoked`).
@@ -169,18 +171,33 @@ class Inbound:
     #: sends nothing the daemon sees: only the link counts it).
     look_every_s: float = 2.0
     _looked_at: float = 0.0
+    #: The state's saves that failed (a full disk), tried again (:class:`PeerSaves`).
+    saves: PeerSaves = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.saves = PeerSaves(self.store, self._trusted, self._save_base, WriteOutage(log))
 
     async def run(self) -> None:
-        """Take events off the queue until cancelled."""
+        """Take events off the queue until cancelled; between them, look at the links every
+        ``look_every_s`` and save again what a full disk kept from being saved."""
         while True:
-            try:
-                async with asyncio.timeout(self.look_every_s):  # get() is cancel-safe
+            now = time.monotonic()
+            wait = self._looked_at + self.look_every_s - now
+            if (retry_at := self.saves.retry_at()) is not None:
+                wait = min(wait, retry_at - now)
+            ev: TransportEvent | None = None
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(max(0.0, wait)):  # get() is cancel-safe
                     ev = await self.events.get()
-            except TimeoutError:
-                self.look_at_links()
-                continue
             if time.monotonic() - self._looked_at >= self.look_every_s:
                 self.look_at_links()
+            if (retry_at := self.saves.retry_at()) is not None and time.monotonic() >= retry_at:
+                try:
+                    await self.saves.save_again()
+                except Exception:  # a bug must cost this try, not the daemon: the next comes
+                    log.exception("saving again: internal error")
+            if ev is None:
+                continue
             try:
                 await self.handle(ev)
             except MapdError as exc:
@@ -219,12 +236,7 @@ class Inbound:
             if free:
                 self.wake()  # the link is free: the publisher sends it the newest version
             if newer and self.store.set_acked(ev.peer, ev.version):
-                try:
-                    await self._save_base()
-                except StateError as exc:  # a full disk: the base is saved with a later ack
-                    self._saves.failed(f"{exc}; trying again with each map or ack")
-                else:
-                    self._saves.recovered("state saved again")
+                await self.saves.save_state()
         elif isinstance(ev, OnAir):
             if ev.robot == self.me and core.on_air(ev.transport, ev.version, time.monotonic()):
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever
@@ -259,9 +271,11 @@ class Inbound:
 
     def revoked(self, robot: str) -> None:
         """``robot``'s key was revoked (removed or replaced): a map of it verified before is dropped
-        wherever on its way in it is (a new key still admits the robot, so the roster cannot say)."""
+        wherever on its way in it is (a new key still admits the robot, so the roster cannot say),
+        held unsaved too."""
         self._revocations += 1
         self._revoked_at[robot] = self._revocations
+        self.saves.revoked(robot)
 
     def _trusted(self, robot: str, mark: int) -> bool:
         """Whether ``robot``'s map, verified after revocation number ``mark``, may still be used."""
@@ -355,21 +369,10 @@ class Inbound:
                 # Waiting for it would hold our maps back from every other peer on this link for
                 # the whole in-flight timeout, each version: stop at each map it sends instead.
                 self.wake()
-        # The key it was verified with (none was revoked since: _trusted), saved with it.
+        # The key it was verified with (none was revoked since: _trusted), saved with it. A save
+        # that fails (a full disk) keeps the map to save again: it is used and acked all the same.
         key = self.key_of(env.robot) if env.sig else None
-        try:
-            await asyncio.to_thread(self.store.save_peer, grid, env.frame_pose, key)
-        except StateError as exc:  # the map is still used; after a restart it comes again whole
-            self._saves.failed(f"{exc}; trying again with each map or ack")
-        else:
-            self._saves.recovered("state saved again")
-        if not self._trusted(env.robot, mark):
-            # Revoked while it was saved: the revocation took the map out of the receiver and the
-            # state directory, but the save has put it back in since.
-            try:
-                await asyncio.to_thread(self.store.remove_peer, env.robot)
-            except StateError as exc:
-                log.warning("revoked %s: %s", env.robot, exc)
+        if not await self.saves.save_peer(UnsavedPeer(grid, env.frame_pose, key, mark)):
             log.info("dropped %s of %s: revoked while it was saved", label(env.version), env.robot)
             return
         if env.frame_pose is not None:

@@ -35,6 +35,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -221,6 +222,9 @@ class StateStore:
         #: The writes of the state directory that fail now (a full disk), for ``mapd status``. Not
         #: logged here: whoever saved says it once (its line says what the failure costs).
         self.outage = WriteOutage(None)
+        #: Peers whose newest map the daemon holds unsaved (its save failed; it tries again): the
+        #: outage lasts while any is, though other writes go through (a restart would lose it).
+        self._unsaved_peers: frozenset[str] = frozenset()
 
     # ------------------------------------------------------------------ setup
     def open(self) -> StateData:
@@ -336,8 +340,14 @@ class StateStore:
                     f"{d}: cannot remove the revoked map: {exc.strerror or one_line(exc)}"
                 ) from None
 
+    @staticmethod
+    def savable(robot: str) -> bool:
+        """Whether a map of ``robot`` can be saved here at all: a name a folder may have (others,
+        which only a fleet without a roster lets in, are refused by every save, not only now)."""
+        return bool(robot) and set(robot) <= _SAFE
+
     def _peer_dir(self, robot: str) -> Path:
-        if not robot or not set(robot) <= _SAFE:
+        if not self.savable(robot):
             raise StateError(f"refusing unsafe robot name {robot!r} for a state path")
         return self.root / "peers" / robot
 
@@ -448,14 +458,37 @@ class StateStore:
                     found.append(robot)
         return found
 
+    def set_unsaved_peers(self, robots: Iterable[str]) -> None:
+        """The peers whose newest map is held unsaved now (see :meth:`health`)."""
+        with self._lock:
+            self._unsaved_peers = frozenset(robots)
+
+    @contextlib.contextmanager
+    def _counted(self, peer: str | None = None) -> Iterator[None]:
+        """Count the write in the block in :attr:`outage` (a StateError out of it: failed). One
+        that goes through ends the outage only when no peer's map is left held unsaved (``peer``:
+        the block saved that robot's map, which is not any more)."""
+        try:
+            yield
+        except StateError as exc:
+            self.outage.failed(str(exc))
+            raise
+        with self._lock:
+            if peer is not None:
+                self._unsaved_peers -= {peer}
+            unsaved = bool(self._unsaved_peers)
+        if not unsaved:
+            self.outage.recovered("")
+
     def health(self) -> dict[str, Any]:
         """The state directory's writes for ``mapd status --json``: its ``dir``, ``writing`` (False
         while saves fail: a full disk), ``failures`` (saves failed in all), ``failing_s`` and
-        ``error`` (see :meth:`~mapd.files.WriteOutage.status`)."""
+        ``error`` (see :meth:`~mapd.files.WriteOutage.status`). Writes fail until every peer's map
+        held unsaved is saved (:meth:`set_unsaved_peers`), though others go through meanwhile."""
         return {"dir": str(self.root), **self.outage.status()}
 
     def save_own(self, grid: OccupancyGrid) -> None:
-        with self._io, self.outage.counted(StateError):
+        with self._io, self._counted():
             record = self._save(grid, self.root / "own" / "map.yaml")
             with self._lock:
                 self.data.own = record
@@ -463,7 +496,7 @@ class StateStore:
             self._write_state()
 
     def save_base(self, grid: OccupancyGrid) -> None:
-        with self._io, self.outage.counted(StateError):
+        with self._io, self._counted():
             record = self._save(grid, self.root / "own" / "base.yaml")
             with self._lock:
                 self.data.base = record
@@ -475,7 +508,7 @@ class StateStore:
         """Save a peer's map, with the pose of its map frame its envelope reported and the roster
         key it was taken under (``key``), if any."""
         d = self._peer_dir(grid.robot)
-        with self._io, self.outage.counted(StateError):
+        with self._io, self._counted(grid.robot):
             try:
                 make_dir(d)
             except OSError as exc:
@@ -502,7 +535,7 @@ class StateStore:
 
     def flush(self) -> None:
         """Write ``state.json`` now (blocking)."""
-        with self._io, self.outage.counted(StateError):
+        with self._io, self._counted():
             self._write_state()
 
     def _write_state(self) -> None:

@@ -157,6 +157,16 @@ class AckingLink:
     def held(self, env: object, data: bytes) -> None:
         pass
 
+    # What a reload and the status ask of every link (one in the daemon's list of transports).
+    def forget(self, robot: str) -> None:
+        pass
+
+    def peers(self) -> list[str]:
+        return []
+
+    def stats(self) -> dict[str, object]:
+        return {}
+
 
 @pytest.fixture
 def dk() -> SimpleNamespace:

@@ -430,7 +430,7 @@ def test_a_daemon_whose_disk_fills_runs_on_says_it_once_keeps_its_files_and_writ
         rss_at_fill = ns.rss_kib("robot1")
         outage_says = (
             "new versions are not sent until one is saved",  # own map (outbound)
-            "trying again with each map or ack",  # peer maps, base, state.json (inbound)
+            "saving peers' maps and acks again every",  # peer maps, base, state.json (inbound)
             "fusion: global map not saved",
             "output.files: cannot write the global map",
             "recording failed",
