@@ -136,21 +136,42 @@ def wait_for_fleet(pred: Any, timeout: float, fleet: Any) -> dict[str, dict[str,
     raise AssertionError(f"condition not met in {timeout} s: {json.dumps(snaps)[:3000]}")
 
 
-def router_fleet(out: Path, robots: int = 3) -> Any:
-    """A prepared demo fleet (:class:`mapd.demo.fleet.Fleet`) of ``robots`` zenoh clients of one
-    router process, lossless maps of the sim building; the router runs, the daemons not yet."""
+def demo_fleet(
+    out: Path,
+    robots: int = 3,
+    *,
+    transport: str = "zenoh",
+    duration: float = 60.0,
+    router: bool = False,
+    edit: dict[str, Callable[[dict[str, Any]], None]] | None = None,
+) -> Any:
+    """A prepared demo fleet (:class:`mapd.demo.fleet.Fleet`) of ``robots`` daemons on
+    ``transport``, lossless maps of the sim building (with ``router``: zenoh clients of one router
+    process, which runs); the daemons not started yet. ``edit``: robot -> a change to its config
+    (the parsed TOML, written back), for fleets whose configs disagree."""
     import argparse
+    import tomllib
 
-    from mapd.demo.fleet import Fleet
+    from mapd.demo.fleet import Fleet, write_config
 
     fleet = Fleet(
         argparse.Namespace(
-            robots=robots, transport="zenoh", codec="lossless", log=None, seed=7, out=out, duration=60.0,
-            router=True,
+            robots=robots, transport=transport, codec="lossless", log=None, seed=7, out=out,
+            duration=duration, router=router,
         )
     )  # fmt: skip
     fleet.prepare()
+    for robot, change in (edit or {}).items():
+        path = fleet.run_dir / robot / "config.toml"
+        cfg = tomllib.loads(path.read_text())
+        change(cfg)
+        write_config(path, cfg)
     return fleet
+
+
+def router_fleet(out: Path, robots: int = 3) -> Any:
+    """:func:`demo_fleet` of zenoh clients of one router process."""
+    return demo_fleet(out, robots, router=True)
 
 
 def status_text(sock: Path) -> str:
@@ -203,5 +224,6 @@ def fk() -> SimpleNamespace:
         held=held_number,
         version=held_version,
         router_fleet=router_fleet,
+        demo_fleet=demo_fleet,
         status_text=status_text,
     )

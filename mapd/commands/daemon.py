@@ -317,6 +317,18 @@ def render_status(s: dict[str, Any]) -> str:
         if faults:
             # Said on a line of its own, whatever the link's other figures: what needs a look.
             out.append(f"  {'':<6} FAULTS " + ", ".join(faults))
+        if isinstance(big := st.get("oversize_from"), dict) and big:
+            out.append(
+                f"  {'':<6} maps over limits.max_message_bytes from "
+                + ", ".join(f"{robot} ({size} B)" for robot, size in big.items())
+            )
+        if isinstance(fleets := st.get("other_fleets"), dict) and fleets:
+            # No fault: fleets may share a network on purpose. But the one thing that says why a
+            # robot with another robot.fleet is never seen.
+            out.append(
+                f"  {'':<6} other fleets on this network: "
+                + ", ".join(f"{fleet} ({', '.join(map(str, robots))})" for fleet, robots in fleets.items())
+            )
     f = s.get("fusion", {})
     g = f.get("global") or {}
     out.append(

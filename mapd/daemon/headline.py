@@ -23,6 +23,8 @@ LINK_FAULTS = {
     # an output's tries that a router answered and refused (it keeps trying: see outputs.zenoh)
     "session_refusals": "{} session tries refused by the router (its certificate, ACL or version?)",
     "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
+    # peers' maps refused unread for their size (zenoh): config drift, said with the robot and size
+    "oversize_rx": "{} peer maps over this robot's limits.max_message_bytes refused (the log names the robot)",
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",

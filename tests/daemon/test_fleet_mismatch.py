@@ -22,13 +22,11 @@ Now each cause is one warning per robot that names it and the fix, and ``mapd st
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import logging
 import shutil
 import time
-import tomllib
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -297,18 +295,7 @@ def test_zenoh_robots_whose_roster_lacks_a_key_say_so_on_both_sides_and_the_othe
     """Three ``mapd run`` over zenoh, robot0's roster without robot1. Before: robot0 and robot1
     silent, in the log and in ``mapd status``, for as long as they ran; and robot1's maps reached
     robot2 once per 30 s, each offer waiting out its in-flight timeout for robot0's ack."""
-    from mapd.demo.fleet import Fleet, write_config
-
-    f = Fleet(
-        argparse.Namespace(
-            robots=3, transport="zenoh", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
-        )
-    )
-    f.prepare()
-    path = f.run_dir / "robot0" / "config.toml"
-    cfg = tomllib.loads(path.read_text())
-    del cfg["fleet"]["roster"]["robot1"]
-    write_config(path, cfg)
+    f = fk.demo_fleet(tmp_path, 3, edit={"robot0": lambda c: c["fleet"]["roster"].pop("robot1")})
     logs = {n: f.run_dir / n / "daemon.log" for n in f.names}
 
     def lines(robot: str, *words: str) -> list[str]:
@@ -356,19 +343,15 @@ def test_uwb_robots_whose_nodes_and_roster_disagree_say_so_once(tmp_path: Path, 
     """Two ``mapd run`` over socat ptys and the emulated radio: robot0's ``nodes`` call robot1
     ``bot1``, and robot1's roster lacks robot0. Before: robot0 silent (robot1's signed maps taken,
     its acks and poses put down to ``bot1``), robot1 a line per map robot0 sent."""
-    from mapd.demo.fleet import Fleet, write_config
-
-    f = Fleet(
-        argparse.Namespace(
-            robots=2, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0
-        )
+    f = fk.demo_fleet(
+        tmp_path,
+        2,
+        transport="uwb",
+        edit={
+            "robot0": lambda c: c["transports"]["uwb"].update(nodes={"robot0": 1, "bot1": 2}),
+            "robot1": lambda c: c["fleet"]["roster"].pop("robot0"),
+        },
     )
-    f.prepare()
-    cfgs = {n: tomllib.loads((f.run_dir / n / "config.toml").read_text()) for n in f.names}
-    cfgs["robot0"]["transports"]["uwb"]["nodes"] = {"robot0": 1, "bot1": 2}
-    del cfgs["robot1"]["fleet"]["roster"]["robot0"]
-    for n, c in cfgs.items():
-        write_config(f.run_dir / n / "config.toml", c)
     logs = {n: f.run_dir / n / "daemon.log" for n in f.names}
     f.start()
     try:

@@ -7,5 +7,6 @@
 * :mod:`~transports.zenoh.keys` names the key expressions; :mod:`~transports.zenoh.session` builds
   the zenoh config; :mod:`~transports.zenoh.routers` follows the routers the session is connected
   to; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
-  :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads.
+  :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads;
+  :mod:`~transports.zenoh.fleets` notes robots of other fleets on the same network.
 """

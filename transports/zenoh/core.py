@@ -9,7 +9,9 @@ emit, keyframe queries to send). The rules:
   in ``bad_signature``, anything else malformed (or an envelope whose robot differs from the key it
   came on) in ``dropped``. Neither is ever emitted. A robot the roster does not admit gets no state
   at all: its liveliness token, updates and acks cost nothing, and its updates and replies are
-  refused unread (``unadmitted``), before any verification.
+  refused unread (``unadmitted``), before any verification. An update or reply over
+  ``max_message_bytes`` is refused unread too, and said once per robot with the fix (its limits are
+  larger than ours: :meth:`ZenohCore.oversize`, ``oversize_rx``).
 * **Check, then apply.** Verification is split from the state it feeds so that the adapter can run
   it off the event loop: :meth:`ZenohCore.check` (unpack and verify; pure, touches nothing, safe on
   any thread) and :meth:`ZenohCore.on_update_checked` / :meth:`ZenohCore.on_reply_checked` (take its
@@ -68,6 +70,9 @@ REPLY_BURST = 16
 REPLY_RATE_HZ = 4.0
 #: Answers waiting for the job thread at most (the adapter holds the slots).
 MAX_REPLIES_PENDING = 4
+#: Robots whose maps over ``max_message_bytes`` are said and shown (``oversize_from``); maps of
+#: more are only counted (an open roster admits any name, and names cost memory).
+MAX_OVERSIZE_SHOWN = 16
 
 
 def _ack_blob(fleet: str, peer: str, robot: str, body: bytes) -> bytes:
@@ -110,6 +115,8 @@ class Step:
     events: list[TransportEvent] = field(default_factory=list)
     #: Robots whose latest keyframe to query now.
     queries: list[str] = field(default_factory=list)
+    #: Lines to log as warnings (each said once: see :meth:`ZenohCore.oversize`).
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -137,6 +144,9 @@ class CoreCounters:
     #: Keyframe queries answered without a ``KeyframeNeeded`` because their nonce was not above the
     #: last one heeded from their asker: a recorded query played back.
     replayed: int = 0
+    #: Updates and query replies over ``max_message_bytes``, refused unread: a peer whose limits
+    #: are larger than ours (its robots in ``oversize_from``, each said once).
+    oversize_rx: int = 0
 
 
 @dataclass
@@ -192,6 +202,8 @@ class ZenohCore:
         self._reply_tokens = float(REPLY_BURST)
         self._reply_at: float | None = None
         self.counters = CoreCounters()
+        #: Robot -> the size of its largest map over max_message_bytes (at most MAX_OVERSIZE_SHOWN).
+        self._oversize: dict[str, int] = {}
 
     # -- state -------------------------------------------------------------------------------------
 
@@ -223,10 +235,16 @@ class ZenohCore:
         return st.last if st is not None else 0
 
     def stats(self) -> dict[str, Any]:
-        """The counters by name, then ``peers`` (tokens up) and ``rtt_ms`` (offer to ack, smoothed)."""
+        """The counters by name, then ``peers`` (tokens up), ``rtt_ms`` (offer to ack, smoothed) and
+        ``oversize_from`` (robot -> bytes of its largest map over ``max_message_bytes``)."""
         srtt = self._rtt.srtt
         rtt = round(1000 * srtt, 1) if srtt is not None else None
-        return {**asdict(self.counters), "peers": len(self.peers()), "rtt_ms": rtt}
+        return {
+            **asdict(self.counters),
+            "peers": len(self.peers()),
+            "rtt_ms": rtt,
+            "oversize_from": dict(self._oversize),
+        }
 
     # -- inputs ------------------------------------------------------------------------------------
 
@@ -288,6 +306,28 @@ class ZenohCore:
     ) -> Step:
         """An update of ``robot`` (from :meth:`update_robot`) arrived, and :meth:`check` gave ``checked``."""
         return self._on_envelope(robot, data, checked, now, from_query=False)
+
+    def oversize(self, robot: str, size: int) -> Step:
+        """An update or reply of ``robot`` (admitted) was ``size`` bytes, over ``max_message_bytes``.
+
+        It is refused unread, as :meth:`check` would refuse it, but not as one more ``dropped``:
+        every map of a robot whose limits are larger than ours meets it, and only this side can
+        tell (the sender hears no ack, nothing more). Said once per robot with the fix, counted in
+        ``oversize_rx`` and shown in ``oversize_from``.
+        """
+        self.counters.oversize_rx += 1
+        step = Step()
+        if robot in self._oversize:
+            # The largest: what its limit must be raised to (a late query reply may be smaller).
+            self._oversize[robot] = max(self._oversize[robot], size)
+        elif len(self._oversize) < MAX_OVERSIZE_SHOWN:
+            self._oversize[robot] = size
+            step.warnings.append(
+                f"zenoh: maps of {robot} refused: {size} bytes, over this robot's "
+                f"limits.max_message_bytes ({self.max_message_bytes}): raise it on {self.robot} to at "
+                f"least {size} (the same on every robot), or make {robot}'s maps smaller"
+            )
+        return step
 
     def on_reply(self, robot: str, data: bytes, now: float) -> Step:
         """A reply to our keyframe query of ``robot`` arrived: check and apply it in one go."""
@@ -455,6 +495,8 @@ class ZenohCore:
     def _on_envelope(
         self, robot: str, data: bytes, checked: Envelope | EnvelopeError, now: float, *, from_query: bool
     ) -> Step:
+        if isinstance(checked, EnvelopeError) and len(data) > self.max_message_bytes:
+            return self.oversize(robot, len(data))  # (the adapter refuses these before the check)
         self.counters.bytes_rx += len(data)
         if isinstance(checked, EnvelopeError):
             self._refused(checked)

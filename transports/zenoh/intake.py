@@ -7,7 +7,9 @@ transport owns (declared here; see that module's docstring for the threads and t
   replies to the check thread (:class:`~transports.zenoh.checks.CheckQueue`), acks, poses and
   keyframe queries to the loop, at most :data:`MAX_LOOP_BACKLOG` waiting, and liveliness changes
   coalesced per token. Samples of robots the roster does not admit, and oversized poses and acks,
-  are refused before they are copied (:class:`IntakeCounters`).
+  are refused before they are copied (:class:`IntakeCounters`), as are updates and replies over
+  ``max_message_bytes`` (said once per robot, on the loop). Other fleets' fleet tokens are counted
+  and said right there (:mod:`transports.zenoh.fleets`).
 * **the loop thread** feeds each arrival to the sans-I/O :class:`~transports.zenoh.core.ZenohCore`
   and applies its :class:`~transports.zenoh.core.Step`: events to the daemon, keyframe queries out,
   and answers to the queries of peers (rationed, on the job thread).
@@ -30,6 +32,7 @@ from transports.base import PoseReceived, TransportContext
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
 from transports.zenoh.core import NAME, Step, ZenohCore
+from transports.zenoh.fleets import OtherFleets
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
 from transports.zenoh.routers import RouterLink
@@ -85,6 +88,7 @@ class ZenohIntake:
     _presence: dict[str, list[bool]]
     _reply_slots: threading.BoundedSemaphore
     _routers: RouterLink
+    _fleets: OtherFleets
 
     # -- zenoh threads: copy and hand over, nothing else -------------------------------------------
 
@@ -117,6 +121,12 @@ class ZenohIntake:
             # It could only fail verification: refuse it before copying up to max_message_bytes.
             with self._rx_lock:
                 self._rx.unadmitted += 1
+            return
+        size = len(sample.payload)
+        if size > self.ctx.max_message_bytes:
+            # It could only fail unpack's size check: refuse it uncopied, and let the loop say whose
+            # it was once (a peer with larger limits: every one of its maps comes to this).
+            self._post_bounded(self._on_oversize, robot, size)
             return
         data = sample.payload.to_bytes()
 
@@ -218,6 +228,18 @@ class ZenohIntake:
             for alive in changes:
                 self._on_presence(key, alive)
 
+    def _cb_fleet(self, sample: Any) -> None:
+        """A robot's fleet token appeared or vanished: one of another fleet is said once per fleet.
+
+        Said here, on zenoh's thread: :class:`~transports.zenoh.fleets.OtherFleets` bounds what it
+        keeps and says, so a flood of made-up tokens costs a lookup each and no loop work.
+        """
+        import zenoh
+
+        line = self._fleets.seen(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+        if line is not None:
+            log.warning("%s", line)
+
     def _cb_transport(self, event: Any) -> None:
         """A transport to another zenoh node opened or closed: routers' go to the loop, one post each.
 
@@ -242,6 +264,8 @@ class ZenohIntake:
     # -- loop thread -------------------------------------------------------------------------------
 
     def _apply(self, step: Step) -> None:
+        for line in step.warnings:
+            log.warning("%s", line)
         for event in step.events:
             self.ctx.emit(event)
         for robot in step.queries:
@@ -252,6 +276,9 @@ class ZenohIntake:
 
     def _on_reply_checked(self, robot: str, data: bytes, checked: Envelope | EnvelopeError) -> None:
         self._apply(self.core.on_reply_checked(robot, data, checked, time.monotonic()))
+
+    def _on_oversize(self, robot: str, size: int) -> None:
+        self._apply(self.core.oversize(robot, size))
 
     def _on_query_done(self, robot: str) -> None:
         self._apply(self.core.query_done(robot, time.monotonic()))

@@ -1,7 +1,7 @@
 """Key expressions of the zenoh transport: how mapd names things on a zenoh bus.
 
-Every name lives under ``mapd/<fleet>/``, so fleets sharing one zenoh network never see each
-other's traffic (and a router ACL can fence a fleet with one rule)::
+Every name but one lives under ``mapd/<fleet>/``, so fleets sharing one zenoh network never see
+each other's traffic (and a router ACL can fence a fleet with one rule)::
 
     mapd/<fleet>/<robot>/update          map updates of <robot> (packed envelopes), pub/sub
     mapd/<fleet>/<robot>                 liveliness token: <robot> is present
@@ -9,6 +9,12 @@ other's traffic (and a router ACL can fence a fleet with one rule)::
     mapd/<fleet>/<robot>/global          <robot>'s global map (the zenoh output), put + queryable
     mapd/<fleet>/<peer>/ack/<robot>      <peer> has applied <robot>'s map version (8-byte payload)
     mapd/<fleet>/<robot>/pose            <robot>'s pose (a signed pose message), put, latest wins
+
+The one outside: ``mapd/@fleets/<fleet>/<robot>``, a liveliness token that says which fleet
+``<robot>`` is configured in, so robots whose ``robot.fleet`` differ, which see none of each other's
+maps, can at least tell that they share a network (:mod:`transports.zenoh.fleets`). ``@fleets`` is
+a zenoh verbatim chunk: no wildcard matches it (``mapd/**`` does not), and no fleet id can be it.
+Only tokens live there, never data.
 
 Fleet and robot ids are the config's names (``[A-Za-z0-9_-]{1,32}``), so they hold no zenoh
 wildcard or separator and a key built from them matches exactly one thing. The parsers take keys
@@ -94,6 +100,31 @@ def acks_for(fleet: str, robot: str) -> str:
     """Subscription to every peer's acks of ``robot``'s versions."""
     _check(fleet, robot)
     return f"{PREFIX}/{fleet}/*/ack/{robot}"
+
+
+#: The verbatim chunk under which every fleet's robots say which fleet they are of.
+FLEETS = "@fleets"
+
+
+def fleet_presence_key(fleet: str, robot: str) -> str:
+    """The liveliness token that says ``robot`` is present and of ``fleet`` (seen by every fleet)."""
+    _check(fleet, robot)
+    return f"{PREFIX}/{FLEETS}/{fleet}/{robot}"
+
+
+def all_fleet_presence() -> str:
+    """Liveliness subscription to the fleet tokens of every robot of every fleet."""
+    return f"{PREFIX}/{FLEETS}/*/*"
+
+
+def parse_fleet_presence(key: str) -> tuple[str, str] | None:
+    """``(fleet, robot)`` of a fleet token key, or None when ``key`` is not exactly one."""
+    parts = key.split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[1] != FLEETS:
+        return None
+    if not valid_name(parts[2]) or not valid_name(parts[3]):
+        return None
+    return parts[2], parts[3]
 
 
 def _chunks(fleet: str, key: str, n: int) -> list[str] | None:

@@ -40,6 +40,13 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   between (a loss within a minute of the last one said goes to DEBUG), and ``router_connected``
   in :meth:`ZenohTransport.stats` is False meanwhile. The robots that come back query each other's
   latest keyframe as late joiners do, which also makes each send its next map whole.
+* **Config drift said.** Robots whose ``robot.fleet`` differ see none of each other's keys; each
+  link also declares ``mapd/@fleets/<fleet>/<robot>`` and watches those tokens only, so a robot of
+  another fleet on the network is said once per fleet (WARNING) and shown in ``other_fleets``
+  (:mod:`transports.zenoh.fleets`). A peer's update or reply over ``max_message_bytes`` is refused
+  unread and said once per robot with the fix (``oversize_rx``, ``oversize_from``). zenoh itself
+  drops, unseen, a message over the cap it is given (``max_message_bytes`` plus 64 KiB; see
+  :mod:`transports.zenoh.session`) between hosts, so only maps up to that reach this line.
 * **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
   outbox thread, bounded by ``close_timeout_s``) undeclares the liveliness token first, so peers
   see us leave at once, then subscribers, queryable and publisher, closes the session, and waits
@@ -70,6 +77,7 @@ from transports.base import PoseThrottle, Transport, TransportContext, Transport
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
 from transports.zenoh.core import MAX_REPLIES_PENDING, NAME, ZenohCore
+from transports.zenoh.fleets import OtherFleets
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.intake import (
     MAX_ACK_BYTES,
@@ -150,6 +158,8 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         self.unreached: str | None = None
         #: The routers the session is connected to (zenoh's transport events; loop thread only).
         self._routers = RouterLink()
+        #: Robots of other fleets on this zenoh network (their fleet tokens; thread-safe).
+        self._fleets = OtherFleets(ctx.fleet, ctx.robot)
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -229,6 +239,13 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
                     keys.all_presence(fleet), cb(self._cb_presence), history=True
                 )
             )
+            # Fleet tokens of every fleet, never their maps: a robot of another fleet is said once
+            # (transports.zenoh.fleets). Unsigned, as they carry no authority: nothing acts on them.
+            ents.append(
+                session.liveliness().declare_subscriber(
+                    keys.all_fleet_presence(), cb(self._cb_fleet), history=True
+                )
+            )
             ents.append(
                 session.declare_queryable(keys.latest_key(fleet, me), cb(self._cb_query), complete=True)
             )
@@ -236,6 +253,9 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
             ents.append(self._publisher)
             # Last, so a peer that sees us can already query us.
             self._token = session.liveliness().declare_token(keys.presence_key(fleet, me))
+            # Which fleet we are of, for robots of every fleet to see (undeclared right after the
+            # token above at close: entities go in reverse).
+            ents.append(session.liveliness().declare_token(keys.fleet_presence_key(fleet, me)))
         except BaseException:
             self._entities.clear()
             self._publisher = None
@@ -340,7 +360,10 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         ``session_open``: False while no router could be reached at start (tries go on);
         ``router_connected``: False while the session has lost its router(s) and zenoh reconnects,
         None where no router was ever connected (a fleet of peers); ``router_losses``: how many
-        times it lost them.
+        times it lost them. ``oversize_rx``: peers' updates and replies over ``max_message_bytes``
+        (refused unread), ``oversize_from``: robot -> the size of its largest; ``other_fleets``:
+        fleet -> robots of other fleets seen on this network now, ``other_fleet_tokens``: how many
+        such tokens appeared (both bounded: :mod:`transports.zenoh.fleets`).
         """
         with self._tx_lock:
             tx = asdict(self._tx)
@@ -355,6 +378,9 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         out["router_losses"] = self._routers.losses
         out["dropped"] += rx[0]
         out["unadmitted"] += rx[1]
+        # Robots of other fleets on this network: no fault (fleets may share it on purpose), but
+        # the one thing that tells why a robot configured with another robot.fleet is never seen.
+        out.update(self._fleets.stats())
         if self._checks is not None:
             out["superseded"] = self._checks.superseded
         if self._jobs is not None:

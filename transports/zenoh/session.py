@@ -5,7 +5,10 @@ The table covers what a fleet usually sets (mode, endpoints, multicast scouting)
 ``config_file``. Precedence: keys set in the table override the file; keys left out keep the
 file's value, or zenoh's default when there is no file. mapd always caps zenoh's largest accepted
 message at ``limits.max_message_bytes`` plus a margin, so a peer cannot make zenoh allocate a
-huge message for mapd to refuse afterwards.
+huge message for mapd to refuse afterwards. zenoh drops a larger one without a word, so a peer's
+map past the cap is neither counted nor said here; one between the limit and the cap is refused
+and said once per robot (``oversize_rx``). On one host zenoh may carry large messages in shared
+memory, past the cap: those reach mapd and are refused and said the same way.
 """
 
 from __future__ import annotations
