@@ -144,6 +144,7 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         # Written on the outbox thread and read on the loop's (stats), hence the lock.
         self._tx_lock = threading.Lock()
         self._tx = SendCounters()
+        self._oversize_said: set[str] = set()
         # Written on zenoh's threads and read on the loop's (stats), hence the lock.
         self._rx_lock = threading.Lock()
         self._rx = IntakeCounters()

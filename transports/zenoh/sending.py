@@ -62,6 +62,8 @@ class ZenohSending:
     _poses: PoseThrottle
     _tx_lock: threading.Lock
     _tx: SendCounters
+    #: Robots whose maps over ``max_message_bytes`` were said (until one of theirs fits again).
+    _oversize_said: set[str]
 
     # -- outbox thread -----------------------------------------------------------------------------
 
@@ -80,13 +82,21 @@ class ZenohSending:
         if len(data) > self.ctx.max_message_bytes:
             with self._tx_lock:
                 self._tx.oversize += 1
-            log.warning(
-                "zenoh: not sending %s v%d: %d bytes is over limits.max_message_bytes",
-                envelope.robot,
-                envelope.version,
-                len(data),
-            )
+            # Said once while that robot's maps stay over (one a map period, all day, said nothing
+            # new); counted in ``oversize`` every time.
+            if envelope.robot not in self._oversize_said:
+                self._oversize_said.add(envelope.robot)
+                log.warning(
+                    "zenoh: not sending %s v%d, nor its next maps while they are over the limit: %d "
+                    "bytes is over limits.max_message_bytes (%d): raise it on every robot (each "
+                    "refuses larger maps), or make the maps smaller",
+                    envelope.robot,
+                    envelope.version,
+                    len(data),
+                    self.ctx.max_message_bytes,
+                )
             return
+        self._oversize_said.discard(envelope.robot)
         if envelope.robot == self.ctx.robot and envelope.is_keyframe:
             self._last_keyframe = data
         self.core.offered(envelope, time.monotonic())

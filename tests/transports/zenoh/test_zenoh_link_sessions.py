@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
+
+import pytest
 
 from mapd.codec.api import decode, encode
 from mapd.envelope import Envelope, unpack
@@ -244,5 +247,26 @@ def test_oversized_messages_never_reach_mapd(zk) -> None:
                 a.offer(zk.envelope("a", 2, payload=b"small"))
                 await b.wait(lambda: b.received("a"))
                 assert b.received("a") == [("a", 2, 0)] and a.t.stats()["oversize"] == 1
+
+    run(main())
+
+
+def test_own_maps_over_the_limit_are_said_once_until_one_fits(zk, caplog: pytest.LogCaptureFixture) -> None:
+    # Each of this robot's maps over its limit was a warning of its own: one a map period, all day.
+    caplog.set_level(logging.WARNING, logger="transports.zenoh")
+
+    def said() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "over limits.max_message_bytes" in r.getMessage()]
+
+    async def main() -> None:
+        limit = 64 * 1024
+        async with zk.pair("b", "a", max_message_bytes=limit) as (_, a):
+            for v in (1, 2, 3):
+                a.offer(zk.envelope("a", v, payload=bytes(limit)))
+            assert a.t.stats()["oversize"] == 3 and len(said()) == 1, said()
+            a.offer(zk.envelope("a", 4, payload=b"small"))  # one fits: the next one over is news
+            a.offer(zk.envelope("a", 5, payload=bytes(limit)))
+            assert a.t.stats()["oversize"] == 4 and len(said()) == 2, said()
+            assert "raise it on every robot" in said()[0]
 
     run(main())
