@@ -139,7 +139,7 @@ def _lattice_of(grid: OccupancyGrid) -> Pose2D:
 def cmd_merge(args: argparse.Namespace) -> int:
     from mapd.commands.common import check_writable, map_inputs, map_outputs, refuse_overwrite, refuse_stdio
     from mapd.fusion.merge import NO_OWNER, merge_with_owner, save_png
-    from mapd.fusion.placement import Placer
+    from mapd.fusion.placer import Placer
     from mapd.fusion.transforms import IDENTITY, compose, inverse
     from mapd.grid import load_map, save_map
 

@@ -6,7 +6,7 @@ Pure functions (no asyncio):
   confidence, the overlap agreement and the inlier count, or "not accepted" with the reason;
 * :func:`merge` (``mapd.fusion.merge``): the global map of maps placed in the fleet frame, log-odds or
   occupied-wins, honouring each map's origin and resolution;
-* :class:`Placer` (``mapd.fusion.placement``): known poses and estimates together, held stable
+* :class:`Placer` (``mapd.fusion.placer``): known poses and estimates together, held stable
   across updates (never flips).
 
 and the asyncio owner of the global map, :class:`FusionWorker` (``mapd.fusion.worker``).
@@ -29,7 +29,7 @@ _EXPORTS = {
     "merge": "mapd.fusion.merge",
     "merge_with_owner": "mapd.fusion.merge",
     "Placement": "mapd.fusion.placement",
-    "Placer": "mapd.fusion.placement",
+    "Placer": "mapd.fusion.placer",
     "FusionWorker": "mapd.fusion.worker",
 }
 

@@ -29,7 +29,7 @@ from mapd.daemon.state import StateStore
 from mapd.daemon.versions import split
 from mapd.errors import MapFileError
 from mapd.files import atomic_write_bytes
-from mapd.fusion.worker import GLOBAL_YAML
+from mapd.fusion.store import GLOBAL_YAML
 from mapd.grid import OccupancyGrid, load_map
 from mapd.imaging import read_pixels
 

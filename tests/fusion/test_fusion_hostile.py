@@ -255,10 +255,10 @@ def test_stopping_during_a_long_merge_waits_one_estimate_not_the_merge(
     # TimeoutStopSec (10 s then, 30 s now), which then kills the daemon before its state is flushed.
     import time
 
-    from mapd.fusion import placement as placement_mod
+    from mapd.fusion import placer_hold
     from mapd.mapping.synthetic import building as make_building
 
-    real = placement_mod.estimate_transform
+    real = placer_hold.estimate_transform
     calls: list[float] = []
 
     def slow(*args: object, **kw: object) -> object:
@@ -266,7 +266,7 @@ def test_stopping_during_a_long_merge_waits_one_estimate_not_the_merge(
         time.sleep(0.5)  # a hard pair of maps takes seconds
         return real(*args, **kw)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(placement_mod, "estimate_transform", slow)
+    monkeypatch.setattr(placer_hold, "estimate_transform", slow)
     maps = [make_building(seed=3).replace(robot="a")]
     maps += [OccupancyGrid(np.full((40, 40), 100, np.int8), 0.05, robot=f"u{j}") for j in range(20)]
 

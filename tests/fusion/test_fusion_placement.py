@@ -9,7 +9,8 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from mapd.fusion.placement import Placement, Placer, derived_from
+from mapd.fusion.placement import Placement, derived_from
+from mapd.fusion.placer import Placer
 from mapd.fusion.transforms import compose, inverse, pose_distance
 from mapd.grid import OccupancyGrid, Pose2D
 
@@ -272,16 +273,19 @@ def _calls(
     monkeypatch: pytest.MonkeyPatch, name: str, who: Callable[[OccupancyGrid, OccupancyGrid], str]
 ) -> list[str]:
     """Count the placer's calls of ``name`` (check_transform or estimate_transform): ``who`` of each."""
-    from mapd.fusion import placement as placement_mod
+    from mapd.fusion import placer, placer_hold
 
+    # where the placer looks the name up: known poses are checked by the placer, estimates made
+    # by its hold side
+    module = {"check_transform": placer, "estimate_transform": placer_hold}[name]
     calls: list[str] = []
-    real = getattr(placement_mod, name)
+    real = getattr(module, name)
 
     def counting(a: OccupancyGrid, b: OccupancyGrid, *args: object, **kw: object) -> object:
         calls.append(who(a, b))
         return real(a, b, *args, **kw)
 
-    monkeypatch.setattr(placement_mod, name, counting)
+    monkeypatch.setattr(module, name, counting)
     return calls
 
 

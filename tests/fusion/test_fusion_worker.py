@@ -13,7 +13,8 @@ import pytest
 from mapd.config import FusionSection
 from mapd.errors import FusionError
 from mapd.fusion.placement import Placement
-from mapd.fusion.worker import GLOBAL_YAML, TRANSFORMS_JSON, FusionWorker
+from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON
+from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid, Pose2D, load_map
 
 ZERO = Pose2D(0.0, 0.0, 0.0)

@@ -21,8 +21,9 @@ import pytest
 from mapd.config import FusionSection
 from mapd.fusion import candidates
 from mapd.fusion.estimate import SearchStopped, estimate_transform
-from mapd.fusion.placement import STOPPED, Placer
-from mapd.fusion.worker import GLOBAL_YAML, TRANSFORMS_JSON, FusionWorker
+from mapd.fusion.placer import STOPPED, Placer
+from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON
+from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid, Pose2D, load_map
 
 ZERO = Pose2D(0.0, 0.0, 0.0)
