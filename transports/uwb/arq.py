@@ -4,6 +4,9 @@ No asyncio, no serial port, no clock: bytes and ``now`` come in (:meth:`ArqEndpo
 frames go out one at a time (:meth:`~ArqEndpoint.data_to_send`), one timer says when to call back
 (:meth:`~ArqEndpoint.get_timer` / :meth:`~ArqEndpoint.handle_timer`), and events come out
 (:meth:`~ArqEndpoint.events`). An adapter owns the port and the clock (see ``link.py``).
+Here are the rules and the endpoint's state and message API; the code of each part of the rules
+is a mixin in its own module: frame input ``arq_input``, receiving ``arq_rx``, ack handling
+``arq_acks``, sending ``arq_tx``, timers ``arq_timers``.
 
 The rules
 ---------
@@ -131,12 +134,13 @@ import random
 from collections import OrderedDict, deque
 from typing import Any
 
-from mapd.errors import LimitError, ProtocolError
+from mapd.errors import LimitError
 from transports.rtt import RttEstimator
 from transports.uwb import wire
 from transports.uwb.arq_acks import GoodputWindow
+from transports.uwb.arq_input import InputSide
 from transports.uwb.arq_rx import MAX_CHUNKS
-from transports.uwb.arq_tx import SenderSide
+from transports.uwb.arq_timers import TimerSide
 from transports.uwb.arq_types import (
     ArqConfig,
     ArqCounters,
@@ -150,7 +154,7 @@ from transports.uwb.arq_types import (
     PeerRestarted,
     PeerUp,
 )
-from transports.uwb.framing import MIN_FRAME, FrameReader, encode_frame, max_body
+from transports.uwb.framing import MIN_FRAME, FrameReader, max_body
 from transports.uwb.lending import Backlogs
 from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.receiving import CHUNK_COST, PeerState
@@ -182,11 +186,13 @@ MAX_LATE = 16
 DEADLINE_AIRTIMES = 2.0
 
 
-class ArqEndpoint(SenderSide):
+class ArqEndpoint(InputSide, TimerSide):
     """One node's protocol state: many peers, many messages, one byte stream (the receiving rules
     are in :class:`~transports.uwb.arq_rx.ReceiverSide`, what a sender does with acks in
     :class:`~transports.uwb.arq_acks.AckSide`, what it sends next in
-    :class:`~transports.uwb.arq_tx.SenderSide`)."""
+    :class:`~transports.uwb.arq_tx.SenderSide`, which holds :meth:`data_to_send`; bytes in,
+    :meth:`receive_data`, in :class:`~transports.uwb.arq_input.InputSide`; :meth:`get_timer` and
+    :meth:`handle_timer` in :class:`~transports.uwb.arq_timers.TimerSide`)."""
 
     def __init__(self, config: ArqConfig, *, session: int, seed: int = 0) -> None:
         self.cfg = config
@@ -335,43 +341,6 @@ class ArqEndpoint(SenderSide):
         the caller's (R6): ``deadline_s``, or :data:`DEADLINE_AIRTIMES` times its airtime if longer."""
         return max(self.cfg.deadline_s, DEADLINE_AIRTIMES * self.airtime_s(nbytes))
 
-    def receive_data(self, data: bytes, now: float) -> None:
-        """Bytes from the line (any split, any garbage)."""
-        self._now = now
-        self.counters.bytes_rx += len(data)
-        if data:
-            self._mac.heard(now)
-        for body in self._reader.feed(data):
-            self._on_body(body, now)
-
-    def data_to_send(self, now: float) -> bytes:
-        """The next frame to write, or b"" when pacing, access or signing says wait (see get_timer)."""
-        self._now = now
-        if self._signer is not None and not self._signer.can_sign():
-            return b""
-        while True:
-            pick = self._choose(now)
-            if pick is None:
-                pick = self._lend_pick(now)
-            if pick is None:
-                return b""
-            kind, ref, est = pick
-            if max(self._pacer.ready_at(est, now), self._mac.ready_at(est, now)) > now:
-                return b""
-            frame = self._build(kind, ref, now)
-            if frame is not None:
-                break
-        body = wire.pack(frame, signed=self._signer is not None)
-        if self._signer is not None:
-            body = self._signer.sign(body)
-        out = encode_frame(body, crc=self._crc)
-        self._pacer.consume(len(out), now)
-        self._mac.sent(len(out), now)
-        self._hello_due = now + self.cfg.beacon_s
-        self.counters.bytes_tx += len(out)
-        self.counters.frames_tx += 1
-        return out
-
     def set_clock_offset(self, offset: float) -> None:
         """The shared (wall) clock is now ``offset`` seconds ahead of the ``now`` passed in.
 
@@ -382,72 +351,6 @@ class ArqEndpoint(SenderSide):
         """
         self.cfg = dataclasses.replace(self.cfg, clock_offset=offset)
         self._mac.clock_offset = offset
-
-    def get_timer(self) -> float | None:
-        """When to call :meth:`handle_timer` (and :meth:`data_to_send`) next; None: only on input."""
-        now = self._now
-        times: list[float] = []
-        can_sign = self._signer is None or self._signer.can_sign()
-        if can_sign:
-            for due, est in self._send_dues(now):
-                t = max(due, now)
-                times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
-            lend = self._lend_to(now)
-            if lend is not None:
-                t, est = lend[0], self._est(wire.LEND_LEN)
-                times.append(max(t, self._pacer.ready_at(est, t), self._mac.ready_at(est, t)))
-        for m in self._out.values():
-            times.append(m.deadline)
-            times.extend(p.rto_at for p in m.peers.values() if p.pending and p.rto_at is not None)
-        times.extend(p.last_heard + self._presence_s for p in self._peers.values() if p.up)
-        if any(p.partials for p in self._peers.values()):
-            times.append(self._housekeeping_at)
-        return min(times) if times else None
-
-    def handle_timer(self, now: float) -> None:
-        """Fire whatever is due at ``now``: deadlines, retransmission timers, peer timeouts."""
-        self._now = now
-        for m in list(self._out.values()):
-            if now >= m.deadline:
-                for p in m.pending():
-                    p.failed = True
-                    self.counters.messages_failed += 1
-                    self._events.append(MessageFailed(m.msg, p.peer, "deadline"))
-                self._close(m)
-                continue
-            for p in m.pending():
-                if p.rto_at is None or now < p.rto_at:
-                    continue
-                missing = m.outstanding(p)
-                if m.nack:
-                    # R16: probe with the last chunk (a receiver lacking it sees a gap, one holding
-                    # it a duplicate: either answers with its gaps, or COMPLETE); once the peer is
-                    # known to hold it, with the lowest chunk it is known to lack.
-                    last = m.count - 1
-                    m.queue_probe(missing[0] if p.acked[last] and missing else last)
-                    rtt = self._rtt_of(p.peer)
-                    rtt.backoff()
-                    self.counters.timeouts += 1
-                    p.rto_at = now + max(rtt.rto, self._cycle)
-                    continue
-                if missing:
-                    m.queue_resend(missing[0])
-                elif p.n_acked == m.count:
-                    m.queue_resend(m.count - 1)  # all acked but COMPLETE not heard: ask again
-                rtt = self._rtt_of(p.peer)
-                rtt.backoff()
-                self.counters.timeouts += 1
-                p.rto_at = now + rtt.rto if (missing or p.n_acked == m.count) else None
-        for peer in self._peers.values():
-            if peer.up and now >= peer.last_heard + self._presence_s:
-                peer.up = False
-                self._events.append(PeerDown(peer.id))
-        if now >= self._housekeeping_at:
-            self._housekeeping_at = now + 1.0
-            for peer in self._peers.values():
-                for part in [p for p in peer.partials.values() if now - p.last > self._partial_ttl]:
-                    self._rx_held -= peer.drop_partial(part.msg)
-                    self.counters.evicted += 1
 
     def events(self) -> list[Event]:
         """Drain the events produced so far."""
@@ -515,92 +418,3 @@ class ArqEndpoint(SenderSide):
         out["damaged"] = self._damage_total()
         out["damaged_since_valid"] = out["damaged"] - self._damage_at_valid
         return out
-
-    def _damage_total(self) -> int:
-        """Frames the line spoiled so far, whatever caught them (framing, CRC, the link tag)."""
-        r = self._reader.stats
-        tag = self._verifier.stats.bad_signature if self._verifier is not None else 0
-        return r.crc_errors + r.cobs_errors + r.oversize + r.runts + tag
-
-    # --- receiving ------------------------------------------------------------------------------
-
-    def _on_body(self, body: bytes, now: float) -> None:
-        signed = wire.is_signed(body)
-        plain: bytes | None
-        if self._verifier is not None:
-            wall = now + self.cfg.clock_offset if self.cfg.check_counter_clock else None
-            plain = self._verifier.check(body, signed, wall)
-            if plain is None:
-                return
-        elif signed:
-            self.counters.signed_no_key += 1
-            return
-        else:
-            plain = body
-        try:
-            frame = wire.parse(plain)
-        except ProtocolError:
-            self.counters.bad_frames += 1
-            return
-        self.counters.frames_rx += 1
-        self._damage_at_valid = self._damage_total()
-        if frame.src == self.node:
-            self.counters.own_id += 1  # another node uses our id, or the medium echoes
-            return
-        if self.cfg.mac == "tdma":  # R18
-            airtime = (len(body) + 2) * self._mac.byte_time  # (the delimiter and COBS add at least 2)
-            if self._mac.in_own_slot(now - airtime, now - self.cfg.rx_slack_s):
-                self.counters.out_of_turn += 1
-                self._out_of_turn_from = frame.src
-        peer = self._peer_for(frame, now)
-        if peer is None:
-            return
-        if isinstance(frame, wire.Data):
-            if frame.reliable:  # how much it still has to send (R17)
-                self._backlogs.heard(peer.id, frame.msg, frame.index, frame.count, now)
-            self._on_data(peer, frame, now)
-        elif isinstance(frame, wire.Lend):
-            self._on_lend(frame, now)
-        elif isinstance(frame, wire.Ack):
-            self._on_ack(peer, frame, now)
-        elif isinstance(frame, wire.Done):
-            for sender, target, low in frame.entries:
-                if sender == self.node:  # each entry is a COMPLETE ack (the others are for others)
-                    self._on_done_entry(peer, target, low, now)
-
-    def _peer_for(self, f: wire.Frame, now: float) -> PeerState | None:
-        peer = self._peers.get(f.src)
-        if peer is None:
-            if len(self._peers) >= self.cfg.max_peers and not self._evict_peer():
-                self.counters.peers_full += 1
-                return None
-            peer = PeerState(f.src, f.session, now, self.cfg.max_partials_per_peer)
-            self._peers[f.src] = peer
-            self._events.append(PeerUp(f.src))
-        elif f.session != peer.session:
-            if f.session in peer.retired:
-                self.counters.stale_session += 1
-                return None
-            self._rx_held -= peer.restart(f.session)
-            self._events.append(PeerRestarted(f.src))
-            self._backlogs.forget(f.src)  # its message ids start afresh
-            for m in self._out.values():
-                prog = m.peers.get(f.src)
-                if prog is not None and prog.pending:
-                    prog.reset()
-                    prog.rto_at = None
-                    for i in m.outstanding(prog):
-                        m.queue_resend(i)
-        if not peer.up:
-            peer.up = True
-            self._events.append(PeerUp(f.src))
-        peer.last_heard = now
-        return peer
-
-    def _evict_peer(self) -> bool:
-        """Make room by forgetting a peer that is down and holds nothing; False when none is."""
-        for pid, peer in self._peers.items():
-            if not peer.up and not peer.partials:
-                del self._peers[pid]
-                return True
-        return False

@@ -4,8 +4,9 @@ in ``arq.py``'s docstring), as a mixin over the endpoint's state.
 
 A COMPLETE delivers a message to a peer; a selective ACK advances what the peer holds and detects
 losses; a gap report (NACK mode) queues each asked chunk once for all; another receiver's ACK,
-overheard, may make a gap report of ours redundant. Sending frames, the API and the timers stay in
-``arq.py``; :class:`~transports.uwb.arq.ArqEndpoint` sets up the state declared here.
+overheard, may make a gap report of ours redundant. Sending frames is in ``arq_tx.py``, the timers
+in ``arq_timers.py``, the rest of the API in ``arq.py``; :class:`~transports.uwb.arq.ArqEndpoint`
+sets up the state declared here.
 """
 
 from __future__ import annotations

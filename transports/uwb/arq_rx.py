@@ -2,8 +2,9 @@
 part of R16 (in ``arq.py``'s docstring), as a mixin over the endpoint's state.
 
 What a receiver does with DATA (reassembly, refusal, memory bounds), which ACK or DONE it owes and
-when, and the frames that say them. The sender's half, the API and the timers stay in ``arq.py``;
-both halves share one state, which :class:`~transports.uwb.arq.ArqEndpoint` sets up.
+when, and the frames that say them. The sender's half is in ``arq_tx.py`` and ``arq_acks.py``,
+frame input in ``arq_input.py``, the timers in ``arq_timers.py`` and the rest of the API in
+``arq.py``; all share one state, which :class:`~transports.uwb.arq.ArqEndpoint` sets up.
 """
 
 from __future__ import annotations

@@ -1,11 +1,12 @@
 """What :class:`~transports.uwb.arq.ArqEndpoint` sends next, and how it builds each frame: HELLO,
 an owed ACK or DONE, a data or parity chunk (R4-R8, R16), or a LEND of the rest of an idle own slot
-(R17), as a mixin over the endpoint's state (rules in ``arq.py``'s docstring).
+(R17), as a mixin over the endpoint's state (rules in ``arq.py``'s docstring); and the frame handed
+to the adapter, signed, framed and let through by the pacer and medium access (R14, R15).
 
 Order: a due HELLO, an owed ACK, a due DONE, then the next chunk, round-robin over messages with
-background ones last; a node with nothing of its own left may lend its slot. The API, the timers
-and frame input stay in ``arq.py``; the ack rules in ``arq_acks.py``, the receiving rules in
-``arq_rx.py``.
+background ones last; a node with nothing of its own left may lend its slot. The rest of the API
+stays in ``arq.py``, the timers in ``arq_timers.py``, frame input in ``arq_input.py``; the ack
+rules in ``arq_acks.py``, the receiving rules in ``arq_rx.py``.
 """
 
 from __future__ import annotations
@@ -17,9 +18,11 @@ from transports.uwb import wire
 from transports.uwb.arq_acks import AckSide
 from transports.uwb.arq_rx import ReceiverSide
 from transports.uwb.arq_types import Event, MessageFlushed
+from transports.uwb.framing import encode_frame
 from transports.uwb.lending import Backlogs
-from transports.uwb.pacing import MediumAccess
+from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.sending import Outgoing
+from transports.uwb.signing import Signer
 
 
 class SenderSide(ReceiverSide, AckSide):
@@ -28,7 +31,11 @@ class SenderSide(ReceiverSide, AckSide):
 
     _out: OrderedDict[int, Outgoing]
     _events: deque[Event]
+    _now: float
+    _pacer: Pacer
     _mac: MediumAccess
+    #: None on a link without a key (R15: with one, nothing is sent past the counters saved).
+    _signer: Signer | None
     _backlogs: Backlogs
     #: R17 is on (TDMA with ``lend``), and the room a LEND and one full frame need in a slot (s).
     _lending: bool
@@ -40,6 +47,34 @@ class SenderSide(ReceiverSide, AckSide):
     if TYPE_CHECKING:
 
         def peers_up(self) -> list[int]: ...
+
+    def data_to_send(self, now: float) -> bytes:
+        """The next frame to write, or b"" when pacing, access or signing says wait (see get_timer)."""
+        self._now = now
+        if self._signer is not None and not self._signer.can_sign():
+            return b""
+        while True:
+            pick = self._choose(now)
+            if pick is None:
+                pick = self._lend_pick(now)
+            if pick is None:
+                return b""
+            kind, ref, est = pick
+            if max(self._pacer.ready_at(est, now), self._mac.ready_at(est, now)) > now:
+                return b""
+            frame = self._build(kind, ref, now)
+            if frame is not None:
+                break
+        body = wire.pack(frame, signed=self._signer is not None)
+        if self._signer is not None:
+            body = self._signer.sign(body)
+        out = encode_frame(body, crc=self._crc)
+        self._pacer.consume(len(out), now)
+        self._mac.sent(len(out), now)
+        self._hello_due = now + self.cfg.beacon_s
+        self.counters.bytes_tx += len(out)
+        self.counters.frames_tx += 1
+        return out
 
     def _on_lend(self, f: wire.Lend, now: float) -> None:
         """R17: the rest of the sender's slot is ours, if it names the slot we are in (a LEND that

@@ -5,6 +5,9 @@ signing counter when the core asks, write the frames the core hands out one at a
 each to leave the transport's buffer, so nothing queues behind the pacing), hand events on, and sleep
 until the core's next deadline or new input. A port that vanishes (a USB radio unplugged) is reopened
 every ``reopen_s``; meanwhile the core sees an outage and resumes where the receiver left off.
+Here are the link's life (start, stop, a failure said in one line) and its loop; the port, the
+signing state kept on disk and the wall clock each have a mixin of their own (``link_port.py``,
+``link_signing.py``, ``link_clock.py``).
 
 :class:`UwbLink` carries raw byte messages (``mapd link`` uses it);
 :class:`~transports.uwb.transport.UwbTransport`, the daemon's ``uwb`` transport, drives one.
@@ -22,8 +25,11 @@ from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 from mapd import wallclock
-from mapd.errors import DiskFullError, MapdError, StateError, TransportError
+from mapd.errors import MapdError, TransportError
 from transports.uwb import arq
+from transports.uwb.link_clock import CLOCK_CHECK_S, ClockSide
+from transports.uwb.link_port import PortSide
+from transports.uwb.link_signing import COUNTER_RETRY_S, SigningSide
 from transports.uwb.pacing import ByteWindow
 from transports.uwb.signing import (
     MAX_AHEAD_S,
@@ -40,34 +46,6 @@ POSE_STREAM = 254
 log = logging.getLogger("mapd.uwb")
 T = TypeVar("T")
 
-#: A frame that has not left the port's buffer after this long means the port is stuck (a peer or
-#: a driver that stopped reading, flow control held): the port is dropped and reopened, so the loop
-#: (timers, deadlines, events) never waits on one write for ever.
-WRITE_STALL_S = 5.0
-#: How often a signing counter that could not be saved is tried again.
-COUNTER_RETRY_S = 1.0
-#: Seconds between saves of the replay marks: frames a sender signed in the last few seconds
-#: before a kill -9 are all a restart could take again (a clean close saves them all).
-REPLAY_SAVE_S = 5.0
-#: TDMA: the wall clock is read at least this often, so a step (NTP) moves the slots within it.
-CLOCK_CHECK_S = 1.0
-#: A change of the wall clock against the loop's smaller than this is scheduling jitter: followed,
-#: but not counted or logged as a step.
-CLOCK_STEP_S = 0.005
-#: The fastest a time service slews the wall clock (chrony's maxslewrate is 83,333 ppm; ntpd's
-#: 500 ppm): a change between two reads within this rate, plus CLOCK_STEP_S, is a slew (followed,
-#: not counted); only a faster one is a step. A host slewing at 5 ms a second was logged as stepping.
-MAX_SLEW_RATE = 0.1
-#: Smaller changes than this are the two clocks read a few microseconds apart: not passed on.
-CLOCK_FOLLOW_S = 1e-4
-
-
-def port_error(port: str, exc: BaseException | None = None) -> TransportError:
-    if not os.path.exists(port):
-        return TransportError(f"uwb: serial port {port} does not exist")
-    detail = str(exc).splitlines()[0] if exc is not None and str(exc) else "cannot be opened"
-    return TransportError(f"uwb: cannot open serial port {port}: {detail}")
-
 
 def failure_reason(exc: BaseException) -> str:
     """Why a task stopped, on one line: a typed fault's own words, a bug's type and message."""
@@ -77,58 +55,11 @@ def failure_reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-class _Proto(asyncio.Protocol):
-    def __init__(self, link: UwbLink) -> None:
-        self.link = link
-        self.transport: asyncio.Transport | None = None
-        self._writable: asyncio.Future[None] | None = None
-        self.lost = False
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
-        # Pause after every write until it has left the buffer: drain() then means "on the wire".
-        transport.set_write_buffer_limits(high=0, low=0)
-
-    def data_received(self, data: bytes) -> None:
-        self.link._on_bytes(data)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.lost = True
-        self.resume_writing()
-        self.link._on_lost(exc)
-
-    def pause_writing(self) -> None:
-        if self._writable is None or self._writable.done():
-            self._writable = asyncio.get_running_loop().create_future()
-
-    def resume_writing(self) -> None:
-        if self._writable is not None and not self._writable.done():
-            self._writable.set_result(None)
-
-    async def drain(self) -> None:
-        if self._writable is not None and not self._writable.done():
-            await self._writable
-
-
-def _discard_on_close(port: Any) -> None:
-    """Make the transport's close drop the bytes ``port`` still holds instead of waiting for them.
-
-    serial_asyncio closes a port with ``Serial.flush()``, a tcdrain, on the event loop: a USB
-    radio that takes no bytes (hung, or holding flow control) never drains, so closing it (at a
-    stall's reopen, or at stop) froze the daemon for ever. Unsent frames are abandoned at a close
-    anyway (the ARQ resends what matters), so they are discarded (tcflush), which never waits.
-    """
-
-    def discard() -> None:
-        with contextlib.suppress(Exception):  # a port unplugged meanwhile: nothing left to drop
-            port.reset_output_buffer()
-
-    port.flush = discard
-
-
-class UwbLink:
-    """A serial port driving one :class:`~transports.uwb.arq.ArqEndpoint`; raw byte messages."""
+class UwbLink(PortSide, SigningSide, ClockSide):
+    """A serial port driving one :class:`~transports.uwb.arq.ArqEndpoint`; raw byte messages (the
+    port's half is in :class:`~transports.uwb.link_port.PortSide`, the signing state kept on disk
+    in :class:`~transports.uwb.link_signing.SigningSide`, following the wall clock in
+    :class:`~transports.uwb.link_clock.ClockSide`)."""
 
     def __init__(
         self,
@@ -163,7 +94,7 @@ class UwbLink:
             session if session is not None else int.from_bytes(os.urandom(3), "little")
         )  # 24-bit on the wire
         self.core: arq.ArqEndpoint | None = None
-        self._proto: _Proto | None = None
+        self._proto = None  # typed where PortSide declares it
         #: False until the port first opened (it may not be there yet at start)
         self._ever_open = False
         self._task: asyncio.Task[None] | None = None
@@ -269,23 +200,6 @@ class UwbLink:
         why = "its loop returned" if exc is None else failure_reason(exc)
         raise TransportError(f"uwb: link on {self.port} stopped: {why}")
 
-    async def _open(self) -> None:
-        import serial
-        import serial_asyncio
-
-        if not os.path.exists(self.port):
-            raise port_error(self.port)
-        loop = asyncio.get_running_loop()
-        try:
-            transport, proto = await serial_asyncio.create_serial_connection(
-                loop, lambda: _Proto(self), self.port, baudrate=self.baud
-            )
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise port_error(self.port, exc) from None
-        _discard_on_close(transport.serial)
-        self._proto = proto
-        self._ever_open = True
-
     async def close(self) -> None:
         """Stop at once: cancel the loop, drop the port (unsent frames are abandoned), save the
         replay marks."""
@@ -299,31 +213,6 @@ class UwbLink:
             self._proto.transport.abort()
         self._proto = None
         await self._save_replay(force=True)
-
-    async def _save_replay(self, *, force: bool = False) -> None:
-        """Save the highest counter accepted from each sender, at most every :data:`REPLAY_SAVE_S`
-        (on a worker thread), when it changed."""
-        if self.core is None:
-            return
-        now = asyncio.get_running_loop().time()
-        if not force and now < self._replay_save_at:
-            return
-        marks = self.core.replay_marks()
-        if marks == self._replay_saved:
-            return
-        self._replay_save_at = now + REPLAY_SAVE_S
-        try:
-            await asyncio.to_thread(self._replay.save, marks, self._cfg.key)
-        except StateError as exc:
-            self.replay_save_errors += 1
-            if not self._replay_fault:  # said once an outage (it was once a process), not each try
-                log.warning("%s; frames from before a restart may be taken again after it", exc)
-            self._replay_fault = True
-            return
-        if self._replay_fault:
-            self._replay_fault = False
-            log.warning("uwb: replay marks saved again on %s", self.port)
-        self._replay_saved = marks
 
     def send(
         self,
@@ -364,24 +253,6 @@ class UwbLink:
         )
         return out
 
-    # --- callbacks from the protocol ------------------------------------------------------------
-
-    def _on_bytes(self, data: bytes) -> None:
-        now = asyncio.get_running_loop().time()
-        if self.first_rx_at is None:
-            self.first_rx_at = now
-        if self.core is not None:
-            self.core.receive_data(data, now)
-        self._wake.set()
-
-    def _on_lost(self, exc: Exception | None) -> None:
-        if not self._closing:
-            log.warning(
-                "uwb: serial port %s lost (%s); reopening every %.1f s", self.port, exc, self.reopen_s
-            )
-            self._reopen_at = asyncio.get_running_loop().time() + self.reopen_s
-        self._wake.set()
-
     # --- the loop -------------------------------------------------------------------------------
 
     async def run_until(self, aw: Awaitable[T]) -> T:
@@ -399,44 +270,6 @@ class UwbLink:
             waiter.cancel()
             stop.cancel()
 
-    async def _persist_counter(self, *, strict: bool = False) -> None:
-        """Save the counter bound the core asks for, then let it sign below it.
-
-        Only at start (``strict``) does a failed save raise, unless the disk is full: then, as
-        later, the loop goes on. The core still has the rest of the block saved before (half a
-        block, minutes of frames; none at start), after which it sends nothing signed; each wake
-        retries, and a save that goes through resumes it. The save
-        (two fsyncs, which an SD card under load can take seconds over) runs on a worker thread:
-        this link waits for it, the event loop does not.
-        """
-        assert self.core is not None
-        upto = self.core.counter_reservation()
-        if upto is None:
-            return
-        now = asyncio.get_running_loop().time()
-        if self._counter_fault and now < self._counter_retry_at:
-            return  # not a write per frame to a disk that refused the last one
-        try:
-            await asyncio.to_thread(self._store.save, upto)
-        except StateError as exc:
-            if strict and not isinstance(exc, DiskFullError):
-                raise
-            self._counter_retry_at = now + COUNTER_RETRY_S
-            self.counter_save_errors += 1
-            if str(exc) != self._counter_fault:
-                self._counter_fault = str(exc)
-                if strict:
-                    log.warning(
-                        "%s; this link signs and sends nothing until a save goes through, retrying", exc
-                    )
-                else:
-                    log.warning("%s; signing on within the counters saved before, retrying", exc)
-            return
-        if self._counter_fault:
-            self._counter_fault = ""
-            log.warning("uwb: signing counter saved again on %s", self.port)
-        self.core.confirm_counter(upto)
-
     def _dispatch(self) -> None:
         assert self.core is not None
         for event in self.core.events():
@@ -446,64 +279,6 @@ class UwbLink:
                 raise
             except Exception:  # a consumer's bug must not stop the link
                 log.exception("uwb: event handler failed on %s", event)
-
-    def _record_write(self, now: float, n: int) -> None:
-        self._writes.add(n, now)
-        self.write_peak_bps = 8.0 * self._writes.peak
-
-    async def _maybe_reopen(self, now: float) -> None:
-        if self._proto is not None and not self._proto.lost:
-            return
-        if now < self._reopen_at:
-            return
-        try:
-            first = not self._ever_open
-            await self._open()
-            if first:
-                log.warning("uwb: serial port %s is there now: opened", self.port)
-            else:
-                self.reconnects += 1
-                log.warning("uwb: serial port %s reopened", self.port)
-        except TransportError:
-            self._reopen_at = now + self.reopen_s
-
-    async def _drain(self, proto: _Proto) -> None:
-        try:
-            await asyncio.wait_for(proto.drain(), WRITE_STALL_S)
-        except TimeoutError:
-            self.write_stalls += 1
-            if not self._stall_logged:  # once until a write goes through again, not every reopen
-                self._stall_logged = True
-                log.warning(
-                    "uwb: serial port %s took no bytes for %.0f s; reopening it", self.port, WRITE_STALL_S
-                )
-            if proto.transport is not None:
-                proto.transport.abort()  # connection_lost follows: the reopen path takes over
-            proto.lost = True
-            proto.resume_writing()
-            self._reopen_at = asyncio.get_running_loop().time() + self.reopen_s
-            return
-        self._stall_logged = False
-
-    def _follow_clock(self, core: arq.ArqEndpoint, now: float) -> None:
-        """Pass the wall clock's offset from the loop's to the core when it moved (slew or step)."""
-        offset = self._wall() - now
-        last, self._clock_read = self._clock_read, (now, offset)
-        if abs(offset - core.cfg.clock_offset) >= CLOCK_FOLLOW_S:
-            core.set_clock_offset(offset)
-        if last is None:  # the first read (a config built without the offset is no step)
-            return
-        jump = offset - last[1]
-        if abs(jump) >= CLOCK_STEP_S + MAX_SLEW_RATE * max(0.0, now - last[0]):
-            self.clock_steps += 1
-            log.warning("uwb %s: the wall clock stepped %+.3f s; TDMA slots follow it", self.port, jump)
-            # A step ahead (NTP setting a clock that booted behind) left a counter begun from the
-            # clock behind, with no saved one (a new or lost state), under the marks peers hold
-            # from before: all its frames were "replayed" until a restart. It goes on from the
-            # clock. Not a counter that was saved: a wrong step ahead (a GPS glitch) would put it
-            # in the future, where peers refuse it even once the clock is right again.
-            if jump > 0 and self._counter_from_clock and core.raise_counter(clock_floor(now + offset)):
-                log.warning("uwb %s: the signing counter (begun from the clock) goes on from it", self.port)
 
     async def _run(self) -> None:
         core = self.core

@@ -38,7 +38,7 @@ from transports.base import (
     TransportContext,
     TransportEvent,
 )
-from transports.uwb import arq, link, signing
+from transports.uwb import arq, link_port, link_signing, signing
 from transports.uwb.faults import Faults
 from transports.uwb.link import UwbLink
 from transports.uwb.relay import FaultRelay, MediumRelay
@@ -310,7 +310,7 @@ def test_frames_recorded_before_a_restart_are_not_taken_again_after_it(tmp_path:
                     a.t.offer(envelope("alpha", 1, 5000))
                     await until(lambda: bool(b.of(Received)) and bool(a.of(Delivered)), 10)
                     if how == "kill":
-                        await asyncio.sleep(link.REPLAY_SAVE_S + 1.0)  # a periodic save since the map
+                        await asyncio.sleep(link_signing.REPLAY_SAVE_S + 1.0)  # a periodic save since the map
                         assert (tmp_path / "b" / "uwb-2.replay").exists()
                         b.t._link._replay = signing.ReplayStore(None)  # type: ignore[union-attr]  # dies: no more saves
                     loop.remove_reader(spy.fd)
@@ -419,7 +419,7 @@ def test_request_over_serial_reaches_the_map_owner_only_as_a_keyframe_need() -> 
 def test_a_port_nobody_reads_does_not_freeze_the_loop(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, driver: str
 ) -> None:
-    monkeypatch.setattr(link, "WRITE_STALL_S", 0.5)
+    monkeypatch.setattr(link_port, "WRITE_STALL_S", 0.5)
     drains: list[int] = []
     if driver != "pty":
         # A pty's tcdrain returns at once; a USB-serial driver with bytes it cannot send (a hung
