@@ -10,7 +10,7 @@ it. Nothing CPU-heavy runs on the loop, and one bad event costs one log line, ne
 Refusals that a config fixes (a robot missing from the roster, an old key, another fleet, limits
 smaller than a peer's maps, ``nodes`` lists that differ, a codec model this robot lacks) come with
 every map the peer sends: each is said once per robot and cause with the fix, as a warning
-(:class:`~mapd.daemon.receiver.Refusal`), and again only after that robot's maps were taken in
+(:class:`~mapd.daemon.refusals.Refusal`), and again only after that robot's maps were taken in
 between. What a link refuses before the daemon sees it (zenoh: robots off the roster, signatures
 the roster's keys refuse) is said once per link and cause, from its counters (:class:`LinkRefusals`).
 
@@ -31,10 +31,11 @@ from dataclasses import dataclass, field
 from mapd.codec.base import CodecOptions
 from mapd.daemon.events import EventQueue
 from mapd.daemon.headline import roster_refusals
+from mapd.daemon.intake import AskKeyframe, Decode, decode_envelope, open_envelope
 from mapd.daemon.peer_saves import PeerSaves, UnsavedPeer
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
-from mapd.daemon.receiver import AskKeyframe, Decode, Receiver, decode_envelope, open_envelope
+from mapd.daemon.receiver import Receiver
 from mapd.daemon.refusals import decode_cause, shown
 from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore

@@ -1,21 +1,10 @@
-"""Peers' maps in: verify, decide, decode, keep. The decisions are plain methods; the daemon runs the CPU work.
-
-For every :class:`~transports.base.Received` the daemon calls, in order:
-
-1. :func:`open_envelope` in a worker thread: size cap, strict parse, signature (a forgery raises
-   :class:`~mapd.errors.SignatureError`, other damage :class:`~mapd.errors.EnvelopeError`);
-2. :meth:`Receiver.plan` on the loop: another fleet's, our own, an old version, a version that
-   jumps too far (:func:`~mapd.daemon.versions.check_step`), a map larger than the limits allow, an
-   unsigned map that names another robot than the link it came on, or a robot beyond
-   ``max_peers`` is dropped; a delta whose base is not held asks for a keyframe; otherwise the base
-   to decode against;
-3. :func:`decode_envelope` in a worker thread;
-4. :meth:`Receiver.accept` on the loop: keep the map (and a few recent versions as delta bases) and
-   count it; the daemon then saves it, hands it to fusion and acks it.
+"""Peers' maps in: the rules for taking a peer's map, and the maps taken. The decisions are plain
+methods; the daemon runs the CPU work (:mod:`~mapd.daemon.intake`: the steps in order, and the
+plan's answers).
 
 The receiver keeps, per peer robot, the newest map, up to :data:`KEEP_PEER_VERSIONS` recent
 versions (a sender may code a delta against a version it saw acked while newer ones were still in
-flight), and what ``mapd status`` shows about it.
+flight), and what ``mapd status`` shows about it (:class:`~mapd.daemon.intake.PeerInfo`).
 
 **Configs that disagree.** Robots of one fleet whose configs drifted apart (a roster without a
 robot's key or with its old one, another ``robot.fleet``, smaller ``limits``, ``[transports.uwb]
@@ -28,11 +17,10 @@ is said the same way, on the side that cannot see why.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from mapd.codec import decode
-from mapd.codec.base import CodecOptions
+from mapd.daemon.intake import AskKeyframe, Decode, Drop, PeerInfo, ReceiverCounters
 from mapd.daemon.refusals import (
     MAX_REFUSED_NAMES,
     MAX_REFUSED_SHOWN,
@@ -42,8 +30,8 @@ from mapd.daemon.refusals import (
     shown,
 )
 from mapd.daemon.versions import EPOCH, VersionBounds, check_step, incarnation_at, split
-from mapd.envelope import Envelope, unpack
-from mapd.errors import CodecError, EnvelopeError, SignatureError
+from mapd.envelope import Envelope
+from mapd.errors import EnvelopeError, SignatureError
 from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
 from mapd.identity import Roster
 
@@ -76,104 +64,6 @@ def _due(said: dict[K, float], about: K, now: float) -> bool:
 
 #: Robots refused for want of room whose name is kept, so that each is logged once.
 MAX_OVER_LIMIT_NAMES = 256
-
-
-@dataclass
-class ReceiverCounters:
-    """Why updates were taken or dropped, for ``mapd status``."""
-
-    bad_envelopes: int = 0
-    foreign_fleet: int = 0
-    bad_signature: int = 0
-    duplicates: int = 0
-    refused_versions: int = 0
-    refused_sizes: int = 0
-    wrong_link: int = 0
-    too_many_robots: int = 0
-    new_incarnations: int = 0
-    decode_errors: int = 0
-    keyframe_requests: int = 0
-    updates_received: int = 0
-
-
-@dataclass
-class PeerInfo:
-    """What ``mapd status`` shows about one peer robot (None: not known yet)."""
-
-    present: bool | None = None
-    link: str | None = None
-    version: int | None = None
-    received_at: float | None = None
-    bytes: int = 0
-    updates: int = 0
-    last_kind: str | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            k: v for k, v in asdict(self).items() if v is not None and (k not in ("bytes", "updates") or v)
-        }
-
-
-@dataclass(frozen=True)
-class Decode:
-    """Decode the envelope against ``base`` (None for a keyframe)."""
-
-    base: OccupancyGrid | None
-    #: The robot started a new incarnation (it lost its state): it holds none of our maps either.
-    new_incarnation: bool = False
-
-
-@dataclass(frozen=True)
-class AskKeyframe:
-    """A delta whose base is not held: ask ``robot`` for a whole map."""
-
-    robot: str
-    #: As :attr:`Decode.new_incarnation`.
-    new_incarnation: bool = False
-
-
-@dataclass(frozen=True)
-class Drop:
-    """Nothing to do with this envelope; ``routine`` for echoes and duplicates, else a refusal worth a log line."""
-
-    reason: str
-    routine: bool = False
-    #: The link may now hold this version as the robot's newest (zenoh's core does): ask it to
-    #: forget, so the robot's real next versions are not taken for stale ones.
-    forget: bool = False
-    #: Worth a warning, not an info line: something an operator has to act on.
-    warning: bool = False
-    #: This very version is the one held: ack it again. Its robot offers it again after a restart
-    #: whose state lost our ack (a full disk, a kill), and waited out its in-flight timeout (30 s)
-    #: for an ack that a dropped duplicate never got.
-    held: bool = False
-    #: ``reason`` is a :class:`Refusal`'s whole line (it names the robot and the fix): said as it is.
-    refusal: bool = False
-
-
-def open_envelope(data: bytes, *, max_bytes: int, roster: Roster) -> Envelope:
-    """Parse and verify untrusted bytes (CPU work: call it from a worker thread)."""
-    return unpack(data, max_bytes=max_bytes, roster=roster)
-
-
-def decode_envelope(
-    env: Envelope, base: OccupancyGrid | None, *, max_cells: int, options: CodecOptions | None = None
-) -> OccupancyGrid:
-    """Decode ``env``'s payload and check it against the envelope (CPU work: a worker thread).
-
-    The decoder may allocate no more cells than the envelope claims (which :meth:`Receiver.plan`
-    has bounded), so a payload cannot claim more than its signed envelope does. ``options``: this
-    robot's own codec's (``[codec.<use>]``), for a map in that codec: a fleet on a paper model
-    other than the default one coded with it, and every receiver decoded with the default.
-    """
-    grid = decode(
-        env.payload, base, max_cells=min(max_cells, max(1, env.width * env.height)), options=options
-    )
-    if (grid.width, grid.height) != (env.width, env.height):
-        raise CodecError(
-            f"payload decodes to {grid.width} x {grid.height}, the envelope says {env.width} x {env.height}"
-        )
-    return grid.replace(robot=env.robot, version=env.version, stamp=env.stamp, frame_id=env.frame_id)
 
 
 @dataclass
@@ -259,8 +149,8 @@ class Receiver:
         return True
 
     def refused_bytes(self, exc: EnvelopeError, robot: str, now: float) -> str | None:
-        """:func:`open_envelope` refused bytes that name ``robot`` (or came from it): count why;
-        the line to say with the fix, or None when it was said already."""
+        """:func:`~mapd.daemon.intake.open_envelope` refused bytes that name ``robot`` (or came from
+        it): count why; the line to say with the fix, or None when it was said already."""
         self.refused(exc)
         why, fix = envelope_refusal(exc, robot, self.me)
         return fix if self.refuse(robot, why, fix, now) else None
@@ -319,7 +209,7 @@ class Receiver:
         )
 
     def refused(self, exc: Exception) -> None:
-        """:func:`open_envelope` refused the bytes: count why."""
+        """:func:`~mapd.daemon.intake.open_envelope` refused the bytes: count why."""
         if isinstance(exc, SignatureError):
             self.counters.bad_signature += 1
         else:

@@ -38,7 +38,8 @@ from mapd.codec import encode
 from mapd.codec.api import pack_payload
 from mapd.commands.daemon import render_status
 from mapd.daemon.headline import link_faults, status_line
-from mapd.daemon.receiver import Drop, Receiver
+from mapd.daemon.intake import Drop
+from mapd.daemon.receiver import Receiver
 from mapd.daemon.versions import incarnation_at, make
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapd.daemon.receiver import AskKeyframe, Decode, Drop, Receiver
+from mapd.daemon.intake import AskKeyframe, Decode, Drop
+from mapd.daemon.receiver import Receiver
 from mapd.daemon.versions import EPOCH, VersionBounds, incarnation_at, make
 from mapd.envelope import Envelope
 from mapd.grid import OccupancyGrid, Pose2D

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mapd import config as configmod
-from mapd.daemon.receiver import Decode, Drop
+from mapd.daemon.intake import Decode, Drop
 from mapd.daemon.server import Daemon
 from mapd.daemon.state import StateStore, lock_state_dir
 from mapd.daemon.versions import incarnation_at, make, split

@@ -205,7 +205,8 @@ def test_a_relayed_map_arrives_intact_still_signed_by_its_origin_and_tampering_i
     """robotA and robotC are out of range; robotB holds A's signed keyframe and forwards it as
     received. C's receiver accepts it from link peer robotB (the signature names A); flipped bits,
     or a map of "robotA" signed with another key, are refused."""
-    from mapd.daemon.receiver import Decode, Drop, Receiver, open_envelope
+    from mapd.daemon.intake import Decode, Drop, open_envelope
+    from mapd.daemon.receiver import Receiver
     from mapd.daemon.versions import EPOCH, incarnation_at, make
     from mapd.envelope import Envelope
     from mapd.errors import SignatureError
