@@ -26,7 +26,8 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from mapd.errors import ConfigError, SignatureError
-from mapd.files import NotRegularFileError, open_regular, write_new_secret
+from mapd.files import write_new_secret
+from mapd.files.reading import NotRegularFileError, open_regular
 from mapd.keys import MAX_KEY_FILE_BYTES
 
 SIG_LEN = 64

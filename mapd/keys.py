@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from mapd.errors import ConfigError
-from mapd.files import read_capped
+from mapd.files.reading import read_capped
 
 #: Shortest key accepted (128 bits): a shorter signing key could be found by brute force.
 MIN_KEY_BYTES = 16

@@ -7,7 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from mapd.grid import load_map, save_map
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 
 MAPD = [sys.executable, "-m", "mapd"]
 

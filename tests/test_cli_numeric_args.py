@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from mapd.cli import build_parser
-from mapd.grid import OccupancyGrid, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.save import save_map
 
 REPO = Path(__file__).resolve().parents[1]
 #: What a refused value may take: parsing, or a check before any work. The commands it guards

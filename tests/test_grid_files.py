@@ -14,7 +14,9 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from mapd.errors import LimitError, MapdError, MapFileError
-from mapd.grid import OccupancyGrid, Pose2D, load_map, read_map_yaml, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map, read_map_yaml
+from mapd.grid.save import save_map
 
 
 def write_map(tmp: Path, pixels: np.ndarray, name: str = "m", ext: str = "pgm", **meta: object) -> Path:

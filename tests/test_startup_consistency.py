@@ -165,7 +165,7 @@ def test_mapd_run_exits_2_for_any_folder_it_may_not_create(
 
 def test_mapd_run_exits_1_for_a_state_directory_another_mapd_holds(tmp_path: Path) -> None:
     """What a retry gets past (the other mapd stops) stays 1: systemd starts the unit again."""
-    from mapd.daemon.state import lock_state_dir
+    from mapd.daemon.state_lock import lock_state_dir
 
     (tmp_path / "c.toml").write_text(BASE)
     held = lock_state_dir(tmp_path / "state")
@@ -329,7 +329,7 @@ def test_a_sim_world_map_is_read_once_at_a_daemon_start(
 ) -> None:
     """Reproduced: the config's check (check_with_config) read the world map, then the source read
     it again when it built the robot."""
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
     from mapd.mapping import worldgen
     from mapd.sources import sim
 
@@ -351,7 +351,7 @@ def test_a_generated_sim_world_is_generated_once_at_a_daemon_start(
 
 
 def test_a_checked_world_is_not_used_for_another_path_or_limit(tmp_path: Path) -> None:
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
     from mapd.mapping import worldgen
 
     save_map(worldgen.generate(3, 8.0, 6.0, 0.05, 1.0).grid, tmp_path / "w.yaml")

@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from mapd.data import data_dir, map_label, shared_maps
 from mapd.errors import MapFileError
-from mapd.grid import OccupancyGrid, load_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
 from mapd.mapping.synthetic import indoor_maps
 
 if TYPE_CHECKING:

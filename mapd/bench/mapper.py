@@ -122,7 +122,7 @@ def _mapd_on(scans: list[Any]) -> float:
 def _f1(name: str, grid: Any, path: Any) -> float:
     from mapd.codec import metrics
     from mapd.data import data_dir
-    from mapd.grid import load_map
+    from mapd.grid.load import load_map
     from mapd.mapping.mapper import first_pose, resample
 
     base = data_dir()

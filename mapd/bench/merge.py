@@ -129,7 +129,7 @@ def build_pairs(root: Path, n: int, seed: int, *, real: bool = True) -> list[tup
 
     from mapd.data import map_label, shared_maps
     from mapd.fusion import synth
-    from mapd.grid import load_map
+    from mapd.grid.load import load_map
 
     paths = shared_maps(root)
     sources = [p for p in paths if "_part" not in p.stem]
@@ -240,7 +240,8 @@ def _speed(sources: list[Path], size: int, repeat: int, rng: Any) -> dict[str, A
     import numpy as np
 
     from mapd.fusion.merge import merge_with_owner
-    from mapd.grid import UNKNOWN, Pose2D, load_map
+    from mapd.grid import UNKNOWN, Pose2D
+    from mapd.grid.load import load_map
 
     big = sorted(sources, key=lambda p: p.stat().st_size, reverse=True)[:4]
     maps = []

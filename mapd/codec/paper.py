@@ -52,7 +52,7 @@ from mapd.grid import (
 )
 
 if TYPE_CHECKING:
-    from mapd.codec.paper_net import PaperModel
+    from mapd.codec.paper_infer import PaperModel
 
 FLAG_FREE = 0x01
 FLAG_OCCUPIED = 0x02
@@ -90,7 +90,7 @@ class PaperOptions(CodecOptions):
 
         Loaded at the first map otherwise: a daemon that started, said READY and never sent a map.
         """
-        from mapd.codec.paper_net import load_model
+        from mapd.codec.paper_model import load_model
 
         try:
             load_model(models_root(self) / self.model)
@@ -202,10 +202,10 @@ class PaperCodec(Codec):
         """The loaded model (lazily, once, on CPU; torch is imported only here)."""
         with self._lock:
             if self._model is None:
-                from mapd.codec import paper_net
+                from mapd.codec import paper_model
 
                 assert isinstance(self.options, PaperOptions)
-                model = paper_net.load_model(self.model_path)
+                model = paper_model.load_model(self.model_path)
                 model.name = self.options.model
                 self._model = model
             return self._model

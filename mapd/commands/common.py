@@ -49,14 +49,14 @@ def map_inputs(yaml_path: Path, what: str) -> list[tuple[Path, str]]:
 
     Reading the YAML raises :class:`~mapd.errors.MapFileError` as loading the map would, only sooner.
     """
-    from mapd.grid import read_map_yaml
+    from mapd.grid.load import read_map_yaml
 
     image = Path(read_map_yaml(yaml_path)["image"])
     return [(yaml_path, f"{what} {yaml_path}"), (image, f"the image {image} of {what} {yaml_path}")]
 
 
 def map_outputs(yaml_path: Path, what: str) -> list[tuple[Path, str]]:
-    """The two files saving a map to ``yaml_path`` writes (see :func:`mapd.grid.save_map`)."""
+    """The two files saving a map to ``yaml_path`` writes (see :func:`mapd.grid.save.save_map`)."""
     try:
         image = yaml_path.with_suffix(".pgm")
     except ValueError:  # "." or "": no image name; save_map says what is wrong with such a path

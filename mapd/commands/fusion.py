@@ -141,7 +141,8 @@ def cmd_merge(args: argparse.Namespace) -> int:
     from mapd.fusion.merge import NO_OWNER, merge_with_owner, save_png
     from mapd.fusion.placer import Placer
     from mapd.fusion.transforms import IDENTITY, compose, inverse
-    from mapd.grid import load_map, save_map
+    from mapd.grid.load import load_map
+    from mapd.grid.save import save_map
 
     if len(args.maps) < 2:
         raise ConfigError("merge needs at least two maps")

@@ -267,7 +267,7 @@ def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, 
 def cmd_send(args: argparse.Namespace) -> int:
     import asyncio
 
-    from mapd.files import DATA_READ_TIMEOUT_S, read_capped
+    from mapd.files.reading import DATA_READ_TIMEOUT_S, read_capped
     from transports.uwb.options import MAX_MESSAGE
 
     try:

@@ -105,7 +105,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from mapd.errors import ConfigError, MapFileError, SourceError
     from mapd.files import atomic_write_bytes
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
     from mapd.mapping import carmen
     from mapd.mapping.mapper import first_pose, replay_log, split_range
 

@@ -136,7 +136,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def _grid_summary(path: Path) -> dict[str, Any]:
-    from mapd.grid import load_map, read_map_yaml
+    from mapd.grid.load import load_map, read_map_yaml
 
     meta = read_map_yaml(path)
     grid = load_map(path)
@@ -178,7 +178,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
     import time
 
     from mapd.codec import encode
-    from mapd.grid import load_map
+    from mapd.grid.load import load_map
 
     refuse_stdio(args.map, "the map")
     refuse_stdio(args.base, "--base")
@@ -218,12 +218,14 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
 def cmd_decode(args: argparse.Namespace) -> int:
     from mapd.codec import decode
-    from mapd.grid import DEFAULT_MAX_CELLS, load_map, save_map
+    from mapd.grid import DEFAULT_MAX_CELLS
+    from mapd.grid.load import load_map
+    from mapd.grid.save import save_map
 
     # Read at most what the largest payload decode accepts (a raw map at the cell limit plus its
     # header), so that /dev/zero or a wrong file is refused instead of read into memory.
     limit = DEFAULT_MAX_CELLS + (1 << 16)
-    from mapd.files import DATA_READ_TIMEOUT_S, read_capped
+    from mapd.files.reading import DATA_READ_TIMEOUT_S, read_capped
 
     refuse_stdio(args.output, "-o")
     refuse_stdio(args.base, "--base")

@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--maps", type=Path, default=None, help="folder of map_server maps (default: the shared data)"
     )
-    # --epochs to --threads: mapd.train.loop.check_settings bounds them, one line before any work.
+    # --epochs to --threads: mapd.train.settings.check_settings bounds them, one line before any work.
     p.add_argument("--epochs", type=int, default=12, help="passes over --tiles-per-epoch tiles (default 12)")
     p.add_argument(
         "--tile", type=int, default=64, help="tile side in cells, a multiple of 4 from 8 to 256 (default 64)"
@@ -170,7 +170,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from mapd.data import data_dir
     from mapd.errors import ConfigError
     from mapd.train.checkpoint import TrainingPaused
-    from mapd.train.loop import TrainConfig, main_train
+    from mapd.train.loop import main_train
+    from mapd.train.settings import TrainConfig
     from mapd.train.snapshots import SnapshotSpec
 
     maps = args.maps

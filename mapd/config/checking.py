@@ -23,7 +23,7 @@ from mapd.config.paths import folder_problem, socket_problem
 from mapd.config.plugin_tables import check_plugin_files, check_plugins
 from mapd.config.sections import MIN_VIEW_TOKEN, MapdConfig, is_loopback, split_listen
 from mapd.errors import ConfigError
-from mapd.files import read_capped
+from mapd.files.reading import read_capped
 from mapd.identity import Identity, Roster, read_identity
 from mapd.keys import read_key_file
 

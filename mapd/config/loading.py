@@ -19,8 +19,8 @@ from pydantic import BaseModel, ValidationError
 
 from mapd.config.sections import MapdConfig
 from mapd.errors import ConfigError
-from mapd.files import read_capped
-from mapd.grid import short_repr
+from mapd.files.reading import read_capped
+from mapd.grid.reprs import short_repr
 
 M = TypeVar("M", bound=BaseModel)
 

@@ -18,7 +18,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from mapd.config.endpoints import host_problem, split_host_port
-from mapd.grid import DEFAULT_MAX_CELLS, MAX_RESOLUTION, MIN_RESOLUTION, short_repr
+from mapd.grid import DEFAULT_MAX_CELLS, MAX_RESOLUTION, MIN_RESOLUTION
+from mapd.grid.reprs import short_repr
 
 #: A fleet or robot id: also a zenoh key chunk and a ROS 2 namespace part, so no separators.
 NAME_PATTERN = r"^[A-Za-z0-9_\-]{1,32}$"

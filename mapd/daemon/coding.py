@@ -24,7 +24,7 @@ from mapd.codec.base import CodecOptions
 from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
-from mapd.files import WriteOutage
+from mapd.files.outage import WriteOutage
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.identity import Identity
 

@@ -141,7 +141,7 @@ def state_faults(s: dict[str, Any]) -> list[str]:
         return []
     out = []
     if st.get("writing") is False:
-        out.append("state dir not writable (disk full?): own maps held back")
+        out.append("state dir not writable (disk full, read-only or gone?): own maps held back")
     g = st.get("global_map")
     if isinstance(g, dict) and g.get("writing") is False:
         out.append("global map not saved")

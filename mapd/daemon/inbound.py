@@ -42,7 +42,7 @@ from mapd.daemon.state import StateStore
 from mapd.daemon.versions import label
 from mapd.envelope import peek_robot
 from mapd.errors import CodecError, EnvelopeError, MapdError
-from mapd.files import WriteOutage
+from mapd.files.outage import WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.identity import Roster
 from transports.base import (

@@ -31,7 +31,7 @@ from mapd.daemon.sinks import Sinks
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
 from mapd.errors import MapdError, StateError
-from mapd.files import WRITE_RETRY_S, WriteOutage
+from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.sources.base import MapSource
@@ -86,6 +86,13 @@ class Outbound:
     #: Why the source's newest maps are skipped (None: the newest was taken), and how many in a row.
     skipped: str | None = None
     skipped_maps: int = 0
+
+    def __post_init__(self) -> None:
+        # The fusion worker's files are in the state directory too: when it loses them under the
+        # running daemon, they are written again with the rest (StateStore.check), as this robot's
+        # own map is, also while no merge comes to save them (a fleet at rest).
+        if self.fusion.store is not None:
+            self.store.also_check(self.fusion.store.look)
 
     def wake(self) -> None:
         """The publisher has something to look at: a link became free, or a peer needs a keyframe."""

@@ -2,12 +2,18 @@
 
 A peer's map whose save fails is used and acked all the same, so its robot does not send that
 version again: the newest unsaved map of each robot is kept and saved again every
-:data:`~mapd.files.WRITE_RETRY_S` until it goes through, as the base and ``state.json`` (acks) are,
+:data:`~mapd.files.outage.WRITE_RETRY_S` until it goes through, as the base and ``state.json`` (acks) are,
 as the own map, the global map and the files output are elsewhere. Waiting for the robot's next map
 instead lost it to a restart whenever that robot had gone out of reach or stopped first, long
 after the disk had room again. The outage is said once (the first failure, with what it costs) and
 once when nothing is left unsaved; ``mapd status`` shows the state directory failing until then
 (:meth:`~mapd.daemon.state.StateStore.set_unsaved_peers`).
+
+While nothing is unsaved, the state directory is looked at every :data:`~mapd.files.outage.WRITE_RETRY_S`
+all the same (:meth:`~mapd.daemon.state.StateStore.check`): a fleet at rest saves nothing, and a
+directory emptied, unmounted or remounted read-only under it would go unseen until a restart found
+it empty. One that lost files gets them again from memory; one that cannot be written is a failed
+save of the state like any other (said once, tried again until it goes through).
 
 :class:`PeerSaves` runs on the event loop's thread (one caller at a time: the inbound loop) and
 saves on worker threads.
@@ -23,7 +29,7 @@ from dataclasses import dataclass, field
 
 from mapd.daemon.state import StateStore
 from mapd.errors import StateError
-from mapd.files import WRITE_RETRY_S, WriteOutage
+from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.grid import OccupancyGrid, Pose2D
 
 log = logging.getLogger("mapd.daemon")
@@ -61,12 +67,13 @@ class PeerSaves:
     unsaved: dict[str, UnsavedPeer] = field(default_factory=dict)
     #: The base or ``state.json`` (acks) failed to save: saved again with the peers' maps.
     state_unsaved: bool = False
-    #: (monotonic) When what failed to save is tried again.
+    #: (monotonic) When what failed to save is tried again, or the state directory looked at.
     _retry_at: float = 0.0
 
     def retry_at(self) -> float | None:
-        """(monotonic) When :meth:`save_again` is due; None while nothing is unsaved."""
-        return self._retry_at if self.unsaved or self.state_unsaved else None
+        """(monotonic) When :meth:`save_again` is due: to save again what failed to save, or, while
+        nothing did, to look at the state directory."""
+        return self._retry_at
 
     async def save_peer(self, held: UnsavedPeer) -> bool:
         """Save a peer's map (a worker thread); on a full disk it is held, saved again every
@@ -116,11 +123,23 @@ class PeerSaves:
         ``state.json``. One failure does not stop the rest (a folder of one robot that cannot be
         made fails it alone)."""
         self._retry_at = time.monotonic() + WRITE_RETRY_S  # (first: an error out of here waits too)
+        if not self.unsaved and not self.state_unsaved:
+            await self._look()
+            return
         for robot, held in list(self.unsaved.items()):
             if self.unsaved.get(robot) is held:  # (not revoked while the one before was saved)
                 await self.save_peer(held)
         if self.state_unsaved:
             await self.save_state()
+
+    async def _look(self) -> None:
+        """Look at the state directory (nothing to save again): what it lost is written again from
+        memory; one that cannot be written is a failed save of the state, tried again."""
+        try:
+            await asyncio.to_thread(self.store.check)
+        except StateError as exc:
+            self._failed(exc)
+            self.state_unsaved = True  # (state.json, with the maps it lost: when it can be)
 
     def revoked(self, robot: str) -> None:
         """``robot``'s key was revoked: its unsaved map is dropped, never written back."""

@@ -13,7 +13,8 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from mapd.daemon.state import SavedPeer, StateStore
+from mapd.daemon.state import StateStore
+from mapd.daemon.state_records import SavedPeer
 from mapd.errors import MapdError
 from mapd.grid import OccupancyGrid
 from mapd.identity import Roster

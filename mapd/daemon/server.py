@@ -10,11 +10,13 @@ One update's way through the robot::
 The decisions live in sans-I/O cores (:mod:`~mapd.daemon.publisher`, :mod:`~mapd.daemon.receiver`);
 their asyncio adapters are :mod:`~mapd.daemon.outbound` (own maps out) and
 :mod:`~mapd.daemon.inbound` (transport events in), and this module starts them, with the
-transports, fusion and outputs, and stops them (:mod:`~mapd.daemon.restore` reads what a previous
-run left first; :mod:`~mapd.daemon.process` is the process around it: signals and the loop). The event loop only moves bytes and decisions:
-encode, decode, verify, merge and file writes run in worker threads, so a large map never stalls
-the links, timers or ``mapd status``. Every queue is bounded and latest-wins where order does not
-matter.
+transports, fusion and outputs, and stops them. Around it: :mod:`~mapd.daemon.restore` reads what a
+previous run left first, :mod:`~mapd.daemon.parts` makes the plugins the config names,
+:mod:`~mapd.daemon.notifier` tells systemd, :mod:`~mapd.daemon.shutdown` closes everything in time,
+and :mod:`~mapd.daemon.process` is the process around it: signals and the loop. The event loop only
+moves bytes and decisions: encode, decode, verify, merge and file writes run in worker threads, so
+a large map never stalls the links, timers or ``mapd status``. Every queue is bounded and
+latest-wins where order does not matter.
 """
 
 from __future__ import annotations
@@ -24,20 +26,17 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import Coroutine
-from typing import TYPE_CHECKING, Any, TypeVar
-
-from pydantic import BaseModel
+from typing import TYPE_CHECKING, Any
 
 from mapd import config as configmod
-from mapd import plugins
 from mapd.codec import get_codec
 from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
-from mapd.daemon.headline import status_line
 from mapd.daemon.inbound import Inbound
+from mapd.daemon.notifier import Notifier
 from mapd.daemon.outbound import Outbound
+from mapd.daemon.parts import make_output, make_source, make_transport, output_context
 from mapd.daemon.poses import PoseRelay
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import Receiver
@@ -45,31 +44,26 @@ from mapd.daemon.reload import Reloads
 from mapd.daemon.reload import read as read_reload
 from mapd.daemon.restore import SavedState, read_saved_state
 from mapd.daemon.revocation import Revocation
+from mapd.daemon.shutdown import close_all, log_stopped, unless_stopped
 from mapd.daemon.sinks import Sinks, placed_frames
 from mapd.daemon.snapshot import snapshot
-from mapd.daemon.state import StateStore, lock_state_dir
+from mapd.daemon.state import StateStore
+from mapd.daemon.state_lock import lock_state_dir
 from mapd.daemon.status_socket import StatusServer
-from mapd.daemon.systemd import notify, watchdog_interval
 from mapd.daemon.versions import VersionBounds
-from mapd.errors import MapdError, StateError
+from mapd.errors import MapdError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
 from mapd.outputs.base import Output, OutputContext
 from mapd.record.writer import Recorder
-from mapd.sources.base import MapSource, SourceContext, SourceOptions
-from transports.base import (
-    Transport,
-    TransportContext,
-)
+from mapd.sources.base import MapSource, SourceOptions
+from transports.base import Transport
 
 if TYPE_CHECKING:
     from mapd.view.live import LiveView
 
 log = logging.getLogger("mapd.daemon")
 EVENT_QUEUE = 256
-#: seconds between looks at whether the systemd Status line changed
-STATUS_PERIOD_S = 2.0
-M = TypeVar("M", bound=BaseModel)
 
 
 class Daemon:
@@ -92,7 +86,8 @@ class Daemon:
         self.source = source
         self.transports: list[Transport] = []
         self._stop = asyncio.Event()
-        self._status_said = "running"  # the Status line systemd was last told
+        # What systemd is told; the snapshot looked up at each line (a test replaces it).
+        self.notifier = Notifier(lambda: self.snapshot())
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
@@ -232,7 +227,7 @@ class Daemon:
 
     async def reload(self) -> bool:
         """Read the config file again (on a worker) and apply its roster; False when refused."""
-        notify(f"RELOADING=1\nMONOTONIC_USEC={time.monotonic_ns() // 1000}")
+        self.notifier.reloading()
         try:
             token = self.view.token if self.view is not None else None
             new, keys, plan = await asyncio.to_thread(read_reload, self.reloads.config, self.keys, token)
@@ -263,9 +258,7 @@ class Daemon:
                 for t in self.transports:
                     await t.request_keyframe(robot)
             ok = True
-        # READY=1 ends RELOADING=1; the Status line goes with it (not "running": the loop below
-        # says a line again only when it changes, so a steady robot's FAULTS would vanish)
-        notify(f"READY=1\nSTATUS={self._status_now()}")
+        self.notifier.ready()  # (ends RELOADING=1, with the Status line now)
         return ok
 
     async def _reload_loop(self) -> None:
@@ -285,9 +278,10 @@ class Daemon:
             # where a folder goes) held it for the rest of the process, so a daemon started again
             # in it (an embedding, a test) found the directory "in use" by itself.
             await self._restore()
-            if not await self._unless_stopped(self._start()):
+            if not await unless_stopped(self._start(), self._stop):
+                self._begin_stop("stopping during start-up")
                 return
-            notify(f"READY=1\nSTATUS={self._status_now()}")
+            self.notifier.ready()
             log.info(
                 "mapd started",
                 extra={"fields": {"robot": self.me, "transports": ",".join(self.cfg.transports.use)}},
@@ -299,40 +293,16 @@ class Daemon:
         finally:
             await self._shutdown()
 
-    async def _unless_stopped(self, job: Coroutine[Any, Any, None]) -> bool:
-        """Run ``job`` unless a stop comes first, which cancels it: True when it finished."""
-        task = asyncio.ensure_future(job)
-        stop = asyncio.ensure_future(self._stop.wait())
-        cut = True
-        try:
-            await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
-            cut = not task.done()
-        finally:
-            stop.cancel()
-            if not task.done():
-                # A stop came first, or run() itself was cancelled: either way the start-up must
-                # not go on starting transports and the control socket after the shutdown that
-                # follows has closed them.
-                task.cancel()
-                await asyncio.wait({task})
-        if not cut:
-            task.result()  # its error, if it failed
-            return True
-        if not task.cancelled():
-            task.exception()  # (retrieved: what its cancellation raised is not news now)
+    def _begin_stop(self, said: str) -> None:
+        """A stop begins (the shutdown's timings count from here): systemd and the log are told."""
         self._stopping_at = time.monotonic()
-        notify("STOPPING=1")
-        log.info("stopping during start-up")
-        return False
+        self.notifier.stopping()
+        log.info(said)
 
     async def _start(self) -> None:
         """Make the source, transports and outputs and start them, and the control socket."""
         if self.source is None:
-            source_cls = plugins.load("source", self.cfg.source.use)
-            self.source = source_cls(
-                self._options("source", self.cfg.source.use, source_cls.Options),
-                SourceContext.of(self.cfg),  # as check-config's check_with_config finds its files
-            )
+            self.source = make_source(self.cfg, self.options)
         # Where this robot's map frame lies in the fleet frame, when the source knows (a simulated
         # or logged robot's start, or start_pose in its config): fused as a known pose here, and
         # sent with every map so peers can too. Reading it may build a world or read a log.
@@ -341,37 +311,16 @@ class Daemon:
             self.coder.frame_pose = start
             self.fusion.known_pose(self.me, start)
         for name in self.cfg.transports.use:
-            cls = plugins.load("transport", name)
-            state_dir = self.cfg.state.dir / "links" / name
-            try:  # (check-config refuses a file in the way; this is for one put there since)
-                state_dir.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise StateError(
-                    f"state directory {self.cfg.state.dir} is not writable: {exc.strerror or exc}"
-                ) from None
-            ctx = TransportContext(
-                robot=self.me,
-                fleet=self.cfg.robot.fleet,
-                identity=self.keys.identity,
-                roster=self.keys.roster,
-                link_key=self.keys.link_key,
-                max_message_bytes=self.cfg.limits.max_message_bytes,
-                emit=self.events.put,
-                state_dir=state_dir,
-                latest_keyframe=self.outbound.latest_keyframe,
+            latest = self.outbound.latest_keyframe
+            t = make_transport(
+                self.cfg, name, self.options, self.keys, emit=self.events.put, latest_keyframe=latest
             )
-            self.transports.append(cls(self._options("transports", name, cls.Options), ctx))
-            if cls.paced:
+            self.transports.append(t)
+            if t.paced:
                 self.publisher.paced.add(name)  # its offers are held until wholly on the air (P1)
-        out_ctx = OutputContext(
-            robot=self.me,
-            fleet=self.cfg.robot.fleet,
-            state_dir=self.cfg.state.dir,
-            identity=self.keys.identity,
-        )
+        out_ctx = output_context(self.cfg, self.keys)
         for name in self.cfg.output.use:
-            out_cls = plugins.load("output", name)
-            self.outputs.append(out_cls(self._options("output", name, out_cls.Options), out_ctx))
+            self.outputs.append(make_output(name, self.options, out_ctx))
         if self.view is not None:
             self.outputs.append(self.view)
         for t in self.transports:
@@ -385,11 +334,6 @@ class Daemon:
                 "radio or the network can write as any robot"
             )
 
-    def _options(self, section: str, name: str, model: type[M]) -> M | None:
-        """A plugin's validated options (``check_plugins`` built them with ``model``)."""
-        opts = self.options[section].get(name)
-        return opts if isinstance(opts, model) else None
-
     async def _run_tasks(self) -> None:
         assert self.source is not None  # run() made it
         async with asyncio.TaskGroup() as tg:
@@ -398,7 +342,7 @@ class Daemon:
                 tg.create_task(self.outbound.run(), name="publisher"),
                 tg.create_task(self.inbound.run(), name="events"),
                 tg.create_task(self.fusion.run(), name="fusion"),
-                tg.create_task(self._watchdog(), name="watchdog"),
+                tg.create_task(self.notifier.watchdog(), name="watchdog"),
                 tg.create_task(self._systemd_status(), name="systemd-status"),
                 tg.create_task(self._record_links(), name="record"),
                 tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
@@ -408,30 +352,13 @@ class Daemon:
             # restarts it (Restart=on-failure) instead of a robot that looks alive and sends nothing.
             tasks += [tg.create_task(t.watch(), name=f"transport-{t.name}") for t in self.transports]
             await self._stop.wait()
-            self._stopping_at = time.monotonic()
-            notify("STOPPING=1")
-            log.info("stopping")
+            self._begin_stop("stopping")
             for task in tasks:
                 task.cancel()
 
     async def _shutdown(self) -> None:
-        async def close_all() -> None:
-            for t in self.transports:
-                with contextlib.suppress(Exception):
-                    await t.close()
-            for o in self.outputs:
-                with contextlib.suppress(Exception):
-                    await o.close()
-            if self.source is not None:
-                with contextlib.suppress(Exception):
-                    await self.source.close()
-            await self.status_server.close()
-
         t_tasks = time.monotonic()
-        try:
-            await asyncio.wait_for(close_all(), self.shutdown_timeout)
-        except TimeoutError:
-            log.warning("shutdown timed out after %.1f s", self.shutdown_timeout)
+        await close_all(self.transports, self.outputs, self.source, self.status_server, self.shutdown_timeout)
         t_closed = time.monotonic()
         await asyncio.to_thread(self.sinks.close)  # queued writes, then the recording's footer
         if self._state_read:
@@ -440,20 +367,9 @@ class Daemon:
         if self._state_lock is not None:  # state.json written: another daemon may take the directory
             os.close(self._state_lock)
             self._state_lock = None
+        self.store.release()  # (a lock taken again after the directory was lost and came back)
         if self._stopping_at is not None:
-            # How long a stop takes, and where: systemd's TimeoutStopSec must cover it.
-            done = time.monotonic()
-            log.info(
-                "stopped",
-                extra={
-                    "fields": {
-                        "seconds": round(done - self._stopping_at, 2),
-                        "tasks_s": round(t_tasks - self._stopping_at, 2),
-                        "transports_s": round(t_closed - t_tasks, 2),
-                        "flush_s": round(done - t_closed, 2),
-                    }
-                },
-            )
+            log_stopped(self._stopping_at, t_tasks, t_closed)
 
     def _load_state(self) -> SavedState:
         """Take the state directory and read what a previous run left (blocking: a worker thread)."""
@@ -489,35 +405,9 @@ class Daemon:
                 },
             )
 
-    async def _watchdog(self) -> None:
-        interval = watchdog_interval()
-        if interval is None:
-            return
-        while True:
-            notify("WATCHDOG=1")
-            await asyncio.sleep(interval)
-
     async def _systemd_status(self) -> None:
-        """Keep the Status line of ``systemctl status mapd`` current (sd_notify STATUS=): the map,
-        the peers', the global map and any fault, said again only when it changes."""
-        if not os.environ.get("NOTIFY_SOCKET"):
-            return
-        while True:
-            await asyncio.sleep(STATUS_PERIOD_S)
-            said = self._status_said
-            line = self._status_now()
-            if line != said:
-                notify(f"STATUS={line}")
-
-    def _status_now(self) -> str:
-        """The Status line for systemd now (remembered as said: every caller sends it)."""
-        try:
-            line = status_line(self.snapshot())
-        except Exception:  # a status bug must never take the daemon down (as on the socket)
-            log.exception("status line failed")
-            line = self._status_said
-        self._status_said = line
-        return line
+        """Keep the Status line of ``systemctl status mapd`` current (:meth:`Notifier.keep_status`)."""
+        await self.notifier.keep_status()
 
     def _on_global(self, grid: OccupancyGrid) -> None:
         """The fusion worker made a new global map: outputs, recording and fused.csv take it."""

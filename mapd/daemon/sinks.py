@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from mapd.daemon.coding import CsvLog
-from mapd.files import WriteOutage
+from mapd.files.outage import WriteOutage
 from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate

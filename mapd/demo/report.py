@@ -17,7 +17,9 @@ from mapd.daemon.versions import label, split
 from mapd.errors import MapdError
 from mapd.files import atomic_write_bytes, atomic_write_via
 from mapd.fusion.store import read_owner
-from mapd.grid import OccupancyGrid, load_map, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 from mapd.tables import table
 
 UWB_RATE = 12500

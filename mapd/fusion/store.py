@@ -4,7 +4,7 @@ Written after every merge (each file atomic: temp file, fsync, rename, so a cras
 file or the new one, never half of one):
 
 * ``global.yaml`` + ``global-<version>.pgm``: the global map, as map_server files committed by
-  the YAML, as the daemon's state maps are (:func:`mapd.grid.save_committed`: a kill between the two
+  the YAML, as the daemon's state maps are (:func:`mapd.grid.save.save_committed`: a kill between the two
   renames leaves the old map whole, and an image that does not match is left out, never restored
   shifted);
 * ``transforms.json``: the placements, per robot the "fleet frame -> robot map" transform (x, y in
@@ -19,14 +19,23 @@ file or the new one, never half of one):
 Reading is forgiving: an unreadable or damaged file is said in one warning and left out, and the
 worker starts without it (a new global map), never fails. Which restored placements to keep (the
 roster) is the worker's decision, not this module's.
+
+The state directory may lose these files under the running daemon (emptied, its disk unmounted
+and mounted again): :meth:`FusionStore.look` writes the last ones saved again (the daemon's state
+store runs it every few seconds, :meth:`~mapd.daemon.state.StateStore.also_check`), so a fleet at
+rest, which makes no new merge, has them again before a restart needs them. A state directory that
+is gone, or not mounted any more, is not made again here (it would be on the wrong disk): saves fail
+until it is back.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
 import math
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,19 +43,15 @@ from typing import Any
 import numpy as np
 
 from mapd.errors import MapdError, StateError
-from mapd.files import WriteOutage, atomic_write_bytes, read_json_capped
+from mapd.files import atomic_write_bytes
+from mapd.files.folders import file_id, file_ids, folder_unusable, mount_point
+from mapd.files.outage import WriteOutage
+from mapd.files.reading import read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
 from mapd.fusion.placement import Placement
-from mapd.grid import (
-    DEFAULT_MAX_CELLS,
-    DIGEST_KEY,
-    VERSION_KEY,
-    OccupancyGrid,
-    committed_record,
-    map_from_yaml_fields,
-    read_map_yaml,
-    save_committed,
-)
+from mapd.grid import DEFAULT_MAX_CELLS, OccupancyGrid
+from mapd.grid.load import map_from_yaml_fields, read_map_yaml
+from mapd.grid.save import DIGEST_KEY, VERSION_KEY, committed_record, save_committed
 
 log = logging.getLogger(__name__)
 
@@ -80,12 +85,25 @@ class FusionStore:
         #: here: the worker says it once, with what it costs.
         self.outage = WriteOutage(None)
         self._owner_outage = WriteOutage(log)
+        # What :meth:`look` writes again, and how it tells the files went (under ``_io``: a look
+        # never writes an older map over one a merge saved meanwhile):
+        self._io = threading.Lock()
+        #: The last global map saved (the worker holds it anyway), with its placements' document.
+        #: (Not the owner map, which only pictures use: it comes back with the next merge, and
+        #: holding it would cost a byte a cell of the global map.)
+        self._saved: tuple[OccupancyGrid, dict[str, Any]] | None = None
+        #: "global" -> each file then written and its id (:func:`~mapd.files.folders.file_id`).
+        self._ids: dict[str, list[tuple[Path, tuple[int, int]]]] = {}
+        #: The mount point the state directory (this folder's parent) was seen on (None: the root
+        #: file system): once it is not one any more, its disk was unmounted, and what is left
+        #: there is not written to.
+        self._mount: Path | None = None
 
     # -- reading ----------------------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
         """The global map's saves for ``mapd status --json`` (see
-        :meth:`~mapd.files.WriteOutage.status`)."""
+        :meth:`~mapd.files.outage.WriteOutage.status`)."""
         return self.outage.status()
 
     def load_placements(self) -> Saved:
@@ -158,28 +176,69 @@ class FusionStore:
 
         ``keys``: robot -> the roster key its map was taken under, for the robots in this merge.
         """
-        with self.outage.counted(MapdError):
-            try:
-                self.directory.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise StateError(
-                    f"{self.directory}: cannot create the state directory: {exc.strerror}"
-                ) from None
-            save_committed(result.grid, self.directory / GLOBAL_YAML)
-            doc = {
-                "format": FORMAT,
-                "robot": self.robot,
-                "fleet_frame": fleet_frame,
-                "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
-                "mode": mode,
-                "version": result.grid.version,
-                "stamp": stamp,
-                "resolution": result.grid.resolution,
-                "origin": list(result.grid.origin),
-                "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
-                "keys": dict(sorted((keys or {}).items())),
-            }
+        doc = {
+            "format": FORMAT,
+            "robot": self.robot,
+            "fleet_frame": fleet_frame,
+            "units": "x, y in meters, yaw in radians: p_fleet = R(yaw) p_robot_map + (x, y)",
+            "mode": mode,
+            "version": result.grid.version,
+            "stamp": stamp,
+            "resolution": result.grid.resolution,
+            "origin": list(result.grid.origin),
+            "robots": {r: p.as_dict() for r, p in sorted(placements.items())},
+            "keys": dict(sorted((keys or {}).items())),
+        }
+        with self._io:
+            self._save(result.grid, doc)
+
+    def _save(self, grid: OccupancyGrid, doc: dict[str, Any], *, counted: bool = True) -> None:
+        """Write the global map and its placements (``counted``: in :attr:`outage`, which is the
+        worker's saves': a look writing an older map again must not end a newer one's outage)."""
+        with self.outage.counted(MapdError) if counted else contextlib.nullcontext():
+            self._folder()
+            save_committed(grid, self.directory / GLOBAL_YAML)
             write_json_atomic(self.directory / TRANSFORMS_JSON, doc)
+        self._saved = (grid, doc)
+        self._remember(
+            "global",
+            self.directory / GLOBAL_YAML,
+            self.directory / f"{GLOBAL_YAML.removesuffix('.yaml')}-{grid.version}.pgm",
+            self.directory / TRANSFORMS_JSON,
+        )
+
+    def _folder(self) -> None:
+        """Make this folder if it went (its parent, the state directory, must be there: one gone
+        or unmounted is not made again here); :class:`StateError` when it cannot be."""
+        parent = self.directory.parent
+        why = folder_unusable(parent, mount=self._mount)
+        if why is not None:
+            raise StateError(f"state directory {parent} {why}")
+        if self._mount is None:  # (first seen at the first save: the directory is there by then)
+            self._mount = mount_point(parent)
+        try:
+            self.directory.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise StateError(f"{self.directory}: cannot create the folder: {exc.strerror}") from None
+
+    def _remember(self, what: str, *paths: Path) -> None:
+        self._ids[what] = file_ids(*paths)
+
+    def _lost(self, what: str) -> bool:
+        """Whether a file last written for ``what`` is gone or not the one written."""
+        try:
+            return any(file_id(path) != known for path, known in self._ids.get(what, ()))
+        except OSError as exc:
+            raise StateError(f"{self.directory}: cannot look at it: {exc.strerror}") from None
+
+    def look(self) -> list[str]:
+        """Write again the last global map saved, and its placements, when their files went (see
+        the module docstring); what was written, in words. :class:`StateError` when it cannot be."""
+        with self._io:
+            if self._saved is None or not self._lost("global"):
+                return []
+            self._save(*self._saved, counted=False)
+            return [f"the global map v{self._saved[0].version} and its placements"]
 
     def save_owner(self, owner: np.ndarray, names: list[str]) -> None:
         """``owner.npy`` and the names it indexes; a failed write is an error line once per outage

@@ -54,7 +54,7 @@ from typing import Any
 
 from mapd.config import FusionSection
 from mapd.errors import FusionError, MapdError
-from mapd.files import WRITE_RETRY_S, WriteOutage
+from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.fusion.estimate import EstimateOptions
 from mapd.fusion.merge import Bounds
 from mapd.fusion.placement import Placement

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 from mapd.config import FusionSection
 from mapd.errors import MapdError
-from mapd.files import WRITE_RETRY_S, WriteOutage
+from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.fusion.limits import leave_out, say_left_out, within_cell_limit, within_extent, within_merge_limits
 from mapd.fusion.merge import Bounds, MergeResult, extent, merge_with_owner
 from mapd.fusion.placement import Placement

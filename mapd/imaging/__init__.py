@@ -1,7 +1,7 @@
 """Map images decoded from untrusted files: PNM, PNG and what Pillow reads, hardened.
 
 Works on paths and bytes and returns numpy arrays; it knows nothing of occupancy grids (turning
-grey levels into cells by map_server's rules is :func:`mapd.grid.load_map`'s part). Every problem is
+grey levels into cells by map_server's rules is :func:`mapd.grid.load.load_map`'s part). Every problem is
 one :class:`~mapd.errors.MapFileError` (truncated, half-written or corrupt file, never a padded
 image) or a :class:`~mapd.errors.LimitError` (more pixels than allowed, known from the header,
 before any pixel is decoded).

@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from mapd.errors import LimitError, MapFileError
-from mapd.files import NotRegularFileError, open_regular
+from mapd.files.reading import NotRegularFileError, open_regular
 
 #: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
 #: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.

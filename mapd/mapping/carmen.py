@@ -34,7 +34,7 @@ from typing import BinaryIO, cast
 import numpy as np
 
 from mapd.errors import SourceError
-from mapd.files import NotRegularFileError, open_regular
+from mapd.files.reading import NotRegularFileError, open_regular
 from mapd.grid import Pose2D
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,14 @@ same robot or a web server looks.
 
 A map that cannot be written (a full or read-only disk) leaves the files before it whole (each is
 atomic), is said once per outage and shown in ``mapd status`` (``writing`` false), and is tried
-again every :data:`~mapd.files.WRITE_RETRY_S` until it or a newer one is written: a fleet at rest makes no new global
+again every :data:`~mapd.files.outage.WRITE_RETRY_S` until it or a newer one is written: a fleet at rest makes no new global
 map, and the folder kept the one from before the disk filled.
+
+The folder may also lose the files under the running daemon (emptied, removed, its disk unmounted
+and mounted again): looked at every :data:`~mapd.files.outage.WRITE_RETRY_S` as well, the last map written
+is written again once the files it wrote are gone (said once), the folder made again if its parent
+is there. A folder that was a mount point is not written to once it is not one any more (its disk
+unmounted: what is left is the folder under it, on another disk).
 """
 
 from __future__ import annotations
@@ -28,9 +34,11 @@ from typing import Any, ClassVar
 from pydantic import Field
 
 from mapd.config.paths import folder_problem
-from mapd.errors import ConfigError, MapdError
-from mapd.files import WRITE_RETRY_S, WriteOutage, atomic_write_json, remove_stale_temps
-from mapd.grid import save_map
+from mapd.errors import ConfigError, MapdError, MapFileError
+from mapd.files import atomic_write_json, remove_stale_temps
+from mapd.files.folders import FOLDER_GONE, file_id, folder_unusable, mount_point
+from mapd.files.outage import WRITE_RETRY_S, WriteOutage
+from mapd.grid.save import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
 
 log = logging.getLogger("mapd.outputs.files")
@@ -76,12 +84,21 @@ class FilesOutput(Output):
         # as _write names them (no leading zero: "fleet-007.pgm" is someone else's file)
         self._image = re.compile(re.escape(self.opts.name) + r"-([1-9]\d{0,17})\.pgm")
         self._seq = 1  # the next image's number; set past those in the folder at start
+        #: The last map written, and the ids of the files it wrote (:func:`~mapd.files.folders.file_id`):
+        #: written again when they go (see the module docstring).
+        self._written: GlobalUpdate | None = None
+        self._ids: list[tuple[Path, tuple[int, int]]] = []
+        #: The mount point the folder was on when the output started (None: the root file system).
+        self._mount: Path | None = None
+        #: The map to write is one whose files went (said when it is written again).
+        self._lost_files = False
 
     async def start(self) -> None:
         try:
             self.opts.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"output.files: cannot create {self.opts.dir}: {exc.strerror}") from None
+        self._mount = mount_point(self.opts.dir)
         # what a write killed mid-way (kill -9, power loss) left there would otherwise pile up
         await asyncio.to_thread(remove_stale_temps, self.opts.dir)
         # Numbers go on from the last run's: a reader may still hold its YAML, naming its image.
@@ -102,12 +119,12 @@ class FilesOutput(Output):
             self._retry = None
 
     async def _retry_unwritten(self) -> None:
-        """Every :data:`~mapd.files.WRITE_RETRY_S`, write the newest map again if it could not be written."""
+        """Every :data:`~mapd.files.outage.WRITE_RETRY_S`, write the newest map again if it could not be written."""
         while True:
             await asyncio.sleep(WRITE_RETRY_S)
-            if self._unwritten is None:
-                continue
             try:
+                if self._unwritten is None and not await asyncio.to_thread(self._lost):
+                    continue
                 await asyncio.to_thread(self._write_unwritten)
             except Exception as exc:  # a bug: one line, and the output still takes new maps
                 log.error("output.files: writing the map again failed: %s: %s", type(exc).__name__, exc)
@@ -127,6 +144,18 @@ class FilesOutput(Output):
     def _unlink(path: Path) -> None:
         with contextlib.suppress(OSError):
             path.unlink(missing_ok=True)
+
+    def _lost(self) -> bool:
+        """Whether the files of the last map written are gone or replaced: then it is to be
+        written again (said once it is; a write that fails says why, once)."""
+        with self._lock:
+            try:
+                if self._unwritten is not None or not any(file_id(p) != i for p, i in self._ids):
+                    return False
+            except OSError:
+                return False  # (cannot be looked at: the write says why)
+            self._unwritten, self._lost_files = self._written, True
+        return True
 
     def publish(self, update: GlobalUpdate) -> None:
         with self._lock:
@@ -153,10 +182,31 @@ class FilesOutput(Output):
             self._unwritten = None
             self._outage.recovered(f"output.files: writing to {self.opts.dir} again")
             self.written += 1
+            if self._lost_files:
+                self._lost_files = False
+                log.warning(
+                    "output.files: the map written in %s was gone (removed, or another disk mounted "
+                    "there?): written again",
+                    self.opts.dir,
+                )
+
+    def _folder(self) -> None:
+        """The folder, made again if it was removed (not its parents: a folder gone with a disk
+        unmounted above it is not made on the disk under it); MapFileError when it cannot be
+        written (see :func:`~mapd.files.folders.folder_unusable`)."""
+        folder = self.opts.dir
+        why = folder_unusable(folder, mount=self._mount)
+        if why == FOLDER_GONE:  # (said only once its disk is seen mounted still)
+            folder.mkdir()  # (OSError, its parent gone too: said with the folder's name)
+            why = folder_unusable(folder, mount=self._mount)
+        if why is not None:
+            raise MapFileError(f"output folder {folder} {why}")
 
     def _write(self, update: GlobalUpdate) -> None:
+        self._folder()
         seq = self._seq
-        save_map(update.grid, self.opts.dir / f"{self.opts.name}.yaml", image_name=self._image_path(seq).name)
+        yaml_path = self.opts.dir / f"{self.opts.name}.yaml"
+        save_map(update.grid, yaml_path, image_name=self._image_path(seq).name)
         self._seq = seq + 1
         # Keep this image and the one before (a reader between the old YAML and its image). Numbers
         # go up by one per map written, so the one now too old is seq - 2.
@@ -175,6 +225,12 @@ class FilesOutput(Output):
             atomic_write_json(path, doc)
         except OSError as exc:
             raise OSError(exc.errno, exc.strerror, str(path)) from None  # (not the temp file's name)
+        self._written = update
+        self._ids = [
+            (p, known)
+            for p in (yaml_path, self._image_path(seq), path)
+            if (known := _id_or_none(p)) is not None
+        ]
 
     def stats(self) -> dict[str, int | float | str]:
         """Maps written, writes failed, the folder, and ``writing``: False while the newest map
@@ -189,3 +245,11 @@ class FilesOutput(Output):
         if error is not None:
             out["error"] = error
         return out
+
+
+def _id_or_none(path: Path) -> tuple[int, int] | None:
+    """:func:`~mapd.files.folders.file_id`, None also for a path that cannot be looked at."""
+    try:
+        return file_id(path)
+    except OSError:
+        return None

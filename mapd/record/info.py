@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from mapd.errors import MapFileError
-from mapd.files import open_for_reading
+from mapd.files.reading import open_for_reading
 from mapd.grid import DEFAULT_MAX_CELLS
 
 

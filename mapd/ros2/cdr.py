@@ -21,7 +21,8 @@ import numpy as np
 
 from mapd.envelope import MAX_STR
 from mapd.errors import CodecError, LimitError, TransportError
-from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem, short_repr
+from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem
+from mapd.grid.reprs import short_repr
 from mapd.ros2 import rmw
 from mapd.ros2.zenoh_config import open_zenoh, zenoh_config_text
 

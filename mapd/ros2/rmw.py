@@ -41,7 +41,7 @@ from functools import lru_cache
 from typing import Any, Literal
 
 from mapd.errors import CodecError
-from mapd.grid import short_repr
+from mapd.grid.reprs import short_repr
 
 Distro = Literal["humble", "jazzy", "kilted", "rolling"]
 DISTROS: tuple[str, ...] = ("humble", "jazzy", "kilted", "rolling")

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from mapd.config import NAME_PATTERN
 from mapd.errors import MapdError
-from mapd.files import atomic_write_json, read_json_capped
+from mapd.files import atomic_write_json
+from mapd.files.reading import read_json_capped
 from mapd.grid import Pose2D
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from mapd.errors import TransportError, UnreachableError
-from mapd.files import NotRegularFileError, from_workdir, open_regular
+from mapd.files.folders import from_workdir
+from mapd.files.reading import NotRegularFileError, open_regular
 
 #: zenoh's own example config, every option commented, is about 30 KiB.
 MAX_ZENOH_CONFIG_BYTES = 1 << 20

@@ -8,7 +8,7 @@ file is retried, never emitted. A file that will not load (truncated image, brok
 vanishes is logged with the reason (one line, once per distinct fault), counted, and retried when the
 files change again; the last good map stays the robot's map and the source keeps running. The
 stream never ends on its own: not for a malformed file (every one is a :class:`~mapd.errors.MapdError`
-from :func:`~mapd.grid.load_map`), and not even for a bug in loading one, which is logged with its
+from :func:`~mapd.grid.load.load_map`), and not even for a bug in loading one, which is logged with its
 traceback and retried like a bad file, so that systemd does not restart the daemon into the same
 crash for as long as the file stays as it is.
 
@@ -34,7 +34,8 @@ from pathlib import Path
 from pydantic import Field, field_validator
 
 from mapd.errors import MapdError, MapFileError
-from mapd.grid import MAX_GRID_SIDE, OccupancyGrid, Pose2D, load_map, read_map_yaml
+from mapd.grid import MAX_GRID_SIDE, OccupancyGrid, Pose2D
+from mapd.grid.load import load_map, read_map_yaml
 from mapd.sources.base import MapSource, SourceContext, SourceOptions, check_start_pose
 
 log = logging.getLogger(__name__)

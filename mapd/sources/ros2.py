@@ -63,7 +63,8 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 from mapd.errors import CodecError, LimitError, TransportError, UnreachableError
-from mapd.grid import OccupancyGrid, Pose2D, StampedPose, short_repr
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.grid.reprs import short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
 from mapd.ros2.node import own_publishers

@@ -35,7 +35,8 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, PrivateAttr, field_validator
 
 from mapd.errors import LimitError, MapFileError, SourceError
-from mapd.grid import OccupancyGrid, Pose2D, StampedPose, load_map
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.grid.load import load_map
 from mapd.mapping.mapper import MapperOptions, relative
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions, is_pose
 

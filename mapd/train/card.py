@@ -14,7 +14,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from mapd.grid import OccupancyGrid, load_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
 
 
 def evaluate_maps(model_dir: Path, paths: list[Path], root: Path) -> list[dict[str, Any]]:

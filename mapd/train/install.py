@@ -15,12 +15,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
-from mapd.codec import paper_net as pn
+from mapd.codec import paper_model as pm
 from mapd.errors import ConfigError
 
 CARD_FILE = "MODEL_CARD.md"
 #: What a model folder holds; an existing -o holding anything else is not replaced.
-MODEL_FILES = frozenset({pn.WEIGHTS_FILE, pn.META_FILE, CARD_FILE})
+MODEL_FILES = frozenset({pm.WEIGHTS_FILE, pm.META_FILE, CARD_FILE})
 
 
 def output_folder(out: Path) -> Path:

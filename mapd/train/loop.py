@@ -22,8 +22,8 @@ stage after it is lossless, so "through Cod(.)" is through the rounding).
   quantizer and the decoder are tuned on the features they will see at inference.
 * **Loss weights.** ``edge_weight`` (default 1, the paper's plain MSE) counts the squared error of
   cells on a class boundary that many times; the loss stays a per-cell MSE on the PSNR's scale.
-* **Bad settings** are refused before any work (:func:`check_settings`, :func:`~mapd.train.install.output_folder`):
-  every size has an upper bound, so memory stays bounded; tiles are drawn a batch at a time.
+* **Bad settings** are refused before any work, one line naming the option
+  (:mod:`mapd.train.settings`: :class:`~mapd.train.settings.TrainConfig` and its bounds).
 * **Stops.** After each epoch the whole training state goes to ``<-o>.checkpoint``
   (:mod:`mapd.train.checkpoint`); ``resume`` goes on from it to the same weights as an unbroken run,
   and ``time_limit`` ends a run cleanly after the epoch that reaches it (:class:`TrainingPaused`).
@@ -43,84 +43,29 @@ import platform
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.errors import ConfigError, MapdError
-from mapd.grid import load_map
+from mapd.grid.load import load_map
 from mapd.train import checkpoint as ckpt
 from mapd.train.card import evaluate_maps, model_card, summarize
-from mapd.train.data import (
-    MARGIN,
-    PreparedMap,
-    TileBatch,
-    map_group,
-    prepare_map,
-    sample_tiles,
-    split_maps,
-)
+from mapd.train.data import MARGIN, PreparedMap, TileBatch, prepare_map, sample_tiles, split_maps
 from mapd.train.install import CARD_FILE, install, output_folder, staging
-from mapd.train.snapshots import SnapshotSpec, snapshot_maps
+from mapd.train.settings import TrainConfig, check_settings, pick_device
+from mapd.train.snapshots import snapshot_maps
 
-#: Upper bounds of the settings, so that a typo costs one error line instead of the machine's memory
-#: (or a crash inside torch's thread pool). Torch threads: as ``[codec.paper] threads``.
-MAX_THREADS = 256
-#: The codec infers on 96-cell tiles and the shipped model trained on 64-cell ones.
-MAX_TILE = 256
-MAX_BATCH = 1024
-#: Input cells of one step, batch x (tile + 2 MARGIN)²: 28 times the shipped recipe's 16 x 96², so
-#: the activations kept for the backward pass stay within a few GiB whatever --batch and --tile say.
-MAX_STEP_CELLS = 1 << 22
-#: Tiles are drawn a batch at a time, so these bound the time of an epoch, not its memory.
-MAX_TILES_PER_EPOCH = 1 << 20
-MAX_VAL_TILES = 1 << 16
-MAX_EPOCHS = 100_000
-#: Adam's step size; far above this every run diverges.
-MAX_LR = 1.0
 #: Held-out tiles scored at a time.
 VAL_CHUNK = 64
 
 # --------------------------------------------------------------------------------------------
 # The loop
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class TrainConfig:
-    """Everything that decides the weights (recorded in model.json)."""
-
-    maps: Path
-    out: Path
-    epochs: int = 12
-    tile: int = 64
-    seed: int = 0
-    levels: int = 16
-    tiles_per_epoch: int = 2048
-    batch: int = 16
-    lr: float = 2e-3
-    val_fraction: float = 0.2
-    val_tiles: int = 256
-    device: str = "auto"
-    name: str = ""
-    progress: bool = True
-    evaluate: bool = True
-    edge_weight: float = 1.0
-    threads: int = 0  # torch CPU threads; 0 leaves torch's default
-    #: Maps in the making to train on beside (or, with ``finished=False``, instead of) the finished maps.
-    snapshots: SnapshotSpec | None = None
-    finished: bool = True
-    #: Places (split groups) left out of training and validation, e.g. the place of a held-out log.
-    exclude_places: tuple[str, ...] = ()
-    #: Go on from ``<out>.checkpoint`` (same settings) instead of starting over.
-    resume: bool = False
-    #: Seconds after which the run stops at the end of an epoch, checkpoint kept (0: no limit).
-    time_limit: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _unknown_symbol(net: pn.PaperNet) -> torch.Tensor:
@@ -164,55 +109,12 @@ def _freeze_bn(net: pn.PaperNet) -> None:
             m.eval()
 
 
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: no CUDA device is available")
-    if name not in ("cpu", "cuda"):
-        raise ConfigError(f"--device must be auto, cpu or cuda, got '{name}'")
-    return torch.device(name)
-
-
 def _label(p: Path, root: Path) -> str:
     return str(p.relative_to(root).parent) if p.is_relative_to(root) else p.stem
 
 
 def _load_maps(paths: list[Path], root: Path, tile: int) -> list[PreparedMap]:
     return [prepare_map(_label(p, root), load_map(p), tile) for p in paths]
-
-
-def check_settings(cfg: TrainConfig) -> None:
-    """Refuse a setting out of range with one line naming the option, before any work is done."""
-    if not 0 <= cfg.threads <= MAX_THREADS:
-        raise ConfigError(f"--threads must be 0 (torch's default) to {MAX_THREADS}, got {cfg.threads}")
-    for option, value, most in (
-        ("--epochs", cfg.epochs, MAX_EPOCHS),
-        ("--tiles-per-epoch", cfg.tiles_per_epoch, MAX_TILES_PER_EPOCH),
-        ("--batch", cfg.batch, MAX_BATCH),
-    ):
-        if not 1 <= value <= most:
-            raise ConfigError(f"{option} must be 1 to {most}, got {value}")
-    if not 0 <= cfg.val_tiles <= MAX_VAL_TILES:
-        raise ConfigError(f"--val-tiles must be 0 to {MAX_VAL_TILES}, got {cfg.val_tiles}")
-    if not (math.isfinite(cfg.lr) and 0.0 < cfg.lr <= MAX_LR):
-        raise ConfigError(f"--lr must be a number in (0, {MAX_LR:g}], got {cfg.lr}")
-    if not 0.0 < cfg.edge_weight <= 1000.0:
-        raise ConfigError(f"--edge-weight must be in (0, 1000], got {cfg.edge_weight}")
-    if not 8 <= cfg.tile <= MAX_TILE or cfg.tile % 4:
-        raise ConfigError(f"--tile must be a multiple of 4 from 8 to {MAX_TILE}, got {cfg.tile}")
-    step = cfg.batch * (cfg.tile + 2 * MARGIN) ** 2
-    if step > MAX_STEP_CELLS:
-        raise ConfigError(
-            f"--batch {cfg.batch} of --tile {cfg.tile} tiles is {step} input cells a step, over the"
-            f" {MAX_STEP_CELLS} allowed: use a smaller --batch or --tile"
-        )
-    if not 2 <= cfg.levels <= 256:
-        raise ConfigError(f"--levels must be 2 to 256, got {cfg.levels}")
-    if not 0 <= cfg.seed < 2**63:  # torch and numpy take seeds in this range
-        raise ConfigError(f"--seed must be 0 to 2**63 - 1, got {cfg.seed}")
-    if not (math.isfinite(cfg.time_limit) and cfg.time_limit >= 0):
-        raise ConfigError(f"--time-limit must be a number of seconds >= 0, got {cfg.time_limit}")
 
 
 def train(cfg: TrainConfig) -> dict[str, Any]:
@@ -372,7 +274,7 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     train_seconds = spent + time.time() - started
 
     net = net.cpu().eval()
-    arrays = pn.state_arrays(net)
+    arrays = pm.state_arrays(net)
     bad = sorted(k for k, a in arrays.items() if not np.isfinite(a).all())
     if bad:
         raise MapdError(
@@ -383,13 +285,13 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     n_params = sum(int(p.numel()) for p in net.parameters())
     meta: dict[str, Any] = {
         "name": name,
-        "format": pn.MODEL_FORMAT,
+        "format": pm.MODEL_FORMAT,
         "levels": cfg.levels,
         "channels": pn.CHANNELS,
         "parameters": n_params,
         "parameters_feature": sum(int(p.numel()) for p in net.feature.parameters()),
         "parameters_recovery": sum(int(p.numel()) for p in net.recovery.parameters()),
-        "weights_file": pn.WEIGHTS_FILE,
+        "weights_file": pm.WEIGHTS_FILE,
         "weights_sha256": "",  # set once the weights are written
         "training": {
             "maps": str(cfg.maps),
@@ -429,10 +331,10 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     }
     try:
         with staging(out) as folder:
-            sha = pn.write_weights(folder / pn.WEIGHTS_FILE, arrays)
+            sha = pm.write_weights(folder / pm.WEIGHTS_FILE, arrays)
             meta["weights_sha256"] = sha
             # model.json first without metrics: the evaluation loads the model from the folder.
-            (folder / pn.META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+            (folder / pm.META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
             if cfg.evaluate:
                 val_rows = evaluate_maps(folder, val_paths, root)
                 train_rows = evaluate_maps(folder, train_paths, root)
@@ -441,7 +343,7 @@ def _train(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                     "train": summarize(train_rows),
                     "per_map": {"validation": val_rows, "train": train_rows},
                 }
-                (folder / pn.META_FILE).write_text(
+                (folder / pm.META_FILE).write_text(
                     json.dumps(meta, indent=2, default=str) + "\n", encoding="utf-8"
                 )
             (folder / CARD_FILE).write_text(model_card(meta), encoding="utf-8")
@@ -504,16 +406,4 @@ def main_train(cfg: TrainConfig) -> dict[str, Any]:
         raise MapdError(f"training failed: {first}") from None
 
 
-__all__ = [
-    "PreparedMap",
-    "TileBatch",
-    "TrainConfig",
-    "evaluate_maps",
-    "map_group",
-    "model_card",
-    "prepare_map",
-    "sample_tiles",
-    "split_maps",
-    "summarize",
-    "train",
-]
+__all__ = ["main_train", "train"]

@@ -9,15 +9,12 @@ Routes (everything else is 404; with a token configured, any request without it 
 Read-only: nothing here changes the daemon. Messages are encoded off the loop (the map on the
 output thread) or are small (the status); the loop only hands shared ``bytes`` to each viewer's
 bounded :class:`~mapd.view.queue.ClientQueue` and writes them. At most ``max_viewers`` streams run at
-once; one more gets a 503. At most ``max_connections`` sockets are open at once (one more gets a 503
-and is closed before anything is read), an idle one closes after ``IDLE_TIMEOUT_S`` and a stream
-that takes nothing for ``WRITE_TIMEOUT_S`` is cut, and so is a client that does not take a page,
-asset or refusal within it (pipelined requests, never read); a stream's frames go out in slices,
-so a stuck viewer holds a slice, not its own copy of the map. The connection cap is fitted to the
-process's open-file limit (each socket is counted from the moment it is accepted, so a burst cannot
-slip past it). A malformed request is counted (``bad_requests``), and so is a client that leaves
-before its answer is written (``left_early``), not logged with a traceback: a client cannot fill
-the journal.
+once; one more gets a 503. At most ``max_connections`` sockets are open at once, each counted from
+its accept, one more refused, the cap fitted to the open-file limit, and malformed requests and
+clients gone counted instead of logged (:mod:`mapd.view.connections`). An idle socket closes after
+``IDLE_TIMEOUT_S`` and a stream that takes nothing for ``WRITE_TIMEOUT_S`` is cut, and so is a
+client that does not take a page, asset or refusal within it (pipelined requests, never read); a
+stream's frames go out in slices, so a stuck viewer holds a slice, not its own copy of the map.
 Without a token (a loopback listen), only requests naming a loopback host are served: a web page
 that rebinds its own DNS name to 127.0.0.1 still sends its own name as ``Host``. The token is
 checked per request, so :meth:`ViewServer.set_token` (a reload) takes effect at once.
@@ -32,7 +29,6 @@ import asyncio
 import contextlib
 import hmac
 import logging
-import resource
 import secrets
 import time
 from collections.abc import Awaitable, Callable
@@ -42,10 +38,10 @@ from typing import Any
 from urllib.parse import quote
 
 from aiohttp import hdrs, web
-from aiohttp.http_exceptions import HttpProcessingError
 
 from mapd.config import is_loopback
 from mapd.errors import DaemonError
+from mapd.view.connections import _Counted, _HttpLog, _Refused, fit_open_files
 from mapd.view.model import StatusModel
 from mapd.view.queue import ClientQueue, Message, sse
 
@@ -79,113 +75,8 @@ _HEADERS = {
 }
 
 
-_REFUSED = b"503: too many connections; try again later\n"
-
-
 def _asset(name: str) -> bytes:
     return resources.files("mapd.view").joinpath("static", name).read_bytes()
-
-
-class _Refused(asyncio.Protocol):
-    """A connection past ``max_connections``: one 503, then closed, before anything is read.
-
-    A client that sent its request already may see a reset instead (the kernel resets a socket
-    closed with unread input); either way it is gone at once and costs nothing.
-    """
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        transport.write(
-            b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
-            b"Retry-After: 10\r\nConnection: close\r\n"
-            + f"Content-Length: {len(_REFUSED)}\r\n\r\n".encode()
-            + _REFUSED
-        )
-        transport.close()
-
-
-def fit_open_files(need: int) -> int:
-    """How many open files this process may have, raised towards ``need`` when the hard limit allows.
-
-    systemd starts services with a soft limit of 1024 (for select(), which nothing here uses) and
-    a far higher hard one, and asks programs that need more to raise the soft limit themselves.
-    """
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or soft >= need:
-        return need
-    target = need if hard == resource.RLIM_INFINITY else min(need, hard)
-    if target > soft:
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
-            soft = target
-        except (ValueError, OSError):
-            pass
-    return soft
-
-
-class _HttpLog(logging.LoggerAdapter):
-    """aiohttp's server logger: a malformed request or a client gone is counted, not logged with a traceback.
-
-    aiohttp logs every request it cannot parse (a doubled Host, a bare LF, a NUL in a header) as
-    "Error handling request" with a traceback: 800 bytes of journal each, 1.5 MB a second from one
-    client; and so a handler that a client's reset ended mid-write (2 KB each). The handlers catch
-    the resets they know of; this is the backstop. A bug in a handler (anything else) is still
-    logged whole.
-    """
-
-    def __init__(self, counters: dict[str, int]) -> None:
-        super().__init__(logging.getLogger("mapd.view.http"), {})
-        self.counters = counters
-
-    def exception(self, msg: object, *args: object, exc_info: Any = True, **kw: Any) -> None:
-        if isinstance(exc_info, HttpProcessingError):
-            self.counters["bad_requests"] += 1
-            self.logger.debug("view: a malformed request (%s)", exc_info.message)
-            return
-        if isinstance(exc_info, ConnectionError):
-            self.counters["left_early"] += 1
-            self.logger.debug("view: the client left (%s)", exc_info)
-            return
-        self.logger.error(msg, *args, exc_info=exc_info, **kw)
-
-
-class _Counted(asyncio.Protocol):
-    """aiohttp's protocol for one socket, counted open from its accept to its close.
-
-    aiohttp's own count of connections grows only in ``connection_made``, which the loop calls
-    after it has accepted every socket waiting in the backlog: a burst of 100 sockets all saw the
-    count from before it, and all were taken past a cap of 4.
-    """
-
-    def __init__(self, inner: asyncio.Protocol, closed: Callable[[], None]) -> None:
-        self._inner = inner
-        self._closed: Callable[[], None] | None = closed
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self._inner.connection_made(transport)
-
-    def data_received(self, data: bytes) -> None:
-        self._inner.data_received(data)
-
-    def eof_received(self) -> bool | None:
-        return self._inner.eof_received()
-
-    def pause_writing(self) -> None:
-        self._inner.pause_writing()
-
-    def resume_writing(self) -> None:
-        self._inner.resume_writing()
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)  # anything else asked of aiohttp's protocol
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        try:
-            self._inner.connection_lost(exc)
-        finally:
-            if self._closed is not None:  # once, however often the transport says it
-                self._closed()
-                self._closed = None
 
 
 @dataclass(eq=False)

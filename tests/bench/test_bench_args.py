@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mapd.cli import build_parser, main
-from mapd.grid import OccupancyGrid, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.save import save_map
 
 REFUSED_WHILE_PARSING = [
     (["codec", "--limit", "0"], "--limit"),

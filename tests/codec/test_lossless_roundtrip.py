@@ -14,7 +14,8 @@ from hypothesis.extra.numpy import arrays
 from mapd.codec import decode, encode, read_header
 from mapd.codec.base import CodecOptions
 from mapd.codec.lossless import LosslessCodec, LosslessOptions, alignment
-from mapd.grid import OccupancyGrid, Pose2D, load_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
 
 RES = 0.05
 TRINARY = np.array([-1, 0, 100], dtype=np.int8)

@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapd.codec import api, huffman
+from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.codec.paper import (
     FLAG_FREE,
@@ -38,15 +39,15 @@ def make_model(folder: Path, seed: int, levels: int = 16) -> None:
     torch.manual_seed(seed)
     net = pn.PaperNet(levels)
     folder.mkdir(parents=True)
-    sha = pn.write_weights(folder / pn.WEIGHTS_FILE, pn.state_arrays(net))
+    sha = pm.write_weights(folder / pm.WEIGHTS_FILE, pm.state_arrays(net))
     meta = {
         "name": folder.name,
-        "format": pn.MODEL_FORMAT,
+        "format": pm.MODEL_FORMAT,
         "levels": levels,
         "channels": 16,
         "weights_sha256": sha,
     }
-    (folder / pn.META_FILE).write_text(json.dumps(meta))
+    (folder / pm.META_FILE).write_text(json.dumps(meta))
 
 
 def room_grid_of(h: int, w: int, seed: int) -> OccupancyGrid:
@@ -163,26 +164,26 @@ def test_missing_model_names_the_models_that_are_there(tmp_path: Path) -> None:
     make_model(tmp_path / "paper-v9", seed=5)
     make_model(tmp_path / "other", seed=6)
     with pytest.raises(CodecError, match=r"paper-v1 needs .*: other, paper-v9\)"):
-        pn.load_model(tmp_path / "paper-v1")
+        pm.load_model(tmp_path / "paper-v1")
 
 
 def test_tampered_weights_are_refused(tmp_path: Path) -> None:
     make_model(tmp_path / "m", seed=5)
-    weights = tmp_path / "m" / pn.WEIGHTS_FILE
+    weights = tmp_path / "m" / pm.WEIGHTS_FILE
     data = bytearray(weights.read_bytes())
     data[-20] ^= 0x01
     weights.write_bytes(bytes(data))
     with pytest.raises(CodecError, match=r"does not match model\.json"):
-        pn.load_model(tmp_path / "m")
+        pm.load_model(tmp_path / "m")
 
 
 def test_weights_of_the_wrong_shape_are_refused(tmp_path: Path) -> None:
     make_model(tmp_path / "m", seed=5)
-    meta = json.loads((tmp_path / "m" / pn.META_FILE).read_text())
+    meta = json.loads((tmp_path / "m" / pm.META_FILE).read_text())
     meta["channels"] = 8
-    (tmp_path / "m" / pn.META_FILE).write_text(json.dumps(meta))
+    (tmp_path / "m" / pm.META_FILE).write_text(json.dumps(meta))
     with pytest.raises(CodecError, match=r"shape|do not fit"):
-        pn.load_model(tmp_path / "m")
+        pm.load_model(tmp_path / "m")
 
 
 @pytest.mark.parametrize(
@@ -191,14 +192,14 @@ def test_weights_of_the_wrong_shape_are_refused(tmp_path: Path) -> None:
 )
 def test_damaged_model_metadata_is_one_codec_error(tmp_path: Path, damage: str) -> None:
     make_model(tmp_path / "m", seed=5)
-    path = tmp_path / "m" / pn.META_FILE
+    path = tmp_path / "m" / pm.META_FILE
     text = path.read_text()
     # 1e999 reads as inf, which int() cannot take (OverflowError); deep nesting, RecursionError
     path.write_text(
         damage if damage.startswith("[") else text.rstrip()[:-1] + ", " + damage + "}"
     )  # last wins
     with pytest.raises(CodecError, match=r"unreadable model metadata"):
-        pn.load_model(tmp_path / "m")
+        pm.load_model(tmp_path / "m")
 
 
 def test_models_root_follows_option_then_environment(
@@ -283,7 +284,7 @@ def test_single_class_maps_come_back_as_that_class(models: Path) -> None:
 
 
 def test_tiled_inference_equals_the_whole_map_network(models: Path) -> None:
-    model = pn.load_model(models / "tiny-a")
+    model = pm.load_model(models / "tiny-a")
     model.tile = 8  # many tiles, constant and not
     grid = room_grid_of(70, 90, seed=11)
     x = pn.map_to_input(grid.data)
@@ -312,7 +313,7 @@ def test_tiled_inference_equals_the_whole_map_network(models: Path) -> None:
 
 
 def test_constant_tiles_match_the_network(models: Path) -> None:
-    model = pn.load_model(models / "tiny-b")
+    model = pm.load_model(models / "tiny-b")
     values = pn.map_to_input(np.array([-1, 0, 100], dtype=np.int8))
     syms = model.symbols_for_constants(values)
     net = model.net.eval()

@@ -11,22 +11,22 @@ import numpy as np
 import pytest
 
 from mapd.codec import api, metrics
-from mapd.codec import paper_net as pn
+from mapd.codec import paper_model as pm
 from mapd.codec.paper import DEFAULT_MODEL, PaperCodec, PaperOptions
 from mapd.data import REPO_ROOT, map_label
-from mapd.grid import load_map
+from mapd.grid.load import load_map
 
 MODEL = REPO_ROOT / "models" / DEFAULT_MODEL
-pytestmark = pytest.mark.skipif(not (MODEL / pn.META_FILE).is_file(), reason=f"{MODEL} not present")
+pytestmark = pytest.mark.skipif(not (MODEL / pm.META_FILE).is_file(), reason=f"{MODEL} not present")
 
 
 @pytest.fixture(scope="module")
 def meta() -> dict:
-    return json.loads((MODEL / pn.META_FILE).read_text())
+    return json.loads((MODEL / pm.META_FILE).read_text())
 
 
 def test_card_names_the_weights_sha256(meta: dict) -> None:
-    sha = hashlib.sha256((MODEL / pn.WEIGHTS_FILE).read_bytes()).hexdigest()
+    sha = hashlib.sha256((MODEL / pm.WEIGHTS_FILE).read_bytes()).hexdigest()
     assert meta["weights_sha256"] == sha
     card = (MODEL / "MODEL_CARD.md").read_text()
     assert sha in card

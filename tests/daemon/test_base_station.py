@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import pytest
 
 from mapd.demo.fleet import Fleet, write_config
-from mapd.grid import load_map
+from mapd.grid.load import load_map
 
 pytestmark = pytest.mark.slow
 

@@ -30,7 +30,8 @@ from mapd.daemon.versions import split
 from mapd.errors import MapFileError
 from mapd.files import atomic_write_bytes
 from mapd.fusion.store import GLOBAL_YAML
-from mapd.grid import OccupancyGrid, load_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
 from mapd.imaging import read_pixels
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -47,10 +47,12 @@ from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import query
 from mapd.demo.ports import free_ports
 from mapd.errors import DaemonError, StateError
-from mapd.files import WriteOutage
+from mapd.files.outage import WriteOutage
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult
 from mapd.fusion.store import FusionStore
-from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 from mapd.identity import Identity, read_identity
 from mapd.mapping.synthetic import room_grid
 from mapd.outputs import files as files_output
@@ -101,15 +103,37 @@ def _namespace_problem(where: Path) -> str | None:
     return None
 
 
+def in_tmpfs(disk: Path, size: str, script: str) -> subprocess.CompletedProcess[str]:
+    """Python ``script`` run with ``disk`` as its first argument, in a user + mount namespace where
+    a tmpfs of ``size`` is mounted on ``disk``."""
+    return subprocess.run(
+        [
+            "unshare",
+            "-rm",
+            "sh",
+            "-c",
+            f'mount -t tmpfs -o size={size} tmpfs "$0" && exec "$PY" -c "$1" "$0"',
+            disk,
+            script,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PY": sys.executable},
+        cwd=ROOT,
+    )
+
+
 class FullDisk:
     """A tmpfs of ``size`` at ``disk`` in a namespace of its own, and the daemons run inside it."""
 
-    def __init__(self, disk: Path, size: str) -> None:
+    def __init__(self, disk: Path, size: str | None, control: str = CONTROL) -> None:
+        """``control``: the namespace's shell script (``size`` its second argument, if any)."""
         self.disk = disk
         self.pids: dict[str, int] = {}
         disk.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(
-            ["unshare", "-rm", "sh", "-c", CONTROL, "control", str(disk), size],
+            ["unshare", "-rm", "sh", "-c", control, "control", str(disk), *([size] if size else [])],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -479,13 +503,17 @@ def test_a_daemon_whose_disk_fills_runs_on_says_it_once_keeps_its_files_and_writ
         )
         assert text.returncode == 0 and "record  FAULTS" in text.stdout, text
         assert "output  files: FAULTS not writing (disk full?)" in text.stdout, text.stdout
-        assert "state   FAULTS state dir not writable (disk full?): own maps held back" in text.stdout, (
-            text.stdout
-        )
+        assert (
+            "state   FAULTS state dir not writable (disk full, read-only or gone?): own maps held back"
+            in text.stdout
+        ), text.stdout
         assert during["state"]["writing"] is False and "No space left on device" in during["state"]["error"]
         assert during["state"]["global_map"]["writing"] is False and during["state"]["failures"] >= 2
         line = status_line(during)
-        assert line.startswith("FAULTS ") and "state dir not writable (disk full?)" in line.split(" | ")[0]
+        assert (
+            line.startswith("FAULTS ")
+            and "state dir not writable (disk full, read-only or gone?)" in line.split(" | ")[0]
+        )
         assert "global map not saved" in line and "output.files not writing (disk full?)" in line
         assert "state   FAULTS" in render_status(during)  # (the text above, from the same document)
         # A version is never sent unsaved (after a restart its number could come again): robot0
@@ -721,22 +749,7 @@ def test_a_csv_log_on_a_full_disk_never_leaves_a_torn_row(tmp_path: Path) -> Non
         pytest.skip(problem)
     disk = tmp_path / "disk"
     disk.mkdir()
-    done = subprocess.run(
-        [
-            "unshare",
-            "-rm",
-            "sh",
-            "-c",
-            'mount -t tmpfs -o size=1m tmpfs "$0" && exec "$PY" -c "$1" "$0"',
-            disk,
-            CSV_ON_A_FULL_DISK,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env={**os.environ, "PY": sys.executable},
-        cwd=ROOT,
-    )
+    done = in_tmpfs(disk, "1m", CSV_ON_A_FULL_DISK)
     assert done.returncode == 0, done.stderr
     rows = json.loads(done.stdout)
     assert rows[0] == ["time", "robot", "version"] and all(len(r) == 3 for r in rows), rows

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from mapd.commands.daemon import render_status
-from mapd.daemon.state import lock_state_dir
+from mapd.daemon.state_lock import lock_state_dir
 from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet
 from mapd.identity import Identity
@@ -302,7 +302,8 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(
     merge of each robot's last map at the configured start poses. Both daemons must end there.
     """
     from mapd.fusion.merge import merge
-    from mapd.grid import Pose2D, load_map
+    from mapd.grid import Pose2D
+    from mapd.grid.load import load_map
 
     args = argparse.Namespace(
         robots=2, transport="uwb", codec="lossless", log=None, seed=7, out=tmp_path, duration=60.0,
@@ -575,7 +576,7 @@ def test_a_radio_not_there_at_start_leaves_the_other_link_running(tmp_path: Path
     """A robot with UWB and zenoh whose radio the kernel has not named yet at boot: the daemon
     runs, zenoh carries its map, and it says what it lacks (it stopped, zenoh and all, before)."""
     from mapd.demo.ports import free_endpoint
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
     from mapd.mapping.synthetic import room_grid
 
     here = free_endpoint()

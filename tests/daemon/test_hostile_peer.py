@@ -24,7 +24,8 @@ from mapd.demo.fleet import write_config
 from mapd.demo.ports import free_port
 from mapd.envelope import Envelope
 from mapd.errors import DaemonError
-from mapd.grid import OccupancyGrid, Pose2D, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.save import save_map
 from mapd.identity import Identity
 
 pytestmark = pytest.mark.slow

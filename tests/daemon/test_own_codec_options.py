@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from mapd import config as configmod
+from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.codec.api import encode
 from mapd.codec.paper import PaperOptions
@@ -30,15 +31,15 @@ def _model(folder: Path, seed: int) -> None:
     torch.manual_seed(seed)
     net = pn.PaperNet(16)
     folder.mkdir(parents=True)
-    sha = pn.write_weights(folder / pn.WEIGHTS_FILE, pn.state_arrays(net))
+    sha = pm.write_weights(folder / pm.WEIGHTS_FILE, pm.state_arrays(net))
     meta = {
         "name": folder.name,
-        "format": pn.MODEL_FORMAT,
+        "format": pm.MODEL_FORMAT,
         "levels": 16,
         "channels": 16,
         "weights_sha256": sha,
     }
-    (folder / pn.META_FILE).write_text(json.dumps(meta))
+    (folder / pm.META_FILE).write_text(json.dumps(meta))
 
 
 def test_a_fleet_on_a_paper_model_of_its_own_takes_each_others_maps(

@@ -30,7 +30,8 @@ import mapd.daemon.peer_saves as peer_saves_mod
 import mapd.daemon.state as state_mod
 from mapd.codec.api import encode
 from mapd.daemon.server import Daemon
-from mapd.daemon.state import SavedPeer, StateStore
+from mapd.daemon.state import StateStore
+from mapd.daemon.state_records import SavedPeer
 from mapd.daemon.status_socket import query
 from mapd.daemon.versions import incarnation_at, make
 from mapd.demo.ports import free_ports

@@ -20,7 +20,7 @@ import pytest
 
 from mapd import config as configmod
 from mapd.codec.paper import PaperOptions
-from mapd.grid import save_map
+from mapd.grid.save import save_map
 from mapd.mapping.synthetic import room_grid
 from mapd.outputs.files import FilesOptions
 from mapd.sources.base import SourceContext

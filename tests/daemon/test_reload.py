@@ -17,12 +17,12 @@ from types import SimpleNamespace
 import pytest
 
 from mapd import config as configmod
-from mapd import files
 from mapd.commands.daemon import render_status
 from mapd.daemon import reload
 from mapd.daemon.server import Daemon
 from mapd.daemon.state import StateStore
 from mapd.errors import ConfigError
+from mapd.files import reading
 from mapd.identity import Identity
 
 
@@ -428,7 +428,7 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
             f.procs["robot0"].send_signal(signal.SIGHUP)
             snaps = fk.wait_for(
                 lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 4,
-                files.READ_TIMEOUT_S + 30,
+                reading.READ_TIMEOUT_S + 30,
                 f,
             )
         finally:
@@ -441,7 +441,7 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
     log = (f.run_dir / "robot0" / "daemon.log").read_text()
     refusals = [ln for ln in log.splitlines() if "reload refused" in ln]
     assert len(refusals) == 2 and all(str(cfg0) in line for line in refusals) and "Traceback" not in log
-    assert f"did not finish it in {files.READ_TIMEOUT_S:g} s" in refusals[1]
+    assert f"did not finish it in {reading.READ_TIMEOUT_S:g} s" in refusals[1]
 
 
 def test_a_reload_that_fails_unexpectedly_leaves_the_daemon_running(

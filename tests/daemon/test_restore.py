@@ -18,7 +18,8 @@ import pytest
 from mapd import config as configmod
 from mapd.daemon.intake import Decode, Drop
 from mapd.daemon.server import Daemon
-from mapd.daemon.state import StateStore, lock_state_dir
+from mapd.daemon.state import StateStore
+from mapd.daemon.state_lock import lock_state_dir
 from mapd.daemon.versions import incarnation_at, make, split
 from mapd.envelope import Envelope
 from mapd.errors import StateError

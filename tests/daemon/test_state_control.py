@@ -18,11 +18,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mapd.daemon.state import MAX_STATE_JSON, StateStore, lock_state_dir
+from mapd.daemon.state import StateStore
+from mapd.daemon.state_lock import lock_state_dir
+from mapd.daemon.state_records import MAX_STATE_JSON
 from mapd.daemon.status_socket import StatusServer, query
 from mapd.daemon.systemd import JournalFormatter, notify, watchdog_interval
 from mapd.errors import DaemonError, StateError
-from mapd.grid import OccupancyGrid, Pose2D, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.save import save_map
 
 
 def test_state_round_trip(tmp_path: Path, room_grid: OccupancyGrid) -> None:
@@ -342,7 +345,7 @@ def test_a_state_directory_is_held_by_one_daemon_at_a_time(tmp_path: Path) -> No
         with pytest.raises(StateError, match=f"in use by another mapd \\(pid {os.getpid()}\\)"):
             lock_state_dir(tmp_path / "s")
         # another process too (flock is the kernel's)
-        code = f"from pathlib import Path; from mapd.daemon.state import lock_state_dir; lock_state_dir(Path({str(tmp_path / 's')!r}))"
+        code = f"from pathlib import Path; from mapd.daemon.state_lock import lock_state_dir; lock_state_dir(Path({str(tmp_path / 's')!r}))"
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
         assert out.returncode != 0 and "in use by another mapd" in out.stderr
     finally:

@@ -22,7 +22,7 @@ import pytest
 
 from mapd.daemon.headline import MAX_LINE, status_line
 from mapd.daemon.versions import make as compose
-from mapd.grid import save_map
+from mapd.grid.save import save_map
 from mapd.mapping.synthetic import room_grid
 
 
@@ -99,12 +99,12 @@ def test_a_status_bug_costs_the_line_not_the_daemon(
 ) -> None:
     import asyncio
 
-    from mapd.daemon import server
+    from mapd.daemon import notifier
 
     sent: list[str] = []
     monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody"))
-    monkeypatch.setattr(server, "STATUS_PERIOD_S", 0.01)
-    monkeypatch.setattr(server, "notify", sent.append)
+    monkeypatch.setattr(notifier, "STATUS_PERIOD_S", 0.01)
+    monkeypatch.setattr(notifier, "notify", sent.append)
     d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
     calls = 0
 
@@ -134,12 +134,12 @@ def test_a_reload_keeps_the_status_line_not_running(
     status at every reload."""
     import asyncio
 
-    from mapd.daemon import server
+    from mapd.daemon import notifier
 
     sent: list[str] = []
     monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody"))
-    monkeypatch.setattr(server, "STATUS_PERIOD_S", 0.01)
-    monkeypatch.setattr(server, "notify", sent.append)
+    monkeypatch.setattr(notifier, "STATUS_PERIOD_S", 0.01)
+    monkeypatch.setattr(notifier, "notify", sent.append)
     d, _ = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
 
     async def main() -> None:
@@ -161,9 +161,9 @@ def _slow_start(
 ) -> tuple[Any, threading.Event, threading.Event]:
     """A daemon whose source's start pose blocks until ``release`` (``entered`` once it does), with
     sd_notify's messages collected in ``sent``."""
-    from mapd.daemon import server
+    from mapd.daemon import notifier
 
-    monkeypatch.setattr(server, "notify", sent.append)
+    monkeypatch.setattr(notifier, "notify", sent.append)
     d, source = dk.virtual_daemon(tmp_path, "robot0", dk.channel())
     entered, release = threading.Event(), threading.Event()
 

@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 
 
 def _mapd(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

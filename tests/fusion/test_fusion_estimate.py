@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from mapd.fusion import synth
 from mapd.fusion.estimate import Estimate, check_transform, estimate_transform
 from mapd.fusion.transforms import apply, compose, inverse, pose_distance
-from mapd.grid import OccupancyGrid, Pose2D, load_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
 
 
 def _errors(est: Estimate, truth: Pose2D, b: OccupancyGrid) -> tuple[float, float]:

@@ -347,7 +347,7 @@ def test_features_drawn_shrunk_still_propose_the_true_placement_on_a_large_map(
     # map (seeds 0 to 5 all found it, as without the shrink; on small crops forced to shrink, half
     # lose it, which is why small maps are drawn whole).
     from mapd.fusion import candidates as cand
-    from mapd.grid import load_map
+    from mapd.grid.load import load_map
 
     path = next((p for p in shared_maps if p.parent.name == "infinite-corridor"), None)
     if path is None:

@@ -238,7 +238,7 @@ def test_a_global_image_not_matching_its_yaml_is_one_warning_and_a_new_global_ma
 
 def test_a_global_map_of_an_earlier_release_is_still_restored(tmp_path: Path) -> None:
     # global.yaml + global.pgm, no version or digest in the YAML: as an earlier release wrote them
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
 
     grid = _global_room(7, 100).grid
     save_map(grid, tmp_path / "global.yaml")

@@ -24,7 +24,8 @@ from mapd.fusion.estimate import SearchStopped, estimate_transform
 from mapd.fusion.placer import STOPPED, Placer
 from mapd.fusion.store import GLOBAL_YAML, TRANSFORMS_JSON
 from mapd.fusion.worker import FusionWorker
-from mapd.grid import OccupancyGrid, Pose2D, load_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
 
 ZERO = Pose2D(0.0, 0.0, 0.0)
 

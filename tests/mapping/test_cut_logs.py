@@ -21,7 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mapd.errors import SourceError
-from mapd.grid import Pose2D, load_map
+from mapd.grid import Pose2D
+from mapd.grid.load import load_map
 from mapd.mapping import carmen
 from mapd.mapping.mapper import first_pose, replay_log
 from tests.mapping.cutlog import blocked_gzip, scan_lines, whole_lines, write_prefix

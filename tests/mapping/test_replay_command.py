@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from mapd.cli import main
-from mapd.grid import Pose2D, load_map
+from mapd.grid import Pose2D
+from mapd.grid.load import load_map
 from mapd.mapping.mapper import replay_log
 
 BoxLog = Callable[..., tuple[Path, list[Pose2D]]]

@@ -21,7 +21,9 @@ from mapd.codec import decode
 from mapd.demo.ports import free_endpoint, free_port
 from mapd.envelope import unpack
 from mapd.errors import MapFileError
-from mapd.grid import OccupancyGrid, Pose2D, load_map, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 from mapd.identity import Identity, Roster
 from mapd.outputs.base import GlobalUpdate, OutputContext
 from mapd.outputs.files import FilesOptions, FilesOutput

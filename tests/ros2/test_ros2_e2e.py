@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from mapd.demo.fleet import Fleet
-from mapd.grid import load_map
+from mapd.grid.load import load_map
 
 pytestmark = pytest.mark.slow
 

@@ -25,15 +25,10 @@ import pytest
 from PIL import Image
 
 from mapd.errors import LimitError, MapdError, MapFileError
-from mapd.grid import (
-    MAX_YAML_BYTES,
-    PLAIN_PNM_MAX_CELLS,
-    OccupancyGrid,
-    Pose2D,
-    load_map,
-    read_map_yaml,
-    save_map,
-)
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import MAX_YAML_BYTES, load_map, read_map_yaml
+from mapd.grid.save import save_map
+from mapd.imaging import PLAIN_PNM_MAX_CELLS
 from mapd.mapping.synthetic import room_grid
 
 YAML = "image: {image}\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n"

@@ -32,9 +32,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd import config, files
+from mapd import config
 from mapd.errors import ConfigError, MapFileError
-from mapd.grid import OccupancyGrid, read_map_yaml, save_map, short_repr
+from mapd.files import reading
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import read_map_yaml
+from mapd.grid.reprs import short_repr
+from mapd.grid.save import save_map
 from mapd.keys import read_key_file
 
 MAPD = [sys.executable, "-m", "mapd"]
@@ -214,7 +218,7 @@ def test_a_pipe_with_a_writer_is_still_read_as_a_key() -> None:
 @pytest.fixture
 def held_fifo(fifo: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
     """A FIFO whose writer holds it open and writes nothing, and a short read deadline."""
-    monkeypatch.setattr(files, "READ_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(reading, "READ_TIMEOUT_S", 0.5)
     fd = os.open(fifo, os.O_RDWR)  # a writer that never closes it (O_RDWR opens without waiting)
     try:
         yield fifo
@@ -234,7 +238,7 @@ def test_a_fifo_held_open_by_its_writer_is_given_up_after_the_deadline(held_fifo
 
 
 def test_a_pipe_read_in_pieces_is_read_whole(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(files, "READ_TIMEOUT_S", 5.0)
+    monkeypatch.setattr(reading, "READ_TIMEOUT_S", 5.0)
     r, w = os.pipe()
 
     def write() -> None:  # a slow writer that finishes within the deadline
@@ -246,7 +250,7 @@ def test_a_pipe_read_in_pieces_is_read_whole(monkeypatch: pytest.MonkeyPatch) ->
     t = threading.Thread(target=write)
     t.start()
     try:
-        assert files.read_capped(Path(f"/dev/fd/{r}"), 1000) == b'[robot]\nname = "r0"\n'
+        assert reading.read_capped(Path(f"/dev/fd/{r}"), 1000) == b'[robot]\nname = "r0"\n'
     finally:
         t.join()
         os.close(r)

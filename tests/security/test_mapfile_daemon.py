@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from mapd.daemon.versions import incarnation_at, split
-from mapd.grid import OccupancyGrid, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.save import save_map
 from mapd.mapping.synthetic import room_grid
 
 pytestmark = pytest.mark.slow

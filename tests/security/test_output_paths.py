@@ -26,9 +26,12 @@ import numpy as np
 import pytest
 
 from mapd.errors import MapFileError
-from mapd.files import NotRegularFileError, atomic_write_bytes
+from mapd.files import atomic_write_bytes
+from mapd.files.reading import NotRegularFileError
 from mapd.fusion.merge import NO_OWNER, MergeResult, colour_image
-from mapd.grid import OccupancyGrid, load_map, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
 
 Run = Callable[..., subprocess.CompletedProcess[str]]
 OneLine = Callable[..., str]

@@ -12,7 +12,8 @@ import pytest
 from mapd import plugins
 from mapd.codec.metrics import occupied_f1
 from mapd.errors import SourceError
-from mapd.grid import OccupancyGrid, Pose2D, load_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.load import load_map
 from mapd.mapping.mapper import first_pose, replay_log, resample
 from mapd.sources.base import SourceContext
 from mapd.sources.laserlog import LaserLogOptions, LaserLogSource

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from mapd import plugins
-from mapd.grid import OccupancyGrid, Pose2D, save_map
+from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid.save import save_map
 from mapd.sources.base import SourceContext
 from mapd.sources.mapfile import MapFileOptions, MapFileSource
 

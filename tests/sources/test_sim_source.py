@@ -12,7 +12,8 @@ import pytest
 from pydantic import ValidationError
 
 from mapd import plugins
-from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D, save_map
+from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D
+from mapd.grid.save import save_map
 from mapd.mapping import worldgen
 from mapd.mapping.lidar import Lidar
 from mapd.mapping.mapper import resample

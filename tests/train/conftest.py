@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapd.grid import OccupancyGrid, save_map
+from mapd.grid import OccupancyGrid
+from mapd.grid.save import save_map
 
 
 def write_rooms(root: Path, places: list[str], height: int, width: int) -> Path:

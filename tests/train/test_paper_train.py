@@ -12,10 +12,15 @@ import torch
 
 from mapd import cli
 from mapd.codec import api
+from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.codec.paper import PaperOptions
-from mapd.grid import OccupancyGrid, load_map, save_map
-from mapd.train.loop import TrainConfig, map_group, prepare_map, sample_tiles, split_maps, train
+from mapd.grid import OccupancyGrid
+from mapd.grid.load import load_map
+from mapd.grid.save import save_map
+from mapd.train.data import map_group, prepare_map, sample_tiles, split_maps
+from mapd.train.loop import train
+from mapd.train.settings import TrainConfig
 
 PLACES = ["hall_a", "hall_b", "lab", "office_2019", "office_2020", "store", "yard"]
 
@@ -57,8 +62,8 @@ def test_mapd_train_end_to_end(map_dir: Path, tmp_path: Path, capsys: pytest.Cap
     assert "loss=" in captured.err  # the progress bar shows the loss
     assert "weights sha256" in captured.out
 
-    meta = json.loads((out / pn.META_FILE).read_text())
-    weights = (out / pn.WEIGHTS_FILE).read_bytes()
+    meta = json.loads((out / pm.META_FILE).read_text())
+    weights = (out / pm.WEIGHTS_FILE).read_bytes()
     assert meta["weights_sha256"] == hashlib.sha256(weights).hexdigest()
     assert [h["epoch"] for h in meta["training"]["history"]] == [1, 2]
     assert all(np.isfinite(h["train_mse"]) for h in meta["training"]["history"])
@@ -86,7 +91,7 @@ def test_same_seed_same_weights_other_seed_other_weights(map_dir: Path, tmp_path
     b = train(_cfg(map_dir, tmp_path / "b", seed=7, evaluate=False))
     c = train(_cfg(map_dir, tmp_path / "c", seed=8, evaluate=False))
     assert a["weights_sha256"] == b["weights_sha256"]
-    assert (tmp_path / "a" / pn.WEIGHTS_FILE).read_bytes() == (tmp_path / "b" / pn.WEIGHTS_FILE).read_bytes()
+    assert (tmp_path / "a" / pm.WEIGHTS_FILE).read_bytes() == (tmp_path / "b" / pm.WEIGHTS_FILE).read_bytes()
     assert a["training"]["history"] == b["training"]["history"]
     assert a["weights_sha256"] != c["weights_sha256"]
     assert a["split"] == c["split"]  # the split depends on the maps, not the seed

@@ -21,17 +21,20 @@ import pytest
 import torch
 
 from mapd import cli
+from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.errors import ConfigError, MapdError
 from mapd.grid import OccupancyGrid
 from mapd.train import install, loop
 from mapd.train import snapshots as sn
-from mapd.train.loop import TrainConfig, main_train, sample_tiles, train
+from mapd.train.data import sample_tiles
+from mapd.train.loop import main_train, train
+from mapd.train.settings import TrainConfig
 
 from .conftest import write_rooms
 
 PLACES = ["hall", "lab", "office", "store"]
-MODEL_FILES = (pn.WEIGHTS_FILE, pn.META_FILE, "MODEL_CARD.md")
+MODEL_FILES = (pm.WEIGHTS_FILE, pm.META_FILE, "MODEL_CARD.md")
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +138,7 @@ def test_failed_write_leaves_the_old_model_whole(
     train(_cfg(map_dir, out, seed=1))
     old = _files(out)
     full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-    real_write_weights, real_model_card = pn.write_weights, loop.model_card
+    real_write_weights, real_model_card = pm.write_weights, loop.model_card
 
     def write_weights(path: Path, arrays: dict[str, np.ndarray]) -> str:
         path.write_bytes(b"")  # a full disk: the file is created, its bytes never arrive
@@ -145,7 +148,7 @@ def test_failed_write_leaves_the_old_model_whole(
         raise full
 
     if fails == "weights":
-        monkeypatch.setattr(pn, "write_weights", write_weights)
+        monkeypatch.setattr(pm, "write_weights", write_weights)
     else:
         monkeypatch.setattr(loop, "model_card", model_card)
     with pytest.raises(MapdError, match="No space left on device"):
@@ -154,14 +157,14 @@ def test_failed_write_leaves_the_old_model_whole(
     assert os.listdir(out.parent) == ["tiny"]  # nothing staged is left behind
 
     # The next run that can write replaces the model whole.
-    monkeypatch.setattr(pn, "write_weights", real_write_weights)
+    monkeypatch.setattr(pm, "write_weights", real_write_weights)
     monkeypatch.setattr(loop, "model_card", real_model_card)
     meta = train(_cfg(map_dir, out, seed=2))
     new = _files(out)
     assert sorted(new) == sorted(MODEL_FILES) and new != old
-    assert json.loads(new[pn.META_FILE])["weights_sha256"] == hashlib.sha256(new[pn.WEIGHTS_FILE]).hexdigest()
-    assert meta["weights_sha256"] == json.loads(new[pn.META_FILE])["weights_sha256"]
-    assert pn.load_model(out).sha256 == meta["weights_sha256"]
+    assert json.loads(new[pm.META_FILE])["weights_sha256"] == hashlib.sha256(new[pm.WEIGHTS_FILE]).hexdigest()
+    assert meta["weights_sha256"] == json.loads(new[pm.META_FILE])["weights_sha256"]
+    assert pm.load_model(out).sha256 == meta["weights_sha256"]
     assert os.listdir(out.parent) == ["tiny"]
 
 
@@ -216,7 +219,7 @@ def test_out_of_memory_is_one_line(map_dir: Path, tmp_path: Path, monkeypatch: p
 def test_model_with_non_finite_weights_is_not_saved(
     map_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = pn.state_arrays
+    real = pm.state_arrays
 
     def nan_arrays(net: pn.PaperNet) -> dict[str, np.ndarray]:
         arrays = real(net)
@@ -224,7 +227,7 @@ def test_model_with_non_finite_weights_is_not_saved(
         arrays[first] = np.full_like(arrays[first], np.nan)
         return arrays
 
-    monkeypatch.setattr(pn, "state_arrays", nan_arrays)
+    monkeypatch.setattr(pm, "state_arrays", nan_arrays)
     with pytest.raises(MapdError, match="NaN or infinity"):
         main_train(_cfg(map_dir, tmp_path / "x"))
     assert not (tmp_path / "x").exists()

@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from mapd import cli
-from mapd.codec import paper_net as pn
+from mapd.codec import paper_model as pm
 from mapd.errors import ConfigError
 from mapd.train import checkpoint as ckpt
-from mapd.train.loop import TrainConfig, train
+from mapd.train.loop import train
+from mapd.train.settings import TrainConfig
 from tests.train.conftest import write_rooms
 
 
@@ -57,10 +58,10 @@ def test_a_run_stopped_and_resumed_gives_the_weights_of_an_unbroken_run(
     assert cli.main(_args(map_dir, out, "--resume")) == 0
     assert not ckpt.checkpoint_path(out).exists()
 
-    a = json.loads((straight / pn.META_FILE).read_text())
-    b = json.loads((out / pn.META_FILE).read_text())
-    assert (out / pn.WEIGHTS_FILE).read_bytes() == (straight / pn.WEIGHTS_FILE).read_bytes()
-    assert b["weights_sha256"] == hashlib.sha256((out / pn.WEIGHTS_FILE).read_bytes()).hexdigest()
+    a = json.loads((straight / pm.META_FILE).read_text())
+    b = json.loads((out / pm.META_FILE).read_text())
+    assert (out / pm.WEIGHTS_FILE).read_bytes() == (straight / pm.WEIGHTS_FILE).read_bytes()
+    assert b["weights_sha256"] == hashlib.sha256((out / pm.WEIGHTS_FILE).read_bytes()).hexdigest()
     assert a["training"]["history"] == b["training"]["history"]
     assert (a["training"]["resumed_after_epochs"], b["training"]["resumed_after_epochs"]) == ([], [1, 2])
 

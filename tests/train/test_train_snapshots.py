@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from mapd import cli
-from mapd.codec import paper_net as pn
+from mapd.codec import paper_model as pm
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.train import snapshots as sn
 from mapd.train.heldout import growing_maps, table
-from mapd.train.loop import TrainConfig, train
+from mapd.train.loop import train
+from mapd.train.settings import TrainConfig
 
 from .conftest import write_rooms
 
@@ -94,8 +95,8 @@ def test_mapd_train_snapshots_only_end_to_end(map_dir: Path, tmp_path: Path) -> 
         ]
     )  # fmt: skip
     assert rc == 0
-    meta = json.loads((out / pn.META_FILE).read_text())
-    assert (out / pn.WEIGHTS_FILE).is_file()
+    meta = json.loads((out / pm.META_FILE).read_text())
+    assert (out / pm.WEIGHTS_FILE).is_file()
     recipe = meta["training"]["recipe"]
     assert recipe["finished"] is False and recipe["finished_maps"] == 0
     assert recipe["snapshots"]["sources"] == [{"sim_seed": 5, "scans": 40, "snapshots": 2}]

@@ -26,7 +26,8 @@ from transports.uwb.framing import encode_frame
 from transports.uwb.receiving import MAX_ACKS_OWED, Partial
 from transports.uwb.relaying import RelayDriver
 from transports.uwb.signing import COUNTER_LEN, TAG_LEN, Signer, Verifier
-from transports.zenoh.core import ZenohCore, pack_ack
+from transports.zenoh.acks import pack_ack
+from transports.zenoh.core import ZenohCore
 from transports.zenoh.link import ZenohTransport
 from transports.zenoh.session import ZenohOptions
 

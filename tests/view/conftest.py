@@ -30,7 +30,8 @@ from PIL import Image
 from mapd.daemon.status_socket import query
 from mapd.demo.ports import free_port
 from mapd.errors import DaemonError
-from mapd.grid import OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D, save_map
+from mapd.grid import OCCUPIED, UNKNOWN, OccupancyGrid, Pose2D
+from mapd.grid.save import save_map
 from mapd.identity import Identity
 
 CHROMIUM_FLAGS = [

@@ -11,7 +11,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from mapd.errors import ConfigError
-from mapd.files import from_workdir
+from mapd.files.folders import from_workdir
 from transports.base import TransportOptions
 from transports.uwb.framing import MIN_FRAME
 from transports.uwb.pacing import SLOT_FRAMES

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mapd.errors import DiskFullError, StateError
-from mapd.files import atomic_write_bytes, atomic_write_json, read_capped, read_json_capped
+from mapd.files import atomic_write_bytes, atomic_write_json
+from mapd.files.reading import read_capped, read_json_capped
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,9 @@
 """The ``zenoh`` transport: pub/sub over Wi-Fi with liveliness and a keyframe queryable.
 
 * :mod:`~transports.zenoh.core` holds the rules, sans-I/O (what to publish, what to ack, when);
+  :mod:`~transports.zenoh.answers` is its side facing peers' keyframe queries (heeded, rationed),
+  :mod:`~transports.zenoh.core_types` what it gives back (steps, counters), and
+  :mod:`~transports.zenoh.acks` the signed ack payload;
 * :mod:`~transports.zenoh.link` is the asyncio adapter registered as the ``zenoh`` plugin;
   :mod:`~transports.zenoh.intake` and :mod:`~transports.zenoh.sending` are its receiving and
   sending halves (mixins over its state);

@@ -1,8 +1,9 @@
 """The sans-I/O core of the zenoh transport: what to do with each thing that arrives.
 
 No zenoh, asyncio or clock in here: the adapter (:mod:`transports.zenoh.link`) feeds it key
-expressions, payload bytes and ``now``, and carries out the :class:`Step` it gets back (events to
-emit, keyframe queries to send). The rules:
+expressions, payload bytes and ``now``, and carries out the
+:class:`~transports.zenoh.core_types.Step` it gets back (events to emit, keyframe queries to send).
+The rules:
 
 * **Verify before anything.** An update or query reply is unpacked with the fleet's roster, fleet
   id and size limit; a signature the roster does not accept (missing, another robot's key) counts
@@ -29,124 +30,38 @@ emit, keyframe queries to send). The rules:
   until its replies end or ``query_timeout_s`` passes; a gap seen meanwhile asks once more when it
   ends (the reply may predate the gap). A peer that appears with no map known yet is
   queried at once (late join). ``request_keyframe`` (the daemon could not decode) forgets the
-  robot's versions, so the keyframe that answers is accepted whatever its version. A query of our
-  own keyframe emits ``KeyframeNeeded`` for its asker only when the roster admits the asker (an
-  unknown name counts in ``unadmitted``), the asker signed it (else ``bad_signature``, or
-  ``dropped`` with no valid nonce) and its nonce is above the last one heeded from that asker (else
-  ``replayed``). The adapter answers such queries all the same, as it answers any query while
-  answers stay within their ration (:meth:`ZenohCore.may_reply`: a burst of ``REPLY_BURST``, then
-  ``REPLY_RATE_HZ``; the rest are dropped unanswered and counted in ``queries_shed``).
+  robot's versions, so the keyframe that answers is accepted whatever its version. Peers' queries
+  of our own keyframe (which are heeded, how many are answered) are
+  :mod:`transports.zenoh.answers`.
 * **Presence.** A liveliness token appearing gives ``PeerUp``, vanishing gives ``PeerDown`` and
   forgets the robot's versions. Tokens are not signed, so in a signed fleet :meth:`ZenohCore.peers`
   (the robots the daemon waits for) lists only robots that have also shown a verified message.
-* **Acks** (see :func:`pack_ack`): 8 bytes of big-endian version, plus the acking robot's 64-byte
-  Ed25519 signature in a signed fleet. A valid ack of one of our own offered versions becomes
-  ``Delivered``.
+* **Acks** (their payload: :mod:`transports.zenoh.acks`). A valid ack of one of our own offered
+  versions becomes ``Delivered``.
 """
 
 from __future__ import annotations
 
-import struct
 from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from mapd.envelope import COUNT_LIMIT, Envelope, unpack
+from mapd.envelope import Envelope, unpack
 from mapd.errors import EnvelopeError, SignatureError
-from mapd.identity import SIG_LEN, Identity, Roster
+from mapd.identity import Identity, Roster
 from transports import signed_requests
-from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received, TransportEvent
+from transports.base import Delivered, PeerDown, PeerUp, Received
 from transports.rtt import RttEstimator
 from transports.zenoh import keys, queries
+from transports.zenoh.acks import pack_ack, unpack_ack
+from transports.zenoh.answers import REPLY_BURST, AnswerSide
+from transports.zenoh.core_types import NAME, CoreCounters, Step
 
-NAME = "zenoh"
-_ACK = struct.Struct(">Q")
 #: Own versions whose offer time is kept for RTT samples.
 RTT_VERSIONS = 16
-#: Keyframe queries answered: a burst of this many, then REPLY_RATE_HZ. Anyone may query, and each
-#: answer is a whole keyframe on the uplink and a job ahead of our own map updates; a late-joining
-#: asker that is not answered still gets the keyframe its signed query makes the daemon publish.
-REPLY_BURST = 16
-REPLY_RATE_HZ = 4.0
-#: Answers waiting for the job thread at most (the adapter holds the slots).
-MAX_REPLIES_PENDING = 4
 #: Robots whose maps over ``max_message_bytes`` are said and shown (``oversize_from``); maps of
 #: more are only counted (an open roster admits any name, and names cost memory).
 MAX_OVERSIZE_SHOWN = 16
-
-
-def _ack_blob(fleet: str, peer: str, robot: str, body: bytes) -> bytes:
-    return b"mapd-ack/2\0" + "\0".join((fleet, peer, robot)).encode() + b"\0" + body
-
-
-def pack_ack(version: int, *, identity: Identity | None, fleet: str, peer: str, robot: str) -> bytes:
-    """The payload ``peer`` publishes to say it applied ``robot``'s ``version``, signed by ``peer``."""
-    if not 0 < version < COUNT_LIMIT:
-        raise ValueError(f"ack version {version} is out of range")
-    body = _ACK.pack(version)
-    if identity is None:
-        return body
-    if identity.robot != peer:
-        raise ValueError(f"robot '{identity.robot}' cannot sign an ack of '{peer}'")
-    return body + identity.sign(_ack_blob(fleet, peer, robot, body))
-
-
-def unpack_ack(data: bytes, *, roster: Roster, fleet: str, peer: str, robot: str) -> int:
-    """The version in an ack from ``peer``.
-
-    :class:`~mapd.errors.SignatureError` when ``roster`` does not accept ``peer``'s signature (unsigned
-    in a signed fleet, not on the roster, another key), :class:`EnvelopeError` when malformed otherwise.
-    """
-    if len(data) not in (_ACK.size, _ACK.size + SIG_LEN):
-        raise EnvelopeError(
-            f"ack from '{peer}' is {len(data)} bytes, expected {_ACK.size} or {_ACK.size + SIG_LEN}"
-        )
-    (version,) = _ACK.unpack_from(data)
-    roster.verify(peer, _ack_blob(fleet, peer, robot, data[: _ACK.size]), data[_ACK.size :], "ack")
-    if not 0 < version < COUNT_LIMIT:
-        raise EnvelopeError(f"ack from '{peer}' names version {version}")
-    return int(version)
-
-
-@dataclass
-class Step:
-    """What the adapter must do after feeding the core one input."""
-
-    events: list[TransportEvent] = field(default_factory=list)
-    #: Robots whose latest keyframe to query now.
-    queries: list[str] = field(default_factory=list)
-    #: Lines to log as warnings (each said once: see :meth:`ZenohCore.oversize`).
-    warnings: list[str] = field(default_factory=list)
-
-
-@dataclass
-class CoreCounters:
-    """What the core has counted; :meth:`ZenohCore.stats` reports each field under its name."""
-
-    bytes_rx: int = 0
-    updates_rx: int = 0
-    gaps: int = 0
-    keyframe_queries: int = 0
-    #: Updates, replies and acks refused with a SignatureError (unsigned while the fleet has a key,
-    #: badly signed, or a signature field of the wrong form).
-    bad_signature: int = 0
-    #: Anything else refused: malformed, on a key it does not belong to, an ack of a version never sent.
-    dropped: int = 0
-    stale: int = 0
-    acks_rx: int = 0
-    queries_served: int = 0
-    #: Keyframe queries left unanswered because answers were coming faster than the budget allows
-    #: (a burst of REPLY_BURST, then REPLY_RATE_HZ; at most MAX_REPLIES_PENDING waiting).
-    queries_shed: int = 0
-    #: Updates, replies and keyframe queries naming a robot the roster does not admit: refused
-    #: unread (updates, replies) or answered without a ``KeyframeNeeded`` (queries).
-    unadmitted: int = 0
-    #: Keyframe queries answered without a ``KeyframeNeeded`` because their nonce was not above the
-    #: last one heeded from their asker: a recorded query played back.
-    replayed: int = 0
-    #: Updates and query replies over ``max_message_bytes``, refused unread: a peer whose limits
-    #: are larger than ours (its robots in ``oversize_from``, each said once).
-    oversize_rx: int = 0
 
 
 @dataclass
@@ -165,8 +80,9 @@ class _Robot:
         self.bases.clear()
 
 
-class ZenohCore:
-    """Receive-side state and counters of one robot's zenoh link (see the module docstring)."""
+class ZenohCore(AnswerSide):
+    """Receive-side state and counters of one robot's zenoh link (see the module docstring; peers'
+    queries of our keyframe: :class:`~transports.zenoh.answers.AnswerSide`)."""
 
     def __init__(
         self,
@@ -400,53 +316,6 @@ class ZenohCore:
         if now is not None and sent is not None and now >= sent:
             self._rtt.sample(now - sent)  # smoothed as TCP does (RFC 6298)
         return Step(events=[Delivered(transport=NAME, peer=peer, robot=self.robot, version=version)])
-
-    def on_query(self, asker: str | None, nonce: str | None = None, sig: str | None = None) -> Step:
-        """A peer queried our latest keyframe with parameters ``from=asker;n=nonce;sig=sig``.
-
-        ``KeyframeNeeded`` makes the daemon forget the asker's acked base and publish its next map
-        whole, a keyframe's bytes for every robot on the bus, so it is emitted only for a signed,
-        fresh query from a robot the roster admits (:mod:`transports.zenoh.queries`).
-        """
-        self.counters.queries_served += 1
-        if asker is None or not keys.valid_name(asker) or asker == self.robot:
-            return Step()
-        if not self.roster.admits(asker):
-            self.counters.unadmitted += 1
-            return Step()
-        try:
-            n = queries.verify(
-                self.roster, fleet=self.fleet, asker=asker, robot=self.robot, nonce=nonce, sig=sig
-            )
-        except SignatureError:
-            self.counters.bad_signature += 1
-            return Step()
-        except EnvelopeError:
-            self.counters.dropped += 1
-            return Step()
-        st = self._state(asker)
-        if st is None:  # no room for another robot (max_peers): it is no peer of ours either
-            return Step()
-        if not self._fresh.fresh(asker, n):
-            self.counters.replayed += 1
-            return Step()
-        return Step(events=[KeyframeNeeded(transport=NAME, peer=asker, robot=self.robot)])
-
-    def may_reply(self, now: float, slot_free: bool = True) -> bool:
-        """Whether to answer the query that just came (after :meth:`on_query`), or drop it unanswered.
-
-        ``slot_free``: the adapter has room for one more answer waiting (MAX_REPLIES_PENDING).
-        """
-        if self._reply_at is not None and now > self._reply_at:
-            self._reply_tokens = min(
-                float(REPLY_BURST), self._reply_tokens + (now - self._reply_at) * REPLY_RATE_HZ
-            )
-        self._reply_at = now if self._reply_at is None else max(now, self._reply_at)
-        if not slot_free or self._reply_tokens < 1.0:
-            self.counters.queries_shed += 1
-            return False
-        self._reply_tokens -= 1.0
-        return True
 
     def query_parameters(self, robot: str, wall_ns: int) -> str:
         """The selector parameters of our next query of ``robot``'s keyframe, signed when we sign.

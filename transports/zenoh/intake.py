@@ -11,8 +11,8 @@ transport owns (declared here; see that module's docstring for the threads and t
   ``max_message_bytes`` (said once per robot, on the loop). Other fleets' fleet tokens are counted
   and said right there (:mod:`transports.zenoh.fleets`).
 * **the loop thread** feeds each arrival to the sans-I/O :class:`~transports.zenoh.core.ZenohCore`
-  and applies its :class:`~transports.zenoh.core.Step`: events to the daemon, keyframe queries out,
-  and answers to the queries of peers (rationed, on the job thread).
+  and applies its :class:`~transports.zenoh.core_types.Step`: events to the daemon, keyframe
+  queries out, and answers to the queries of peers (rationed, on the job thread).
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ from mapd.identity import SIG_LEN
 from transports.base import PoseReceived, TransportContext
 from transports.zenoh import keys
 from transports.zenoh.checks import CheckQueue
-from transports.zenoh.core import NAME, Step, ZenohCore
+from transports.zenoh.core import ZenohCore
+from transports.zenoh.core_types import NAME, Step
 from transports.zenoh.fleets import OtherFleets
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue

@@ -27,7 +27,7 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   A query with ``?from=<peer>`` also emits ``KeyframeNeeded`` so the daemon can send a fresh one,
   when the roster admits ``<peer>``, ``<peer>`` signed the query and it is no replay (any asker
   still gets the reply, while answers stay within their ration; see :mod:`transports.zenoh.queries`
-  and :meth:`ZenohCore.may_reply <transports.zenoh.core.ZenohCore.may_reply>`).
+  and :meth:`ZenohCore.may_reply <transports.zenoh.answers.AnswerSide.may_reply>`).
 * **Acks and Delivered.** zenoh has no per-message ack, so mapd adds one: after the daemon has
   decoded ``robot``'s ``version`` it calls :meth:`ZenohTransport.ack`, which publishes on
   ``mapd/<fleet>/<us>/ack/<robot>`` (8-byte version, signed with the acking robot's Ed25519 key). The robot
@@ -75,8 +75,10 @@ from mapd.errors import EnvelopeError, TransportError, UnreachableError
 from mapd.ros2.zenoh_config import open_when_reachable, open_zenoh
 from transports.base import PoseThrottle, Transport, TransportContext, TransportOptions
 from transports.zenoh import keys
+from transports.zenoh.answers import MAX_REPLIES_PENDING
 from transports.zenoh.checks import CheckQueue
-from transports.zenoh.core import MAX_REPLIES_PENDING, NAME, ZenohCore
+from transports.zenoh.core import ZenohCore
+from transports.zenoh.core_types import NAME
 from transports.zenoh.fleets import OtherFleets
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.intake import (

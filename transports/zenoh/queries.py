@@ -17,7 +17,7 @@ asker, so a recorded query played back is refused. In a fleet whose config allow
 messages, ``sig`` is left out.
 
 A query refused for any of these reasons is still answered (within the ration every query is
-answered by, :meth:`~transports.zenoh.core.ZenohCore.may_reply`): only the ``KeyframeNeeded`` is
+answered by, :meth:`~transports.zenoh.answers.AnswerSide.may_reply`): only the ``KeyframeNeeded`` is
 withheld.
 """
 

@@ -321,7 +321,7 @@ def test_a_keyframe_query_off_the_roster_forged_or_replayed_is_answered_but_not_
 
 
 def test_a_flood_of_keyframe_queries_is_rationed_and_maps_still_go_out(zk) -> None:
-    from transports.zenoh.core import MAX_REPLIES_PENDING, REPLY_BURST, REPLY_RATE_HZ
+    from transports.zenoh.answers import MAX_REPLIES_PENDING, REPLY_BURST, REPLY_RATE_HZ
 
     async def main() -> None:
         async with zk.pair("a", "b", signed=True) as (a, b):
@@ -373,7 +373,7 @@ def _no_stray_threads() -> Any:
 def test_a_flood_of_acks_waits_for_the_loop_in_a_bounded_backlog(zk) -> None:
     # Anyone on the bus can put acks faster than the loop checks their signatures: each waited on the
     # loop's queue, unbounded (273,000 after 47 s, every timer 16 s late).
-    from transports.zenoh.core import pack_ack
+    from transports.zenoh.acks import pack_ack
     from transports.zenoh.link import MAX_LOOP_BACKLOG
 
     forged = pack_ack(1, identity=Identity.generate("a"), fleet=zk.FLEET, peer="a", robot="b")

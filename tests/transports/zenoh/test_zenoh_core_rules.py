@@ -13,7 +13,8 @@ from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
 from transports.base import Delivered, KeyframeNeeded, PeerDown, PeerUp, Received
 from transports.zenoh import keys
-from transports.zenoh.core import ZenohCore, pack_ack, unpack_ack
+from transports.zenoh.acks import pack_ack, unpack_ack
+from transports.zenoh.core import ZenohCore
 
 # The fleet: each robot's own key, and the roster of their public keys.
 IDS = {n: Identity.generate(n) for n in ("a", "b", "c", "d", "m", "p", "q", "r")}

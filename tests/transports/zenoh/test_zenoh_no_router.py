@@ -86,7 +86,7 @@ def test_a_session_zenoh_refuses_for_another_cause_still_stops_start(zk: SimpleN
 def test_a_daemon_whose_router_is_down_runs_says_so_and_joins_later(
     tmp_path: Path, zk: SimpleNamespace
 ) -> None:
-    from mapd.grid import save_map
+    from mapd.grid.save import save_map
     from mapd.mapping.synthetic import room_grid
 
     ep = zk.endpoint(zk.free_port())

@@ -6,12 +6,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import transports.zenoh.core as core_mod
 from mapd.errors import EnvelopeError, SignatureError
 from mapd.identity import Identity, Roster
 from transports import signed_requests
 from transports.base import KeyframeNeeded
-from transports.zenoh import queries
+from transports.zenoh import answers, queries
 from transports.zenoh.core import ZenohCore
 
 IDS = {n: Identity.generate(n) for n in ("a", "b")}
@@ -112,11 +111,11 @@ def test_the_query_check_takes_any_parameters(nonce: str | None, sig: str | None
 
 def test_answers_are_rationed_a_burst_then_a_steady_rate() -> None:
     a = core()
-    assert all(a.may_reply(now=100.0) for _ in range(core_mod.REPLY_BURST))
+    assert all(a.may_reply(now=100.0) for _ in range(answers.REPLY_BURST))
     assert not a.may_reply(now=100.0)  # the burst is spent
-    assert a.may_reply(now=100.0 + 1.0 / core_mod.REPLY_RATE_HZ)  # one more after its share of a second
-    assert not a.may_reply(now=100.0 + 1.0 / core_mod.REPLY_RATE_HZ)
+    assert a.may_reply(now=100.0 + 1.0 / answers.REPLY_RATE_HZ)  # one more after its share of a second
+    assert not a.may_reply(now=100.0 + 1.0 / answers.REPLY_RATE_HZ)
     assert not a.may_reply(now=1000.0, slot_free=False)  # the adapter has no room for another
-    assert sum(a.may_reply(now=1000.0) for _ in range(100)) == core_mod.REPLY_BURST  # refilled, capped
-    assert a.counters.queries_shed == 2 + 1 + 100 - core_mod.REPLY_BURST
+    assert sum(a.may_reply(now=1000.0) for _ in range(100)) == answers.REPLY_BURST  # refilled, capped
+    assert a.counters.queries_shed == 2 + 1 + 100 - answers.REPLY_BURST
     assert not a.may_reply(now=5.0)  # a clock that steps back refills nothing

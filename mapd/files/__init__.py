@@ -1,18 +1,22 @@
-"""Files written so a crash never leaves half of one, and read so a huge one costs nothing.
+"""Files written so a crash never leaves half of one: the writes every part of mapd makes.
 
 * :func:`atomic_write_bytes` / :func:`atomic_write_json`: readers see the old file or the new one,
-  never half of either (temp file, fsync, rename, fsync of the directory).
+  never half of either (temp file, fsync, rename, fsync of the directory);
+  :func:`atomic_write_files`, the same for files that belong together (a map's image and its YAML).
 * :func:`remove_stale_temps`: the temp files a writer killed mid-write (``kill -9``, power loss)
   left behind, removed at start-up so they never pile up.
+* :func:`make_dir`: a folder made durable before a file that names it.
 * :func:`write_new_secret`: a new key file, mode 0600, never over an existing one.
-* :func:`read_capped`: at most ``cap + 1`` bytes of a file that should be small (a key, a config, a
-  map's YAML), within a deadline, so ``/dev/zero``, a log or a pipe held open given by mistake is
-  refused, not read for ever;
-  :func:`read_json_capped`, the same for a JSON file of the state directory.
-* :func:`open_for_reading`: a file opened so that a FIFO nobody writes to cannot block the open;
-  :func:`open_regular`, the same refusing anything but a regular file (a FIFO, a device, a directory).
-* :class:`WriteOutage`: a run of failed writes (a full disk) said in two log lines, and counted for
-  ``mapd status``.
+
+The rest of the package:
+
+* :mod:`~mapd.files.reading`: files read so a huge one costs nothing (at most ``cap + 1`` bytes,
+  within a deadline) and a FIFO cannot block, and anything but a regular file refused;
+* :mod:`~mapd.files.outage`: a run of failed writes (a full disk) said in two log lines, and
+  counted for ``mapd status``;
+* :mod:`~mapd.files.folders`: whether a folder a daemon writes in is still there, mounted and
+  writable, and whether a file it wrote is still the one it wrote, all seen without writing; where a
+  relative name handed on as written is found.
 """
 
 from __future__ import annotations
@@ -22,17 +26,15 @@ import errno
 import io
 import itertools
 import json
-import logging
 import os
 import re
-import select
 import stat
 import threading
-import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
+
+from mapd.files.reading import NotRegularFileError
 
 #: The names :func:`atomic_write_bytes` gives its temp files: ``.<name>.tmp<pid>.<thread id>.<n>``
 #: (and, as mapd named them before, without ``.<n>``).
@@ -45,12 +47,6 @@ _TEMP_SEQ = itertools.count()
 #: and its predecessor's temp files would then be kept until some later start.)
 _ACTIVE: set[Path] = set()
 _ACTIVE_LOCK = threading.Lock()
-
-
-class NotRegularFileError(OSError):
-    """Raised by :func:`open_regular` and :func:`atomic_write_bytes` for a FIFO, a device or a
-    directory (``strerror``: "not a regular file").
-    """
 
 
 #: The start of a file's name kept in its temp file's name: a name as long as a directory allows
@@ -246,170 +242,6 @@ def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True, default=str) + "\n").encode())
 
 
-#: Seconds between tries of a write that failed (a full disk) while nothing newer comes to write: a
-#: parked robot or a fleet at rest makes no new map, and the disk may have room again meanwhile.
-WRITE_RETRY_S = 5.0
-
-
-@dataclass
-class WriteOutage:
-    """A run of failed writes (a full disk) said in two lines, not one a try: the first failure as
-    an error, and the first success after it. Whoever writes carries on either way.
-
-    It also keeps what ``mapd status`` shows of it (:meth:`status`): whether writes fail now, since
-    when, the last failure's line, and how many writes failed in all. With ``logger`` None nothing
-    is logged (another part says the outage; this one only counts it).
-    """
-
-    logger: logging.Logger | None
-    failing: bool = False
-    #: Writes that failed, over the life of the writer (not only this outage).
-    failures: int = 0
-    #: Wall time of the first failure of the outage now (None: writes go through).
-    since: float | None = None
-    #: The last failure's line while failing (None: writes go through).
-    error: str | None = None
-
-    def failed(self, message: str) -> None:
-        """A write failed: said once per outage (the first), counted every time."""
-        self.failures += 1
-        self.error = message
-        if not self.failing:
-            self.since = time.time()
-            if self.logger is not None:
-                self.logger.error("%s", message)
-        self.failing = True
-
-    def recovered(self, message: str) -> None:
-        """A write went through: said when it ends an outage."""
-        if self.failing and self.logger is not None:
-            self.logger.info("%s", message)
-        self.failing = False
-        self.since = None
-        self.error = None
-
-    @contextlib.contextmanager
-    def counted(self, failure: type[Exception]) -> Iterator[None]:
-        """Count the write in the block: a ``failure`` out of it is a failed write (re-raised),
-        getting through is a success. For an outage kept without a logger: whoever writes says it,
-        with what it costs."""
-        try:
-            yield
-        except failure as exc:
-            self.failed(str(exc))
-            raise
-        self.recovered("")
-
-    def status(self) -> dict[str, Any]:
-        """For ``mapd status --json``: ``writing`` (False while writes fail), ``failures`` (in all),
-        ``failing_s`` (how long the outage has lasted, or None) and ``error`` (its last line)."""
-        since = self.since
-        return {
-            "writing": not self.failing,
-            "failures": self.failures,
-            "failing_s": None if since is None else round(max(0.0, time.time() - since), 1),
-            "error": self.error,
-        }
-
-
-def open_for_reading(path: Path) -> BinaryIO:
-    """``path`` opened for reading (OSError as the OS raises it), without blocking on a FIFO.
-
-    A plain ``open`` of a FIFO blocks until some process opens it for writing, which for a FIFO
-    named by mistake is for ever. Opened with O_NONBLOCK, then switched back to blocking reads: a
-    pipe with a writer (``--key <(...)``) is read as before, one without any writer reads as empty.
-    ValueError (a NUL in the path) is raised as an OSError, so callers have one error to catch.
-    """
-    return _open_checked(path, regular=False)
-
-
-def _open_checked(path: Path, *, regular: bool) -> BinaryIO:
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except ValueError:
-        raise OSError(22, "the path holds a NUL character") from None
-    try:
-        # Checked on the descriptor, before fdopen: that refuses a directory with its own error.
-        if regular and not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise NotRegularFileError(22, "not a regular file", str(path))
-        if hasattr(os, "set_blocking"):
-            os.set_blocking(fd, True)
-        return os.fdopen(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
-
-
-def open_regular(path: Path) -> BinaryIO:
-    """``path`` opened by :func:`open_for_reading`, refusing anything but a regular file.
-
-    A file that must be read whole (a key, a map, a log) named as a FIFO would block or read as
-    empty, ``/dev/zero`` would be read for ever, and a directory gives an error of its own: each
-    raises :class:`NotRegularFileError`, an OSError, so callers keep one except clause.
-    """
-    return _open_checked(path, regular=True)
-
-
-#: The longest :func:`read_capped` waits for a file's end: a pipe whose writer holds it open. Small
-#: files (a config, a key, a token) are written at once; the daemon's stop (systemd gives it 10 s)
-#: must not wait long on a reload stuck on one. Data a command reads from a pipe gets longer
-#: (:data:`DATA_READ_TIMEOUT_S`).
-READ_TIMEOUT_S = 5.0
-#: The deadline of a payload or message a command reads (``mapd decode``, ``mapd link send``),
-#: which may come through a pipe from a slow producer (``ssh robot cat ...``).
-DATA_READ_TIMEOUT_S = 60.0
-
-
-def read_capped(path: Path, cap: int, *, timeout_s: float | None = None) -> bytes:
-    """Up to ``cap + 1`` bytes of ``path`` (OSError as the OS raises it); the caller refuses more than ``cap``.
-
-    A FIFO without a writer reads as empty instead of hanging, and one whose writer holds it open
-    without closing it (``--key <(sleep inf)``, a FIFO put where the config was) raises
-    TimeoutError after ``timeout_s`` (default :data:`READ_TIMEOUT_S`): the daemon's reload thread
-    blocked on it for ever, and the daemon could not exit while it did.
-    """
-    if timeout_s is None:
-        timeout_s = READ_TIMEOUT_S
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # left non-blocking
-    except ValueError:
-        raise OSError(22, "the path holds a NUL character") from None
-    try:
-        chunks: list[bytes] = []
-        got, deadline = 0, time.monotonic() + timeout_s
-        while got <= cap:
-            try:
-                chunk = os.read(fd, min(1 << 20, cap + 1 - got))
-            except BlockingIOError:  # a pipe with a writer, and nothing in it yet
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(
-                        errno.ETIMEDOUT, f"its writer did not finish it in {timeout_s:g} s", str(path)
-                    ) from None
-                select.select([fd], [], [], left)
-                continue
-            if not chunk:
-                break
-            chunks.append(chunk)
-            got += len(chunk)
-        return b"".join(chunks)
-    finally:
-        os.close(fd)
-
-
-def read_json_capped(path: Path, cap: int) -> Any:
-    """The JSON document in ``path``, read up to ``cap`` bytes.
-
-    Raises OSError as the OS does, ValueError for a file over ``cap`` bytes or one that is not JSON
-    (JSON's and Unicode's decoding errors are ValueErrors), and RecursionError for nesting too deep
-    to parse: a damaged file gives one of those three, which its reader turns into one warning.
-    """
-    raw = read_capped(path, cap)
-    if len(raw) > cap:
-        raise ValueError(f"over {cap >> 20} MiB" if cap >= 1 << 20 else f"over {cap} bytes")
-    return json.loads(raw)
-
-
 def write_new_secret(path: Path, data: bytes) -> None:
     """Write ``data`` to a new file readable by its owner only, durably.
 
@@ -427,15 +259,3 @@ def write_new_secret(path: Path, data: bytes) -> None:
         path.unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)  # the new name survives a power cut too, not just the key's bytes
-
-
-def from_workdir(name: str) -> tuple[Path | None, str]:
-    """Where a relative ``name`` that mapd hands on as written (a uwb port to pyserial, a TLS file
-    to zenoh) is found: from the working directory of the process, ``/`` under systemd. Returns
-    the path and the words for where it was looked for; the path is None when this process has no
-    working directory any more (a folder removed under it), where the start cannot find it either."""
-    try:
-        cwd = Path.cwd()
-    except OSError:
-        return None, "the working directory, which no longer exists"
-    return cwd / name, f"the working directory ({cwd}; / under systemd)"
