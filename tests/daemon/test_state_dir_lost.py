@@ -502,8 +502,11 @@ def test_a_daemon_whose_state_directory_is_emptied_remounted_read_only_and_unmou
     assert "peers=robot0" in resumed[0], resumed
     assert _count(lines, LOST) == 2, lines  # emptied, and the new disk: once each
     for cause in ("read-only file system", "not mounted any more"):
-        # said once each by what saves: peers' maps and acks, own maps, the global map
-        assert _count(lines, cause) == 3, (cause, lines)
+        # said once each by what saves: peers' maps and acks, own maps, the global map; and by
+        # each CSV log in the directory that wrote in the outage (at most once each)
+        assert _count([ln for ln in lines if ".csv" not in ln], cause) == 3, (cause, lines)
+        for csv in ("updates.csv", "fused.csv"):
+            assert _count([ln for ln in lines if csv in ln], cause) <= 1, (cause, csv, lines)
     for said in (
         "saving peers' maps and acks again every",
         "new versions are not sent until one is saved",
@@ -514,3 +517,41 @@ def test_a_daemon_whose_state_directory_is_emptied_remounted_read_only_and_unmou
     ):
         assert _count(lines, said) == 2, (said, lines)  # once in each outage
     assert on._temps(final) == []
+
+
+CSV_UNMOUNTED = """
+import json, logging, subprocess, sys
+from pathlib import Path
+from mapd.daemon.coding import CsvLog
+
+logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+disk = Path(sys.argv[1])  # a tmpfs; the log in it, as fused.csv is in the state directory
+log = CsvLog(disk / "fused.csv")
+log.write([{"time": 1.0, "robot": "beta", "version": 1}])
+subprocess.run(["umount", "-l", str(disk)], check=True)  # the disk goes: disk/ is the folder under it
+log.write([{"time": 2.0, "robot": "beta", "version": 2}])
+log.write([{"time": 3.0, "robot": "beta", "version": 3}])
+left = sorted(p.name for p in disk.iterdir())
+subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)  # back, empty
+log.write([{"time": 4.0, "robot": "beta", "version": 4}])
+print(json.dumps({"left": left, "after": (disk / "fused.csv").read_text().splitlines()}))
+"""
+
+
+def test_a_csv_log_writes_nothing_on_the_disk_under_its_unmounted_one(tmp_path: Path) -> None:
+    """fused.csv and updates.csv were appended to in the folder left under an unmounted disk (on
+    the root file system, where nobody looks); now that is a failed write, said once, and the log
+    goes on in the disk mounted there again."""
+    from tests.daemon.test_disk_full import _namespace_problem, in_tmpfs
+
+    if problem := _namespace_problem(tmp_path / "probe"):
+        pytest.skip(problem)
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    done = in_tmpfs(disk, "1m", CSV_UNMOUNTED)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["left"] == [], "written on the disk under the mount point"
+    assert out["after"] == ["time,robot,version", "4.0,beta,4"], out
+    said = [ln for ln in done.stderr.splitlines() if "fused.csv" in ln]
+    assert len(said) == 2 and "not mounted any more" in said[0] and "again" in said[1], said

@@ -234,7 +234,10 @@ class CounterStore:
             self._memory = value
             return
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # The link's own folder only: a state directory that is gone (its disk unmounted) is
+            # not made again here, on the disk under the mount point; the daemon's state store
+            # makes its layout again once it can be written.
+            self.path.parent.mkdir(exist_ok=True)
             # file and directory fsynced: a power cut never brings back a lower counter
             atomic_write_bytes(self.path, f"{value}\n".encode("ascii"))
         except OSError as exc:

@@ -179,6 +179,19 @@ def test_counter_store_persists_and_never_reuses(tmp_path: Path) -> None:
         CounterStore(path).load()
 
 
+def test_a_counter_store_never_makes_the_state_directory_again(tmp_path: Path) -> None:
+    # The state directory gone (its disk unmounted, or removed): the save made the whole path again,
+    # on the disk under the mount point. It makes the link's own folder only, in a state directory
+    # that is there (the daemon's state store makes the layout again once it can be written).
+    state = tmp_path / "state"
+    with pytest.raises(StateError, match="cannot write signing counter"):
+        CounterStore(state / "links" / "uwb" / "uwb-1.counter").save(5)
+    assert not state.exists()
+    (state / "links").mkdir(parents=True)
+    CounterStore(state / "links" / "uwb" / "uwb-1.counter").save(5)
+    assert CounterStore(state / "links" / "uwb" / "uwb-1.counter").load() == 5
+
+
 def test_marks_from_a_previous_run_refuse_every_frame_up_to_them(tmp_path: Path) -> None:
     s, v = _signer(), Verifier(KEY)
     body = wire.pack(wire.Hello(1, 2, 3), signed=True)
