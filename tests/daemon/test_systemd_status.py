@@ -190,6 +190,8 @@ def test_a_stop_during_start_up_ends_it_without_ready(
         d.request_stop()
         await asyncio.wait_for(task, 30)  # returns with start_pose still blocked
         assert not release.is_set()
+        # (let it go now: asyncio.run waits for the executor's threads, 60 s for this one)
+        release.set()
 
     try:
         asyncio.run(main())
