@@ -24,7 +24,7 @@ from mapd.codec.base import CodecOptions
 from mapd.codec.metrics import psnr, ssim
 from mapd.daemon.state import StateStore
 from mapd.envelope import Envelope
-from mapd.files.folders import folder_unusable, mount_point
+from mapd.files.folders import Folder
 from mapd.files.outage import WriteOutage
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.identity import Identity
@@ -53,20 +53,16 @@ class CsvLog:
         self._lock = threading.Lock()
         self._checked = False
         self._outage = WriteOutage(log)
-        #: The mount point the log's folder was on at its first write (None: the root file system,
-        #: or not looked yet): one that is not any more had its disk unmounted, and an append
-        #: would go into the folder left under it, on another disk, where nobody looks.
-        self._mount: Path | None = None
-        self._mount_seen = False
+        #: The log's folder, and the disk it was on at the first write: once that disk is
+        #: unmounted, an append would go into the folder left under it, where nobody looks.
+        self._folder = Folder(path.parent)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         if not rows:
             return
         with self._lock:
             end: int | None = None  # where the file ended before this append
-            if not self._mount_seen:
-                self._mount, self._mount_seen = mount_point(self.path.parent), True
-            if (why := folder_unusable(self.path.parent, mount=self._mount)) is not None:
+            if (why := self._folder.unusable()) is not None:
                 self._outage.failed(f"cannot write {self.path} (rows dropped until it can): its folder {why}")
                 return
             try:

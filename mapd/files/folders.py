@@ -70,6 +70,23 @@ def file_id(path: Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+class Folder:
+    """A folder a writer writes in, and the mount point it was on when first looked at: once that
+    is not a mount point any more, its disk was unmounted, and what is left there is a folder of
+    another disk, not to be written to (see :func:`folder_unusable`)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._mount: Path | None = None
+        self._seen = False
+
+    def unusable(self) -> str | None:
+        """Why nothing can be written in the folder now, in words that follow its name, or None."""
+        if not self._seen:
+            self._mount, self._seen = mount_point(self.path), True
+        return folder_unusable(self.path, mount=self._mount)
+
+
 def file_ids(*paths: Path) -> list[tuple[Path, tuple[int, int]]]:
     """Each of ``paths`` that is there, with its :func:`file_id` (one that cannot be looked at is
     left out): what a writer keeps of what it just wrote, to tell later whether it was lost."""

@@ -44,7 +44,7 @@ import numpy as np
 
 from mapd.errors import MapdError, StateError
 from mapd.files import atomic_write_bytes
-from mapd.files.folders import file_id, file_ids, folder_unusable, mount_point
+from mapd.files.folders import Folder, file_id, file_ids
 from mapd.files.outage import WriteOutage
 from mapd.files.reading import read_json_capped
 from mapd.fusion.merge import NO_OWNER, MergeResult
@@ -94,10 +94,9 @@ class FusionStore:
         self._saved: tuple[OccupancyGrid, dict[str, Any]] | None = None
         #: "global" -> each file then written and its id (:func:`~mapd.files.folders.file_id`).
         self._ids: dict[str, list[tuple[Path, tuple[int, int]]]] = {}
-        #: The mount point the state directory (this folder's parent) was seen on (None: the root
-        #: file system): once it is not one any more, its disk was unmounted, and what is left
-        #: there is not written to.
-        self._mount: Path | None = None
+        #: The state directory (this folder's parent), and the disk it was on at the first save:
+        #: once that is unmounted, what is left there is not written to.
+        self._parent = Folder(self.directory.parent)
 
     # -- reading ----------------------------------------------------------------------------
 
@@ -210,12 +209,8 @@ class FusionStore:
     def _folder(self) -> None:
         """Make this folder if it went (its parent, the state directory, must be there: one gone
         or unmounted is not made again here); :class:`StateError` when it cannot be."""
-        parent = self.directory.parent
-        why = folder_unusable(parent, mount=self._mount)
-        if why is not None:
-            raise StateError(f"state directory {parent} {why}")
-        if self._mount is None:  # (first seen at the first save: the directory is there by then)
-            self._mount = mount_point(parent)
+        if (why := self._parent.unusable()) is not None:
+            raise StateError(f"state directory {self._parent.path} {why}")
         try:
             self.directory.mkdir(exist_ok=True)
         except OSError as exc:

@@ -36,7 +36,7 @@ from pydantic import Field
 from mapd.config.paths import folder_problem
 from mapd.errors import ConfigError, MapdError, MapFileError
 from mapd.files import atomic_write_json, remove_stale_temps
-from mapd.files.folders import FOLDER_GONE, file_id, folder_unusable, mount_point
+from mapd.files.folders import FOLDER_GONE, Folder, file_id
 from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.grid.save import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
@@ -88,8 +88,8 @@ class FilesOutput(Output):
         #: written again when they go (see the module docstring).
         self._written: GlobalUpdate | None = None
         self._ids: list[tuple[Path, tuple[int, int]]] = []
-        #: The mount point the folder was on when the output started (None: the root file system).
-        self._mount: Path | None = None
+        #: The folder, and the disk it was on when the output started.
+        self._dir = Folder(self.opts.dir)
         #: The map to write is one whose files went (said when it is written again).
         self._lost_files = False
 
@@ -98,7 +98,7 @@ class FilesOutput(Output):
             self.opts.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"output.files: cannot create {self.opts.dir}: {exc.strerror}") from None
-        self._mount = mount_point(self.opts.dir)
+        self._dir.unusable()  # (the disk it is on now: the one it must stay on)
         # what a write killed mid-way (kill -9, power loss) left there would otherwise pile up
         await asyncio.to_thread(remove_stale_temps, self.opts.dir)
         # Numbers go on from the last run's: a reader may still hold its YAML, naming its image.
@@ -195,10 +195,10 @@ class FilesOutput(Output):
         unmounted above it is not made on the disk under it); MapFileError when it cannot be
         written (see :func:`~mapd.files.folders.folder_unusable`)."""
         folder = self.opts.dir
-        why = folder_unusable(folder, mount=self._mount)
+        why = self._dir.unusable()
         if why == FOLDER_GONE:  # (said only once its disk is seen mounted still)
             folder.mkdir()  # (OSError, its parent gone too: said with the folder's name)
-            why = folder_unusable(folder, mount=self._mount)
+            why = self._dir.unusable()
         if why is not None:
             raise MapFileError(f"output folder {folder} {why}")
 
