@@ -625,6 +625,7 @@ def test_a_uwb_link_whose_signing_counter_cannot_be_saved_says_so_once_and_resum
     socat = subprocess.Popen(["socat", f"pty,raw,echo=0,link={ptys[0]}", f"pty,raw,echo=0,link={ptys[1]}"])
     ns = FullDisk(tmp_path / "disk", "2m")
     log1 = tmp_path / "robot1.log"
+    outages = 2 if full_at_start else 1  # (each said once)
     try:
         _wait("socat's ptys", lambda: all(p.exists() for p in ptys), 10)
         configs = {}
@@ -678,7 +679,12 @@ def test_a_uwb_link_whose_signing_counter_cannot_be_saved_says_so_once_and_resum
         for n in (2, 3, 4):
             _publish(tmp_path, "robot1", n)
             _wait(f"robot1's version {n}", lambda n=n: own_version() >= v1 + n - 1)
-        _wait("the counter's outage line", lambda: _count(_log_lines(log1), "cannot write signing counter"))
+        # This outage's own line (full at start, the first outage's line is there already: freeing
+        # the disk before this one came made the count below one short under load).
+        _wait(
+            "the counter's outage line",
+            lambda: _count(_log_lines(log1), "cannot write signing counter") >= outages,
+        )
         s = _status(sock1)
         assert s is not None and s["links"]["uwb"]["counter_save_errors"] >= 1
         text = subprocess.run(
@@ -703,10 +709,10 @@ def test_a_uwb_link_whose_signing_counter_cannot_be_saved_says_so_once_and_resum
         socat.wait(10)
     lines = _log_lines(log1)
     assert not any("Traceback" in line for line in lines), lines
-    outages = 2 if full_at_start else 1  # (said once each)
     assert _count(lines, "cannot write signing counter") == outages, lines
     assert _count(lines, "signing counter saved again") == outages, lines
-    assert _count(lines, "cannot write replay marks") <= 1, lines
+    # The replay marks live on the same full disk: their save may fail in each outage, said once each.
+    assert _count(lines, "cannot write replay marks") <= outages, lines
     assert int((final / "links" / "uwb" / "uwb-2.counter").read_text()) > 0
     assert _temps(final) == []
 
