@@ -91,6 +91,7 @@ CASES: list[tuple[str, str]] = [
     ("bench codec --repeat 1000000000", "--repeat"),
     # mapd link send | recv
     ("link send {file} --port /dev/null --deadline nan", "--deadline"),
+    ("link send {file} --port /dev/null --peer-timeout 0", "--peer-timeout"),
     ("link send {file} --port /dev/null --node 0", "--node"),
     ("link send {file} --port /dev/null --baud -5", "--baud"),
     ("link send {file} --port /dev/null --rate-bps 1000000000000", "--rate-bps"),

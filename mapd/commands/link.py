@@ -42,9 +42,11 @@ PROGRESS_EVERY_S = 5.0
 #: 125; two would be 1 in 25). A fixed 3 s was shorter than one wait: a sender whose last COMPLETEs
 #: were lost probed a receiver that had left, and reported a delivered file as not delivered.
 LINGER_S = 12.0
-#: ``send`` gives up on a receiver silent for this many of its peer timeouts (``peer_timeout_s``,
-#: 20 s) after the whole file was on the air: see :class:`Silence`.
+#: ``send`` gives up on a receiver silent for this many of its peer timeouts (``--peer-timeout``,
+#: 20 s by default) after the whole file was on the air: see :class:`Silence`.
 SILENT_TIMEOUTS = 2.0
+#: ``send --peer-timeout``'s default: the daemon's ``[transports.uwb] peer_timeout_s``.
+PEER_TIMEOUT_S = 20.0
 #: ``recv`` lingers at most this long in all: a sender that never hears it probes until its own limit.
 LINGER_MAX_S = 60.0
 #: Seconds between two looks at the link's counters and events while waiting (linger, silence).
@@ -111,6 +113,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     # Checked by cmd_send together with --node (a peer must not be this end): one line either way.
     s.add_argument("--peer", type=int, action="append", help="receiver link id (repeatable; default 2)")
     s.add_argument("--deadline", type=SECONDS, default=300.0, help="give up after this many seconds (300)")
+    s.add_argument(
+        "--peer-timeout",
+        type=float_arg(1.0, 600.0),
+        default=PEER_TIMEOUT_S,
+        help="a receiver silent this long is down; send gives up on one silent for twice this after "
+        f"the whole file was on the air (default {PEER_TIMEOUT_S:g} s, as [transports.uwb] peer_timeout_s)",
+    )
     s.set_defaults(func=cmd_send)
     r = lsub.add_parser("recv", help="receive one message, verify it, write it to -o FILE")
     r.add_argument("-o", "--output", type=Path, required=True, help="file to write")
@@ -145,6 +154,7 @@ def _config(args: argparse.Namespace, max_message: int) -> Any:
         rate_bps=float(args.rate_bps),
         max_message_bytes=max(max_message, 1024),
         deadline_s=getattr(args, "deadline", 300.0),
+        peer_timeout_s=getattr(args, "peer_timeout", PEER_TIMEOUT_S),
         key=read_key_file(args.key, "--key"),
     )
 

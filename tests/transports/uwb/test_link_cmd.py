@@ -190,7 +190,11 @@ def test_send_stops_waiting_for_a_peer_gone_silent_and_says_it_was_sent(tmp_path
     async def run() -> tuple[tuple[int, str, str, int, str, str], float]:
         t0 = time.monotonic()
         res = await _pair(
-            src, out, "--deadline", "70", recv_args=("--linger", "0"), relay_type=_CompletesNeverHeard
+            src,
+            out,
+            *("--deadline", "70", "--peer-timeout", "6"),
+            recv_args=("--linger", "0"),
+            relay_type=_CompletesNeverHeard,
         )
         return res, time.monotonic() - t0
 
@@ -199,5 +203,7 @@ def test_send_stops_waiting_for_a_peer_gone_silent_and_says_it_was_sent(tmp_path
     errors = [ln for ln in s_err.splitlines() if ln.startswith("mapd: error: ")]
     assert s_rc == 1 and len(errors) == 1, s_err
     assert "was sent but not acknowledged by peer 2" in errors[0], errors[0]
-    assert "nothing heard from it for 40 s" in errors[0] and "its last ack may have been lost" in errors[0]
-    assert took < 55  # two peer timeouts (20 s) after the whole file went out, not the 70 s deadline
+    assert "nothing heard from it for 12 s" in errors[0] and "its last ack may have been lost" in errors[0]
+    assert (
+        took < 40
+    )  # two peer timeouts (--peer-timeout 6) after the whole file went out, not the 70 s deadline
