@@ -4,7 +4,7 @@ finding 5). The commands over real ptys are in test_link_cmd."""
 
 from __future__ import annotations
 
-from mapd.commands.link import Quiet, Silence
+from mapd.commands.link_waits import Quiet, Silence
 from transports.uwb import arq
 
 
