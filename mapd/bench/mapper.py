@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _replay(path: Any) -> tuple[Any, float, float]:
     """Final map, wall seconds and CPU seconds of this process for a whole replay."""
     from mapd.errors import SourceError
-    from mapd.mapping.mapper import replay_log
+    from mapd.mapping.replay import replay_log
 
     t0, c0 = time.perf_counter(), time.process_time()
     last = None
@@ -123,7 +123,7 @@ def _f1(name: str, grid: Any, path: Any) -> float:
     from mapd.codec import metrics
     from mapd.data import data_dir
     from mapd.grid.load import load_map
-    from mapd.mapping.mapper import first_pose, resample
+    from mapd.mapping.replay import first_pose, resample
 
     base = data_dir()
     ref_path = base / "maps" / "radish_derived" / name / f"{name}.yaml" if base else None

@@ -28,6 +28,7 @@ import numpy as np
 from mapd.errors import SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.mapping import mapper as mapping
+from mapd.mapping import replay
 
 if TYPE_CHECKING:
     from mapd.mapping.lidar import Lidar
@@ -72,30 +73,30 @@ def _progress(text: str) -> None:
 
 
 def log_run(path: Path, *, robots: int, period: float, limit: int | None, resolution: float) -> Run:
-    """Replay ``path`` as ``robots`` robots (overlapping slices, see :func:`mapd.mapping.mapper.split_range`)."""
+    """Replay ``path`` as ``robots`` robots (overlapping slices, see :func:`mapd.mapping.replay.split_range`)."""
     streams: dict[str, list[tuple[float, OccupancyGrid]]] = {}
     frames: dict[str, Pose2D] = {}
-    world = mapping.first_pose(path)
+    world = replay.first_pose(path)
     if world is None:
         raise SourceError(f"{path}: no laser scans")
     for i in range(robots):
         name = f"robot{i}"
-        snaps = mapping.replay_log(
+        snaps = replay.replay_log(
             path, every_s=period, resolution=resolution, robots=robots, index=i, robot=name
         )
         streams[name] = []
         for stamp, grid in itertools.islice(snaps, limit):
             streams[name].append((stamp, grid))
             _progress(f"replay {name}: {len(streams[name])} snapshots, log time {stamp:.0f} s")
-        first = mapping.first_pose(path, robots=robots, index=i)
+        first = replay.first_pose(path, robots=robots, index=i)
         if not streams[name] or first is None:
             raise SourceError(f"{path}: robot {i} of {robots} gets no scans")
         frames[name] = mapping.relative(world, first)
-    whole = mapping.replay_log(path, every_s=period, resolution=resolution, robot="global")
+    whole = replay.replay_log(path, every_s=period, resolution=resolution, robot="global")
     last = collections.deque(itertools.islice(whole, limit), maxlen=2)
     end = last[-1][0]
     samples = []
-    for scan in mapping.replay_scans(path):
+    for scan in replay.replay_scans(path):
         if scan.stamp > end:
             break
         samples.append(Sample(mapping.relative(world, scan.pose), scan.ranges, scan.angles, scan.stamp))

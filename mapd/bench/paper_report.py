@@ -279,7 +279,7 @@ def markdown(results: dict[str, Any], figures: list[Path]) -> str:
         "",
         "- **Maps on the link (Fig. 8):** each robot's own map, in its own frame, every period of log",
         "  time, as a `mapd run` daemon would send it. On a log, robot i of N replays an overlapping",
-        "  slice (`mapd.mapping.mapper.split_range`, 20 % overlap); on the sim, N robots share one building.",
+        "  slice (`mapd.mapping.replay.split_range`, 20 % overlap); on the sim, N robots share one building.",
         "  `lossless+delta` codes each update against the robot's previous one (the first goes whole);",
         "  `pooled+delta` likewise with mapd's lossy `pooled` codec (2 x 2 blocks, an occupied cell wins).",
         "- **Global map (Fig. 9):** every robot's scans mapped in one frame with the known (corrected or",

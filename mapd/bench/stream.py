@@ -1,6 +1,6 @@
 """Map-stream benchmark: what it costs to send every version of a growing map, whole or as deltas.
 
-A CARMEN log is replayed through the log-odds mapper (:func:`mapd.mapping.mapper.replay_log`) and a
+A CARMEN log is replayed through the log-odds mapper (:func:`mapd.mapping.replay.replay_log`) and a
 snapshot is taken every ``--every`` scans. Each snapshot is encoded with each codec twice: as a
 whole map, and against the previous snapshot as base (``encode(grid, codec, base=prev)``; the codec
 decides whether the delta pays, so "delta" rows may hold some whole maps, counted in "deltas"). The
@@ -136,12 +136,12 @@ def run(args: argparse.Namespace) -> int:
     from mapd.codec.api import warm_up
     from mapd.data import shared_log
     from mapd.errors import SourceError
-    from mapd.mapping import mapper as mapping
+    from mapd.mapping import replay
 
     log = args.log if args.log is not None else shared_log("intel")
     if log is None:
         raise SourceError("no log given and no shared intel log found (set MAPD_DATA or pass --log)")
-    first = next(iter(mapping.replay_scans(log)), None)
+    first = next(iter(replay.replay_scans(log)), None)
     if first is None:
         raise SourceError(f"{log}: no laser scans")
     codecs = list(dict.fromkeys(args.codec))
@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     cells = 0
     last_stamp = first.stamp
     prev: OccupancyGrid | None = None
-    snaps = mapping.replay_log(log, every=args.every, resolution=args.resolution)
+    snaps = replay.replay_log(log, every=args.every, resolution=args.resolution)
     for n, (stamp, grid) in enumerate(snaps):
         if args.limit is not None and n >= args.limit:
             break

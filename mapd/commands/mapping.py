@@ -107,7 +107,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from mapd.files import atomic_write_bytes
     from mapd.grid.save import save_map
     from mapd.mapping import carmen
-    from mapd.mapping.mapper import first_pose, replay_log, split_range
+    from mapd.mapping.replay import first_pose, replay_log, split_range
 
     if args.every < 1:
         raise ConfigError("--every must be at least 1")

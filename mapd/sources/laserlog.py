@@ -1,7 +1,7 @@
 """``laserlog``: replay a CARMEN log with corrected poses through the mapper, as one robot of K.
 
 The log (gzip or plain) is read one line at a time. ``robots = K`` with ``index = i`` replays robot
-``i``'s slice of the log (:func:`mapd.mapping.mapper.split_range`: equal, evenly spaced slices where
+``i``'s slice of the log (:func:`mapd.mapping.replay.split_range`: equal, evenly spaced slices where
 neighbours share ``overlap`` of the log; for two robots, the first and the last 60 %), which is how
 the paper's two-robot experiment runs on real data. A snapshot is emitted every ``every`` scans
 and/or every ``every_s`` seconds of log time, and once more after the last scan; then the stream
@@ -44,7 +44,8 @@ from pydantic import Field, model_validator
 from mapd.errors import LimitError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.mapping import carmen
-from mapd.mapping.mapper import Mapper, MapperOptions, first_pose, relative, replay_scans
+from mapd.mapping.mapper import Mapper, MapperOptions, relative
+from mapd.mapping.replay import first_pose, replay_scans
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
 
 if TYPE_CHECKING:

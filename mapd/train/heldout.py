@@ -34,7 +34,7 @@ def growing_maps(
     log: Path, *, robots: int = 2, period: float = 30.0, resolution: float = 0.05, cache: Path | None = None
 ) -> list[tuple[str, OccupancyGrid]]:
     """Every robot's map stream of ``log`` as ``mapd bench paper`` replays it (Figure 8a's updates)."""
-    from mapd.mapping import mapper
+    from mapd.mapping import replay
 
     out: list[tuple[str, OccupancyGrid]] = []
     sha = _file_sha256(log)
@@ -43,7 +43,7 @@ def growing_maps(
         key["res"] = resolution
 
         def make(i: int = i) -> list[OccupancyGrid]:
-            snaps = mapper.replay_log(
+            snaps = replay.replay_log(
                 log, every_s=period, resolution=resolution, robots=robots, index=i, robot=f"robot{i}"
             )
             return [g for _, g in snaps]

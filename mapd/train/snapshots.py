@@ -5,7 +5,7 @@ unfinished: ragged frontiers, unknown holes, walls seen from one side. ``mapd tr
 maps beside the finished ones:
 
 * **Logs** (``--snapshots-log``): a CARMEN log with corrected poses replayed through mapd's mapper
-  (:func:`mapd.mapping.mapper.replay_log`, one robot, the whole log), a snapshot every
+  (:func:`mapd.mapping.replay.replay_log`, one robot, the whole log), a snapshot every
   ``--snapshot-every`` scans and one after the last scan, as a Gmapping run saves its map.
 * **Simulator** (``--snapshots-sim``): one simulated robot driving through the generated building of
   a seed (:mod:`mapd.mapping.worldgen`, :class:`mapd.mapping.simrobot.SimRobot`) for ``--sim-scans``
@@ -173,13 +173,13 @@ def log_snapshots(
     log: Path, every: int, resolution: float = 0.05, cache: Path | None = None
 ) -> tuple[list[OccupancyGrid], Path]:
     """Snapshots of ``log`` replayed by one robot, every ``every`` scans and after the last one."""
-    from mapd.mapping import mapper
+    from mapd.mapping import replay
 
     key = {"v": CACHE_VERSION, "kind": "log", "sha256": _file_sha256(log), "every": every, "res": resolution}
 
     def make() -> list[OccupancyGrid]:
         out = []
-        for _, grid in mapper.replay_log(log, every=every, resolution=resolution, robot="snapshots"):
+        for _, grid in replay.replay_log(log, every=every, resolution=resolution, robot="snapshots"):
             out.append(grid)
             print(f"\rsnapshots {log.name}: {len(out)}", end="", file=sys.stderr, flush=True)
         print(file=sys.stderr)

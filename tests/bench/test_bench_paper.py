@@ -23,7 +23,7 @@ from mapd.bench.paper_report import PAPER
 from mapd.cli import build_parser
 from mapd.grid import Pose2D
 from mapd.mapping.lidar import Lidar
-from mapd.mapping.mapper import replay_log
+from mapd.mapping.replay import replay_log
 
 SIM = ["--sim", "0", "--duration", "20", "--period", "10", "--poses", "3"]
 

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapd.codec import hexruns
 from mapd.codec import huffman as hf
 from mapd.errors import CodecError
 
@@ -26,7 +27,7 @@ def test_golden_bitstream(case: dict) -> None:
     for sym, code in enumerate(case["codes"]):
         if code is not None:
             assert format(int(stage.codes[sym]), f"0{len(code)}b") == code
-    assert hf.hex_string(stage.hexs) == case["hex"]
+    assert hexruns.hex_string(stage.hexs) == case["hex"]
     assert [
         [int(n), "0123456789ABCDEF"[int(c)]] for n, c in zip(stage.counts, stage.chars, strict=True)
     ] == case["runs"]
@@ -119,7 +120,7 @@ def _table(lengths: list[int]) -> bytes:
     ],
 )
 def test_corrupt_huffman_table_is_refused(lengths: list[int], message: str) -> None:
-    wire = _table(lengths) + hf.pack_runs(np.array([3]), np.array([0]))
+    wire = _table(lengths) + hexruns.pack_runs(np.array([3]), np.array([0]))
     with pytest.raises(CodecError, match=message):
         hf.decode(wire, 10, 16)
 
@@ -137,7 +138,7 @@ def test_table_padding_and_minimal_size_are_checked() -> None:
 
 def test_rle_count_past_the_declared_size_is_refused_without_allocating() -> None:
     # One run of 2^30 hex digits: 4 Gbit for a declared 100 symbols.
-    runs = hf.pack_runs(np.array([1 << 30]), np.array([0]))
+    runs = hexruns.pack_runs(np.array([1 << 30]), np.array([0]))
     wire = _table([1, 1]) + runs
     tracemalloc.start()
     try:
@@ -152,7 +153,7 @@ def test_rle_count_past_the_declared_size_is_refused_without_allocating() -> Non
 def test_many_small_runs_past_the_declared_size_are_refused() -> None:
     counts = np.full(1000, 8)
     chars = np.tile(np.array([1, 2], dtype=np.uint8), 500)
-    wire = _table([1, 1]) + hf.pack_runs(counts, chars)
+    wire = _table([1, 1]) + hexruns.pack_runs(counts, chars)
     with pytest.raises(CodecError, match=r"runs for at most|more than the"):
         hf.decode(wire, 100, 2)
 
@@ -193,16 +194,16 @@ def test_non_canonical_run_codes_are_refused(runs: bytes, message: str) -> None:
 
 def test_non_zero_bit_padding_is_refused() -> None:
     # Six 1-bit symbols "000000" pad to "00000000" = hex 00; hex 03 would carry two set pad bits.
-    good = _table([1, 1]) + hf.pack_runs(np.array([2]), np.array([0]))
+    good = _table([1, 1]) + hexruns.pack_runs(np.array([2]), np.array([0]))
     assert hf.decode(good, 6, 2).tolist() == [0] * 6
-    bad = _table([1, 1]) + hf.pack_runs(np.array([1, 1]), np.array([0, 3]))
+    bad = _table([1, 1]) + hexruns.pack_runs(np.array([1, 1]), np.array([0, 3]))
     with pytest.raises(CodecError, match="padding"):
         hf.decode(bad, 6, 2)
 
 
 def test_undecodable_bits_for_a_one_symbol_table_are_refused() -> None:
     # The one-symbol code is "0"; a set bit matches no code.
-    wire = _table([1]) + hf.pack_runs(np.array([1]), np.array([8]))
+    wire = _table([1]) + hexruns.pack_runs(np.array([1]), np.array([8]))
     with pytest.raises(CodecError, match="corrupt"):
         hf.decode(wire, 4, 1)
 

@@ -190,7 +190,7 @@ def test_shared_maps_round_trip_and_beat_zstd(shared_maps: list[Path]) -> None:
 
 
 def test_replayed_log_snapshots_round_trip_as_deltas(intel_log: Path) -> None:
-    from mapd.mapping.mapper import replay_log
+    from mapd.mapping.replay import replay_log
 
     prev = None
     deltas = 0

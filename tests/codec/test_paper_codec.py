@@ -17,7 +17,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd.codec import api, huffman
+from mapd.codec import api, hexruns, huffman
 from mapd.codec import paper_model as pm
 from mapd.codec import paper_net as pn
 from mapd.codec.paper import (
@@ -370,7 +370,7 @@ def test_rle_past_the_declared_size_in_a_payload(models: Path) -> None:
     grid = room_grid_of(20, 20, seed=2)
     payload = api.encode(grid, "paper", options=_opts(models))
     body = bytes([FLAG_FREE]) + huffman.pack_table(np.array([1, 1], np.uint8))
-    body += huffman.pack_runs(np.array([1 << 29]), np.array([0]))
+    body += hexruns.pack_runs(np.array([1 << 29]), np.array([0]))
     with pytest.raises(CodecError, match="more than the"):
         api.decode(_with_body(payload, body), options=_opts(models))
 

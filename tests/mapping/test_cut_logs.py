@@ -24,7 +24,7 @@ from mapd.errors import SourceError
 from mapd.grid import Pose2D
 from mapd.grid.load import load_map
 from mapd.mapping import carmen
-from mapd.mapping.mapper import first_pose, replay_log
+from mapd.mapping.replay import first_pose, replay_log
 from tests.mapping.cutlog import blocked_gzip, scan_lines, whole_lines, write_prefix
 
 BoxLog = Callable[..., tuple[Path, list[Pose2D]]]

@@ -20,9 +20,8 @@ from mapd.mapping.mapper import (
     compose,
     inverse,
     relative,
-    replay_log,
-    split_range,
 )
+from mapd.mapping.replay import replay_log, split_range
 
 ONE = MapperOptions(resolution=1.0)
 

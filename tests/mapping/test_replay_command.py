@@ -18,7 +18,7 @@ import yaml
 from mapd.cli import main
 from mapd.grid import Pose2D
 from mapd.grid.load import load_map
-from mapd.mapping.mapper import replay_log
+from mapd.mapping.replay import replay_log
 
 BoxLog = Callable[..., tuple[Path, list[Pose2D]]]
 

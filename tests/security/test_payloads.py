@@ -102,12 +102,12 @@ def test_lossless_zeros_claiming_many_cells_fail_in_bounded_memory(
 
 _PAPER_CHILD = """
 import numpy as np
-from mapd.codec import decode, huffman
+from mapd.codec import decode, hexruns, huffman
 from mapd.codec.api import get_codec, pack_payload
 codec = get_codec("paper")
 levels = codec.model().levels
 two = np.array([1, 1] + [0] * (levels - 2), np.uint8)
-warm = huffman.pack_table(two) + huffman.pack_runs(np.array([1]), np.array([0], np.uint8))
+warm = huffman.pack_table(two) + hexruns.pack_runs(np.array([1]), np.array([0], np.uint8))
 decode(pack_payload("paper", codec.variant(), height=4, width=2, resolution=0.05, origin=(0, 0, 0),
                     body=bytes([7]) + warm, lossy=True))
 before = peak_mb()
@@ -116,10 +116,10 @@ n = (h // 2) * (w // 2)
 if {deep}:
     # every symbol the one with a 15-bit code: 15 one-bits each, one run of n * 15 / 4 hex 'F'
     lengths = np.array(list(range(1, levels)) + [levels - 1], np.uint8)
-    body = huffman.pack_table(lengths) + huffman.pack_runs(np.array([n * 15 // 4]), np.array([15], np.uint8))
+    body = huffman.pack_table(lengths) + hexruns.pack_runs(np.array([n * 15 // 4]), np.array([15], np.uint8))
 else:
     # symbols 0 and 1 alternating (1-bit codes, hex '5'): no tile is constant, the CNN runs everywhere
-    body = huffman.pack_table(two) + huffman.pack_runs(np.array([n // 4]), np.array([5], np.uint8))
+    body = huffman.pack_table(two) + hexruns.pack_runs(np.array([n // 4]), np.array([5], np.uint8))
 payload = pack_payload("paper", codec.variant(), height=h, width=w, resolution=0.05, origin=(0, 0, 0),
                        body=bytes([7]) + body, lossy=True)
 t0 = time.perf_counter()

@@ -12,7 +12,7 @@ import pytest
 from mapd.errors import SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.mapping import carmen
-from mapd.mapping.mapper import first_pose, replay_log, split_range
+from mapd.mapping.replay import first_pose, replay_log, split_range
 from mapd.sources.base import SourceContext
 from mapd.sources.laserlog import LaserLogOptions, LaserLogSource
 from tests.mapping.cutlog import blocked_gzip, scan_lines, whole_lines, write_prefix

@@ -14,7 +14,7 @@ from mapd.codec.metrics import occupied_f1
 from mapd.errors import SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.grid.load import load_map
-from mapd.mapping.mapper import first_pose, replay_log, resample
+from mapd.mapping.replay import first_pose, replay_log, resample
 from mapd.sources.base import SourceContext
 from mapd.sources.laserlog import LaserLogOptions, LaserLogSource
 

@@ -16,7 +16,7 @@ from mapd.grid import OCCUPIED, OccupancyGrid, Pose2D
 from mapd.grid.save import save_map
 from mapd.mapping import worldgen
 from mapd.mapping.lidar import Lidar
-from mapd.mapping.mapper import resample
+from mapd.mapping.replay import resample
 from mapd.mapping.simrobot import Planner
 from mapd.sources.base import SourceContext
 from mapd.sources.sim import SimOptions, SimSource

@@ -15,7 +15,8 @@ import pytest
 from mapd.errors import LimitError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.mapping import carmen
-from mapd.mapping.mapper import Mapper, MapperOptions, replay_log
+from mapd.mapping.mapper import Mapper, MapperOptions
+from mapd.mapping.replay import replay_log
 from mapd.sources import laserlog
 from mapd.sources.base import SourceContext
 from mapd.sources.laserlog import LaserLogOptions, LaserLogSource

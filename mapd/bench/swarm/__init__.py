@@ -12,10 +12,12 @@ frames lost to collisions and to loss.
 Modules: ``streams`` (versions and paths, cached; payload sizes by the real codecs), ``radio`` (the
 medium), ``links`` (range and walls), ``des`` (the event loop), ``node`` (one robot: ARQ + publisher),
 ``policy`` (hooks for relay and for who acks), ``sim`` (one run), ``metrics``, ``bound`` (``--bound``:
-what one scheduler that knows everything would do on the same channel), ``run`` (the command).
+what one scheduler that knows everything would do on the same channel), ``args`` (the command's
+options), ``run`` (the command).
 """
 
-from mapd.bench.swarm.run import COLUMNS, add_arguments, run
+from mapd.bench.swarm.args import add_arguments
+from mapd.bench.swarm.run import COLUMNS, run
 
 HELP = "N robots on one simulated UWB channel (real ARQ, MAC, codecs): staleness, convergence, channel use"
 

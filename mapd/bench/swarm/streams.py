@@ -3,7 +3,7 @@
 A fleet of N robots either drives the simulator's building (``--sim SEED``: robot ``i`` of ``N`` is
 :class:`~mapd.mapping.simrobot.SimRobot` ``(seed, index=i, robots=N)``, so the routes split the rooms
 as the ``sim`` source does) or replays slices of one CARMEN log (``--log``: robot ``i`` replays
-:func:`~mapd.mapping.mapper.split_range` slice ``i`` of ``N`` from the slice's start, all robots at
+:func:`~mapd.mapping.replay.split_range` slice ``i`` of ``N`` from the slice's start, all robots at
 once, so at a given moment robots stand where the log's robot stood at different times; the poses
 are the log's corrected poses, unshifted). Robot ``i`` makes version 1 after its first scan and then
 one version every ``period`` seconds (the ``sim`` source's ``emit_period``; log time for logs), up to
@@ -131,7 +131,8 @@ def _sim_fleet(
 def _log_fleet(
     log: Path, n: int, period: float, duration: float
 ) -> tuple[list[tuple[list[float], list[bytes], np.ndarray, Pose2D]], OccupancyGrid]:
-    from mapd.mapping.mapper import Mapper, MapperOptions, relative, replay_scans
+    from mapd.mapping.mapper import Mapper, MapperOptions, relative
+    from mapd.mapping.replay import replay_scans
 
     out = []
     for i in range(n):
