@@ -11,5 +11,6 @@
   the zenoh config; :mod:`~transports.zenoh.routers` follows the routers the session is connected
   to; :mod:`~transports.zenoh.jobs` runs every blocking zenoh call off the loop;
   :mod:`~transports.zenoh.handlers` lets close() wait for zenoh's callback threads;
-  :mod:`~transports.zenoh.fleets` notes robots of other fleets on the same network.
+  :mod:`~transports.zenoh.fleets` notes robots of other fleets on the same network;
+  :mod:`~transports.zenoh.limits` keeps what each peer announced it takes.
 """

@@ -9,7 +9,8 @@ transport owns (declared here; see that module's docstring for the threads and t
   coalesced per token. Samples of robots the roster does not admit, and oversized poses and acks,
   are refused before they are copied (:class:`IntakeCounters`), as are updates and replies over
   ``max_message_bytes`` (said once per robot, on the loop). Other fleets' fleet tokens are counted
-  and said right there (:mod:`transports.zenoh.fleets`).
+  and said right there (:mod:`transports.zenoh.fleets`), and peers' ``takes`` tokens kept right
+  there for our offers (:mod:`transports.zenoh.limits`).
 * **the loop thread** feeds each arrival to the sans-I/O :class:`~transports.zenoh.core.ZenohCore`
   and applies its :class:`~transports.zenoh.core_types.Step`: events to the daemon, keyframe
   queries out, and answers to the queries of peers (rationed, on the job thread).
@@ -36,6 +37,7 @@ from transports.zenoh.core_types import NAME, Step
 from transports.zenoh.fleets import OtherFleets
 from transports.zenoh.handlers import HandlerSet
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.limits import PeerLimits
 from transports.zenoh.routers import RouterLink
 from transports.zenoh.sending import SendCounters
 from transports.zenoh.session import ZenohOptions
@@ -90,6 +92,7 @@ class ZenohIntake:
     _reply_slots: threading.BoundedSemaphore
     _routers: RouterLink
     _fleets: OtherFleets
+    _limits: PeerLimits
 
     # -- zenoh threads: copy and hand over, nothing else -------------------------------------------
 
@@ -240,6 +243,24 @@ class ZenohIntake:
         line = self._fleets.seen(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
         if line is not None:
             log.warning("%s", line)
+
+    def _cb_takes(self, sample: Any) -> None:
+        """A peer's ``takes`` token appeared or vanished: what it takes, kept for our offers.
+
+        Fed right here, on zenoh's thread: :class:`~transports.zenoh.limits.PeerLimits` keeps a
+        bounded few limits per admitted robot, so a flood of made-up tokens costs a parse each and
+        no loop work; a malformed one (a value out of bounds) is counted ``dropped``.
+        """
+        import zenoh
+
+        parsed = keys.parse_takes(self.ctx.fleet, str(sample.key_expr))
+        if parsed is None:
+            with self._rx_lock:
+                self._rx.dropped += 1
+            return
+        if self._unadmitted(parsed[0]):
+            return
+        self._limits.announced(parsed[0], parsed[1], sample.kind == zenoh.SampleKind.PUT)
 
     def _cb_transport(self, event: Any) -> None:
         """A transport to another zenoh node opened or closed: routers' go to the loop, one post each.

@@ -9,12 +9,18 @@ each other's traffic (and a router ACL can fence a fleet with one rule)::
     mapd/<fleet>/<robot>/global          <robot>'s global map (the zenoh output), put + queryable
     mapd/<fleet>/<peer>/ack/<robot>      <peer> has applied <robot>'s map version (8-byte payload)
     mapd/<fleet>/<robot>/pose            <robot>'s pose (a signed pose message), put, latest wins
+    mapd/<fleet>/<robot>/takes/<bytes>   liveliness token: <robot> takes messages up to <bytes>
+                                         (its limits.max_message_bytes; unsigned: limits.py)
 
 The one outside: ``mapd/@fleets/<fleet>/<robot>``, a liveliness token that says which fleet
 ``<robot>`` is configured in, so robots whose ``robot.fleet`` differ, which see none of each other's
 maps, can at least tell that they share a network (:mod:`transports.zenoh.fleets`). ``@fleets`` is
 a zenoh verbatim chunk: no wildcard matches it (``mapd/**`` does not), and no fleet id can be it.
 Only tokens live there, never data.
+
+The ``takes`` token has five chunks and the word ``takes`` where an ack has ``ack``, so no other
+subscription here matches it (presence is ``mapd/<fleet>/*``, one chunk; acks ``*/ack/<robot>``):
+robots from before it see nothing new, and a robot that announces none is taken as before.
 
 Fleet and robot ids are the config's names (``[A-Za-z0-9_-]{1,32}``), so they hold no zenoh
 wildcard or separator and a key built from them matches exactly one thing. The parsers take keys
@@ -127,6 +133,30 @@ def parse_fleet_presence(key: str) -> tuple[str, str] | None:
     return parts[2], parts[3]
 
 
+#: The least ``limits.max_message_bytes`` the config allows, and the most a ``takes`` token may say
+#: (1 TiB: no map comes near; a link whose limit is larger announces this).
+MIN_TAKES = 1024
+MAX_TAKES = 1 << 40
+# A decimal integer as ``str(int)`` writes it: ASCII digits, no sign, no leading zero, at most 13
+# digits (MAX_TAKES has 13), so a key from the network never makes int() parse a huge string.
+_TAKES = re.compile(r"[1-9][0-9]{3,12}")
+
+
+def takes_key(fleet: str, robot: str, nbytes: int) -> str:
+    """The liveliness token that says ``robot`` takes messages up to ``nbytes`` (``ValueError``
+    outside :data:`MIN_TAKES` .. :data:`MAX_TAKES`)."""
+    _check(fleet, robot)
+    if not MIN_TAKES <= nbytes <= MAX_TAKES:
+        raise ValueError(f"{nbytes} is not a message limit to announce ({MIN_TAKES} to {MAX_TAKES})")
+    return f"{PREFIX}/{fleet}/{robot}/takes/{nbytes}"
+
+
+def all_takes(fleet: str) -> str:
+    """Liveliness subscription to what every robot of ``fleet`` takes."""
+    _check(fleet)
+    return f"{PREFIX}/{fleet}/*/takes/*"
+
+
 def _chunks(fleet: str, key: str, n: int) -> list[str] | None:
     parts = key.split("/")
     if len(parts) != n or parts[0] != PREFIX or parts[1] != fleet:
@@ -164,3 +194,17 @@ def parse_ack(fleet: str, robot: str, key: str) -> str | None:
     if parts is None or parts[3] != "ack" or parts[4] != robot or not valid_name(parts[2]):
         return None
     return parts[2]
+
+
+def parse_takes(fleet: str, key: str) -> tuple[str, int] | None:
+    """``(robot, bytes)`` of a ``takes`` token key in ``fleet``, or None when ``key`` is not exactly
+    one, or its bytes are no decimal integer within :data:`MIN_TAKES` .. :data:`MAX_TAKES`."""
+    parts = _chunks(fleet, key, 5)
+    if parts is None or parts[3] != "takes" or not valid_name(parts[2]):
+        return None
+    if _TAKES.fullmatch(parts[4]) is None:
+        return None
+    nbytes = int(parts[4])
+    if not MIN_TAKES <= nbytes <= MAX_TAKES:
+        return None
+    return parts[2], nbytes

@@ -46,7 +46,13 @@ rmw_zenoh. The key expressions are in :mod:`transports.zenoh.keys`; what happens
   (:mod:`transports.zenoh.fleets`). A peer's update or reply over ``max_message_bytes`` is refused
   unread and said once per robot with the fix (``oversize_rx``, ``oversize_from``). zenoh itself
   drops, unseen, a message over the cap it is given (``max_message_bytes`` plus 64 KiB; see
-  :mod:`transports.zenoh.session`) between hosts, so only maps up to that reach this line.
+  :mod:`transports.zenoh.session`) between hosts, so only maps up to that reach this line. So the
+  sender says it too: each link declares ``mapd/<fleet>/<robot>/takes/<max_message_bytes>`` and
+  watches its fleet's, and an offer of ours larger than a peer takes is said once per peer
+  (WARNING, with the fix) while our maps stay over, shown in ``too_big_for`` (a fault in ``mapd
+  status``), and emits ``Failed(again=False)`` for that peer, so the publisher does not wait for its
+  ack (:mod:`transports.zenoh.limits`; the tokens are unsigned: a forged one makes a false line
+  and a skipped wait, no more). A peer that announces nothing (an older robot) is taken as before.
 * **Shutdown.** ``close`` stops callbacks reaching the loop, drops waiting sends, then (on the
   outbox thread, bounded by ``close_timeout_s``) undeclares the liveliness token first, so peers
   see us leave at once, then subscribers, queryable and publisher, closes the session, and waits
@@ -89,6 +95,7 @@ from transports.zenoh.intake import (
     ZenohIntake,
 )
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.limits import PeerLimits
 from transports.zenoh.routers import RouterLink
 from transports.zenoh.sending import SendCounters, ZenohSending
 from transports.zenoh.session import ZenohOptions, build_config, zenoh_message
@@ -163,6 +170,8 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         self._routers = RouterLink()
         #: Robots of other fleets on this zenoh network (their fleet tokens; thread-safe).
         self._fleets = OtherFleets(ctx.fleet, ctx.robot)
+        #: What each peer takes (its ``takes`` token), for offers over it (thread-safe).
+        self._limits = PeerLimits(ctx.robot, opts.max_peers)
 
     # -- lifecycle ---------------------------------------------------------------------------------
 
@@ -249,11 +258,19 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
                     keys.all_fleet_presence(), cb(self._cb_fleet), history=True
                 )
             )
+            # What each peer takes (older robots announce nothing: they are taken as before).
+            ents.append(
+                session.liveliness().declare_subscriber(
+                    keys.all_takes(fleet), cb(self._cb_takes), history=True
+                )
+            )
             ents.append(
                 session.declare_queryable(keys.latest_key(fleet, me), cb(self._cb_query), complete=True)
             )
             self._publisher = session.declare_publisher(keys.update_key(fleet, me), congestion_control=cc)
             ents.append(self._publisher)
+            # Before the presence token, so a peer that sees us knows what we take.
+            self._announce(session, ents)
             # Last, so a peer that sees us can already query us.
             self._token = session.liveliness().declare_token(keys.presence_key(fleet, me))
             # Which fleet we are of, for robots of every fleet to see (undeclared right after the
@@ -265,6 +282,14 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
             session.close()
             raise
         self._session = session
+
+    def _announce(self, session: Any, ents: list[Any]) -> None:
+        """Declare what this robot takes (``limits.max_message_bytes``, at most ``MAX_TAKES``)."""
+        nbytes = min(self.ctx.max_message_bytes, keys.MAX_TAKES)
+        if nbytes < keys.MIN_TAKES:
+            return  # below what the config allows (a tool's context): announce nothing, as before
+        key = keys.takes_key(self.ctx.fleet, self.ctx.robot, nbytes)
+        ents.append(session.liveliness().declare_token(key))
 
     async def watch(self) -> None:
         """While no router could be reached, try to open the session again (1 s, doubling to 30 s;
@@ -366,7 +391,9 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         times it lost them. ``oversize_rx``: peers' updates and replies over ``max_message_bytes``
         (refused unread), ``oversize_from``: robot -> the size of its largest; ``other_fleets``:
         fleet -> robots of other fleets seen on this network now, ``other_fleet_tokens``: how many
-        such tokens appeared (both bounded: :mod:`transports.zenoh.fleets`).
+        such tokens appeared (both bounded: :mod:`transports.zenoh.fleets`); ``too_big_for``: peer ->
+        size and limit, for peers whose announced limit our last map was over, ``too_big_peers``:
+        how many (a fault: :mod:`transports.zenoh.limits`).
         """
         with self._tx_lock:
             tx = asdict(self._tx)
@@ -384,6 +411,8 @@ class ZenohTransport(ZenohIntake, ZenohSending, Transport):
         # Robots of other fleets on this network: no fault (fleets may share it on purpose), but
         # the one thing that tells why a robot configured with another robot.fleet is never seen.
         out.update(self._fleets.stats())
+        # Peers that refuse our maps for their size (they announced their limit): a fault
+        out.update(self._limits.stats())
         if self._checks is not None:
             out["superseded"] = self._checks.superseded
         if self._jobs is not None:

@@ -4,7 +4,8 @@ The sending half of :class:`~transports.zenoh.link.ZenohTransport`, as a mixin o
 transport owns (declared here). Each send is a job on the :class:`~transports.zenoh.jobs.JobQueue`
 under a key that makes it latest-wins: ``("update", robot)``, ``("pose",)``, ``("ack", robot)``, so
 a newer offer, pose or ack replaces one still waiting and no stale version is ever queued. What
-was sent or refused is counted in :class:`SendCounters`.
+was sent or refused is counted in :class:`SendCounters`. An own map larger than a peer announced
+it takes is said, and ``Failed(again=False)`` for that peer (:mod:`transports.zenoh.limits`).
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from mapd.envelope import Envelope
-from transports.base import PoseThrottle, TransportContext
+from transports.base import Failed, PoseThrottle, TransportContext
 from transports.zenoh import keys
 from transports.zenoh.core import ZenohCore
+from transports.zenoh.core_types import NAME
 from transports.zenoh.jobs import JobQueue
+from transports.zenoh.limits import PeerLimits
 from transports.zenoh.session import zenoh_message
 
 # The name these lines have always been logged under (log filters and journal searches use it).
@@ -64,6 +67,8 @@ class ZenohSending:
     _tx: SendCounters
     #: Robots whose maps over ``max_message_bytes`` were said (until one of theirs fits again).
     _oversize_said: set[str]
+    #: What each peer announced it takes (:mod:`transports.zenoh.limits`).
+    _limits: PeerLimits
 
     # -- outbox thread -----------------------------------------------------------------------------
 
@@ -97,8 +102,10 @@ class ZenohSending:
                 )
             return
         self._oversize_said.discard(envelope.robot)
-        if envelope.robot == self.ctx.robot and envelope.is_keyframe:
-            self._last_keyframe = data
+        if envelope.robot == self.ctx.robot:
+            self._over_peers(envelope, len(data))
+            if envelope.is_keyframe:
+                self._last_keyframe = data
         self.core.offered(envelope, time.monotonic())
         robot = envelope.robot
         key = keys.update_key(self.ctx.fleet, robot)
@@ -115,6 +122,21 @@ class ZenohSending:
                 self._tx.updates_tx += 1
 
         self._jobs.submit(("update", robot), job)
+
+    def _over_peers(self, envelope: Envelope, size: int) -> None:
+        """Our ``envelope`` of ``size`` bytes goes out: say the peers that announced a smaller limit
+        (once each while our maps stay over it), and tell the publisher not to wait for their acks.
+
+        It is published all the same: other peers take it. ``Failed`` goes only for peers the core
+        lists (those the publisher waits for).
+        """
+        verdict = self._limits.offered(size, set(self.core.peers()))
+        for line in verdict.warnings:
+            log.warning("%s", line)
+        for over in verdict.failed:
+            self.ctx.emit(
+                Failed(NAME, over.peer, envelope.robot, envelope.version, over.reason(), again=False)
+            )
 
     def send_pose(self, data: bytes, now: float) -> bool:
         """Put this robot's pose message (best effort: zenoh may drop it under congestion)."""
