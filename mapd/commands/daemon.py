@@ -210,6 +210,7 @@ def render_status(s: dict[str, Any]) -> str:
         link_faults,
         recording_failing,
         state_faults,
+        too_big_words,
     )
     from mapd.daemon.versions import label
 
@@ -261,6 +262,9 @@ def render_status(s: dict[str, Any]) -> str:
         )
     out.append("peers")
     peers = s.get("peers", {})
+    # peers whose "acked our" is their radio's only: their daemon refuses our maps (uwb refused_by)
+    links = s.get("links") or {}
+    radio_only = {p for st in links.values() if isinstance(st, dict) for p in st.get("refused_by") or {}}
     if not peers:
         out.append("  (none yet)")
     for name, p in peers.items():
@@ -285,6 +289,11 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {'':<12} FAULTS takes none of this robot's maps for {_age(p.get('unacked_s'))} while its "
                 f"own come: on {name}, is this robot's key in its [fleet.roster] (the current one), are "
                 f"its limits as large as this robot's maps?"
+            )
+        if name in radio_only:
+            out.append(
+                f"  {'':<12} FAULTS acks our maps at the radio (uwb) but its daemon refuses them: its "
+                f"mapd status says why"
             )
         if isinstance(p.get("heard_as"), str):
             out.append(
@@ -322,12 +331,23 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {'':<6} maps over limits.max_message_bytes from "
                 + ", ".join(f"{robot} ({size} B)" for robot, size in big.items())
             )
+        if (small := too_big_words(st)) is not None:  # who, of the too_big_peers fault above
+            out.append(f"  {'':<6} {small}")
         if isinstance(fleets := st.get("other_fleets"), dict) and fleets:
             # No fault: fleets may share a network on purpose. But the one thing that says why a
             # robot with another robot.fleet is never seen.
             out.append(
                 f"  {'':<6} other fleets on this network: "
                 + ", ".join(f"{fleet} ({', '.join(map(str, robots))})" for fleet, robots in fleets.items())
+            )
+        if isinstance(refusing := st.get("refused_by"), dict) and refusing:
+            out.append(
+                f"  {'':<6} daemons refusing our maps their radios ack: "
+                + ", ".join(
+                    f"{peer} (acked {label(r.get('acked'))}, holds {label(r.get('holds')) if r.get('holds') else 'none'})"
+                    for peer, r in refusing.items()
+                    if isinstance(r, dict)
+                )
             )
     f = s.get("fusion", {})
     g = f.get("global") or {}

@@ -25,6 +25,9 @@ LINK_FAULTS = {
     "clock_synchronized": "wall clock not synchronized (TDMA turns need it: chrony)",
     # peers' maps refused unread for their size (zenoh): config drift, said with the robot and size
     "oversize_rx": "{} peer maps over this robot's limits.max_message_bytes refused (the log names the robot)",
+    # zenoh: peers that announced a smaller limits.max_message_bytes than our maps (config drift;
+    # they get none of them); the peers and sizes: the link's too_big_for (too_big_words)
+    "too_big_peers": "{} peers take smaller messages than this robot's maps (their limits.max_message_bytes)",
     "reconnects": "port reopened {} times",
     "write_stalls": "port took no bytes {} times",
     "counter_save_errors": "signing counter not saved {} times (disk full or read-only?)",
@@ -36,6 +39,9 @@ LINK_FAULTS = {
     "future": "{} frames signed with counters over 5 min ahead of this robot's clock (clocks apart, or a forged link key?)",
     # The frame's link tag was good but the robot key was not: whoever sent it holds the link key.
     "keyframe_requests_forged": "{} keyframe requests in another robot's name (has the link key leaked?)",
+    # uwb: peers whose radio acks our maps while their daemon holds none (their relay summaries
+    # say so); their log and mapd status say why (config drift). The peers: the link's refused_by.
+    "refused_by_peers": "{} peers ack this robot's maps at the radio but their daemons refuse them (the log names them; their mapd status says why)",
 }
 
 #: A serial link's frames that arrived damaged, by what caught them: COBS, the length (no delimiter
@@ -204,3 +210,26 @@ def status_line(s: dict[str, Any]) -> str:
         faults.append("UNSIGNED fleet")
     line = ("FAULTS " + ", ".join(faults) + " | " if faults else "") + "; ".join(parts)
     return line if len(line) <= MAX_LINE else line[: MAX_LINE - 3] + "..."
+
+
+def too_big_words(stats: dict[str, Any]) -> str | None:
+    """A link's ``too_big_for`` in words (who, of its ``too_big_peers`` fault, and what to raise),
+    for ``mapd status``; None when empty.
+
+    Read from a status document (JSON from the daemon), so every field is checked, not trusted.
+    """
+    small = stats.get("too_big_for")
+    if not isinstance(small, dict) or not small:
+        return None
+    peers = [
+        f"{peer} takes {o.get('limit')} B, ours {o.get('size')} B (raise it on {peer} to at least "
+        f"{o.get('size')})"
+        for peer, o in small.items()
+        if isinstance(o, dict)
+    ]
+    if not peers:
+        return None
+    total = stats.get("too_big_peers")
+    if isinstance(total, int) and total > len(peers):
+        peers.append(f"{total - len(peers)} more")
+    return "maps too big for peers' limits.max_message_bytes: " + "; ".join(peers)

@@ -69,17 +69,19 @@ class RelayDriver:
         self.core.on_overheard(origin, version, now)
         self.overheard_rx += 1
 
-    def summary(self, src: int, data: bytes, now: float) -> None:
-        """A summary arrived on :data:`~transports.uwb.forwarding.SUMMARY_STREAM`."""
+    def summary(self, src: int, data: bytes, now: float) -> forwarding.Summary | None:
+        """A summary arrived on :data:`~transports.uwb.forwarding.SUMMARY_STREAM`: returns it
+        parsed (what ``src`` holds also says whether its daemon took our maps), None if malformed."""
         try:
             s = forwarding.unpack_summary(data)
         except forwarding.SummaryError as exc:
             self.bad_summaries += 1
             log.info("uwb: bad summary from link id %d: %s", src, exc)
-            return
+            return None
         self.summaries_rx += 1
         self.core.on_summary(src, s, now)
         self._wake.set()
+        return s
 
     def closed(self, msg: int, outcome: str = "delivered") -> None:
         """A message left the send queue: if it was the relay in flight, another may start."""

@@ -4,7 +4,8 @@
 It gives each robot's maps a stream of their own (latest wins per robot), sends to the peers the
 options name (or those heard lately), turns the core's events into the daemon's (``Delivered``,
 ``OnAir``, ``PeerUp``, ``Arrived`` ...), asks for whole maps on the control stream, carries poses in the gaps
-maps leave, and drives the multi-hop relay (``relaying.py``) in signed fleets.
+maps leave, and drives the multi-hop relay (``relaying.py``) in signed fleets, whose summaries also
+say which peers' daemons refuse the maps their radios ack (``refused.py``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from transports.uwb import arq, forwarding
 from transports.uwb import keyframe_requests as control
 from transports.uwb.link import POSE_STREAM, UwbLink
 from transports.uwb.options import MAX_MESSAGE, UwbOptions
+from transports.uwb.refused import Cleared, RefusalCore, Refused, words
 from transports.uwb.relaying import RelayDriver
 from transports.uwb.signing import CounterStore, ReplayStore
 
@@ -74,7 +76,10 @@ class UwbTransport(Transport):
         self.control_counters = control.ControlCounters()
         # Multi-hop relay: only in signed fleets, where a relayed map proves its robot by signature.
         self._relay: RelayDriver | None = None
+        # Whose daemon refuses the maps its radio acks: told by relay summaries, so only with them.
+        self._refusals: RefusalCore | None = None
         if opts.relay and not ctx.roster.allow_unsigned:
+            self._refusals = RefusalCore(opts.summary_period_s)
             self._relay = RelayDriver(
                 self.node_id,
                 summary_period_s=opts.summary_period_s,
@@ -223,6 +228,8 @@ class UwbTransport(Transport):
             self.ctx.emit(OnAir("uwb", envelope.robot, envelope.version))
             return
         self._msgs[msg] = (envelope.robot, envelope.version)
+        if self._refusals is not None and envelope.robot == self.ctx.robot:
+            self._refusals.offered(envelope.version)
         self._offered = (envelope.robot, envelope.version, link.core.message_deadline_s(len(data)))
         if not self._said_long:
             self._say_if_long(link.core, envelope, len(data))
@@ -327,6 +334,8 @@ class UwbTransport(Transport):
         out.update(dataclasses.asdict(self.control_counters))
         if self._relay is not None:
             out.update(self._relay.stats())
+        if self._refusals is not None:
+            out.update(self._refusals.stats(self._name))
         return out
 
     def _on_event(self, e: arq.Event) -> None:
@@ -338,13 +347,18 @@ class UwbTransport(Transport):
                 emit(PoseReceived("uwb", self._name(e.src), e.data))
             elif e.stream == forwarding.SUMMARY_STREAM:
                 if self._relay is not None:
-                    self._relay.summary(e.src, e.data, time.monotonic())
+                    now = time.monotonic()
+                    s = self._relay.summary(e.src, e.data, now)
+                    if s is not None and self._refusals is not None and e.src in self._names:
+                        self._say(self._refusals.summary(e.src, s.holds.get(self.node_id, 0), now))
             else:
                 emit(Received("uwb", self._name(e.src), e.data))
         elif isinstance(e, arq.MessageDelivered):
             meta = self._msgs.get(e.msg) or self._late.get(e.msg)
             if meta is not None:
                 emit(Delivered("uwb", self._name(e.peer), *meta))
+                if self._refusals is not None and meta[0] == self.ctx.robot and e.peer in self._names:
+                    self._refusals.acked(e.peer, meta[1], time.monotonic())  # own maps only
         elif isinstance(e, arq.MessageFailed):
             if e.msg in self._msgs:
                 robot, version = self._msgs[e.msg]
@@ -374,6 +388,15 @@ class UwbTransport(Transport):
             emit(PeerDown("uwb", self._name(e.peer)))
         elif isinstance(e, arq.PeerRestarted):
             emit(PeerRestarted("uwb", self._name(e.peer)))
+            if self._refusals is not None:
+                self._refusals.restarted(e.peer)
+
+    def _say(self, change: Refused | Cleared | None) -> None:
+        """Say that a peer's daemon refuses our maps (once while it lasts), or takes them again."""
+        if change is not None:
+            (log.warning if isinstance(change, Refused) else log.info)(
+                "%s", words(change, self._name(change.peer))
+            )
 
     def _on_control(self, e: arq.MessageReceived) -> None:
         asker = self._name(e.src)
