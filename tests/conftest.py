@@ -144,11 +144,13 @@ def demo_fleet(
     duration: float = 60.0,
     router: bool = False,
     edit: dict[str, Callable[[dict[str, Any]], None]] | None = None,
+    out_of_range: list[str] | None = None,
 ) -> Any:
     """A prepared demo fleet (:class:`mapd.demo.fleet.Fleet`) of ``robots`` daemons on
     ``transport``, lossless maps of the sim building (with ``router``: zenoh clients of one router
     process, which runs); the daemons not started yet. ``edit``: robot -> a change to its config
-    (the parsed TOML, written back), for fleets whose configs disagree."""
+    (the parsed TOML, written back), for fleets whose configs disagree. ``out_of_range``: pairs
+    ``"0-2"`` of robots the emulated uwb radio keeps apart (as ``mapd demo --out-of-range``)."""
     import argparse
     import tomllib
 
@@ -157,7 +159,7 @@ def demo_fleet(
     fleet = Fleet(
         argparse.Namespace(
             robots=robots, transport=transport, codec="lossless", log=None, seed=7, out=out,
-            duration=duration, router=router,
+            duration=duration, router=router, out_of_range=out_of_range or [],
         )
     )  # fmt: skip
     fleet.prepare()
@@ -167,6 +169,29 @@ def demo_fleet(
         change(cfg)
         write_config(path, cfg)
     return fleet
+
+
+def kill9(fleet: Any, name: str) -> None:
+    """``kill -9`` daemon ``name`` of a started ``fleet`` (a crash: nothing saved at exit)."""
+    import os
+    import signal
+
+    os.kill(fleet.procs[name].pid, signal.SIGKILL)
+    fleet.procs[name].wait(10)
+
+
+def restart(fleet: Any, name: str, log: str = "daemon2.log") -> None:
+    """Start daemon ``name`` of ``fleet`` again, on its config and state directory, logging to
+    ``log`` in its folder."""
+    import subprocess
+    import sys
+
+    d = fleet.run_dir / name
+    fleet.procs[name] = subprocess.Popen(
+        [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
+        stdout=open(d / log, "wb"),  # noqa: SIM115 - lives as long as the process
+        stderr=subprocess.STDOUT,
+    )
 
 
 def router_fleet(out: Path, robots: int = 3) -> Any:
@@ -226,4 +251,6 @@ def fk() -> SimpleNamespace:
         router_fleet=router_fleet,
         demo_fleet=demo_fleet,
         status_text=status_text,
+        kill9=kill9,
+        restart=restart,
     )

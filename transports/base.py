@@ -242,6 +242,11 @@ class Transport(ABC):
         any transport). A link that relays maps (``uwb``) may forward them unaltered; the default
         does nothing."""
 
+    def restored(self, robot: str, version: int) -> None:  # noqa: B027 - optional hook
+        """This robot holds ``robot``'s ``version`` from its state directory (at start, before
+        :meth:`start`): a link that tells neighbours what it holds (``uwb``'s relay summaries) lists
+        it, though it has no bytes of it to pass on; the default does nothing."""
+
     def relayed(self, envelope: Envelope) -> None:  # noqa: B027 - optional hook
         """``envelope`` of another robot came on this transport from a third robot (a relay), held
         already or not: a relaying link need not forward the same version for a while; the default

@@ -316,6 +316,8 @@ class Daemon:
                 self.cfg, name, self.options, self.keys, emit=self.events.put, latest_keyframe=latest
             )
             self.transports.append(t)
+            for robot, held in self.receiver.maps.items():
+                t.restored(robot, held.version)  # (peers' maps from the state directory)
             if t.paced:
                 self.publisher.paced.add(name)  # its offers are held until wholly on the air (P1)
         out_ctx = output_context(self.cfg, self.keys)

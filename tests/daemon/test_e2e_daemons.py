@@ -123,17 +123,10 @@ def test_kill_9_and_restart_resumes(tmp_path: Path, fk: SimpleNamespace) -> None
         fk.wait_for(lambda s: s.get("robot0", {}).get("fusion", {}).get("global") is not None, 60, f)
         before = f.status()["robot0"]
         v_own = before["source"]["version"]
-        os.kill(f.procs["robot0"].pid, signal.SIGKILL)
-        f.procs["robot0"].wait(10)
+        fk.kill9(f, "robot0")
         state = json.loads((f.run_dir / "robot0" / "state" / "state.json").read_text())
         assert state["own_version"] >= v_own - 1 and "robot1" in state["peers"]
-        # restart the same daemon with the same state directory
-        d = f.run_dir / "robot0"
-        f.procs["robot0"] = subprocess.Popen(
-            [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-            stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
-            stderr=subprocess.STDOUT,
-        )
+        fk.restart(f, "robot0")  # the same daemon with the same state directory
         # The peer's map is restored before the status socket opens; the global map by the fusion
         # task, a little after it: wait for both.
         snaps = fk.wait_for(
@@ -320,14 +313,8 @@ def test_uwb_faults_and_kill_9_mid_transfer_converge_to_the_fault_free_map(
             return num(r0.get("source", {}).get("version", 0)) >= 3 and link.get("in_flight", 0) > 0
 
         fk.wait_for(mid_transfer, 90, f)
-        os.kill(f.procs["robot0"].pid, signal.SIGKILL)
-        f.procs["robot0"].wait(10)
-        d = f.run_dir / "robot0"
-        f.procs["robot0"] = subprocess.Popen(
-            [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-            stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
-            stderr=subprocess.STDOUT,
-        )
+        fk.kill9(f, "robot0")
+        fk.restart(f, "robot0")
 
         def exchanged_final(s: dict[str, dict[str, Any]]) -> bool:
             return len(s) == 2 and all(

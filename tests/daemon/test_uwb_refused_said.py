@@ -13,11 +13,7 @@ floor left out of refused.py: both robots said robot1 refuses, 30 s after its re
 
 from __future__ import annotations
 
-import os
 import shutil
-import signal
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -118,14 +114,8 @@ def test_uwb_a_peer_restarted_from_its_state_dir_is_not_said_to_refuse_maps_that
 
         snaps = fk.wait_for(exchanged, 30, f)
         final = snaps["robot0"]["source"]["version"]
-        os.kill(f.procs["robot1"].pid, signal.SIGKILL)
-        f.procs["robot1"].wait(10)
-        d = f.run_dir / "robot1"
-        f.procs["robot1"] = subprocess.Popen(
-            [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-            stdout=open(d / "daemon2.log", "wb"),  # noqa: SIM115 - lives as long as the process
-            stderr=subprocess.STDOUT,
-        )
+        fk.kill9(f, "robot1")
+        fk.restart(f, "robot1")
         # robot1 back, holding robot0's last map from its state dir
         snaps = fk.wait_for(lambda s: fk.version(s, "robot1", "robot0") == final, 20, f)
         back = snaps["robot0"]["links"]["uwb"]["relay_summaries_rx"]

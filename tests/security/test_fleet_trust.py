@@ -13,7 +13,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 import tomllib
 from pathlib import Path
@@ -89,15 +88,6 @@ def rogue_session(f: Fleet) -> Any:
     return zenoh.open(conf)
 
 
-def restart(f: Fleet, name: str, log: str) -> None:
-    d = f.run_dir / name
-    f.procs[name] = subprocess.Popen(
-        [sys.executable, "-m", "mapd", "run", "--config", str(d / "config.toml")],
-        stdout=open(d / log, "wb"),  # noqa: SIM115 - lives as long as the process
-        stderr=subprocess.STDOUT,
-    )
-
-
 def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(
     tmp_path: Path, fk: SimpleNamespace
 ) -> None:
@@ -148,7 +138,7 @@ def test_forgeries_impersonation_fake_presence_and_ghosts_change_nothing(
         os.kill(f.procs["robot0"].pid, signal.SIGTERM)
         assert f.procs["robot0"].wait(15) == 0
         before = fk.version(snaps, "robot0", "robot1")
-        restart(f, "robot0", "daemon2.log")
+        fk.restart(f, "robot0")
         fk.wait_for(lambda s: fk.version(s, "robot0", "robot1") > before, 60, f)
         # a version jump signed by robot1's own key (a bug, or the key in wrong hands) is refused,
         # and robot1's real maps still follow
@@ -179,7 +169,7 @@ def test_a_robot_that_lost_its_disk_is_heard_at_once(tmp_path: Path, fk: SimpleN
         subprocess.run(["rm", "-rf", str(state)], check=True)  # a new SD card
         state.mkdir()
         time.sleep(1.1)  # incarnations count seconds
-        restart(f, "robot1", "daemon2.log")
+        fk.restart(f, "robot1")
         t0 = time.monotonic()
         # its first new map (number 1 of a new incarnation) is newer than all the old ones
         snaps = fk.wait_for(lambda s: split(fk.version(s, "robot0", "robot1"))[0] > split(old)[0], 60, f)

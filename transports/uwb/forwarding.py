@@ -152,6 +152,10 @@ class ForwardingCore:
     #: origin -> its newest (version, base, envelope), oldest first, at most CHAIN
     _chain: dict[int, list[tuple[int, int, bytes]]] = field(default_factory=dict)
     _held_bytes: int = 0
+    #: origin -> a version this robot holds from its state directory, with no bytes to forward: its
+    #: summary lists it all the same, or after each restart its neighbours forwarded it every map
+    #: it already held, a keyframe each, on a channel where one takes a robot's turns for minutes
+    _restored: dict[int, int] = field(default_factory=dict)
     _forwarded: dict[tuple[int, int], float] = field(default_factory=dict)
     _need_since: dict[tuple[int, int, int], float] = field(default_factory=dict)
     _asked: dict[int, float] = field(default_factory=dict)  # origin -> when a keyframe was asked for
@@ -214,12 +218,19 @@ class ForwardingCore:
                 break
             self._held_bytes -= len(longest.pop(0)[2])
 
+    def on_restored(self, origin: int, version: int) -> None:
+        """This robot holds ``origin``'s ``version`` from its state directory (its daemon restarted):
+        listed in its summaries (:meth:`holds`), never forwarded (it has no envelope of it)."""
+        if origin != self.me and version > self._restored.get(origin, 0):
+            self._restored[origin] = version
+
     def on_overheard(self, origin: int, version: int, now: float) -> None:
         """Another robot forwarded ``origin``'s ``version``: do not forward the same one for a while."""
         self._forwarded[(origin, version)] = now
 
     def forget(self, origin: int) -> None:
         """Drop every map of ``origin`` held to forward (it was revoked: nobody takes them now)."""
+        self._restored.pop(origin, None)
         for _, _, data in self._chain.pop(origin, []):
             self._held_bytes -= len(data)
         kf = self._kf.pop(origin, None)
@@ -232,8 +243,12 @@ class ForwardingCore:
 
     # --- outputs --------------------------------------------------------------------------------
     def holds(self) -> dict[int, int]:
-        """Origin -> newest version held (for this robot's own summary)."""
-        return {o: chain[-1][0] for o, chain in self._chain.items() if chain}
+        """Origin -> newest version held (for this robot's own summary), restored ones included."""
+        out = dict(self._restored)
+        for o, chain in self._chain.items():
+            if chain:
+                out[o] = max(chain[-1][0], out.get(o, 0))
+        return out
 
     def next_forward(self, now: float) -> Relay | None:
         """The relay to start now, if any (then it counts as in flight until :meth:`relay_done`)."""

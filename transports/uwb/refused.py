@@ -29,9 +29,11 @@ one since: a delta refused for a missing base, healed by the keyframe it asked f
 
 A peer that only *missed* our newest version at the radio (never acked it) and holds an older one
 is not refusing: only acked versions are judged. A peer that restarted may hold our maps from its
-state dir without its summary listing them (a summary lists only what its daemon accepted since it
-started), so after a restart only versions newer than any this robot offered before it are judged
-(a restart into a config that refuses ours is found with our next version, not before).
+state dir without its summary listing them (a robot lists the maps it restored since
+:meth:`~transports.uwb.forwarding.ForwardingCore.on_restored`; one from before listed only what
+its daemon accepted since it started), so after a restart only versions newer than any this robot
+offered before it are judged (a restart into a config that refuses ours is found with our next
+version, not before).
 
 A peer whose ``[transports.uwb] nodes`` gives this robot another link id lists our maps under that
 id: it is said to refuse them, and its log says why (the nodes lists differ; it says so too).

@@ -64,6 +64,10 @@ class RelayDriver:
         self.core.on_held(origin, version, base, data)
         self._wake.set()
 
+    def restored(self, origin: int, version: int) -> None:
+        """The daemon holds ``origin``'s ``version`` from its state directory: summaries list it."""
+        self.core.on_restored(origin, version)
+
     def overheard(self, origin: int, version: int, now: float) -> None:
         """Another robot forwarded ``origin``'s ``version`` (the daemon saw it come from a third)."""
         self.core.on_overheard(origin, version, now)

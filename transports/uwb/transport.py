@@ -194,6 +194,12 @@ class UwbTransport(Transport):
         if self._relay is not None and origin is not None and envelope.sig:
             self._relay.held(origin, envelope.version, envelope.base_version, data)
 
+    def restored(self, robot: str, version: int) -> None:
+        """The daemon holds ``robot``'s ``version`` from its state directory: our summaries say so."""
+        origin = self.opts.nodes.get(robot)
+        if self._relay is not None and origin is not None:
+            self._relay.restored(origin, version)
+
     def relayed(self, envelope: Envelope) -> None:
         """Another robot forwarded ``envelope``: do not forward the same version for a while."""
         origin = self.opts.nodes.get(envelope.robot)

@@ -347,3 +347,38 @@ def test_a_relay_task_that_dies_says_why_to_its_watcher() -> None:
             await relay.close()
 
     assert asyncio.run(main()) == "uwb: relay stopped: RuntimeError: a bug in the send path"
+
+
+def test_maps_restored_from_the_state_directory_are_in_the_summary_and_never_forwarded() -> None:
+    """A daemon that restarted holds its peers' maps from its state directory, with no envelope to
+    forward. Before, its summary listed none of them, so each neighbour forwarded it a keyframe of
+    every robot it held already (a robot's turns for minutes on a 12.5 kb/s channel)."""
+    c = ForwardingCore(C, relay_period_s=10.0, retry_s=30.0)  # the restarted robot
+    c.on_restored(A, 3)
+    c.on_restored(A, 2)  # an older one changes nothing
+    c.on_restored(C, 9)  # its own maps are not listed (they go out through its publisher)
+    assert c.holds() == {A: 3}
+    c.on_summary(D, Summary({}, frozenset({C})), 0.0)
+    assert c.next_forward(0.0) is None  # nothing to forward: restored maps have no bytes here
+    c.on_held(A, 4, 3, b"delta A v4 on v3")  # a newer one taken since: the newest is listed
+    assert c.holds() == {A: 4}
+    c.on_restored(A, 5)  # (restored and held in either order: the newest wins)
+    assert c.holds() == {A: 5}
+
+    # A neighbour that holds A's v3 keyframe reads C's summary: C needs nothing of it.
+    b = _core()
+    b.on_summary(C, pack_and_back(Summary({A: 3}, frozenset({B}))), 0.0)
+    assert b.next_forward(0.0) is None
+    # ... where C's summary without the restored map made B forward the keyframe C held already.
+    b2 = _core()
+    b2.on_summary(C, pack_and_back(Summary({}, frozenset({B}))), 0.0)
+    r = b2.next_forward(0.0)
+    assert r is not None and (r.origin, r.version, r.dests) == (A, 3, (C,))
+
+    c.forget(A)  # revoked: neither its chain nor its restored version is listed
+    assert c.holds() == {}
+
+
+def pack_and_back(s: Summary) -> Summary:
+    """``s`` as a neighbour hears it: packed for the air and parsed back."""
+    return unpack_summary(pack_summary(s))
