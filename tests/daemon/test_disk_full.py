@@ -67,6 +67,8 @@ ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 #: Runs in the namespace: mounts the tmpfs, then takes one command a line on stdin and answers one
 #: line on stdout when it is done. The daemons are its children (``start NAME CONFIG LOG``), in the
 #: one namespace: zenoh between a process inside a user namespace and one outside lost messages.
+#: ``snap`` copies the disk while daemons write to it: a temp file renamed between cp's listing and
+#: its copy fails the copy (cp: cannot stat), so it tries again, a few times.
 CONTROL = r"""
 disk=$1
 mount -t tmpfs -o size="$2" tmpfs "$disk" || exit 97
@@ -77,7 +79,8 @@ while read -r cmd a b c; do
     stop) eval "p=\$pid_$a"; kill -TERM "$p"; wait "$p"; echo "rc $?";;
     fill) cat /dev/zero >"$disk/filler" 2>/dev/null; echo "free $(df -k "$disk" | awk 'NR==2 {print $4}')";;
     free) rm -f "$disk/filler"; echo "free $(df -k "$disk" | awk 'NR==2 {print $4}')";;
-    snap) rm -rf "$a"; cp -a "$disk/." "$a" && echo snapped;;
+    snap) ok=; for try in 1 2 3 4 5; do rm -rf "$a"; cp -a "$disk/." "$a" 2>/dev/null && { ok=1; break; }; done
+          [ -n "$ok" ] && echo snapped || echo "snap failed";;
     mkdir) mkdir -p "$disk/$a" && echo made;;
   esac
 done

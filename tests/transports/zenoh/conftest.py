@@ -204,7 +204,11 @@ class RawSession:
         )
 
     def put(self, key: str, data: bytes) -> None:
-        self.session.put(key, data)
+        import zenoh
+
+        # Blocking, not zenoh's default (drop): on a loaded machine a 100 kB put was dropped by
+        # the raw session's own congestion control, and a test waited for what never left.
+        self.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def close(self) -> None:
         self._token_sub.undeclare()
