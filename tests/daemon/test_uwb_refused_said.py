@@ -6,9 +6,9 @@ Measured before (two ``mapd run`` over socat ptys and the emulated radio, robot1
 "acked our" newest version, as if it held it. Now robot0 reads robot1's relay summaries (the
 versions robot1's daemon holds): acked at the radio, held by none, it says so once and shows it.
 
-And not of a peer that merely restarted: its daemon holds our maps again from its state dir while
-its summaries, which list what it accepted since it started, name none (measured with the restart
-floor left out of refused.py: both robots said robot1 refuses, 30 s after its restart).
+And not of a peer that merely restarted, holding our maps from its state directory: see
+tests/daemon/test_uwb_relay_restart.py (and the restart floor's unit tests in
+tests/transports/uwb/test_uwb_refused.py).
 """
 
 from __future__ import annotations
@@ -90,42 +90,3 @@ def test_uwb_sender_says_once_that_a_peer_refuses_the_maps_its_radio_acks(
     assert not lines("robot1", "acks our maps at the radio")
     for n in f.names:
         assert "Traceback" not in logs[n].read_text(errors="replace")
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(shutil.which("socat") is None, reason="socat is not installed")
-def test_uwb_a_peer_restarted_from_its_state_dir_is_not_said_to_refuse_maps_that_no_longer_change(
-    tmp_path: Path, fk: SimpleNamespace
-) -> None:
-    def fast(cfg: dict[str, Any]) -> None:
-        cfg["transports"]["uwb"]["summary_period_s"] = 1.0
-        cfg["source"]["sim"]["duration"] = 12.0  # sim seconds: a few maps, then none
-
-    f = fk.demo_fleet(tmp_path, 2, transport="uwb", edit={"robot0": fast, "robot1": fast})
-    f.start()
-    try:
-
-        def exchanged(s: dict[str, Any]) -> bool:
-            return len(s) == 2 and all(
-                s[me]["source"].get("finished")
-                and s[other]["peers"].get(me, {}).get("version") == s[me]["source"]["version"]
-                for me, other in (("robot0", "robot1"), ("robot1", "robot0"))
-            )
-
-        snaps = fk.wait_for(exchanged, 30, f)
-        final = snaps["robot0"]["source"]["version"]
-        fk.kill9(f, "robot1")
-        fk.restart(f, "robot1")
-        # robot1 back, holding robot0's last map from its state dir
-        snaps = fk.wait_for(lambda s: fk.version(s, "robot1", "robot0") == final, 20, f)
-        back = snaps["robot0"]["links"]["uwb"]["relay_summaries_rx"]
-        # Its summaries since, which hold nothing of robot0, past the margin (3) and two more: no
-        # refusal is found, as none is.
-        snaps = fk.wait_for(lambda s: s["robot0"]["links"]["uwb"]["relay_summaries_rx"] >= back + 7, 20, f)
-        assert snaps["robot0"]["links"]["uwb"]["refused_by"] == {}
-    finally:
-        codes = f.stop()
-    assert codes == {"robot0": 0, "robot1": 0}
-    for log in sorted(f.run_dir.glob("robot*/daemon*.log")):
-        text = log.read_text(errors="replace")
-        assert "acks our maps at the radio" not in text and "Traceback" not in text, log

@@ -75,8 +75,13 @@ def test_a_restarted_daemon_lists_its_restored_maps_so_no_relay_sends_them_again
         assert snaps["robot0"]["source"]["version"] == final  # robot0's map did not change
         assert after["relays_tx"] == before["relays_tx"], (before["relays_tx"], after["relays_tx"])
         assert after["relay_keyframes_asked"] == before["relay_keyframes_asked"]
+        # Nor is robot2 said to refuse robot1's maps, which its radio acked before the restart and
+        # its daemon holds from disk (judged without refused.py's restart floor, on summaries that
+        # did not list restored maps, both its peers said so 30 s after, of maps no longer changing).
+        assert after["refused_by"] == {} and after["refused_by_peers"] == 0
     finally:
         codes = f.stop()
     assert codes == {"robot0": 0, "robot1": 0, "robot2": 0}
     for log in sorted(f.run_dir.glob("robot*/daemon*.log")):
-        assert "Traceback" not in log.read_text(errors="replace"), log
+        text = log.read_text(errors="replace")
+        assert "acks our maps at the radio" not in text and "Traceback" not in text, log
