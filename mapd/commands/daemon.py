@@ -265,6 +265,14 @@ def render_status(s: dict[str, Any]) -> str:
     # peers whose "acked our" is their radio's only: their daemon refuses our maps (uwb refused_by)
     links = s.get("links") or {}
     radio_only = {p for st in links.values() if isinstance(st, dict) for p in st.get("refused_by") or {}}
+    # peers that announced a smaller limits.max_message_bytes than our maps (zenoh too_big_for)
+    too_small = {
+        p: o
+        for st in links.values()
+        if isinstance(st, dict) and isinstance(st.get("too_big_for"), dict)
+        for p, o in st["too_big_for"].items()
+        if isinstance(o, dict)
+    }
     if not peers:
         out.append("  (none yet)")
     for name, p in peers.items():
@@ -289,6 +297,12 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {'':<12} FAULTS takes none of this robot's maps for {_age(p.get('unacked_s'))} while its "
                 f"own come: on {name}, is this robot's key in its [fleet.roster] (the current one), are "
                 f"its limits as large as this robot's maps?"
+            )
+        if name in too_small:
+            o = too_small[name]
+            out.append(
+                f"  {'':<12} FAULTS takes messages up to {o.get('limit')} B, this robot's maps are "
+                f"{o.get('size')} B: raise limits.max_message_bytes on {name} to at least {o.get('size')}"
             )
         if name in radio_only:
             out.append(

@@ -302,6 +302,13 @@ def test_a_daemon_says_once_that_a_peer_takes_none_of_its_maps(tmp_path, fk: Sim
         text = render_status(snaps["robot1"])
         assert "FAULTS 1 peers take smaller messages than this robot's maps" in text, text
         assert "maps too big for peers' limits.max_message_bytes: robot0 takes 1024 B" in text, text
+        # ... and under the peer, where its "acked our" is read
+        peer_lines = text.split("\npeers\n", 1)[1].split("\nlinks\n", 1)[0]
+        size = st["too_big_for"]["robot0"]["size"]
+        assert (
+            f"FAULTS takes messages up to 1024 B, this robot's maps are {size} B: raise "
+            f"limits.max_message_bytes on robot0 to at least {size}"
+        ) in peer_lines, text
         # ... and on the one line systemd shows (sd_notify STATUS=)
         assert status_line(snaps["robot1"]).startswith("FAULTS zenoh 1 peers take smaller messages")
         # The publisher does not wait for robot0's ack: no offer waits for it.
