@@ -644,7 +644,7 @@ def test_a_slow_recording_disk_holds_a_bounded_backlog_and_says_so_once(
     import logging
     import threading
 
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
     from mapd.daemon import sinks as sinksmod
     from mapd.daemon.coding import CsvLog
 

@@ -41,7 +41,7 @@ import pytest
 from mcap.exceptions import EndOfFile
 from mcap.stream_reader import StreamReader
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon.headline import status_line
 from mapd.daemon.state import StateStore
 from mapd.daemon.status_socket import query

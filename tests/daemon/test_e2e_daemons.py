@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon.state_lock import lock_state_dir
 from mapd.daemon.versions import split
 from mapd.demo.fleet import Fleet

@@ -36,7 +36,7 @@ import pytest
 
 from mapd.codec import encode
 from mapd.codec.api import pack_payload
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon.headline import link_faults, status_line
 from mapd.daemon.intake import Drop
 from mapd.daemon.receiver import Receiver

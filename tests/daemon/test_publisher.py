@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from mapd.codec import encode, read_header
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon import publisher
 from mapd.daemon.server import Daemon
 from mapd.daemon.versions import incarnation_at, make, split

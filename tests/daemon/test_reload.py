@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import pytest
 
 from mapd import config as configmod
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon import reload
 from mapd.daemon.server import Daemon
 from mapd.daemon.state import StateStore

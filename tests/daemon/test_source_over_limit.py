@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mapd import config as configmod
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon.headline import status_line
 from mapd.daemon.server import Daemon
 from mapd.grid import OccupancyGrid

@@ -256,7 +256,7 @@ def _heard_through(scramble: bool, *, garbage: bytes = b"") -> dict[str, Any]:
 def test_a_wrong_baud_is_damaged_frames_said_on_the_faults_line() -> None:
     """Audit finding 3: a wrong baud raised only cobs_errors and oversize, which `mapd status` never
     showed (crc_errors=0 bad_signature=0), and the peer merely looked gone."""
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
 
     st = _heard_through(scramble=True)
     parts = ("crc_errors", "cobs_errors", "oversize", "runts", "bad_signature")
@@ -277,7 +277,7 @@ def test_a_wrong_baud_is_damaged_frames_said_on_the_faults_line() -> None:
 
 
 def test_damage_while_peers_are_heard_is_counted_but_not_a_fault() -> None:
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
 
     st = _heard_through(scramble=False, garbage=bytes(range(1, 256)) * 3 + b"\x00")
     assert st["oversize"] + st["cobs_errors"] > 0 and st["peers_up"] == 1

@@ -225,7 +225,7 @@ def test_a_zenoh_output_whose_router_is_not_up_waits_and_puts_the_newest_map_onc
 ) -> None:
     # A base station whose router came up after it stopped (and took its links down) at start.
     zenoh = pytest.importorskip("zenoh")
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
     from mapd.daemon.headline import status_line
     from mapd.ros2 import zenoh_config
 

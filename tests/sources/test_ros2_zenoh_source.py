@@ -412,7 +412,7 @@ def test_a_client_that_finds_no_router_waits_for_it_and_then_takes_maps(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # rmw_zenohd starting after mapd at boot stopped the daemon (its links too) until it was up.
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
     from mapd.daemon.headline import status_line
     from mapd.ros2 import zenoh_config
 

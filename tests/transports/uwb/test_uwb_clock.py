@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.pacing import MediumAccess
 from transports.uwb.sim import SimNet

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.errors import ProtocolError
 from mapd.identity import Identity, Roster
 from transports.base import KeyframeNeeded, TransportContext

@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.envelope import Envelope
 from mapd.errors import StateError, TransportError
 from mapd.grid import Pose2D

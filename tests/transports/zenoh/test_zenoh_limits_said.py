@@ -18,7 +18,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from mapd.commands.daemon import render_status
+from mapd.commands.status_text import render_status
 from mapd.daemon.headline import status_line
 from mapd.daemon.publisher import PublisherCore
 from mapd.grid import OccupancyGrid

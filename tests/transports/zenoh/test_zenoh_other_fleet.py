@@ -199,7 +199,7 @@ def test_two_daemons_of_different_fleets_say_so_once_in_the_log_and_status(
 ) -> None:
     """Two ``mapd run`` over zenoh on loopback, robot1's config with ``fleet = "other"``. Before,
     both ran alone for as long as they ran: no line in either log, nothing in ``mapd status``."""
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
 
     f = fk.demo_fleet(tmp_path, 2, duration=30.0, edit={"robot1": lambda c: c["robot"].update(fleet="other")})
     f.start()

@@ -102,7 +102,7 @@ def test_a_daemon_says_once_that_a_peers_maps_are_over_its_limit(tmp_path: Path,
     """Two ``mapd run`` over zenoh on loopback: robot0 (no map of its own) with
     ``limits.max_message_bytes = 1024``, robot1 with the default. Before: robot0's log said nothing
     and its status counted robot1's maps in ``dropped``, among anything malformed."""
-    from mapd.commands.daemon import render_status
+    from mapd.commands.status_text import render_status
     from mapd.daemon.headline import status_line
 
     def limited(cfg: dict[str, Any]) -> None:

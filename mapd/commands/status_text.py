@@ -1,0 +1,234 @@
+"""What ``mapd status`` prints: a daemon's status document (:meth:`Daemon.snapshot`, as JSON over
+its control socket) in lines an operator reads, with each fault on a ``FAULTS`` line of its own
+where it belongs (the source, a peer, a link, the state directory, an output), in the words of the
+log line that said it once. A pure function of the document, which comes from another process: every
+field is checked, not trusted.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+
+def _age(seconds: Any) -> str:
+    if not isinstance(seconds, int | float):
+        return "-"
+    return f"{seconds:.0f}s" if seconds < 120 else f"{seconds / 60:.0f}m"
+
+
+def _num(v: Any, spec: str = ".1f") -> str:
+    if isinstance(v, float) and not math.isfinite(v):
+        return "-"
+    return format(v, spec) if isinstance(v, int | float) else "-"
+
+
+def render_status(s: dict[str, Any]) -> str:
+    """A readable summary of one status document."""
+    from mapd.daemon.headline import (
+        DAMAGE_KEYS,
+        LINK_FAULTS,
+        damage_words,
+        link_faults,
+        recording_failing,
+        state_faults,
+        too_big_words,
+    )
+    from mapd.daemon.versions import label
+
+    out = []
+    src = s.get("source", {})
+    out.append(
+        f"robot {s.get('robot')} (fleet {s.get('fleet')}), pid {s.get('pid')}, up {_age(s.get('uptime_s'))}"
+    )
+    sec = s.get("security", {})
+    if sec.get("signed"):
+        out.append(f"trust   signed; roster: {', '.join(sec.get('roster') or []) or '-'}")
+    else:
+        out.append("trust   UNSIGNED (fleet.allow_unsigned = true): anyone can write as any robot")
+    rl = s.get("reload") or {}
+    if rl.get("count"):
+        at = rl.get("last_at")
+        ago = _age(time.time() - at) if isinstance(at, int | float) else "-"
+        out.append(
+            f"reload  {rl['count']} ({rl.get('refused', 0)} refused); last {ago} ago: {rl.get('last')}"
+        )
+    size = src.get("size") or ["-", "-"]
+    done = ", finished" if src.get("finished") else ""
+    out.append(
+        f"source  {src.get('name')}: map {label(src.get('version'))} ({size[0]} x {size[1]} cells{done})"
+    )
+    if isinstance(src.get("stats"), dict) and (faults := link_faults(src["stats"])):
+        out.append("        FAULTS " + ", ".join(faults))
+    if isinstance(skipped := src.get("skipped"), dict):
+        out.append(
+            f"        FAULTS own map not shared: its last {skipped.get('maps')} maps skipped ({skipped.get('why')})"
+        )
+    c = s.get("codec", {})
+    out.append(
+        f"codec   {c.get('name')}: last {label(c.get('last_version'))} {c.get('last_kind', '')} "
+        f"{c.get('last_bytes', '-')} B, ratio {_num(c.get('last_ratio'))}:1, encode {_num(c.get('last_encode_ms'))} ms"
+        f"; keyframes {c.get('keyframes', 0)}, deltas {c.get('deltas', 0)}"
+        + (
+            f", {c['reoffers']} offered again (robots come into range, or failed)"
+            if c.get("reoffers")
+            else ""
+        )
+        + "".join(f", {n} failed on {link}" for link, n in sorted((c.get("failed") or {}).items()) if n)
+    )
+    for name, o in (s.get("offers") or {}).items():
+        air = {True: ", wholly on the air", False: ", still going out", None: ""}[o.get("on_air")]
+        out.append(
+            f"offer   {name}: {label(o.get('version'))} for {_age(o.get('age_s'))}{air}; "
+            f"waiting for {', '.join(o.get('waiting') or []) or '-'}"
+        )
+    out.append("peers")
+    peers = s.get("peers", {})
+    # peers whose "acked our" is their radio's only: their daemon refuses our maps (uwb refused_by)
+    links = s.get("links") or {}
+    radio_only = {p for st in links.values() if isinstance(st, dict) for p in st.get("refused_by") or {}}
+    # peers that announced a smaller limits.max_message_bytes than our maps (zenoh too_big_for)
+    too_small = {
+        p: o
+        for st in links.values()
+        if isinstance(st, dict) and isinstance(st.get("too_big_for"), dict)
+        for p, o in st["too_big_for"].items()
+        if isinstance(o, dict)
+    }
+    if not peers:
+        out.append("  (none yet)")
+    for name, p in peers.items():
+        refused = p.get("refused") if isinstance(p.get("refused"), dict) else None
+        # a robot known only by maps refused (off the roster, say): heard, not a peer "up"
+        state = "heard" if refused and "present" not in p else "up" if p.get("present", True) else "gone"
+        if p.get("restored"):
+            state += " (map from state dir)"
+        out.append(
+            f"  {name:<12} {label(p.get('version')):<6} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
+            f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our {label(p.get('acked_our_version', 0))}"
+        )
+        # What disagrees between its config and ours, on lines of its own: with the fix, in the
+        # words of the log line that said it once.
+        if refused:
+            out.append(
+                f"  {'':<12} FAULTS {refused.get('maps', '?')} maps refused for {_age(refused.get('for_s'))}, "
+                f"last {_age(refused.get('last_s'))} ago: {refused.get('fix') or refused.get('why')}"
+            )
+        if p.get("takes_ours") is False:
+            out.append(
+                f"  {'':<12} FAULTS takes none of this robot's maps for {_age(p.get('unacked_s'))} while its "
+                f"own come: on {name}, is this robot's key in its [fleet.roster] (the current one), are "
+                f"its limits as large as this robot's maps?"
+            )
+        if name in too_small:
+            o = too_small[name]
+            out.append(
+                f"  {'':<12} FAULTS takes messages up to {o.get('limit')} B, this robot's maps are "
+                f"{o.get('size')} B: raise limits.max_message_bytes on {name} to at least {o.get('size')}"
+            )
+        if name in radio_only:
+            out.append(
+                f"  {'':<12} FAULTS acks our maps at the radio (uwb) but its daemon refuses them: its "
+                f"mapd status says why"
+            )
+        if isinstance(p.get("heard_as"), str):
+            out.append(
+                f"  {'':<12} FAULTS its link knows it as '{p['heard_as']}': the robots' [transports.uwb] "
+                f"nodes lists differ; make them the same on every robot"
+            )
+    out.append("links")
+    for name, st in s.get("links", {}).items():
+        head = ("rate_bps", "goodput_bps", "bytes_tx", "bytes_rx", "resends", "parity_tx", "recovered")
+        # A serial link's damaged frames as one total, whatever caught them: a wrong baud raises
+        # cobs_errors and oversize, a keyed link's damage lands in bad_signature; only the first 8
+        # other counters fit, and they never reached those. A zenoh link's bad_signature as it is.
+        damage = damage_words(st)
+        hidden = set(DAMAGE_KEYS) if damage is not None else set()
+        keys = (*head, "crc_errors", "bad_signature", "rtt_ms")
+        parts = [f"{k}={_num(st[k], '.0f')}" for k in keys if k in st and k not in hidden]
+        if damage is not None:
+            parts.insert(len([k for k in head if k in st]), damage)
+        faults = link_faults(st)
+        others = [
+            f"{k}={v}"
+            for k, v in st.items()
+            if k not in keys
+            and k not in hidden
+            and k not in LINK_FAULTS
+            and isinstance(v, int | float)
+            and not isinstance(v, bool)
+        ]
+        out.append(f"  {name:<6} " + " ".join(parts + others[:8]))
+        if faults:
+            # Said on a line of its own, whatever the link's other figures: what needs a look.
+            out.append(f"  {'':<6} FAULTS " + ", ".join(faults))
+        if isinstance(big := st.get("oversize_from"), dict) and big:
+            out.append(
+                f"  {'':<6} maps over limits.max_message_bytes from "
+                + ", ".join(f"{robot} ({size} B)" for robot, size in big.items())
+            )
+        if (small := too_big_words(st)) is not None:  # who, of the too_big_peers fault above
+            out.append(f"  {'':<6} {small}")
+        if isinstance(fleets := st.get("other_fleets"), dict) and fleets:
+            # No fault: fleets may share a network on purpose. But the one thing that says why a
+            # robot with another robot.fleet is never seen.
+            out.append(
+                f"  {'':<6} other fleets on this network: "
+                + ", ".join(f"{fleet} ({', '.join(map(str, robots))})" for fleet, robots in fleets.items())
+            )
+        if isinstance(refusing := st.get("refused_by"), dict) and refusing:
+            out.append(
+                f"  {'':<6} daemons refusing our maps their radios ack: "
+                + ", ".join(
+                    f"{peer} (acked {label(r.get('acked'))}, holds {label(r.get('holds')) if r.get('holds') else 'none'})"
+                    for peer, r in refusing.items()
+                    if isinstance(r, dict)
+                )
+            )
+    f = s.get("fusion", {})
+    g = f.get("global") or {}
+    out.append(
+        f"fusion  {f.get('maps', 0)} maps merged, {f.get('merges', 0)} merges, global "
+        f"{g.get('width', '-')} x {g.get('height', '-')} cells, last merge {_num(f.get('last_merge_s'), '.2f')} s"
+    )
+    for robot, t in (f.get("robots") or {}).items():
+        if isinstance(t, dict):
+            acc = "accepted" if t.get("accepted") else f"not accepted ({t.get('reason') or '?'})"
+            out.append(
+                f"  {robot:<12} {label(t.get('version'))}  x {_num(t.get('x'), '.2f')} m  y {_num(t.get('y'), '.2f')} m  "
+                f"yaw {_num(t.get('yaw'), '.3f')} rad  conf {_num(t.get('confidence'), '.2f')}  {t.get('source', '')}  {acc}"
+            )
+    poses = (s.get("poses") or {}).get("robots") or {}
+    if poses:
+        out.append(
+            "poses   (x m, y m, yaw rad; in each robot's map frame, and in the fleet frame once placed)"
+        )
+    for robot, p in poses.items():
+        where = " ".join(_num(v, ".2f") for v in p.get("map", []))
+        fleet = p.get("fleet")
+        in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
+        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}")
+    for name, st in (s.get("outputs") or {}).items():
+        if isinstance(st, dict) and (faults := link_faults(st)):
+            out.append(f"output  {name}: FAULTS " + ", ".join(faults))
+    if faults := state_faults(s):
+        st = s["state"]
+        failing = [x for x in (st, st.get("global_map") or {}) if x.get("writing") is False]
+        since = max((x.get("failing_s") or 0 for x in failing), default=0)
+        out.append(
+            f"state   FAULTS {'; '.join(faults)}, for {_age(since)} ({st.get('dir')}): "
+            f"{next((x.get('error') for x in failing if x.get('error')), '-')}"
+        )
+    rec = s.get("recording")
+    if rec and (rec.get("failures") or rec.get("dropped")):
+        counts = (
+            f"{rec.get('failures', 0)} messages not written (disk full?), {rec.get('dropped', 0)} left "
+            f"out behind a slow disk ({rec.get('queued_bytes', 0) >> 20} MiB waiting)"
+        )
+        # a fault while it lasts; afterwards the totals, on a line of their own but not a fault
+        out.append(f"record  FAULTS {counts}" if recording_failing(rec) else f"record  so far: {counts}")
+    bad = {k: v for k, v in s.get("counters", {}).items() if v}
+    if bad:
+        out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))
+    return "\n".join(out)
