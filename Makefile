@@ -49,11 +49,10 @@ lint: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
 
-# Four workers on CI's two cores: many tests wait on real clocks (radio turns, daemons' periods),
-# and more workers use time two would leave idle (measured here on 1,972 tests: 486-494 s with three,
-# 396-416 s with four; the README's Tests section has the history).
+# Three workers on CI's two cores: many tests wait on real clocks (radio turns, daemons' periods),
+# and a third worker uses time two would leave idle (measured here: 455-467 s with two, 360-440 s with three).
 test: $(STAMP) socat chromium lint
-	$(BIN)/pytest -n 4 $(PYTEST_ARGS)
+	$(BIN)/pytest -n 3 $(PYTEST_ARGS)
 
 demo: $(STAMP)
 	$(BIN)/mapd demo
