@@ -37,11 +37,6 @@ def bits_to_hex(bits: np.ndarray) -> np.ndarray:
     return (bits.reshape(-1, 4) @ np.array([8, 4, 2, 1], dtype=np.uint8)).astype(np.uint8)
 
 
-def hex_to_bits(hexs: np.ndarray) -> np.ndarray:
-    """Hex digits back to bits (four per digit, most significant first)."""
-    return ((hexs[:, None] >> np.array([3, 2, 1, 0], dtype=np.uint8)) & 1).astype(np.uint8).ravel()
-
-
 def hex_string(hexs: np.ndarray) -> str:
     """The hex digits as the paper writes ``h`` (for logs and tests; the wire form is nibbles)."""
     return "".join("0123456789ABCDEF"[int(v)] for v in hexs)

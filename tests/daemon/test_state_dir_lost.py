@@ -295,22 +295,30 @@ print(json.dumps({"said": said, "left": sorted(p.name for p in disk.iterdir())})
 """
 
 
+def _unmounted_run(disk: Path, size: str, script: str) -> tuple[dict[str, Any], str]:
+    """Python ``script`` run on a tmpfs of ``size`` mounted on ``disk`` in a namespace of its own
+    (skipped where none can be made): its JSON report and its stderr, once checked that it ran and
+    left nothing on the disk under the mount point (``left``)."""
+    from tests.daemon.test_disk_full import _namespace_problem, in_tmpfs
+
+    if problem := _namespace_problem(disk.parent / "probe"):
+        pytest.skip(problem)
+    disk.mkdir()
+    done = in_tmpfs(disk, size, script)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["left"] == [], "written on the disk under the mount point"
+    return out, done.stderr
+
+
 def test_a_state_directory_on_a_disk_unmounted_above_it_is_not_made_again_on_the_disk_under_it(
     tmp_path: Path,
 ) -> None:
     """The state directory a folder on a disk mounted above it (``/mnt/usb`` holding ``robot/state``):
     unmounted, the saves made the whole path again on the disk under the mount point (the root
     file system), and wrote the maps there, where nobody would look for them."""
-    from tests.daemon.test_disk_full import _namespace_problem, in_tmpfs
-
-    if problem := _namespace_problem(tmp_path / "probe"):
-        pytest.skip(problem)
     disk = tmp_path / "disk"
-    disk.mkdir()
-    done = in_tmpfs(disk, "4m", UNMOUNTED_ABOVE)
-    assert done.returncode == 0, done.stderr
-    out = json.loads(done.stdout)
-    assert out["left"] == [], "written on the disk under the mount point"
+    out, _ = _unmounted_run(disk, "4m", UNMOUNTED_ABOVE)
     assert all(
         s is not None and s.startswith("StateError: ") and f"(the disk mounted at {disk} unmounted?)" in s
         for s in out["said"]
@@ -542,16 +550,7 @@ def test_a_csv_log_writes_nothing_on_the_disk_under_its_unmounted_one(tmp_path: 
     """fused.csv and updates.csv were appended to in the folder left under an unmounted disk (on
     the root file system, where nobody looks); now that is a failed write, said once, and the log
     goes on in the disk mounted there again."""
-    from tests.daemon.test_disk_full import _namespace_problem, in_tmpfs
-
-    if problem := _namespace_problem(tmp_path / "probe"):
-        pytest.skip(problem)
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    done = in_tmpfs(disk, "1m", CSV_UNMOUNTED)
-    assert done.returncode == 0, done.stderr
-    out = json.loads(done.stdout)
-    assert out["left"] == [], "written on the disk under the mount point"
+    out, stderr = _unmounted_run(tmp_path / "disk", "1m", CSV_UNMOUNTED)
     assert out["after"] == ["time,robot,version", "4.0,beta,4"], out
-    said = [ln for ln in done.stderr.splitlines() if "fused.csv" in ln]
+    said = [ln for ln in stderr.splitlines() if "fused.csv" in ln]
     assert len(said) == 2 and "not mounted any more" in said[0] and "again" in said[1], said
