@@ -51,12 +51,11 @@ import yaml
 from mapd.errors import ConfigError, StateError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.record.files import RawFile, RecordingFiles
-from mapd.ros2.tf import load_shown, save_shown
+from mapd.ros2.tf import TF_TYPE, load_shown, save_shown
 
 log = logging.getLogger("mapd.record")
 
 GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
-TF_TYPE = "tf2_msgs/msg/TFMessage"
 LINKS_SCHEMA = {
     "type": "object",
     "description": "mapd link counters by transport (see mapd status --json, links)",

@@ -24,10 +24,10 @@ from mapd.errors import CodecError, LimitError, TransportError
 from mapd.grid import DEFAULT_MAX_CELLS, MAX_GRID_SIDE, OccupancyGrid, Pose2D, geometry_problem
 from mapd.grid.reprs import short_repr
 from mapd.ros2 import rmw
+from mapd.ros2.tf import TF_TYPE
 from mapd.ros2.zenoh_config import open_zenoh, zenoh_config_text
 
 MSGTYPE = "nav_msgs/msg/OccupancyGrid"
-TF_TYPE = "tf2_msgs/msg/TFMessage"
 DDS_TYPE = "nav_msgs::msg::dds_::OccupancyGrid_"
 KeyFormat = rmw.KeyFormat
 #: CDR bytes beyond the cells: header, frame id, metadata (a generous bound for the size check).

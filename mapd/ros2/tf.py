@@ -28,6 +28,8 @@ log = logging.getLogger(__name__)
 MAX_SHOWN = 4096
 MAX_SHOWN_FILE_BYTES = 1 << 20
 
+#: The ROS type of /tf and /tf_static messages.
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: (parent, child, pose, stamp): one transform of a TFMessage.
 Transform = tuple[str, str, Pose2D, float]
 

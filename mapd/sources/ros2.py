@@ -25,12 +25,9 @@ Refused with ``discover_robots``: the other robots' poses are not this daemon's 
 
 **Several robots on one machine** (a drop-in for m-explore's ``multirobot_map_merge``): with
 ``discover_robots = true`` the source takes ``/<robot>/<robot_map_topic>`` of every robot that
-appears (a key-expression wildcard on the data, and the publishers' liveliness tokens), keeps only
-robots whose name starts with ``robot_namespace``, and yields each robot's maps with ``robot`` set
-to that name. The daemon fuses a map whose robot is not itself as it fuses one received from a peer
-(:meth:`Ros2Source.robot_poses` gives their known initial poses). With ``known_init_poses = true``
-(m-explore's default) a robot is merged only once ``init_poses`` has its ``[x, y, yaw]``; with
-``false`` placements are estimated.
+appears (a key-expression wildcard on the data, and the publishers' liveliness tokens) and yields
+each robot's maps with ``robot`` set to that name, for the daemon to fuse as it fuses a peer's map.
+Which robots it takes, and where each started (``init_poses``), is :mod:`mapd.sources.ros2_robots`.
 
 Example ``config.toml`` tables::
 
@@ -70,18 +67,16 @@ from mapd.ros2 import rmw
 from mapd.ros2.node import own_publishers
 from mapd.ros2.zenoh_config import open_when_reachable
 from mapd.sources.base import MapSource, SourceContext, SourceOptions
-from mapd.sources.ros2_options import ROBOT_NAME, Ros2Options
+from mapd.sources.ros2_options import Ros2Options
 from mapd.sources.ros2_pose import PoseSubscription
+from mapd.sources.ros2_robots import Ros2Robots
 
 __all__ = ["Ros2Options", "Ros2Source"]
 
 log = logging.getLogger(__name__)
-#: Robots past ``max_robots`` named in a warning, at most (then quietly ignored): each name is one
-#: line and one entry kept, and anyone on the ROS graph can make up names.
-MAX_IGNORED_SAID = 64
 
 
-class Ros2Source(MapSource):
+class Ros2Source(Ros2Robots, MapSource):
     """Map versions from ROS 2 OccupancyGrid topics received over zenoh: one robot's, or many robots'."""
 
     name = "ros2"
@@ -140,54 +135,6 @@ class Ros2Source(MapSource):
     def pose(self) -> StampedPose | None:
         """The robot's latest pose from ``pose_topic`` (in its map frame, stamped at reception)."""
         return self._pose.latest() if self._pose is not None else None
-
-    def robot_poses(self) -> dict[str, Pose2D]:
-        """Known initial poses of the robots whose maps this source yields (``init_poses``)."""
-        if not (self.opts.discover_robots and self.opts.known_init_poses):
-            return {}
-        return {r: Pose2D(*p) for r, p in self.opts.init_poses.items()}
-
-    # -- names -----------------------------------------------------------------------------------------
-    def robot_of_key(self, key: str) -> str | None:
-        """The robot a data key belongs to (discovery), or this robot; None for a robot not taken."""
-        o = self.opts
-        if not o.discover_robots:
-            return self.ctx.robot
-        parts = key.split("/")
-        if o.key_format == "rmw_zenoh":
-            robot = parts[1] if len(parts) > 1 else ""
-        else:
-            robot = parts[len([p for p in o.namespace.strip("/").split("/") if p])] if parts else ""
-        return self._accept_robot(robot)
-
-    def robot_of_topic(self, topic: str) -> str | None:
-        """The robot of a fully qualified topic ``/<robot>/<robot_map_topic>``, if it is one taken."""
-        parts = topic.strip("/").split("/")
-        if len(parts) != 2 or parts[1] != rmw.check_name(self.opts.robot_map_topic):
-            return None
-        return self._accept_robot(parts[0])
-
-    def _accept_robot(self, robot: str) -> str | None:
-        o = self.opts
-        # fullmatch: the pattern's $ let "robot1\n" through, a robot and a TF frame with a newline.
-        if not ROBOT_NAME.fullmatch(robot) or not robot.startswith(o.robot_namespace):
-            return None
-        if robot == self.ctx.robot:
-            # Its maps would be taken as this robot's own, signed and sent to the fleet as such.
-            if robot not in self._ignored:
-                self._ignored.add(robot)
-                log.warning("ros2 source: ignoring a robot named %s, as this robot is", robot)
-            return None
-        # A robot counts from its first sample or token, not its first map that decodes (nor its
-        # init pose): names whose payloads never decode, or that wait for a pose, were kept for
-        # ever without bound, in every key format.
-        if robot not in self._taken and len(self._taken) >= o.max_robots:
-            if robot not in self._ignored and len(self._ignored) < MAX_IGNORED_SAID:
-                self._ignored.add(robot)  # said once a name, for as many names as are worth saying
-                log.warning("ros2 source: already %d robots; ignoring %s", o.max_robots, robot)
-            return None
-        self._taken.add(robot)
-        return robot
 
     # -- zenoh side (runs on zenoh threads) ------------------------------------------------------------
     def _on_sample(self, loop: asyncio.AbstractEventLoop, sample: Any) -> None:
@@ -268,15 +215,6 @@ class Ros2Source(MapSource):
         if robot is not None:
             self._announce(robot, topic)
 
-    def _publisher_gone(self, topic: str) -> None:
-        """A robot's map publisher left: a robot that never sent a map no longer holds a place
-        (tokens made up and withdrawn held every place for ever, the real robots refused)."""
-        parts = topic.strip("/").split("/")
-        robot = parts[0] if len(parts) == 2 else ""
-        if robot in self._taken and robot not in self._robots and robot not in self._pending:
-            self._taken.discard(robot)
-            self._waiting_pose.discard(robot)
-
     def _announce(self, robot: str, topic: str) -> None:
         """Declare mapd's subscription to a robot's topic (once), off the loop."""
         if not self.opts.discover_robots or robot in self._announced or self._node is None:
@@ -331,17 +269,6 @@ class Ros2Source(MapSource):
             log.warning("%s; waiting for the next map", exc)
             return None
         return grid, grid.digest()
-
-    def _waiting_for_pose(self, robot: str) -> bool:
-        o = self.opts
-        if not (o.discover_robots and o.known_init_poses) or robot in o.init_poses:
-            return False
-        if robot not in self._waiting_pose:
-            self._waiting_pose.add(robot)
-            log.warning(
-                "ros2 source: no init_poses entry for %s (known_init_poses = true); not merged", robot
-            )
-        return True
 
     async def maps(self) -> AsyncIterator[OccupancyGrid]:
         """Each new, different map received (per robot when discovering); runs until closed."""

@@ -3,9 +3,10 @@
 
 It gives each robot's maps a stream of their own (latest wins per robot), sends to the peers the
 options name (or those heard lately), turns the core's events into the daemon's (``Delivered``,
-``OnAir``, ``PeerUp``, ``Arrived`` ...), asks for whole maps on the control stream, carries poses in the gaps
-maps leave, and drives the multi-hop relay (``relaying.py``) in signed fleets, whose summaries also
-say which peers' daemons refuse the maps their radios ack (``refused.py``).
+``OnAir``, ``PeerUp``, ``Arrived`` ...), asks for whole maps on the control stream and heeds the
+asks heard there (``requesting.py``), carries poses in the gaps maps leave, and drives the multi-hop
+relay (``relaying.py``) in signed fleets, whose summaries also say which peers' daemons refuse the
+maps their radios ack (``refused.py``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from transports.base import (
     Arrived,
     Delivered,
     Failed,
-    KeyframeNeeded,
     OnAir,
     PeerDown,
     PeerRestarted,
@@ -44,12 +44,13 @@ from transports.uwb.link import POSE_STREAM, UwbLink
 from transports.uwb.options import MAX_MESSAGE, UwbOptions
 from transports.uwb.refused import Cleared, RefusalCore, Refused, words
 from transports.uwb.relaying import RelayDriver
+from transports.uwb.requesting import RequestSide
 from transports.uwb.signing import CounterStore, ReplayStore
 
 log = logging.getLogger("mapd.uwb")
 
 
-class UwbTransport(Transport):
+class UwbTransport(RequestSide, Transport):
     """The daemon's ``uwb`` transport: maps over a UWB serial radio, latest wins per robot."""
 
     name = "uwb"
@@ -298,37 +299,6 @@ class UwbTransport(Transport):
         """Ask ``robot`` (over this link) for a whole map: a control message, throttled per robot."""
         self._ask_keyframe(robot)
 
-    def _ask_keyframe(self, robot: str) -> None:
-        link = self._link
-        if link is None or link.core is None:
-            return
-        wanted = self._requests.want(robot, time.monotonic())
-        if wanted is None:
-            return
-        dests = sorted({self.opts.nodes[r] for r in wanted if r in self.opts.nodes} - {self.node_id})
-        if not dests:  # a robot we know by no link id: ask every peer, the one that has it answers
-            dests = self._dests()
-        if not dests:
-            return
-        try:
-            robots = control.names(wanted)
-            nonce = self._nonces.next(time.time_ns())
-            sig = signed_requests.sign(
-                self.ctx.identity,
-                control.DOMAIN,
-                fleet=self.ctx.fleet,
-                asker=self.ctx.robot,
-                robots=robots,
-                nonce=nonce,
-            )
-            link.send(
-                control.pack_request(robots, nonce=nonce, sig=sig), dests, stream=control.CONTROL_STREAM
-            )
-        except (MapdError, ValueError) as exc:  # ValueError: too many names for one message
-            log.info("uwb: keyframe request for %s not sent: %s", robot, exc)
-            return
-        self.control_counters.keyframe_requests_tx += 1
-
     def peers(self) -> list[str]:
         if self._link is None or self._link.core is None:
             return []
@@ -403,36 +373,3 @@ class UwbTransport(Transport):
             (log.warning if isinstance(change, Refused) else log.info)(
                 "%s", words(change, self._name(change.peer))
             )
-
-    def _on_control(self, e: arq.MessageReceived) -> None:
-        asker = self._name(e.src)
-        c = self.control_counters
-        try:
-            req = control.parse_request(e.data)
-        except MapdError as exc:
-            c.bad_control += 1
-            log.info("uwb: bad control message from %s: %s", asker, exc)
-            return
-        c.keyframe_requests_rx += 1
-        if self.ctx.robot not in req.robots:
-            return
-        # Heeded only when signed by the robot the link id names, and fresh (keyframe_requests).
-        try:
-            signed_requests.verify(
-                self.ctx.roster,
-                control.DOMAIN,
-                fleet=self.ctx.fleet,
-                asker=asker,
-                robots=req.robots,
-                nonce=req.nonce or 0,
-                sig=req.sig,
-                what="uwb keyframe request",
-            )
-        except MapdError as exc:
-            c.keyframe_requests_forged += 1
-            log.info("uwb: keyframe request not heeded: %s", exc)
-            return
-        if req.nonce is not None and not self._fresh.fresh(asker, req.nonce):
-            c.keyframe_requests_replayed += 1
-            return
-        self.ctx.emit(KeyframeNeeded("uwb", asker, self.ctx.robot))
