@@ -51,7 +51,10 @@ lint: $(STAMP)
 
 # Three workers on CI's two cores: many tests wait on real clocks (radio turns, daemons' periods),
 # and a third worker uses time two would leave idle (measured here: 455-467 s with two, 360-440 s with three).
+# The lossless codec's numba kernels are compiled once, before the workers start: on a fresh clone
+# each worker, and each daemon a test starts, would otherwise compile them at the same time.
 test: $(STAMP) socat chromium lint
+	$(BIN)/mapd warmup --codec lossless
 	$(BIN)/pytest -n 3 $(PYTEST_ARGS)
 
 demo: $(STAMP)
