@@ -154,7 +154,21 @@ def measure(n: int, args: argparse.Namespace) -> dict[str, Any]:
         "rss_mb_per_daemon": sum(rss.values()) / len(rss),
         "router_cpu": router_cpu / wall,
         "router_rss_mb": router_rss,
+        # How late each daemon's event loop ran (mapd.daemon.loop_lag; the daemons share this
+        # machine's cores, so it counts their waits for a core as well as work on the loop).
+        "loop_p99_ms": _mean([_loop(s, "lag_ms_recent_p99") for s in snaps.values()]),
+        "loop_max_ms": max([_loop(s, "lag_ms_max") for s in snaps.values()], default=float("nan")),
     }
+
+
+def _loop(snap: dict[str, Any], key: str) -> float:
+    """One figure of a daemon's ``loop`` status (NaN when it has none)."""
+    v = (snap.get("loop") or {}).get(key)
+    return float(v) if isinstance(v, int | float) else float("nan")
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values) if values else float("nan")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -190,6 +204,8 @@ def _text(rows: list[dict[str, Any]]) -> str:
         ("cpu_per_daemon", "CPU/daemon", ".2f"),
         ("cpu_per_daemon_x", f"CPU x N={base}", ".2f"),
         ("rss_mb_per_daemon", "MB/daemon", ".0f"),
+        ("loop_p99_ms", "loop p99 ms", ".0f"),
+        ("loop_max_ms", "loop max ms", ".0f"),
     ]
     if any(r["router_cpu"] == r["router_cpu"] for r in rows):  # not NaN: a --router run
         cols += [("router_cpu", "router CPU", ".2f"), ("router_rss_mb", "router MB", ".0f")]

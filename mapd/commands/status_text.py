@@ -31,6 +31,7 @@ def render_status(s: dict[str, Any]) -> str:
         LINK_FAULTS,
         damage_words,
         link_faults,
+        loop_held,
         recording_failing,
         state_faults,
         too_big_words,
@@ -228,7 +229,31 @@ def render_status(s: dict[str, Any]) -> str:
         )
         # a fault while it lasts; afterwards the totals, on a line of their own but not a fault
         out.append(f"record  FAULTS {counts}" if recording_failing(rec) else f"record  so far: {counts}")
+    if isinstance(lp := s.get("loop"), dict):
+        out.append(_loop_line(lp, loop_held(s)))
     bad = {k: v for k, v in s.get("counters", {}).items() if v}
     if bad:
         out.append("counters " + " ".join(f"{k}={v}" for k, v in bad.items()))
     return "\n".join(out)
+
+
+def _loop_line(lp: dict[str, Any], held: float | None) -> str:
+    """How late the event loop ran (:mod:`mapd.daemon.loop_lag`); a fault while a hold of a second
+    or more is recent (``held``: :func:`mapd.daemon.headline.loop_held`)."""
+    line = (
+        f"loop    late by at most {_num(lp.get('lag_ms_recent_max'), '.0f')} ms in the last "
+        f"{_age(lp.get('recent_s'))} (p99 {_num(lp.get('lag_ms_recent_p99'), '.0f')} ms), "
+        f"{_num(lp.get('lag_ms_max'), '.0f')} ms since start"
+    )
+    stalls, last, ago = lp.get("stalls"), lp.get("last_stall_ms"), lp.get("last_stall_ago_s")
+    if not isinstance(stalls, int) or not stalls or not isinstance(last, int | float):
+        return line + f"; no stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more"
+    if held is not None:
+        return (
+            f"loop    FAULTS the event loop was held {held:.2f} s {_age(ago)} ago ({stalls} stalls in "
+            f"all): radio turns and timers waited; is the computer overloaded, swapping, or was it stopped?"
+        )
+    return (
+        line
+        + f"; {stalls} stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s, {_age(ago)} ago"
+    )

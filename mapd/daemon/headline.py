@@ -9,8 +9,10 @@ Pure functions of a status document (:meth:`Daemon.snapshot`), so both read the 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+from mapd.daemon.loop_lag import SAY_S
 from mapd.daemon.versions import label
 
 #: A link's figures that mean something is wrong when not zero (``port_open``, ``session_open``
@@ -154,6 +156,25 @@ def state_faults(s: dict[str, Any]) -> list[str]:
     return out
 
 
+def loop_held(s: dict[str, Any]) -> float | None:
+    """How long the event loop was last held (s), when that was a hold of a second or more (one the
+    daemon logs: :data:`mapd.daemon.loop_lag.SAY_S`) within the loop's recent window; else None."""
+    lp = s.get("loop")
+    if not isinstance(lp, dict):
+        return None
+    last, ago, recent = (_number(lp.get(k)) for k in ("last_stall_ms", "last_stall_ago_s", "recent_s"))
+    if last is None or ago is None or recent is None:
+        return None
+    return last / 1000 if last >= SAY_S * 1000 and 0 <= ago < recent else None
+
+
+def _number(v: Any) -> float | None:
+    """``v`` when it is a finite number (a status document comes from another process)."""
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
 def recording_failing(rec: dict[str, Any] | None) -> bool:
     """Whether the recording fails to write now (or leaves messages out behind a slow disk). A
     document without ``writing`` (a daemon from before it) counts any failure so far."""
@@ -206,6 +227,8 @@ def status_line(s: dict[str, Any]) -> str:
     faults += state_faults(s)
     if recording_failing(s.get("recording")):
         faults.append("recording: messages not written")
+    if (held := loop_held(s)) is not None:
+        faults.append(f"event loop held {held:.2f} s (overloaded, swapping or stopped?)")
     if not (s.get("security") or {}).get("signed", True):
         faults.append("UNSIGNED fleet")
     line = ("FAULTS " + ", ".join(faults) + " | " if faults else "") + "; ".join(parts)

@@ -34,6 +34,7 @@ from mapd.codec.base import CodecOptions
 from mapd.daemon.coding import Coder, CsvLog
 from mapd.daemon.events import EventQueue
 from mapd.daemon.inbound import Inbound
+from mapd.daemon.loop_lag import LagMeter, watch
 from mapd.daemon.notifier import Notifier
 from mapd.daemon.outbound import Outbound
 from mapd.daemon.parts import make_output, make_source, make_transport, output_context
@@ -88,6 +89,7 @@ class Daemon:
         self._stop = asyncio.Event()
         # What systemd is told; the snapshot looked up at each line (a test replaces it).
         self.notifier = Notifier(lambda: self.snapshot())
+        self.loop_lag = LagMeter()  # how late the event loop runs (mapd status: loop)
         self._reload = asyncio.Event()  # SIGHUP: read the config again (systemctl reload)
         self.reloads = Reloads(cfg)
         self._stopping_at: float | None = None
@@ -349,6 +351,7 @@ class Daemon:
                 tg.create_task(self._record_links(), name="record"),
                 tg.create_task(self.poses.run(self.source, self.transports), name="poses"),
                 tg.create_task(self._reload_loop(), name="reload"),
+                tg.create_task(watch(self.loop_lag), name="loop-lag"),
             ]
             # A link whose loop died raises here, which stops the daemon with its line: systemd
             # restarts it (Restart=on-failure) instead of a robot that looks alive and sends nothing.

@@ -25,6 +25,7 @@ def snapshot(d: Daemon) -> dict[str, Any]:
         "fleet": d.cfg.robot.fleet,
         "pid": os.getpid(),
         "uptime_s": round(now - d.started, 1),
+        "loop": d.loop_lag.stats(time.monotonic()),
         "source": {
             "name": d.cfg.source.use,
             "version": own.version if own else 0,

@@ -256,6 +256,9 @@ def write_report(
                 "link_bps": 8 * tx_bytes / up if isinstance(up, int | float) and up > 0 else float("nan"),
                 "peers": " ".join(f"{p}:{label(v.get('version'))}" for p, v in peers.items()) or "-",
                 "conf": min(confs) if confs else float("nan"),
+                # how late its event loop ran at worst (mapd.daemon.loop_lag): what the CPU work
+                # kept off the loop leaves it, on this machine with every robot on it
+                "loop_ms": (s.get("loop") or {}).get("lag_ms_max", float("nan")),
             }
         )
     cols = [
@@ -271,6 +274,7 @@ def write_report(
         ("link_bps", "link bit/s", ".0f"),
         ("peers", "holds peers", ""),
         ("conf", "fusion conf", ".2f"),
+        ("loop_ms", "loop lag max ms", ".0f"),
     ]
     atomic_write_bytes(
         out / "summary.json",

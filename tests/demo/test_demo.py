@@ -48,6 +48,7 @@ def test_demo_runs_two_robots_over_uwb_and_writes_its_report(tmp_path: Path) -> 
     for r in summary:
         # what the radio carried: something, and never more than the paced 12.5 kb/s on average
         assert 0 < r["link_bps"] <= 12500
+        assert r["loop_ms"] >= 0  # its event loop's worst lateness, measured (NaN: not reported)
     relay = json.loads((out / "run" / "uwb" / "relay-stats.json").read_text())
     assert relay["rate_bps"] == 12500 and relay["dropped"] > 0  # the faults reached the radio
 
