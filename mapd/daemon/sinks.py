@@ -48,6 +48,9 @@ class Sinks:
         self._out_pool = ThreadPoolExecutor(1, thread_name_prefix="mapd-outputs")
         self._out_next: GlobalUpdate | None = None
         self._pose_next: PoseUpdate | None = None
+        #: Robot -> its newest map (and when taken) not yet handed to the outputs (latest wins; at
+        #: most one per robot the daemon holds, which the roster bounds).
+        self._robot_next: dict[str, tuple[OccupancyGrid, float]] = {}
         self._out_lock = threading.Lock()
         #: Messages the recorder could not write (a full disk): said once until it writes again.
         self.record_failures = 0
@@ -105,9 +108,15 @@ class Sinks:
         """A robot's map as this daemon now holds it (its own, or one received)."""
         for watch in self.map_watchers:
             watch(grid)
+        wall = time.time()
+        if self.outputs:
+            self._to_outputs(robot_map=(grid, wall))
         if self.recorder is not None:
-            frame = robot_frame(self._names().frames.robot_map_frame, grid.robot)
-            self._record(self.recorder.grid, f"/{grid.robot}/map", grid, frame, time.time())
+            names = self._names()
+            frame = robot_frame(names.frames.robot_map_frame, grid.robot)
+            self._record(
+                self.recorder.grid, robot_frame(names.robot_map_topic, grid.robot), grid, frame, wall
+            )
 
     def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
         """New robot poses (each ``base_link`` in its robot's map frame) and the current placements."""
@@ -165,14 +174,22 @@ class Sinks:
         }
 
     # ------------------------------------------------------------------ worker side
-    def _to_outputs(self, update: GlobalUpdate | None = None, poses: PoseUpdate | None = None) -> None:
-        """Hand the output thread the newest global map and/or poses (latest wins, one drain queued)."""
+    def _to_outputs(
+        self,
+        update: GlobalUpdate | None = None,
+        poses: PoseUpdate | None = None,
+        robot_map: tuple[OccupancyGrid, float] | None = None,
+    ) -> None:
+        """Hand the output thread the newest global map, poses and/or robot map (latest wins, one
+        drain queued)."""
         with self._out_lock:
-            idle = self._out_next is None and self._pose_next is None
+            idle = self._out_next is None and self._pose_next is None and not self._robot_next
             if update is not None:
                 self._out_next = update
             if poses is not None:
                 self._pose_next = poses
+            if robot_map is not None:
+                self._robot_next[robot_map[0].robot] = robot_map
         if idle:
             self._out_pool.submit(self._drain_outputs)
 
@@ -180,12 +197,15 @@ class Sinks:
         with self._out_lock:
             update, self._out_next = self._out_next, None
             poses, self._pose_next = self._pose_next, None
+            robot_maps, self._robot_next = self._robot_next, {}
         for o in self.outputs:
             try:
                 if update is not None:
                     o.publish(update)
                 if poses is not None:
                     o.publish_poses(poses)
+                for grid, stamp in robot_maps.values():
+                    o.publish_robot_map(grid, stamp)
             except Exception as exc:  # one failing output must not stop the others or the daemon
                 log.error("output %s failed: %s: %s", o.name, type(exc).__name__, exc)
 

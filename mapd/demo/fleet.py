@@ -239,11 +239,17 @@ class Fleet:
         return self.names + ([self.base] if self.base else [])
 
     def _base_tables(self) -> dict[str, dict[str, Any]]:
-        """The base station's: no map of its own, and the fused map on ROS 2 (rmw_zenoh) at the endpoint."""
+        """The base station's: no map of its own, and the fused map and each robot's on ROS 2
+        (rmw_zenoh) at the endpoint."""
         return {
             "source": {"use": "none"},
             "output": {"use": ["ros2"]},
-            "output.ros2": {"listen": [self.args.ros2_listen], "connect": [], "frame": "map"},
+            "output.ros2": {
+                "listen": [self.args.ros2_listen],
+                "connect": [],
+                "frame": "map",
+                "robot_map_topic": "/{robot}/map",
+            },
         }
 
     def _start_poses(self) -> dict[str, tuple[float, float, float]]:
@@ -388,7 +394,8 @@ def run_demo(args: argparse.Namespace) -> int:
     fleet.start()
     if fleet.base is not None:
         print(
-            f"ROS 2 (rmw_zenoh): the base station publishes /map, /tf_static and /tf on {args.ros2_listen}; "
+            f"ROS 2 (rmw_zenoh): the base station publishes /map, each robot's /<robot>/map, /tf_static "
+            f"and /tf on {args.ros2_listen}; "
             f"see README 'With ROS 2'",
             flush=True,
         )

@@ -86,6 +86,11 @@ class Output(ABC):
     def publish_poses(self, update: PoseUpdate) -> None:  # noqa: B027 - optional hook
         """Take new robot poses (on the output thread, like :meth:`publish`); default: ignore them."""
 
+    def publish_robot_map(self, grid: OccupancyGrid, stamp: float) -> None:  # noqa: B027 - optional hook
+        """Take one robot's map as the daemon now holds it (its own, or a peer's it accepted;
+        ``grid.robot`` names it; ``stamp``: wall-clock seconds when the daemon took it), on the
+        output thread like :meth:`publish`, the newest per robot; default: ignore it."""
+
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release everything promptly."""
 

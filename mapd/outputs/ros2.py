@@ -22,6 +22,12 @@ With ``tf = true`` (the default) it also publishes, following REP-105 frame name
 * ``/tf``: ``<robot>/map -> <robot>/base_link`` for every robot whose pose is known
   (:meth:`publish_poses`, and the poses a :class:`GlobalUpdate` carries).
 
+With ``robot_map_topic`` set (``"/{robot}/map"``, say) each robot's map as this daemon holds it, its
+own and every peer's it accepted, goes out too, on that robot's topic in its ``robot_map_frame``
+(latched, as the global map), so RViz can show each robot's map beside the fleet's, placed by
+``/tf_static``. A robot whose name is none rcl accepts (robot names may hold ``-`` or begin with a
+digit) is said once and left out.
+
 ``format = "ros2dds"`` publishes plain CDR on zenoh-bridge-ros2dds keys instead (no tokens, no
 attachment, a queryable answers late joiners). Example::
 
@@ -38,12 +44,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import threading
 from pathlib import Path
 from typing import Any
 
 from mapd.errors import UnreachableError
-from mapd.grid import Pose2D
+from mapd.grid import OccupancyGrid, Pose2D
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions, PoseUpdate
 from mapd.outputs.retry import SessionRetry
 from mapd.outputs.ros2_options import Ros2OutputOptions
@@ -51,8 +58,13 @@ from mapd.outputs.ros2_options import robot_of_frame as robot_of_frame  # import
 from mapd.ros2 import rmw
 from mapd.ros2.tf import TF_TYPE, Ros2Names, load_shown, robot_frame, save_shown, tf_static
 
+log = logging.getLogger("mapd.outputs.ros2")
+
 #: In the state directory: the robots whose map frames went out on /tf_static.
 FRAMES_FILE = "ros2_frames.json"
+#: Robots' maps kept for a session not open yet, and robot publishers at most (the roster bounds
+#: the robots a daemon holds maps of; this bounds them even so).
+MAX_ROBOT_MAPS = 1024
 
 
 def pose_transforms(
@@ -108,6 +120,12 @@ class Ros2Output(Output):
         self.unplaced = 0
         self._pose_sent: dict[str, float] = {}
         self.maps = 0
+        #: robot_map_topic: each robot's publisher, its newest map while the session is not open,
+        #: the robots whose names are no ROS names (said once), and the maps sent
+        self._robot_pubs: dict[str, Any] = {}
+        self._robot_waiting: dict[str, tuple[OccupancyGrid, float]] = {}
+        self._unnamed: set[str] = set()
+        self.robot_maps = 0
         self.static_msgs = 0
         self.tf_msgs = 0
         self.bytes = 0
@@ -131,6 +149,9 @@ class Ros2Output(Output):
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self.publish(waiting)
+            robots, self._robot_waiting = self._robot_waiting, {}
+            for grid, stamp in robots.values():
+                self._publish_robot(grid, stamp)
 
     def _open(self) -> None:
         """Open the session and declare the node and its publishers (nothing once closing)."""
@@ -189,6 +210,43 @@ class Ros2Output(Output):
         if update.poses:
             self._send_poses(update)
 
+    def publish_robot_map(self, grid: OccupancyGrid, stamp: float) -> None:
+        if not self.opts.robot_map_topic:
+            return
+        with self._put_lock:
+            if self._map is None:  # the newest of each robot, for when the session opens
+                if grid.robot in self._robot_waiting or len(self._robot_waiting) < MAX_ROBOT_MAPS:
+                    self._robot_waiting[grid.robot] = (grid, stamp)
+                return
+            self._publish_robot(grid, stamp)
+
+    def _publish_robot(self, grid: OccupancyGrid, stamp: float) -> None:
+        from mapd.ros2 import cdr
+
+        robot, o = grid.robot, self.opts
+        pub = self._robot_pubs.get(robot)
+        if pub is None:
+            if robot in self._unnamed or len(self._robot_pubs) >= MAX_ROBOT_MAPS:
+                return
+            try:
+                o.robot_topic(robot)
+            except ValueError as exc:
+                self._unnamed.add(robot)
+                log.warning("ros2 output: %s; its map is not published on ROS 2 (robot_map_topic)", exc)
+                return
+            pub = self._robot_pubs[robot] = self._node.publisher(
+                robot_frame(o.robot_map_topic, robot), cdr.MSGTYPE, rmw.LATCHED
+            )
+            if self._own is not None and pub.gid:  # before its first sample, as the others
+                from mapd.ros2.node import own_publishers
+
+                self._own[0].append(pub.gid)
+                own_publishers.add(gids=[pub.gid], zid=self._own[1])
+        payload = cdr.encode(grid, frame_id=robot_frame(o.robot_map_frame, robot), stamp=stamp)
+        pub.put(payload)
+        self.robot_maps += 1
+        self.bytes += len(payload)
+
     def publish_poses(self, update: PoseUpdate) -> None:
         with self._put_lock:
             if self._tf_static is not None and update.frames:
@@ -222,7 +280,11 @@ class Ros2Output(Output):
 
     def ros2_names(self) -> Ros2Names:
         """The global map's topic and the frames set in ``[output.ros2]``."""
-        return Ros2Names(self.opts.ros_topic(), self.opts.tf_frames())
+        o = self.opts
+        if not o.robot_map_topic:  # (the recording keeps its own robots' topics: /{robot}/map)
+            return Ros2Names(o.ros_topic(), o.tf_frames())
+        robots = rmw.fq_topic(o.robot_map_topic, o.namespace if o.format == "rmw_zenoh" else "")
+        return Ros2Names(o.ros_topic(), o.tf_frames(), robots)
 
     def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
         from mapd.ros2 import cdr
@@ -255,6 +317,7 @@ class Ros2Output(Output):
             self._closing = self._closing or closing
             node, session, own = self._node, self._session, self._own
             self._node = self._session = self._map = self._tf = self._tf_static = self._own = None
+            self._robot_pubs = {}  # (declared on the node: closed with it)
         if node is not None:
             node.close()
         if session is not None:
@@ -267,6 +330,8 @@ class Ros2Output(Output):
         return {
             "key": self._map.key if self._map is not None else "",
             "maps": self.maps,
+            "robot_maps": self.robot_maps,
+            "robot_topics": len(self._robot_pubs),
             "tf_static": self.static_msgs,
             "unplaced": self.unplaced,
             "tf": self.tf_msgs,

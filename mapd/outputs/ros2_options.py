@@ -29,6 +29,12 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     beside_config: ClassVar[tuple[str, ...]] = ("zenoh_config",)
 
     topic: str = Field(default="/map", description="topic of the global nav_msgs/msg/OccupancyGrid")
+    robot_map_topic: str = Field(
+        default="",
+        description="each robot's map as this daemon holds it (its own and its peers'), as "
+        "nav_msgs/msg/OccupancyGrid in its robot_map_frame; {robot} is its name (e.g. '/{robot}/map'; "
+        "the MCAP recording's channels follow it); empty: none",
+    )
     frame: str = Field(default=TfFrames.frame, description="the fleet frame's name (m-explore's world_frame)")
     distro: rmw.Distro = Field(default="jazzy", description="ROS 2 distro: sets the type hash in keys")
     namespace: str = Field(default="", description="the node's namespace (ros2dds: the bridge namespace)")
@@ -64,6 +70,19 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     @classmethod
     def _check_topic(cls, v: str) -> str:
         return rmw.check_topic_name(v)
+
+    @field_validator("robot_map_topic")
+    @classmethod
+    def _check_robot_map_topic(cls, v: str) -> str:
+        if v == "":
+            return v
+        if "{robot}" not in v:
+            raise ValueError(f"{v!r} must name the robot with {{robot}}: one topic each")
+        try:
+            rmw.check_topic_name(robot_frame(v, "robot0"))
+        except ValueError as exc:
+            raise ValueError(f"{v!r} with robot0 for {{robot}}: {exc}") from None
+        return v
 
     @field_validator("node")
     @classmethod
@@ -120,6 +139,14 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
                         f"{key} {name!r} is the {field} of a robot named {robot!r} ({template!r}); "
                         f"{key} must be a frame of its own, apart from every robot's"
                     )
+        if self.robot_map_topic:  # compared fully qualified: a relative one is under the namespace
+            ns = self.namespace if self.format == "rmw_zenoh" else ""
+            robot = robot_of_frame(rmw.fq_topic(self.robot_map_topic, ns), rmw.fq_topic(self.topic, ns))
+            if robot is not None:
+                raise ValueError(
+                    f"topic {self.topic!r} is the robot_map_topic of a robot named {robot!r} "
+                    f"({self.robot_map_topic!r}): the global map and the robots' maps need topics of their own"
+                )
         if self.unplaced_frame and self.unplaced_frame == self.frame:
             raise ValueError(
                 f"unplaced_frame {self.unplaced_frame!r} is the fleet frame: a robot no longer placed "
@@ -131,20 +158,45 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
         """The frame names set here."""
         return TfFrames(self.frame, self.robot_map_frame, self.robot_pose_frame, self.unplaced_frame)
 
+    def robot_topic(self, robot: str) -> str:
+        """Robot ``robot``'s map topic, fully qualified (as :meth:`ros_topic`); ValueError when its
+        name is none rcl accepts (robot names may hold ``-`` or begin with a digit; ROS names not).
+        Only with ``robot_map_topic`` set."""
+        topic = robot_frame(self.robot_map_topic, robot)
+        try:
+            rmw.check_topic_name(topic)
+        except ValueError as exc:
+            raise ValueError(f"robot {robot}: {exc}") from None
+        return rmw.fq_topic(topic, self.namespace if self.format == "rmw_zenoh" else "")
+
     def ros_topic(self) -> str:
         """The global map's fully qualified topic in the ROS graph: under ``namespace`` with
         rmw_zenoh; with ``ros2dds`` the namespace is the bridge's, on the zenoh side only."""
         return rmw.fq_topic(self.topic, self.namespace if self.format == "rmw_zenoh" else "")
 
-    def map_key_expr(self) -> str:
-        """The zenoh key the global map is published on (any type hash: ``*``)."""
+    def map_key_expr(self, topic: str | None = None) -> str:
+        """The zenoh key the global map (or ``topic``) is published on (any type hash: ``*``)."""
         from mapd.ros2.cdr import MSGTYPE
 
+        topic = self.topic if topic is None else topic
         if self.format == "rmw_zenoh":
             return rmw.data_key(
-                rmw.fq_topic(self.topic, self.namespace), MSGTYPE, domain=self.domain_id, hash_="*"
+                rmw.fq_topic(topic, self.namespace), MSGTYPE, domain=self.domain_id, hash_="*"
             )
-        return rmw.bridge_key(rmw.fq_topic(self.topic), namespace=self.namespace)
+        return rmw.bridge_key(rmw.fq_topic(topic), namespace=self.namespace)
+
+    def robot_maps_key_expr(self) -> str | None:
+        """The zenoh key expression every robot's map is published under (``{robot}`` as a
+        wildcard), or None without ``robot_map_topic``."""
+        if not self.robot_map_topic:
+            return None
+        import zenoh  # (only where a config is checked, as rmw.key_exprs_intersect)
+
+        # A name no config spells stands in while the key is built (and its names checked), then
+        # zenoh's wildcard for any part of a chunk ("$*"; alone in a chunk it becomes "*").
+        stand_in = "mapd_robot_stand_in_"
+        key = self.map_key_expr(robot_frame(self.robot_map_topic, stand_in))
+        return str(zenoh.KeyExpr.autocanonize(key.replace(stand_in, "$*")))
 
     def check_with_plugins(self, chosen: dict[str, dict[str, BaseModel]]) -> None:
         """ValueError (one line, naming ``topic``) when the chosen ``ros2`` source takes maps from
@@ -161,6 +213,13 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
         source = chosen.get("source", {}).get("ros2")
         if not isinstance(source, Ros2Options):
             return
+        robots = self.robot_maps_key_expr()
+        if robots is not None and rmw.key_exprs_intersect(source.map_key_expr(), robots):
+            raise ValueError(
+                f"robot_map_topic: {self.robot_map_topic!r} ({robots!r}) is where [source.ros2] takes "
+                "maps from: mapd would read the robots' maps it publishes back in as maps; publish "
+                'them elsewhere, e.g. robot_map_topic = "/mapd/{robot}/map"'
+            )
         if not rmw.key_exprs_intersect(source.map_key_expr(), self.map_key_expr()):
             return
         topic = self.ros_topic()

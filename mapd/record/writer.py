@@ -7,7 +7,8 @@ Channels, named as the ``ros2`` output names its topics and frames when the daem
 
 * ``/map`` (the output's topic): the global map, ``nav_msgs/msg/OccupancyGrid`` in the fleet
   frame, on every merge;
-* ``/<robot>/map``: each robot's map as this daemon holds it (received, or its own);
+* ``/<robot>/map``: each robot's map as this daemon holds it (received, or its own); on the
+  output's ``robot_map_topic`` when it sets one;
 * ``/tf_static``: ``tf2_msgs/msg/TFMessage``, fleet frame -> ``<robot>/map`` for every placed
   robot, written again whenever a placement changes, and ``unplaced_frame`` -> ``<robot>/map`` for
   every robot the recording placed before that is no longer placed. Which robots it placed is kept

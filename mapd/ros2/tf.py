@@ -48,11 +48,13 @@ class TfFrames:
 @dataclass(frozen=True)
 class Ros2Names:
     """The names of the ROS 2 graph an output publishes on (the ``ros2`` output's defaults here): the
-    fully qualified topic of the global map and the TF frames. The MCAP recording uses them, so a bag
-    played into that graph agrees with the output."""
+    fully qualified topics of the global map and of each robot's map, and the TF frames. The MCAP
+    recording uses them, so a bag played into that graph agrees with the output."""
 
     map_topic: str = "/map"
     frames: TfFrames = field(default_factory=TfFrames)
+    #: Each robot's map's fully qualified topic; ``{robot}`` is its name.
+    robot_map_topic: str = "/{robot}/map"
 
 
 def robot_frame(template: str, robot: str) -> str:

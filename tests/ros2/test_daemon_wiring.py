@@ -177,8 +177,14 @@ def test_a_restarted_daemon_records_the_outputs_names_and_moves_robots_off_the_t
     assert maps == {"/fleet/merged", "/robot1/map", "/robot2/map"}  # the output's topic, not /map
     assert static[-1] == {"robot1/map": "world", "robot2/map": "world"}
     # The restart: robot2 is no longer placed (its map is not restored; its source is gone).
-    path.write_text(path.read_text().replace(listen, free_endpoint()))  # (a fresh port)
+    # (a fresh port; and the robots' maps now on ROS 2 too, under the node's namespace: the bag's
+    # robot map channels follow them)
+    text = path.read_text().replace(listen, free_endpoint())
+    assert 'frame = "world"\n' in text
+    path.write_text(
+        text.replace('frame = "world"\n', 'frame = "world"\nrobot_map_topic = "mapd/{robot}_map"\n')
+    )
     run(("robot1",), unplaced=1)  # the ros2 output moves robot2 off the tree (its ros2_frames.json)
     static, maps = tf_static_and_map_topics(record.with_name("fleet.1.mcap"))
-    assert maps == {"/fleet/merged", "/robot1/map"}
+    assert maps == {"/fleet/merged", "/fleet/mapd/robot1_map"}
     assert static[0] == {"robot1/map": "world", "robot2/map": "mapd/unplaced"}  # and so does the bag

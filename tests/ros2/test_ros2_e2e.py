@@ -91,6 +91,12 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
         glob = load_map(f.run_dir / "base" / "state" / "global" / "global.yaml")
         time.sleep(0.5)
         last = peer.received("/map")[-1]
+        # and each robot's map as the base station holds it, latched, in that robot's map frame
+        robots = {}
+        for robot in ("robot0", "robot1"):
+            peer.subscribe(f"/{robot}/map", rmw_peer.GRID)
+            robots[robot] = peer.wait(f"/{robot}/map", lambda r: True, timeout=20).msg
+        held = {r: v["version"] for r, v in f.status()["base"]["peers"].items()}
     finally:
         codes = f.stop()
     assert codes["base"] == 0
@@ -103,6 +109,18 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
     )
     assert np.array_equal(np.asarray(m.data).reshape(glob.height, glob.width), glob.data)
     assert int((glob.data >= 0).sum()) > 1000
+    from mapd.daemon.state import StateStore
+
+    store = StateStore(f.run_dir / "base" / "state")
+    store.open()
+    for robot, rm in robots.items():
+        saved = store.peer_map(robot)  # the map the base station holds of it, as it saved it
+        assert saved is not None and saved.version == held[robot]
+        assert rm.header.frame_id == f"{robot}/map" and (rm.info.width, rm.info.height) == (
+            saved.width,
+            saved.height,
+        )
+        assert np.array_equal(np.asarray(rm.data).reshape(saved.height, saved.width), saved.data)
 
 
 def _room(h: int, w: int, seed: int) -> np.ndarray:

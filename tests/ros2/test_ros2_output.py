@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -346,3 +347,82 @@ def test_frame_and_topic_names_are_ones_tf2_and_rcl_read_as_written() -> None:
             Ros2OutputOptions(**kw)
         assert why in str(info.value), (kw, str(info.value))
         assert len(info.value.errors()) == 1, kw  # type: ignore[attr-defined]  # one clear error each
+
+
+def _robot_map(robot: str, k: int) -> OccupancyGrid:
+    rng = np.random.default_rng(100 + k)
+    data = rng.choice(np.array([-1, 0, 100], dtype=np.int8), size=(30, 20 + k))
+    return OccupancyGrid(data, 0.05, Pose2D(1.0, -2.0, 0.0), robot=robot, version=k)
+
+
+def test_each_robots_map_goes_out_latched_on_its_topic_in_its_frame(
+    endpoint: str, rmw_peer: ModuleType, peers: list[Any], caplog: pytest.LogCaptureFixture
+) -> None:
+    """robot_map_topic: the maps the daemon holds, one latched topic per robot, in the robot's map
+    frame (so RViz places each with /tf_static); a robot whose name rcl refuses is said once."""
+    from mapd.ros2.node import own_publishers
+
+    out = _output(endpoint, robot_map_topic="/{robot}/map")
+    try:
+        out.publish_robot_map(_robot_map("robot1", 1), 1700000010.25)
+        out.publish_robot_map(_robot_map("robot1", 2), 1700000011.25)  # the newest is the latched one
+        out.publish_robot_map(_robot_map("base", 1), 1700000012.0)
+        for _ in range(2):
+            out.publish_robot_map(_robot_map("alpha-1", 1), 1700000013.0)  # no ROS name: said once
+        time.sleep(0.3)
+        peer = rmw_peer.RmwPeer(endpoint)  # a late subscriber, as RViz
+        peers.append(peer)
+        peer.subscribe("/robot1/map", rmw_peer.GRID)
+        peer.subscribe("/base/map", rmw_peer.GRID)
+        got = peer.wait("/robot1/map", lambda r: True)
+        m = got.msg
+        assert m.header.frame_id == "robot1/map" and (m.info.width, m.info.height) == (22, 30)
+        assert np.array_equal(np.asarray(m.data).reshape(30, 22), _robot_map("robot1", 2).data)
+        assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1700000011, 250000000)
+        assert peer.wait("/base/map", lambda r: True).msg.header.frame_id == "base/map"
+        graph = peer.graph(rmw_peer.having("mapd", ("MP", "/robot1/map"), ("MP", "/base/map")))
+        pub = next(t for t in graph if t.node == "mapd" and t.topic == "/robot1/map")
+        assert pub.qos == rmw_peer.qos(True, 1) and got.gid == rmw_peer.gid(pub.key)
+        assert own_publishers.is_own(gid=got.gid)  # a ros2 source in this daemon drops its samples
+        assert not any("alpha" in t.topic for t in graph if t.kind == "MP")
+        st = out.stats()
+        assert (st["robot_maps"], st["robot_topics"], st["maps"]) == (3, 2, 0)
+        said = [r.getMessage() for r in caplog.records if "alpha-1" in r.getMessage()]
+        assert len(said) == 1 and "not a ROS 2 topic name: '/alpha-1/map'" in said[0], said
+    finally:
+        asyncio.run(out.close())
+    assert not own_publishers.is_own(gid=got.gid)  # forgotten with the session
+
+
+def test_robot_map_topic_names_each_robot_apart_from_the_global_map_and_the_source() -> None:
+    from mapd.sources.ros2_options import Ros2Options
+
+    o = Ros2OutputOptions(robot_map_topic="{robot}/map", namespace="/fleet")
+    assert o.robot_topic("robot7") == "/fleet/robot7/map"
+    assert o.robot_maps_key_expr() == "0/fleet/*/map/nav_msgs::msg::dds_::OccupancyGrid_/*"
+    assert Ros2OutputOptions(robot_map_topic="/mapd/{robot}_map").robot_maps_key_expr() == (
+        "0/mapd/$*_map/nav_msgs::msg::dds_::OccupancyGrid_/*"
+    )
+    assert Ros2OutputOptions().robot_maps_key_expr() is None
+    for bad, says in (
+        ("/robots/map", "must name the robot with {robot}"),
+        ("/{robot}-map", "not a ROS 2 topic name"),
+        ("/{robot}/map/", "not a ROS 2 topic name"),
+    ):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            Ros2OutputOptions(robot_map_topic=bad)
+    with pytest.raises(ValueError, match="the robot_map_topic of a robot named 'robot1'"):
+        Ros2OutputOptions(robot_map_topic="/{robot}", topic="/robot1")
+    with pytest.raises(
+        ValueError, match="the robot_map_topic of a robot named 'robot1'"
+    ):  # under the namespace
+        Ros2OutputOptions(robot_map_topic="{robot}", topic="/fleet/robot1", namespace="fleet")
+    with pytest.raises(ValueError, match=r"robot alpha-1: not a ROS 2 topic name"):
+        o.robot_topic("alpha-1")
+    # a map_merge drop-in source takes /<robot>/map: the robots' maps must go out elsewhere
+    source = {"source": {"ros2": Ros2Options(discover_robots=True)}}
+    with pytest.raises(
+        ValueError, match=r"robot_map_topic: '/\{robot\}/map' .* is where \[source.ros2\] takes"
+    ):
+        Ros2OutputOptions(robot_map_topic="/{robot}/map", topic="/fleet_map").check_with_plugins(source)
+    Ros2OutputOptions(robot_map_topic="/mapd/{robot}/map", topic="/fleet_map").check_with_plugins(source)
