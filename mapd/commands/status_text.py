@@ -151,12 +151,14 @@ def render_status(s: dict[str, Any]) -> str:
         if damage is not None:
             parts.insert(len([k for k in head if k in st]), damage)
         faults = link_faults(st)
+        relay = _relay_line(st)
         others = [
             f"{k}={v}"
             for k, v in st.items()
             if k not in keys
             and k not in hidden
             and k not in LINK_FAULTS
+            and not (relay and k.startswith("relay"))  # (on the relay's own line)
             and isinstance(v, int | float)
             and not isinstance(v, bool)
         ]
@@ -164,6 +166,8 @@ def render_status(s: dict[str, Any]) -> str:
         if faults:
             # Said on a line of its own, whatever the link's other figures: what needs a look.
             out.append(f"  {'':<6} FAULTS " + ", ".join(faults))
+        if relay:
+            out.append(f"  {'':<6} {relay}")
         if isinstance(big := st.get("oversize_from"), dict) and big:
             out.append(
                 f"  {'':<6} maps over limits.max_message_bytes from "
@@ -256,4 +260,24 @@ def _loop_line(lp: dict[str, Any], held: float | None) -> str:
     return (
         line
         + f"; {stalls} stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s, {_age(ago)} ago"
+    )
+
+
+def _relay_line(st: dict[str, Any]) -> str | None:
+    """What a uwb link's multi-hop relay did (``relays_tx`` and the rest, from
+    :mod:`transports.uwb.relaying`), in words; None for a link without one. The eight figures the
+    links line has room for never reached these, so a relaying robot's status did not show them."""
+    tx = st.get("relays_tx")
+    if not isinstance(tx, int) or isinstance(tx, bool):
+        return None
+
+    def n(key: str) -> str:
+        return _num(st.get(key), ".0f")
+
+    bad = f" ({n('relay_bad_summaries')} malformed)" if st.get("relay_bad_summaries") else ""
+    return (
+        f"relay   forwarded {tx} maps of other robots ({n('relays_failed')} given up, "
+        f"{n('relays_overheard')} overheard from neighbours), {n('relay_keyframes_asked')} whole maps "
+        f"asked for on a neighbour's behalf; summaries {n('relay_summaries_tx')} sent, "
+        f"{n('relay_summaries_rx')} heard{bad}"
     )

@@ -430,6 +430,10 @@ def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
         snaps = fk.wait_for(relayed, 150, f)
         hop = snaps["robot1"]["links"]["uwb"]
         assert hop["relays_tx"] >= 2 and hop["relay_summaries_rx"] > 0
+        # and mapd status says it, on a line of the link's own
+        said = [ln.strip() for ln in fk.status_text(f.run_dir / "robot1" / "run" / "mapd.sock").splitlines()]
+        relay = next((ln for ln in said if ln.startswith("relay   forwarded ")), None)
+        assert relay is not None and int(relay.split()[2]) >= 2 and "summaries" in relay, said
         # TDMA with lending (the default): idle slots' rests went to robots with chunks left
         links = [snaps[r]["links"]["uwb"] for r in ("robot0", "robot1", "robot2")]
         assert sum(u["lends_tx"] for u in links) > 0 and sum(u["borrowed"] for u in links) > 0

@@ -352,3 +352,24 @@ def test_a_zenoh_link_that_lost_its_router_is_a_fault_while_it_is_lost() -> None
     for connected in (True, None):  # back, or a fleet of peers without a router
         line = status_line(_doc(links={"zenoh": {"router_connected": connected, "router_losses": 1}}))
         assert not line.startswith("FAULTS"), line
+
+
+def test_a_relaying_link_says_what_it_forwarded_on_a_line_of_its_own() -> None:
+    """The relay's figures came after the eight other counters the links line has room for: a
+    relaying robot's mapd status never showed them."""
+    from mapd.commands.status_text import render_status
+
+    st = {"rate_bps": 12500, "goodput_bps": 900, **{f"c{i}": i for i in range(12)}, "relays_tx": 7,
+          "relays_failed": 1, "relays_overheard": 3, "relay_keyframes_asked": 2, "relay_summaries_tx": 40,
+          "relay_summaries_rx": 35, "relay_bad_summaries": 0}  # fmt: skip
+    lines = render_status({"links": {"uwb": st}}).splitlines()
+    relay = [ln.strip() for ln in lines if ln.strip().startswith("relay ")]
+    assert relay == [
+        "relay   forwarded 7 maps of other robots (1 given up, 3 overheard from neighbours), 2 whole "
+        "maps asked for on a neighbour's behalf; summaries 40 sent, 35 heard"
+    ], lines
+    assert not any("relays_tx=" in ln for ln in lines)  # not twice
+    # a zenoh link has no relay; a document from another process may say anything
+    assert not any("relay " in ln for ln in render_status({"links": {"zenoh": {"rate_bps": 1}}}).splitlines())
+    odd = render_status({"links": {"uwb": {"relays_tx": 2, "relays_failed": "x", "relay_bad_summaries": 4}}})
+    assert "forwarded 2 maps of other robots (- given up" in odd and "heard (4 malformed)" in odd
