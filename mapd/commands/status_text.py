@@ -105,9 +105,12 @@ def render_status(s: dict[str, Any]) -> str:
         state = "heard" if refused and "present" not in p else "up" if p.get("present", True) else "gone"
         if p.get("restored"):
             state += " (map from state dir)"
+        via = p.get("link", "-")
+        if isinstance(relay := p.get("relayed_by"), str):
+            via = f"{via} (relayed by {relay})"
         out.append(
             f"  {name:<12} {label(p.get('version')):<6} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
-            f"{p.get('updates', 0):>4} updates  via {p.get('link', '-')}  {state}  acked our {label(p.get('acked_our_version', 0))}"
+            f"{p.get('updates', 0):>4} updates  via {via}  {state}  acked our {label(p.get('acked_our_version', 0))}"
         )
         # What disagrees between its config and ours, on lines of its own: with the fix, in the
         # words of the log line that said it once.

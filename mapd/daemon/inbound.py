@@ -356,7 +356,7 @@ class Inbound:
         now = time.time()
         if (line := rx.stranger_link(env, ev.peer)) is not None:
             log.warning("%s", line)
-        ended = rx.accept(grid, env, ev.transport, len(ev.data), now)
+        ended = rx.accept(grid, env, ev.transport, len(ev.data), now, link_peer=ev.peer)
         if ended is not None:
             log.info("maps of %s taken again, after %d refused (%s)", env.robot, ended.maps, ended.why)
         if env.robot == ev.peer and ev.transport not in self.publisher.paced:

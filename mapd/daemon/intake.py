@@ -62,6 +62,8 @@ class PeerInfo:
     bytes: int = 0
     updates: int = 0
     last_kind: str | None = None
+    #: The robot whose link sent its newest map, when not the map's own robot (a uwb relay).
+    relayed_by: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {

@@ -345,9 +345,16 @@ class Receiver:
         return AskKeyframe(env.robot)
 
     def accept(
-        self, grid: OccupancyGrid, env: Envelope, transport: str, nbytes: int, now: float
+        self,
+        grid: OccupancyGrid,
+        env: Envelope,
+        transport: str,
+        nbytes: int,
+        now: float,
+        link_peer: str | None = None,
     ) -> Refusal | None:
-        """Keep a decoded map (``now``: wall-clock seconds, for the age ``mapd status`` shows);
+        """Keep a decoded map (``now``: wall-clock seconds, for the age ``mapd status`` shows;
+        ``link_peer``: whom the link had it from, another roster robot when it was relayed);
         returns the refusal of its robot's maps this ends, if any."""
         self.maps[env.robot] = grid
         history = self._history.setdefault(env.robot, {})
@@ -364,6 +371,9 @@ class Receiver:
         info.bytes += nbytes
         info.updates += 1
         info.last_kind = "keyframe" if env.is_keyframe else "delta"
+        # (a name off the roster is a link that knows its robot by another name, said apart)
+        relayed = link_peer is not None and link_peer != env.robot and self.roster.admits(link_peer)
+        info.relayed_by = link_peer if relayed else None
         return self.refusals.pop(env.robot, None)
 
     def presence(self, peer: str, transport: str, present: bool) -> None:

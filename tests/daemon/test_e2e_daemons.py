@@ -440,6 +440,14 @@ def test_a_robot_out_of_range_gets_maps_through_a_relaying_daemon(
         for a, b in (("robot0", "robot2"), ("robot2", "robot0")):
             heard = snaps[a]["links"]["uwb"]["peers"]
             assert "robot1" in heard and b not in heard  # b's map came, but b was never heard directly
+            assert snaps[a]["peers"][b]["relayed_by"] == "robot1"  # and mapd status says through whom
+            assert "relayed_by" not in snaps[a]["peers"]["robot1"]
+        shown = fk.status_text(f.run_dir / "robot0" / "run" / "mapd.sock")
+        assert any(
+            ln.split()[0] == "robot2" and "via uwb (relayed by robot1)" in ln
+            for ln in shown.splitlines()
+            if ln.strip()
+        ), shown
     finally:
         f.stop()
     stats = json.loads((f.run_dir / "uwb" / "relay-stats.json").read_text())

@@ -164,3 +164,17 @@ def test_a_robot_that_began_again_with_its_clock_behind_is_said_now_and_then() -
     assert isinstance(relayed, Drop) and relayed.routine
     same = r.plan(env(make(INC, 39)), "robot1", NOW + 900)
     assert isinstance(same, Drop) and same.routine and not same.warning
+
+
+def test_a_map_a_roster_robot_relayed_says_by_whom_and_a_direct_one_after_it_not() -> None:
+    """mapd status showed 'via uwb' alike for a robot heard directly and one whose maps a neighbour
+    forwarded: the one thing that says why a robot out of range is seconds behind."""
+    C = Identity.generate("robot2")
+    r = Receiver("robot0", "f", roster=Roster({"robot1": B.public_key, "robot2": C.public_key}))
+    r.accept(grid(make(INC, 1)), env(make(INC, 1)), "uwb", 100, NOW, link_peer="robot2")
+    assert r.status(NOW, {})["robot1"]["relayed_by"] == "robot2"
+    r.accept(grid(make(INC, 2)), env(make(INC, 2)), "uwb", 100, NOW, link_peer="robot1")
+    assert "relayed_by" not in r.status(NOW, {})["robot1"]
+    # a name off the roster is a link that knows robot1 by another name (said apart), no relay
+    r.accept(grid(make(INC, 3)), env(make(INC, 3)), "uwb", 100, NOW, link_peer="bot1")
+    assert "relayed_by" not in r.status(NOW, {})["robot1"]
