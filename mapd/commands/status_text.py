@@ -255,14 +255,15 @@ def _loop_line(lp: dict[str, Any], held: float | None) -> str:
     stalls, last, ago = lp.get("stalls"), lp.get("last_stall_ms"), lp.get("last_stall_ago_s")
     if not isinstance(stalls, int) or not stalls or not isinstance(last, int | float):
         return line + f"; no stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more"
+    n = f"{stalls} stall{'' if stalls == 1 else 's'}"
     if held is not None:
         return (
-            f"loop    FAULTS the event loop was held {held:.2f} s {_age(ago)} ago ({stalls} stalls in "
-            f"all): radio turns and timers waited; is the computer overloaded, swapping, or was it stopped?"
+            f"loop    FAULTS the event loop was held {held:.2f} s {_age(ago)} ago ({n} in all): radio "
+            f"turns and timers waited; is the computer overloaded, swapping, or was it stopped?"
         )
     return (
         line
-        + f"; {stalls} stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s, {_age(ago)} ago"
+        + f"; {n} of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s, {_age(ago)} ago"
     )
 
 

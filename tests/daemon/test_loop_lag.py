@@ -69,11 +69,11 @@ def test_status_says_a_recent_long_stall_as_a_fault_and_an_old_one_as_a_count() 
     doc = {"loop": m.stats(16.0)}
     assert loop_held(doc) == 1.52
     held = _loop_line(doc["loop"], loop_held(doc))
-    assert held.startswith("loop    FAULTS the event loop was held 1.52 s 10s ago (1 stalls in all)"), held
+    assert held.startswith("loop    FAULTS the event loop was held 1.52 s 10s ago (1 stall in all)"), held
     doc = {"loop": m.stats(90.0)}  # out of the recent window: no fault, still counted
     assert loop_held(doc) is None
     old = _loop_line(doc["loop"], None)
-    assert "FAULTS" not in old and old.endswith("1 stalls of 250 ms or more, the last 1.52 s, 84s ago"), old
+    assert "FAULTS" not in old and old.endswith("1 stall of 250 ms or more, the last 1.52 s, 84s ago"), old
 
 
 def test_the_systemd_status_line_puts_a_recent_hold_first_and_only_a_long_one() -> None:
