@@ -382,3 +382,33 @@ def test_maps_restored_from_the_state_directory_are_in_the_summary_and_never_for
 def pack_and_back(s: Summary) -> Summary:
     """``s`` as a neighbour hears it: packed for the air and parsed back."""
     return unpack_summary(pack_summary(s))
+
+
+def test_between_two_robots_whose_maps_keep_changing_the_relay_takes_turns() -> None:
+    """B hears A and C, which do not hear each other, and both make a new map every period. With
+    the lowest link id first, B relayed only A's maps to C while C's waited for ever (in mapd demo
+    --out-of-range 0-2, A held C's 6th map of 39)."""
+    core = ForwardingCore(B, relay_period_s=1.0, retry_s=30.0)
+    origins = []
+    for k in range(6):
+        now = 2.0 * k
+        for origin in (A, C):
+            core.on_held(origin, 10 + k, 0, f"kf {origin} v{10 + k}".encode())
+        core.on_summary(A, Summary({}, frozenset({B})), now)  # lacks C's, does not hear C
+        core.on_summary(C, Summary({}, frozenset({B})), now)  # lacks A's, does not hear A
+        r = core.next_forward(now)
+        assert r is not None
+        origins.append(r.origin)
+        assert r.dests == ((C,) if r.origin == A else (A,))
+        core.relay_done()
+    assert origins == [A, C, A, C, A, C]
+    # the most neighbours served still goes first, though its origin went last (C, just now)
+    for origin in (A, C):
+        core.on_held(origin, 20, 0, f"kf {origin} v20".encode())
+    core.on_summary(A, Summary({}, frozenset({B})), 12.0)  # lacks C's
+    core.on_summary(C, Summary({A: 20}, frozenset({B})), 12.0)
+    core.on_summary(D, Summary({A: 20}, frozenset({B})), 12.0)  # lacks C's
+    core.on_summary(5, Summary({A: 20}, frozenset({B})), 12.0)  # lacks C's
+    core.on_summary(6, Summary({C: 20}, frozenset({B})), 12.0)  # lacks A's
+    r = core.next_forward(12.0)
+    assert r is not None and r.origin == C and r.dests == (A, D, 5)
