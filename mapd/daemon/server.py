@@ -331,6 +331,13 @@ class Daemon:
             await t.start()
         for o in self.outputs:
             await o.start()
+        # The maps the state directory held go to the outputs (and the recording) now, as every map
+        # taken later does: a restarted base station's /<robot>/map waited for each robot's next map.
+        for grid in [
+            *([self.outbound.own] if self.outbound.own is not None else []),
+            *self.receiver.maps.values(),
+        ]:
+            self.sinks.robot_map(grid)
         await self.status_server.start()
         if not self.keys.signed:
             log.warning(

@@ -97,6 +97,21 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
             peer.subscribe(f"/{robot}/map", rmw_peer.GRID)
             robots[robot] = peer.wait(f"/{robot}/map", lambda r: True, timeout=20).msg
         held = {r: v["version"] for r, v in f.status()["base"]["peers"].items()}
+        # restarted with the robots gone, the base station publishes the robots' maps it restored
+        # at once (they waited for each robot's next map, which never came)
+        f.procs["base"].send_signal(signal.SIGTERM)
+        assert f.procs["base"].wait(20) == 0
+        fk.restart(f, "base")
+        deadline = time.monotonic() + 60
+        while "base" not in f.status():  # (the robots are stopped: not fk.wait_for, which wants all)
+            assert time.monotonic() < deadline and f.procs["base"].poll() is None, (
+                "the base did not come back"
+            )
+            time.sleep(0.5)
+        again = rmw_peer.RmwPeer(endpoint)
+        peers.append(again)
+        again.subscribe("/robot1/map", rmw_peer.GRID)
+        restored = again.wait("/robot1/map", lambda r: True, timeout=20).msg
     finally:
         codes = f.stop()
     assert codes["base"] == 0
@@ -121,6 +136,7 @@ def test_demo_fleet_base_station_publishes_map_and_frames(
             saved.height,
         )
         assert np.array_equal(np.asarray(rm.data).reshape(saved.height, saved.width), saved.data)
+    assert restored.header.frame_id == "robot1/map" and np.array_equal(restored.data, robots["robot1"].data)
 
 
 def _room(h: int, w: int, seed: int) -> np.ndarray:
