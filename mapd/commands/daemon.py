@@ -97,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--ros2-listen",
         default=None,
         metavar="ENDPOINT",
-        help="also run a base station whose ros2 output (rmw_zenoh: /map, /tf_static, /tf) listens on this "
+        help="also run a base station whose ros2 output (rmw_zenoh: /map, /<robot>/map, /tf_static, /tf) listens on this "
         "zenoh endpoint, e.g. tcp/127.0.0.1:7447",
     )
     faults = p.add_argument_group("faults on the emulated UWB link (--transport uwb)")

@@ -51,7 +51,6 @@ class LagMeter:
         self.recent_s = recent_s
         #: (when, lag) of the ticks within ``recent_s``, oldest first (bounded by the tick rate too).
         self._recent: deque[tuple[float, float]] = deque(maxlen=int(recent_s / period_s) + 16)
-        self.ticks = 0
         self.max_s = 0.0
         self.stalls = 0
         self.last_stall: tuple[float, float] | None = None  # (when it ended, how long)
@@ -62,7 +61,6 @@ class LagMeter:
         """The watcher woke ``lag_s`` later than it asked to, at ``now`` (monotonic seconds).
         Returns a warning to log when this was a stall worth saying, else None."""
         lag_s = max(0.0, lag_s)
-        self.ticks += 1
         self.max_s = max(self.max_s, lag_s)
         self._recent.append((now, lag_s))
         self._trim(now)

@@ -283,8 +283,7 @@ class Ros2Output(Output):
         o = self.opts
         if not o.robot_map_topic:  # (the recording keeps its own robots' topics: /{robot}/map)
             return Ros2Names(o.ros_topic(), o.tf_frames())
-        robots = rmw.fq_topic(o.robot_map_topic, o.namespace if o.format == "rmw_zenoh" else "")
-        return Ros2Names(o.ros_topic(), o.tf_frames(), robots)
+        return Ros2Names(o.ros_topic(), o.tf_frames(), o.fq(o.robot_map_topic))
 
     def _send_poses(self, update: PoseUpdate | GlobalUpdate) -> None:
         from mapd.ros2 import cdr

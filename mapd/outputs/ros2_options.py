@@ -140,8 +140,7 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
                         f"{key} must be a frame of its own, apart from every robot's"
                     )
         if self.robot_map_topic:  # compared fully qualified: a relative one is under the namespace
-            ns = self.namespace if self.format == "rmw_zenoh" else ""
-            robot = robot_of_frame(rmw.fq_topic(self.robot_map_topic, ns), rmw.fq_topic(self.topic, ns))
+            robot = robot_of_frame(self.fq(self.robot_map_topic), self.ros_topic())
             if robot is not None:
                 raise ValueError(
                     f"topic {self.topic!r} is the robot_map_topic of a robot named {robot!r} "
@@ -167,12 +166,17 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
             rmw.check_topic_name(topic)
         except ValueError as exc:
             raise ValueError(f"robot {robot}: {exc}") from None
-        return rmw.fq_topic(topic, self.namespace if self.format == "rmw_zenoh" else "")
+        return self.fq(topic)
 
     def ros_topic(self) -> str:
-        """The global map's fully qualified topic in the ROS graph: under ``namespace`` with
-        rmw_zenoh; with ``ros2dds`` the namespace is the bridge's, on the zenoh side only."""
-        return rmw.fq_topic(self.topic, self.namespace if self.format == "rmw_zenoh" else "")
+        """The global map's fully qualified topic in the ROS graph."""
+        return self.fq(self.topic)
+
+    def fq(self, topic: str) -> str:
+        """``topic`` (a ``{robot}`` template too) fully qualified in the ROS graph: under
+        ``namespace`` with rmw_zenoh; with ``ros2dds`` the namespace is the bridge's, on the zenoh
+        side only."""
+        return rmw.fq_topic(topic, self.namespace if self.format == "rmw_zenoh" else "")
 
     def map_key_expr(self, topic: str | None = None) -> str:
         """The zenoh key the global map (or ``topic``) is published on (any type hash: ``*``)."""
