@@ -212,14 +212,21 @@ def open_from(path: Path, **settings: Any) -> Any:
 
 
 @contextmanager
-def router(tmp: Path, pki: Pki, *, acl: bool = True, own: Issued | None = None) -> Iterator[str]:
-    """The example router on ``tls/127.0.0.1:<free port>``, as written (or with its ACL turned off);
-    yields that endpoint."""
+def router(
+    tmp: Path,
+    pki: Pki,
+    *,
+    acl: bool = True,
+    own: Issued | None = None,
+    settings: dict[str, Any] | None = None,
+) -> Iterator[str]:
+    """The example router on ``tls/127.0.0.1:<free port>``, as written (or with its ACL turned off,
+    or ``settings`` inserted as in :func:`open_from`); yields that endpoint."""
     tls = install(tmp / "router", pki.ca.cert, "router", own or pki.router)
     conf = example("router-tls.json5", tmp / "router", tls)
     ep = f"tls/127.0.0.1:{free_port()}"
     off = {} if acl else {"access_control__enabled": False}
-    session = open_from(conf, listen__endpoints=[ep], **off)
+    session = open_from(conf, listen__endpoints=[ep], **off, **(settings or {}))
     try:
         yield ep
     finally:
@@ -266,7 +273,12 @@ def test_example_configs_load_with_the_tls_and_acl_keys_set() -> None:
     assert get(r, "transport/link/tls/listen_private_key") == "/etc/mapd/tls/router.key"
     acl = get(r, "access_control")
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
-    assert [rule["key_exprs"] for rule in acl["rules"]] == [[f"mapd/{FLEET}/**"]]
+    assert [rule["key_exprs"] for rule in acl["rules"]] == [[f"mapd/{FLEET}/**"], ["mapd/@fleets/**"]]
+    assert acl["rules"][1]["messages"] == [
+        "liveliness_token",
+        "liveliness_query",
+        "declare_liveliness_subscriber",
+    ]
 
     b = zenoh.Config.from_file(str(EXAMPLES / "robot-tls.json5"))
     assert get(b, "mode") == "client"
@@ -476,3 +488,43 @@ def test_the_router_acl_passes_only_the_fleet_key_space(tmp_path: Path, pki: Pki
         assert set(got) == {allowed}
     else:
         assert set(got) == {allowed, *fenced}
+
+
+@pytest.mark.parametrize("presence_rule", [True, False], ids=["as written", "without the presence rule"])
+def test_a_certificate_holder_of_another_fleet_id_is_said_and_hears_no_map(
+    tmp_path: Path, pki: Pki, presence_rule: bool
+) -> None:
+    """A robot given a fleet certificate but another ``robot.fleet``: the example router lets the
+    fleets' presence tokens through (``mapd/@fleets/**``), so each robot shows the other's fleet,
+    and nothing more: the stray robot hears no map. Without that rule the ACL drops the tokens too
+    and each robot runs alone, saying nothing (what the example did before the rule)."""
+    ids = {"r1": Identity.generate("r1")}
+    stray_ctx = TransportContext(
+        robot="r2", fleet="otherfleet", max_message_bytes=1 << 20, emit=lambda e: None
+    )
+
+    async def main(ep: str) -> None:
+        ours = Robot(robot_config(tmp_path, pki, "r1"), "r1", ep, ids)
+        stray = ZenohTransport(
+            ZenohTransport.Options(config_file=robot_config(tmp_path, pki, "r2"), connect=[ep]), stray_ctx
+        )
+        try:
+            await ours.t.start()
+            await stray.start()
+            ours.offer(envelope(ids["r1"], 1))
+            await ours.wait(lambda: ours.t.stats()["updates_tx"] == 1)
+            if presence_rule:
+                await ours.wait(lambda: ours.t.stats()["other_fleets"] == {"otherfleet": ["r2"]})
+                await ours.wait(lambda: stray.stats()["other_fleets"] == {FLEET: ["r1"]})
+            else:
+                await asyncio.sleep(1.0)
+                assert ours.t.stats()["other_fleets"] == {} and stray.stats()["other_fleets"] == {}
+            assert stray.stats()["bytes_rx"] == 0 and stray.stats()["updates_rx"] == 0
+        finally:
+            await stray.close()
+            await ours.t.close()
+
+    # zenoh's ACL policy naming only the fleet's own rule: the example as it was before.
+    before = {"access_control__policies": [{"rules": ["mapd-fleet"], "subjects": ["fleet-robots"]}]}
+    with router(tmp_path, pki, settings={} if presence_rule else before) as ep:
+        asyncio.run(asyncio.wait_for(main(ep), 20))
