@@ -241,9 +241,11 @@ def test_the_token_passes_a_router_acl_that_fences_the_fleets_key_space(zk: Simp
     example = zenoh.Config.from_file(str(DEPLOY / "router-tls.json5"))
     acl = json.loads(example.get_json("access_control"))
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
-    for rule in acl["rules"]:
-        assert rule["key_exprs"] == ["mapd/myfleet/**"]
-        rule["key_exprs"] = [f"mapd/{zk.FLEET}/**"]  # the test fleet's key space
+    fleet_rule, presence_rule = acl["rules"]
+    assert fleet_rule["key_exprs"] == ["mapd/myfleet/**"] and presence_rule["key_exprs"] == [
+        "mapd/@fleets/**"
+    ]
+    fleet_rule["key_exprs"] = [f"mapd/{zk.FLEET}/**"]  # the test fleet's key space
     for subject in acl["subjects"]:
         subject["link_protocols"] = ["tcp"]
     ep = zk.endpoint(zk.free_port())
