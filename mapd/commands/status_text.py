@@ -246,7 +246,9 @@ def render_status(s: dict[str, Any]) -> str:
 
 def _loop_line(lp: dict[str, Any], held: float | None) -> str:
     """How late the event loop ran (:mod:`mapd.daemon.loop_lag`); a fault while a hold of a second
-    or more is recent (``held``: :func:`mapd.daemon.headline.loop_held`)."""
+    or more is recent (``held``: :func:`mapd.daemon.headline.loop_held`), with its cause."""
+    from mapd.daemon.headline import loop_cause
+
     line = (
         f"loop    late by at most {_num(lp.get('lag_ms_recent_max'), '.0f')} ms in the last "
         f"{_age(lp.get('recent_s'))} (p99 {_num(lp.get('lag_ms_recent_p99'), '.0f')} ms), "
@@ -256,14 +258,28 @@ def _loop_line(lp: dict[str, Any], held: float | None) -> str:
     if not isinstance(stalls, int) or not stalls or not isinstance(last, int | float):
         return line + f"; no stalls of {_num(lp.get('stall_ms'), '.0f')} ms or more"
     n = f"{stalls} stall{'' if stalls == 1 else 's'}"
+    why, ran_ms = loop_cause({"loop": lp}), lp.get("last_stall_ran_ms")
+    ran = ran_ms / 1000 if why is not None and isinstance(ran_ms, int | float) else 0.0
     if held is not None:
+        head = f"loop    FAULTS the event loop was held {held:.2f} s {_age(ago)} ago ({n} in all)"
+        if why == "busy":
+            return (
+                f"{head}, running code on it for {ran:.2f} s: work that belongs in a worker "
+                f"thread (a bug of mapd or of a plugin: report it with the daemon's log)"
+            )
+        if why == "waiting":
+            return (
+                f"{head}, waiting (it ran {ran:.2f} s of it): radio turns and timers waited; is the "
+                f"computer overloaded or swapping, was it stopped, or did a call on the loop block?"
+            )
         return (
-            f"loop    FAULTS the event loop was held {held:.2f} s {_age(ago)} ago ({n} in all): radio "
-            f"turns and timers waited; is the computer overloaded, swapping, or was it stopped?"
+            f"{head}: radio turns and timers waited; is the computer overloaded, swapping, or was it stopped?"
         )
+    how = {"busy": ", running code on the loop", "waiting": ", waiting"}.get(why or "", "")
     return (
         line
-        + f"; {n} of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s, {_age(ago)} ago"
+        + f"; {n} of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s{how}, "
+        + f"{_age(ago)} ago"
     )
 
 

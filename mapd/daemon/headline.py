@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from mapd.daemon.loop_lag import SAY_S
+from mapd.daemon.loop_lag import SAY_S, cause
 from mapd.daemon.versions import label
 
 #: A link's figures that mean something is wrong when not zero (``port_open``, ``session_open``
@@ -168,6 +168,13 @@ def loop_held(s: dict[str, Any]) -> float | None:
     return last / 1000 if last >= SAY_S * 1000 and 0 <= ago < recent else None
 
 
+def loop_cause(s: dict[str, Any]) -> str | None:
+    """Why the loop's last stall held it (:func:`mapd.daemon.loop_lag.cause`: ``busy`` running code
+    on it, ``waiting`` to run), None when the document does not say."""
+    lp = s.get("loop")
+    return cause(lp.get("last_stall_ms"), lp.get("last_stall_ran_ms")) if isinstance(lp, dict) else None
+
+
 def _number(v: Any) -> float | None:
     """``v`` when it is a finite number (a status document comes from another process)."""
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
@@ -228,7 +235,8 @@ def status_line(s: dict[str, Any]) -> str:
     if recording_failing(s.get("recording")):
         faults.append("recording: messages not written")
     if (held := loop_held(s)) is not None:
-        faults.append(f"event loop held {held:.2f} s (overloaded, swapping or stopped?)")
+        why = "code ran on it: a bug" if loop_cause(s) == "busy" else "overloaded, swapping or stopped?"
+        faults.append(f"event loop held {held:.2f} s ({why})")
     if not (s.get("security") or {}).get("signed", True):
         faults.append("UNSIGNED fleet")
     line = ("FAULTS " + ", ".join(faults) + " | " if faults else "") + "; ".join(parts)

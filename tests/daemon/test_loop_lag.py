@@ -3,6 +3,7 @@ prints of it, and a real daemon stopped for a second and a half that says so onc
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import time
@@ -13,8 +14,8 @@ from typing import Any
 import pytest
 
 from mapd.commands.status_text import _loop_line
-from mapd.daemon.headline import loop_held, status_line
-from mapd.daemon.loop_lag import SAY_EVERY_S, STALL_S, LagMeter
+from mapd.daemon.headline import loop_cause, loop_held, status_line
+from mapd.daemon.loop_lag import SAY_EVERY_S, STALL_S, LagMeter, cause, watch
 
 
 def test_the_meter_keeps_the_largest_lag_since_start_and_over_the_recent_window() -> None:
@@ -90,6 +91,65 @@ def test_the_systemd_status_line_puts_a_recent_hold_first_and_only_a_long_one() 
     assert not status_line(doc).startswith("FAULTS")
 
 
+def test_a_hold_says_whether_the_loop_ran_code_or_waited() -> None:
+    """The loop thread's CPU time during a hold tells the two causes apart: work on the loop (a bug
+    to report) or waiting to run (an overloaded, swapping or stopped computer, or a blocking call)."""
+    busy = LagMeter()
+    said = busy.tick(1.5, 10.0, ran_s=1.45)
+    assert said is not None and "held 1.50 s, running code on it for 1.45 s" in said and "worker" in said
+    doc = {"loop": busy.stats(11.0)}
+    assert doc["loop"]["last_stall_ran_ms"] == 1450 and loop_cause(doc) == "busy"
+    line = _loop_line(doc["loop"], loop_held(doc))
+    assert line.startswith("loop    FAULTS the event loop was held 1.50 s 1s ago (1 stall in all), running")
+    assert "running code on it for 1.45 s: work that belongs in a worker thread" in line, line
+    assert status_line(doc).startswith("FAULTS event loop held 1.50 s (code ran on it: a bug)")
+    old = _loop_line(busy.stats(90.0), None)
+    assert old.endswith("the last 1.50 s, running code on the loop, 80s ago"), old
+
+    waited = LagMeter()
+    said = waited.tick(1.5, 10.0, ran_s=0.02)
+    assert said is not None and "held 1.50 s, waiting (it ran 0.02 s of it)" in said and "worker" not in said
+    doc = {"loop": waited.stats(11.0)}
+    assert loop_cause(doc) == "waiting"
+    line = _loop_line(doc["loop"], loop_held(doc))
+    assert "held 1.50 s 1s ago (1 stall in all), waiting (it ran 0.02 s of it): radio turns" in line, line
+    assert status_line(doc).startswith("FAULTS event loop held 1.50 s (overloaded, swapping or stopped?)")
+
+    # A thread's CPU time cannot pass the wall time: a wild reading is kept within the hold.
+    wild = LagMeter(period_s=0.1)
+    wild.tick(1.5, 10.0, ran_s=9.0)
+    assert wild.stats(10.0)["last_stall_ran_ms"] == 1600
+    assert cause(1000, 334) == "busy" and cause(1000, 300) == "waiting"
+    assert cause(1000, None) is None and cause("1000", 5) is None and cause(0, 0) is None
+    # a daemon from before the figure: the hold is said as before, without a cause
+    unmeasured = LagMeter()
+    assert unmeasured.tick(1.5, 10.0) is not None and unmeasured.stats(11.0)["last_stall_ran_ms"] is None
+    assert loop_cause({"loop": unmeasured.stats(11.0)}) is None
+
+
+def test_the_watcher_on_a_real_loop_tells_code_run_on_it_from_a_blocking_wait() -> None:
+    async def main() -> tuple[Any, Any]:
+        meter = LagMeter()
+        task = asyncio.create_task(watch(meter))
+        await asyncio.sleep(0.25)
+        start = time.thread_time()
+        while time.thread_time() - start < 1.2:  # a callback working on the loop for 1.2 s of CPU
+            pass
+        await asyncio.sleep(0.25)
+        worked = meter.last_stall
+        time.sleep(1.2)  # a call that blocks the loop: its thread runs nothing meanwhile
+        await asyncio.sleep(0.25)
+        blocked = meter.last_stall
+        task.cancel()
+        return worked, blocked
+
+    worked, blocked = asyncio.run(main())
+    assert worked is not None and worked[1] >= 1.1 and worked[2] >= 1.1, worked
+    assert cause(worked[1] * 1000, worked[2] * 1000) == "busy"
+    assert blocked is not None and blocked is not worked and blocked[1] >= 1.1 and blocked[2] < 0.3, blocked
+    assert cause(blocked[1] * 1000, blocked[2] * 1000) == "waiting"
+
+
 @pytest.mark.parametrize(
     "doc",
     [{}, {"stalls": "x", "last_stall_ms": None}, {"stalls": 3, "last_stall_ms": "1e9", "recent_s": []},
@@ -124,6 +184,7 @@ def test_a_daemon_stopped_for_a_second_and_a_half_says_its_loop_was_held_once(
         assert lp["stalls"] >= 1 and lp["lag_ms_max"] >= 1300 and lp["lag_ms_recent_max"] >= 1300, lp
         text = fk.status_text(f.run_dir / "robot0" / "run" / "mapd.sock")
         assert "loop    FAULTS the event loop was held 1." in text, text
+        assert ", waiting (it ran 0." in text, text  # stopped: its loop ran nothing meanwhile
         # it went on: robot1 still gets its new maps
         had = fk.held(snaps, "robot1", "robot0")
         fk.wait_for(lambda s: fk.held(s, "robot1", "robot0") > had, 20, f)
@@ -132,5 +193,5 @@ def test_a_daemon_stopped_for_a_second_and_a_half_says_its_loop_was_held_once(
     assert codes == {"robot0": 0, "robot1": 0}
     log = (f.run_dir / "robot0" / "daemon.log").read_text(errors="replace")
     said = [ln for ln in log.splitlines() if "the event loop was held" in ln]
-    assert len(said) == 1 and "WARNING" in said[0], said
+    assert len(said) == 1 and "WARNING" in said[0] and ", waiting (it ran 0." in said[0], said
     assert "Traceback" not in log
