@@ -53,9 +53,11 @@ lint: $(STAMP)
 # and a third worker uses time two would leave idle (measured here: 455-467 s with two, 360-440 s with three).
 # The lossless codec's numba kernels are compiled once, before the workers start: on a fresh clone
 # each worker, and each daemon a test starts, would otherwise compile them at the same time.
+# Work stealing: tests last from milliseconds to 40 s, and with xdist's default split a worker
+# left with a batch of long ones set the end (measured here, same tree: 473 s against 504 s).
 test: $(STAMP) socat chromium lint
 	$(BIN)/mapd warmup --codec lossless
-	$(BIN)/pytest -n 3 $(PYTEST_ARGS)
+	$(BIN)/pytest -n 3 --dist worksteal $(PYTEST_ARGS)
 
 demo: $(STAMP)
 	$(BIN)/mapd demo
