@@ -185,6 +185,12 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {'':<6} other fleets on this network: "
                 + ", ".join(f"{fleet} ({', '.join(map(str, robots))})" for fleet, robots in fleets.items())
             )
+        if isinstance(older := st.get("older_mapd"), dict) and older:
+            # No fault: a fleet upgraded one robot at a time; what those robots get meanwhile.
+            out.append(
+                f"  {'':<6} older mapd (not sent what it lacks): "
+                + ", ".join(f"{robot} (lacks {lacks})" for robot, lacks in older.items())
+            )
         if isinstance(refusing := st.get("refused_by"), dict) and refusing:
             out.append(
                 f"  {'':<6} daemons refusing our maps their radios ack: "

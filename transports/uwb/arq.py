@@ -27,7 +27,9 @@ Framing and trust
       ``peer_timeout_s`` is down (PeerDown) until it is heard again; with TDMA, where a peer speaks
       only in its own slot, silent for ``beacon_s`` and two cycles if that is longer (one lost
       HELLO is not a peer gone). Nodes announce themselves with HELLO at start and after
-      ``beacon_s`` of silence.
+      ``beacon_s`` of silence, with the features they understand in its dst (``wire.py``,
+      *Features*): a peer that announced none of DONE, parity or LEND gets selective acks (R13)
+      instead of DONEs, no parity in the messages it receives, and no LENDs (PeerFeatures).
 Sending
   R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
@@ -151,6 +153,7 @@ from transports.uwb.arq_types import (
     MessageFlushed,
     MessageReceived,
     PeerDown,
+    PeerFeatures,
     PeerRestarted,
     PeerUp,
 )
@@ -174,6 +177,7 @@ __all__ = [
     "MessageFlushed",
     "MessageReceived",
     "PeerDown",
+    "PeerFeatures",
     "PeerRestarted",
     "PeerUp",
 ]
@@ -322,7 +326,9 @@ class ArqEndpoint(InputSide, TimerSide):
         out.background = background
         out.reliable = reliable
         out.nack = reliable and self._nack_mode(dst)
-        out.fec = out.nack and self.cfg.fec
+        # Parity only where every receiver rebuilds from it: one from before would refuse it as
+        # malformed and never complete the map (its HELLO says: wire.hello_features).
+        out.fec = out.nack and self.cfg.fec and all(self._understands(d, wire.F_PARITY) for d in targets)
         out.proactive = self._proactive if out.fec else 0.0
         self._out[msg] = out
         for d in targets:
@@ -382,6 +388,15 @@ class ArqEndpoint(InputSide, TimerSide):
         and two cycles, if longer; R3)."""
         return sorted(p.id for p in self._peers.values() if p.up)
 
+    def older_peers(self) -> dict[int, int]:
+        """Link id -> the features it lacks (``wire.F_*`` bits) of the peers whose HELLO announced
+        fewer than this node understands: a mapd from before them (wire.py, *Features*)."""
+        return {
+            p.id: wire.FEATURES & ~p.features
+            for p in self._peers.values()
+            if p.features is not None and wire.FEATURES & ~p.features
+        }
+
     def reaches(self, msg: int, peer: int) -> bool:
         """Whether message ``msg`` is still being sent and ``peer`` is one of its receivers that has
         not got it all (so a map in flight will reach a robot that just came into range)."""
@@ -412,6 +427,7 @@ class ArqEndpoint(InputSide, TimerSide):
         out["in_flight"] = len(self._out)
         out["rx_held_bytes"] = self._rx_held
         out["peers_up"] = len(self.peers_up())
+        out["older_peers"] = self.older_peers()  # link id -> features lacked (the adapter names them)
         # Frames the line spoiled, whatever caught them; and since the last valid frame: a wrong
         # baud or a broken line, not noise long past while the robot is now merely alone (mapd
         # status raises a FAULT on that, not on the total).

@@ -15,7 +15,7 @@ from __future__ import annotations
 from mapd.errors import ProtocolError
 from transports.uwb import wire
 from transports.uwb.arq_tx import SenderSide
-from transports.uwb.arq_types import PeerRestarted, PeerUp
+from transports.uwb.arq_types import PeerFeatures, PeerRestarted, PeerUp
 from transports.uwb.framing import FrameReader
 from transports.uwb.receiving import PeerState
 from transports.uwb.signing import Verifier
@@ -78,7 +78,14 @@ class InputSide(SenderSide):
         peer = self._peer_for(frame, now)
         if peer is None:
             return
-        if isinstance(frame, wire.Data):
+        if isinstance(frame, wire.Hello):
+            features = wire.hello_features(frame)
+            if features is not None and features != peer.features:
+                was, peer.features = peer.features, features
+                # said when it lacks any, or no longer does: not for every peer of this version
+                if wire.FEATURES & ~features or (was is not None and wire.FEATURES & ~was):
+                    self._events.append(PeerFeatures(peer.id, features))
+        elif isinstance(frame, wire.Data):
             if frame.reliable:  # how much it still has to send (R17)
                 self._backlogs.heard(peer.id, frame.msg, frame.index, frame.count, now)
             self._on_data(peer, frame, now)

@@ -56,6 +56,12 @@ class ReceiverSide:
         """Whether a reliable message to ``dst`` (a link id, or BROADCAST) is acked in NACK mode."""
         return self.cfg.acks == "nack" or (self.cfg.acks == "auto" and dst == wire.BROADCAST)
 
+    def _understands(self, node: int, feature: int) -> bool:
+        """Whether peer ``node`` takes ``feature`` (a ``wire.F_*`` bit) by its last HELLO; yes for a
+        node not heard announcing (``PeerState.understands``)."""
+        peer = self._peers.get(node)
+        return peer is None or peer.understands(feature)
+
     def _nack_due(self, now: float) -> float:
         """When a gap report is due: after a random backoff, skewed late the more receivers may
         share the gap, so that the first report is usually alone and overheard by the others in time
@@ -70,7 +76,8 @@ class ReceiverSide:
         cfg = self.cfg
         # A DGRAM's sender waits for no ack: owe none (a lost one is replaced by the next).
         owe = peer.owe_ack if d.reliable else _no_ack
-        nack = d.reliable and self._nack_mode(d.dst)
+        # A sender from before DONE would never hear our COMPLETE: ack it as it acks (each).
+        nack = d.reliable and self._nack_mode(d.dst) and self._understands(peer.id, wire.F_DONE)
         if d.dst not in (self.node, wire.BROADCAST):
             self.counters.not_for_me += 1
             return

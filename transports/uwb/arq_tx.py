@@ -93,7 +93,7 @@ class SenderSide(ReceiverSide, AckSide):
             return None
         if self._next_data() is not None:
             return None
-        peer = self._backlogs.pick(now, self.peers_up())
+        peer = self._backlogs.pick(now, [p for p in self.peers_up() if self._understands(p, wire.F_LEND)])
         if peer is None:
             return None
         room = self._mac.own_slot_left(now) >= self._lend_need
@@ -147,7 +147,7 @@ class SenderSide(ReceiverSide, AckSide):
     def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
         if kind == "hello":
             self.counters.hellos_tx += 1
-            return wire.Hello(self.node, wire.BROADCAST, self.session)
+            return wire.Hello(self.node, wire.FEATURES_FLAG | wire.FEATURES, self.session)
         if kind == "ack":
             peer, msg = ref
             return self._build_ack(peer, msg, now)

@@ -159,6 +159,16 @@ class PeerRestarted:
     peer: int
 
 
+@dataclass(frozen=True)
+class PeerFeatures:
+    """A peer's HELLO announced ``features`` (``wire.F_*`` bits; 0: a node from before the
+    announcement) that lack some this node understands, or, after such, all of them. Parity, DONE
+    and LENDs go to it only if it understands them (wire.py, *Features*)."""
+
+    peer: int
+    features: int
+
+
 Event = (
     MessageReceived
     | MessageDelivered
@@ -168,6 +178,7 @@ Event = (
     | PeerUp
     | PeerDown
     | PeerRestarted
+    | PeerFeatures
 )
 
 

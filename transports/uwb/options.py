@@ -73,8 +73,8 @@ class UwbOptions(TransportOptions):
     fec: bool = Field(
         default=True,
         description="broadcast maps (acks auto/nack) are repaired with parity chunks, each of use to "
-        "every robot lacking any chunk of its block; every node on the channel must run a mapd "
-        "that knows them (false: repairs resend the chunks asked for, as before)",
+        "every robot lacking any chunk of its block; not for a map whose receivers include a robot "
+        "whose mapd does not announce them (false: repairs resend the chunks asked for, as before)",
     )
     mac: Literal["none", "tdma", "backoff"] = Field(
         default="none", description="medium access on a shared channel"

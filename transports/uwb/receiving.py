@@ -202,7 +202,14 @@ class PeerState:
         #: When a COMPLETE for a (broadcast) message was last sent: NACK mode answers a sender's
         #: probes with it again at most every so often (the probe is for the peers still pending).
         self.complete_sent: OrderedDict[int, float] = OrderedDict()
+        #: What its last HELLO announced (wire.hello_features); None: not heard announcing yet.
+        self.features: int | None = None
         self._gen = 0
+
+    def understands(self, feature: int) -> bool:
+        """Whether the peer takes ``feature`` (a ``wire.F_*`` bit): what its HELLO announced, or yes
+        while it announced nothing yet (as every node did before the announcement)."""
+        return self.features is None or bool(self.features & feature)
 
     def next_gen(self) -> int:
         self._gen = (self._gen + 1) & 0xFF
@@ -222,6 +229,7 @@ class PeerState:
         self.completed.clear()
         self.rejected.clear()
         self.acks_due.clear()
+        # (features stay: its first frame of the new session is a HELLO that says them anew)
         self.complete_sent.clear()
         return released
 

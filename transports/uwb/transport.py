@@ -38,7 +38,7 @@ from transports.base import (
     TransportContext,
     TransportOptions,
 )
-from transports.uwb import arq, forwarding
+from transports.uwb import arq, forwarding, wire
 from transports.uwb import keyframe_requests as control
 from transports.uwb.link import POSE_STREAM, UwbLink
 from transports.uwb.options import MAX_MESSAGE, UwbOptions
@@ -312,6 +312,9 @@ class UwbTransport(RequestSide, Transport):
             out.update(self._relay.stats())
         if self._refusals is not None:
             out.update(self._refusals.stats(self._name))
+        # robot -> what its older mapd lacks, by name (mapd status: under the link)
+        older = out.pop("older_peers", {})
+        out["older_mapd"] = {self._name(n): wire.feature_words(f) for n, f in older.items()}
         return out
 
     def _on_event(self, e: arq.Event) -> None:
@@ -366,6 +369,17 @@ class UwbTransport(RequestSide, Transport):
             emit(PeerRestarted("uwb", self._name(e.peer)))
             if self._refusals is not None:
                 self._refusals.restarted(e.peer)
+        elif isinstance(e, arq.PeerFeatures):
+            lacks = wire.FEATURES & ~e.features
+            if lacks:  # a rolling upgrade: nothing to set, but the channel carries more meanwhile
+                log.info(
+                    "uwb: %s runs a mapd from before %s (its HELLO says so): none go to it until it is "
+                    "upgraded, and maps it receives too are sent without them; nothing needs setting",
+                    self._name(e.peer),
+                    wire.feature_words(lacks),
+                )
+            else:
+                log.info("uwb: %s understands all of this link's frames now", self._name(e.peer))
 
     def _say(self, change: Refused | Cleared | None) -> None:
         """Say that a peer's daemon refuses our maps (once while it lasts), or takes them again."""
