@@ -48,6 +48,9 @@ from transports.uwb.requesting import RequestSide
 from transports.uwb.signing import CounterStore, ReplayStore
 
 log = logging.getLogger("mapd.uwb")
+#: A peer's features are said at most this often (seconds), so HELLOs that keep changing what they
+#: announce (forged) cannot fill the log; ``mapd status`` (``older_mapd``) always shows the last.
+FEATURES_SAY_S = 300.0
 
 
 class UwbTransport(RequestSide, Transport):
@@ -67,6 +70,7 @@ class UwbTransport(RequestSide, Transport):
         self._streams: dict[str, int] = {}
         self._msgs: dict[int, tuple[str, int]] = {}
         self._late: OrderedDict[int, tuple[str, int]] = OrderedDict()  # superseded offers (arq R5)
+        self._features_said: dict[int, float] = {}  # link id -> when its features were last said
         self._link: UwbLink | None = None
         self._requests = control.KeyframeRequests(opts.keyframe_request_s)
         self._nonces = signed_requests.NonceClock()
@@ -370,6 +374,10 @@ class UwbTransport(RequestSide, Transport):
             if self._refusals is not None:
                 self._refusals.restarted(e.peer)
         elif isinstance(e, arq.PeerFeatures):
+            now, last = time.monotonic(), self._features_said.get(e.peer)
+            if last is not None and now - last < FEATURES_SAY_S:
+                return  # (HELLOs that keep changing their word: forged, say; once in a while)
+            self._features_said[e.peer] = now
             lacks = wire.FEATURES & ~e.features
             if lacks:  # a rolling upgrade: nothing to set, but the channel carries more meanwhile
                 log.info(

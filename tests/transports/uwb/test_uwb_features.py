@@ -25,7 +25,7 @@ from transports.uwb import arq, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import Faults
 from transports.uwb.sim import SimNet
-from transports.uwb.transport import UwbOptions, UwbTransport
+from transports.uwb.transport import FEATURES_SAY_S, UwbOptions, UwbTransport
 
 RATE = 100_000.0
 
@@ -212,6 +212,10 @@ def test_the_transport_says_an_older_robot_once_and_its_upgrade_and_names_it_in_
     t._link = SimpleNamespace(stats=lambda: {"older_peers": {3: wire.F_PARITY | wire.F_LEND}})  # type: ignore[assignment]
     caplog.set_level(logging.INFO, logger="mapd.uwb")
     t._on_event(arq.PeerFeatures(3, wire.F_DONE))
+    for _ in range(100):  # HELLOs that flip what they announce (forged): the log does not fill
+        t._on_event(arq.PeerFeatures(3, wire.FEATURES))
+        t._on_event(arq.PeerFeatures(3, 0))
+    t._features_said[3] -= FEATURES_SAY_S  # later: the word it gives then is said
     t._on_event(arq.PeerFeatures(3, wire.FEATURES))
     said = [r.getMessage() for r in caplog.records if r.name == "mapd.uwb"]
     assert said == [
