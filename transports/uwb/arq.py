@@ -28,8 +28,9 @@ Framing and trust
       only in its own slot, silent for ``beacon_s`` and two cycles if that is longer (one lost
       HELLO is not a peer gone). Nodes announce themselves with HELLO at start and after
       ``beacon_s`` of silence, with the features they understand in its dst (``wire.py``,
-      *Features*): a peer that announced none of DONE, parity or LEND gets selective acks (R13)
-      instead of DONEs, no parity in the messages it receives, and no LENDs (PeerFeatures).
+      *Features*). A peer gets only what it announced: without DONE, selective acks (R13) for its
+      messages; without parity, none in a message it receives; without LEND, no LEND
+      (PeerFeatures says a peer that lacks any).
 Sending
   R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is

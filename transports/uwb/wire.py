@@ -34,12 +34,12 @@ DONE was added to version 2 without a version bump (issue #22, scalable acks): e
 an ACK with the COMPLETE flag says, and a broadcast map would otherwise cost every receiver a frame
 of its own per map, N (N - 1) frames a round for N robots. Nodes from before it drop DONE frames as
 an unknown type (counted ``bad_frames``), so a sender that does not announce it (*Features* below)
-is acked with ACKs alone. Its entries are 4 bytes, the
-low bits of what an ACK names in 7: at 32 robots a receiver's DONE carries some twenty COMPLETEs a
-turn, and with 8-byte entries DONEs took 18 % of the channel (``mapd bench swarm``). The sender
-resolves the low 16 bits of ``msg`` against the few messages it still tracks (ids rise by one per
-message in a session, so those are unique), and a restarted sender, with a new session, takes a
-stale entry only if the session's low byte matches too (1 in 2^24 a stale entry).
+is acked with ACKs alone. Its entries are 4 bytes, the low bits of what an ACK names in 7: at 32
+robots a receiver's DONE carries some twenty COMPLETEs a turn, and with 8-byte entries DONEs took
+18 % of the channel (``mapd bench swarm``). The sender resolves the low 16 bits of ``msg`` against
+the few messages it still tracks (ids rise by one per message in a session, so those are unique),
+and a restarted sender, with a new session, takes a stale entry only if the session's low byte
+matches too (1 in 2^24 a stale entry).
 
 LEND was added the same way (issue #22: a TDMA turn its owner leaves half empty goes to a robot
 with chunks still to send). A node from before it drops a LEND as an unknown type and so never
