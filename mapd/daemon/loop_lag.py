@@ -19,10 +19,10 @@ overloaded robot's log says it without filling. Bounded: one sample per tick, th
 
 A hold has two causes that call for different fixes, so each tick also brings the CPU time the
 loop's thread used while the watcher slept (``time.thread_time``, which only that thread's own work
-advances). A loop that *ran* for most of the hold was running code that belongs in a worker (a bug
-of mapd or of a plugin: :func:`cause` says ``busy``); one that ran little of it was *waiting*: for
-a core, for the GIL held by another thread, for memory swapped out, stopped, or blocked in a call
-(a write to a slow disk made on the loop; ``waiting``).
+advances). A loop that *ran* for a third of the hold or more was running code that belongs in a
+worker (a bug of mapd or of a plugin: :func:`cause` says ``busy``); one that ran less was
+*waiting*: for a core, for the GIL held by another thread, for memory swapped out, stopped, or
+blocked in a call (a write to a slow disk made on the loop; ``waiting``).
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ class LagMeter:
                 f"{held}, running code on it for {ran_s:.2f} s: radio turns, acks and timers waited on "
                 f"work that belongs in a worker thread, a bug of mapd or of a plugin. Please report it "
                 f"with this log; if it recurs, `systemctl kill -s USR1 mapd` while it is held writes "
-                f"where (mapd status: loop)"
+                f"every thread's stack to the journal (mapd status: loop)"
             )
         return (
             f"{held}, waiting (it ran {ran_s:.2f} s of it): radio turns, acks and timers waited. Is the "
