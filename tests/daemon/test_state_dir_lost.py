@@ -329,6 +329,8 @@ def test_a_state_directory_on_a_disk_unmounted_above_it_is_not_made_again_on_the
 
 #: Runs in the namespace: mounts the tmpfs, then takes one command a line on stdin and answers one
 #: line when it is done. ``sh`` runs the rest of its line (mount, umount, rm) and answers its status.
+#: ``snap`` copies the tmpfs while the daemon writes: a temporary file renamed away between cp's
+#: listing and its copy fails that cp (seen once), so it tries again, and always answers.
 CONTROL = r"""
 disk=$1
 mount -t tmpfs -o size=16m tmpfs "$disk" || exit 97
@@ -339,7 +341,8 @@ while IFS= read -r line; do
   case $cmd in
     start) "$PY" -m mapd run --config "$b" >>"$c" 2>&1 </dev/null & eval "pid_$a=\$!"; echo "pid $!";;
     stop) eval "p=\$pid_$a"; kill -TERM "$p"; wait "$p"; echo "rc $?";;
-    snap) rm -rf "$a"; cp -a "$disk/." "$a" && echo snapped;;
+    snap) ok=; for try in 1 2 3 4 5; do rm -rf "$a"; cp -a "$disk/." "$a" 2>/dev/null && { ok=1; break; }; done
+          [ -n "$ok" ] && echo snapped || echo "snap failed";;
     sh) shift; (eval "$*") >/dev/null 2>&1; echo "rc $?";;
   esac
 done
