@@ -28,9 +28,11 @@ Framing and trust
       only in its own slot, silent for ``beacon_s`` and two cycles if that is longer (one lost
       HELLO is not a peer gone). Nodes announce themselves with HELLO at start and after
       ``beacon_s`` of silence, with the features they understand in its dst (``wire.py``,
-      *Features*). A peer gets only what it announced: without DONE, selective acks (R13) for its
-      messages; without parity, none in a message it receives; without LEND, no LEND
-      (PeerFeatures says a peer that lacks any).
+      *Features*); also soon after first hearing a peer or hearing one restart, and at least every
+      ``HELLO_REFRESH_S`` however busy, so newcomers hear them. A peer gets only what it announced:
+      without DONE, selective acks (R13) for its messages; without parity, none in a message it
+      receives; without LEND, no LEND (PeerFeatures says a peer that lacks any). One that announced
+      nothing (a node from before the announcement) gets what this node understands, as before.
 Sending
   R4. A message is the bytes given to :meth:`send` plus a 16-byte SHA-256 prefix of them, cut into
       chunks that fill a frame; a chunk is addressed by (message id, index), so sending it twice is
@@ -267,6 +269,7 @@ class ArqEndpoint(InputSide, TimerSide):
         self._events: deque[Event] = deque()
         self._now = -math.inf
         self._hello_due = -math.inf
+        self._hello_at = -math.inf  # when the last HELLO went
         self._housekeeping_at = -math.inf
         self._rx_held = 0
         self._delivered = GoodputWindow()

@@ -80,10 +80,11 @@ class InputSide(SenderSide):
             return
         if isinstance(frame, wire.Hello):
             features = wire.hello_features(frame)
-            if features is not None and features != peer.features:
-                was, peer.features = peer.features, features
+            if features is not None:
+                peer.features, was, peer.announced = features, peer.announced, features
                 # said when it lacks any, or no longer does: not for every peer of this version
-                if wire.FEATURES & ~features or (was is not None and wire.FEATURES & ~was):
+                lacks, lacked = wire.FEATURES & ~features, was is not None and wire.FEATURES & ~was
+                if features != was and (lacks or lacked):
                     self._events.append(PeerFeatures(peer.id, features))
         elif isinstance(frame, wire.Data):
             if frame.reliable:  # how much it still has to send (R17)
@@ -107,12 +108,14 @@ class InputSide(SenderSide):
             peer = PeerState(f.src, f.session, now, self.cfg.max_partials_per_peer)
             self._peers[f.src] = peer
             self._events.append(PeerUp(f.src))
+            self._hello_due = min(self._hello_due, now)  # a newcomer: tell it what we understand
         elif f.session != peer.session:
             if f.session in peer.retired:
                 self.counters.stale_session += 1
                 return None
             self._rx_held -= peer.restart(f.session)
             self._events.append(PeerRestarted(f.src))
+            self._hello_due = min(self._hello_due, now)  # it forgot what we understand
             self._backlogs.forget(f.src)  # its message ids start afresh
             for m in self._out.values():
                 prog = m.peers.get(f.src)

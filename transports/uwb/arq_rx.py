@@ -156,8 +156,12 @@ class ReceiverSide:
         """A parity chunk (fec.py; only broadcast maps in NACK mode have them): held until its block
         can be rebuilt, and a gap report owed while chunks are still missing after it."""
         if not part.nack:
-            self.counters.bad_frames += 1  # a unicast message is repaired chunk by chunk
-            return
+            if d.dst != wire.BROADCAST:
+                self.counters.bad_frames += 1  # a unicast message is repaired chunk by chunk
+                return
+            # Acked each because of what its sender announced, but it repairs with parity, so it
+            # runs NACK mode (a stale or false word): take the parity and ack as it expects.
+            part.nack = True
         if len(d.payload) > part.total or not part.wants_parity(d.index):
             self.counters.duplicates += 1
             if part.gaps():

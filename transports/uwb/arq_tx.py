@@ -24,6 +24,11 @@ from transports.uwb.pacing import MediumAccess, Pacer
 from transports.uwb.sending import Outgoing
 from transports.uwb.signing import Signer
 
+#: However busy a node is, it sends a HELLO at least this often (seconds): a HELLO carries its
+#: features (wire.py), and a robot that came into range or restarted while this one was never
+#: silent for ``beacon_s`` would otherwise never hear them.
+HELLO_REFRESH_S = 60.0
+
 
 class SenderSide(ReceiverSide, AckSide):
     """The sending rules (a mixin: :class:`~transports.uwb.arq.ArqEndpoint` owns the state declared
@@ -41,6 +46,7 @@ class SenderSide(ReceiverSide, AckSide):
     _lending: bool
     _lend_need: float
     _hello_due: float
+    _hello_at: float
     #: One TDMA cycle (0 without TDMA): no probe timer runs shorter.
     _cycle: float
 
@@ -71,7 +77,8 @@ class SenderSide(ReceiverSide, AckSide):
         out = encode_frame(body, crc=self._crc)
         self._pacer.consume(len(out), now)
         self._mac.sent(len(out), now)
-        self._hello_due = now + self.cfg.beacon_s
+        # after beacon_s of silence, and at least every HELLO_REFRESH_S (features for newcomers)
+        self._hello_due = min(now + self.cfg.beacon_s, self._hello_at + HELLO_REFRESH_S)
         self.counters.bytes_tx += len(out)
         self.counters.frames_tx += 1
         return out
@@ -147,6 +154,7 @@ class SenderSide(ReceiverSide, AckSide):
     def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
         if kind == "hello":
             self.counters.hellos_tx += 1
+            self._hello_at = now
             return wire.Hello(self.node, wire.FEATURES_FLAG | wire.FEATURES, self.session)
         if kind == "ack":
             peer, msg = ref

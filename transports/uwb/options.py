@@ -73,8 +73,8 @@ class UwbOptions(TransportOptions):
     fec: bool = Field(
         default=True,
         description="broadcast maps (acks auto/nack) are repaired with parity chunks, each of use to "
-        "every robot lacking any chunk of its block; not for a map whose receivers include a robot "
-        "whose mapd does not announce them (false: repairs resend the chunks asked for, as before)",
+        "every robot lacking any chunk of its block; not to robots whose mapd announces it lacks "
+        "them; a fleet with robots from before parity sets false (repairs resend the chunks asked for)",
     )
     mac: Literal["none", "tdma", "backoff"] = Field(
         default="none", description="medium access on a shared channel"

@@ -202,8 +202,10 @@ class PeerState:
         #: When a COMPLETE for a (broadcast) message was last sent: NACK mode answers a sender's
         #: probes with it again at most every so often (the probe is for the peers still pending).
         self.complete_sent: OrderedDict[int, float] = OrderedDict()
-        #: What its last HELLO announced (wire.hello_features); None: not heard announcing yet.
+        #: What its last HELLO announced (wire.hello_features); None: nothing heard (yet) this session.
         self.features: int | None = None
+        #: The last word heard whatever the session (to say an upgrade across a restart).
+        self.announced: int | None = None
         self._gen = 0
 
     def understands(self, feature: int) -> bool:
@@ -229,8 +231,8 @@ class PeerState:
         self.completed.clear()
         self.rejected.clear()
         self.acks_due.clear()
-        # (features stay: its first frame of the new session is a HELLO that says them anew)
         self.complete_sent.clear()
+        self.features = None  # it may come back as another version: unknown until it says
         return released
 
     def owe_ack(self, msg: int, due: float) -> None:

@@ -33,18 +33,19 @@ are compared in serial-number arithmetic (:func:`msg_before`, RFC 1982), and a m
 DONE was added to version 2 without a version bump (issue #22, scalable acks): each entry says what
 an ACK with the COMPLETE flag says, and a broadcast map would otherwise cost every receiver a frame
 of its own per map, N (N - 1) frames a round for N robots. Nodes from before it drop DONE frames as
-an unknown type (counted ``bad_frames``), so a sender that does not announce it (*Features* below)
-is acked with ACKs alone. Its entries are 4 bytes, the low bits of what an ACK names in 7: at 32
-robots a receiver's DONE carries some twenty COMPLETEs a turn, and with 8-byte entries DONEs took
-18 % of the channel (``mapd bench swarm``). The sender resolves the low 16 bits of ``msg`` against
-the few messages it still tracks (ids rise by one per message in a session, so those are unique),
-and a restarted sender, with a new session, takes a stale entry only if the session's low byte
-matches too (1 in 2^24 a stale entry).
+an unknown type (counted ``bad_frames``), so a fleet with such nodes runs ``acks = "each"`` (a
+sender whose HELLO says it lacks DONE is acked with ACKs alone: *Features* below). Its entries
+are 4 bytes, the low bits of what an ACK names in 7: at 32 robots a receiver's DONE carries some
+twenty COMPLETEs a turn, and with 8-byte entries DONEs took 18 % of the channel (``mapd bench
+swarm``). The sender resolves the low 16 bits of ``msg`` against the few messages it still tracks
+(ids rise by one per message in a session, so those are unique), and a restarted sender, with a
+new session, takes a stale entry only if the session's low byte matches too (1 in 2^24 a stale
+entry).
 
 LEND was added the same way (issue #22: a TDMA turn its owner leaves half empty goes to a robot
 with chunks still to send). A node from before it drops a LEND as an unknown type and so never
-borrows; lending to it would waste the rest of that one slot, and none is lent to a node that does
-not announce it.
+borrows; lending to it wastes the rest of that one slot (none is lent to a node whose HELLO says
+it lacks LEND).
 The slot number makes a LEND that arrives late (a radio's buffer) useless rather than harmful: a
 receiver borrows only the slot it names, never the next one, whose owner will be sending.
 
@@ -52,22 +53,31 @@ Parity chunks were added the same way (issue #22: a broadcast map's repair round
 worst receiver lacks, not the union of everyone's losses; :mod:`transports.uwb.fec`). A parity
 chunk is a DATA frame whose ``index`` is at or past ``count`` (below :func:`~transports.uwb.fec.
 index_limit`), which says its block and share. A node from before it refuses such a frame as
-malformed and so never completes a map whose repairs came as parity: a message goes without parity
-where any receiver does not announce it (*Features* below); ``fec = false`` sends none at all.
+malformed and so never completes a map whose repairs came as parity: a fleet with such nodes runs
+``fec = false``, with which no parity is sent (a message goes without parity where any receiver
+says it lacks it: *Features* below).
 
 Features (mixed versions). Nodes from before the announcement send HELLO to 255; later ones put
 :data:`FEATURES_FLAG` ``|`` the features they understand (:data:`F_DONE`, :data:`F_PARITY`,
 :data:`F_LEND`) in its ``dst``, which nodes from before never read: they take any HELLO as presence,
-whatever its dst. A node holds each peer to what its last HELLO announced (a HELLO to 255
-announces nothing: :func:`hello_features`): a sender without DONE is acked message by message with
-ACKs, as ``acks = "each"`` does; a message goes without parity if any of its receivers lacks it;
-no LEND goes to a node without it. So a fleet upgraded one robot at a time needs no setting: what
-nodes from before refuse as malformed or unknown goes only where it is understood (they still
-overhear, and drop, the DONEs that new nodes send one another: harmless). A peer not heard
-announcing yet (its HELLO lost: a node sends one at start and after ``beacon_s`` of its own
-silence) is taken to understand what this node does, as every node did before the announcement.
-The dst of a signed HELLO is under its signature like every field: only a holder of the link key
-can make a robot look older, which costs the channel parity repair toward it, nothing more.
+whatever its dst. A node holds each peer to what its last HELLO announced: a sender without DONE is
+acked message by message with ACKs, as ``acks = "each"`` does; a message goes without parity if
+any of its receivers lacks it; no LEND goes to a node without it. So once a feature is added after
+this one, a fleet upgraded one robot at a time needs no setting for it: what the older nodes would
+refuse as malformed or unknown goes only where it is understood (they still overhear, and drop,
+frames that newer nodes send one another: harmless).
+
+A peer that announced nothing (a HELLO to 255, or none heard yet) is taken to understand what this
+node does, as every node did before the announcement: the nodes of the release before it
+understand DONE, parity and LEND, and only send HELLO to 255, so a fleet of both needs no setting
+either. Nodes from before DONE or parity announce nothing and understand neither: a fleet mixing
+them still sets ``acks = "each"`` and ``fec = false`` (README, *Known gaps*). A receiver takes a
+parity chunk whatever the sender announced (the chunk shows the sender repairs with parity). To
+be heard by a newcomer, a node sends a HELLO soon after it first hears a peer or hears one
+restart, and at least every :data:`~transports.uwb.arq_tx.HELLO_REFRESH_S` however busy (else
+only at start and after ``beacon_s`` of its own silence, which a busy node never has). The dst of a
+signed HELLO is under its signature like every field: only a holder of the link key can make a
+robot look older, which costs the channel parity repair toward it, nothing more.
 
 A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
 message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which
@@ -92,7 +102,7 @@ DATA, ACK, HELLO, DGRAM, DONE, LEND = 1, 2, 3, 4, 5, 6
 KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM", DONE: "DONE", LEND: "LEND"}
 
 #: A HELLO whose dst has this bit (and is not BROADCAST) announces the sender's features in the
-#: bits below it; see the module docstring.
+#: bits below it; see the module docstring. Bit 6 stays clear (0xFF is BROADCAST): six features.
 FEATURES_FLAG = 0x80
 F_DONE = 0x01  # takes COMPLETEs in DONE frames
 F_PARITY = 0x02  # rebuilds blocks from parity chunks (DATA index at or past count)
@@ -211,12 +221,9 @@ Frame = Data | Ack | Hello | Done | Lend
 
 
 def hello_features(h: Hello) -> int | None:
-    """The features ``h`` announces: its bits for a flagged dst, 0 for a HELLO to BROADCAST (a node
-    from before the announcement, which understands none of the optional frames for sure), None for
-    a HELLO to one node (announces nothing)."""
-    if h.dst == BROADCAST:
-        return 0
-    if h.dst & FEATURES_FLAG:
+    """The features ``h`` announces: its bits for a flagged dst; None for a HELLO to BROADCAST (a
+    node from before the announcement: it says nothing) or to one node."""
+    if h.dst != BROADCAST and h.dst & FEATURES_FLAG:
         return h.dst & ~FEATURES_FLAG
     return None
 

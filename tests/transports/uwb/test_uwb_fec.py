@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapd.errors import MapdError
 from transports.base import TransportContext
-from transports.uwb import arq, fec, wire
+from transports.uwb import arq, arq_acks, fec, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
 from transports.uwb.faults import Faults
 from transports.uwb.framing import encode_frame
@@ -113,13 +113,9 @@ def test_a_lossy_broadcast_is_repaired_with_parity_in_fewer_frames(drop: float) 
         assert s["data_tx"] < 0.8 * plain["data_tx"], (s["data_tx"], plain["data_tx"])
 
 
-@pytest.mark.parametrize("drop", [0.0, 0.2])
-def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_clean_channel(
-    drop: float,
-) -> None:
-    """Receivers report gaps late here (a long backoff, as a TDMA turn would make them), after each
-    message's first pass: on a lossy channel the sender learns to send parity behind the pass, so
-    later messages need fewer gap reports; on a clean one it sends none."""
+def _late_reports(drop: float, seed: int) -> tuple[int, dict[str, object]]:
+    """Twelve 8 kB broadcasts to 8 receivers that report gaps late (a long backoff, as a TDMA turn
+    would make them), after each message's first pass: the gap reports sent, and the sender's stats."""
     nodes = [
         ArqEndpoint(
             ArqConfig(node_id=i, rate_bps=RATE, deadline_s=60.0, fec=True, nack_backoff_s=1.5),
@@ -128,22 +124,29 @@ def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_c
         )
         for i in range(1, 10)
     ]
-    net = SimNet(nodes, faults=Faults(drop=drop), seed=5, shared=True)
+    net = SimNet(nodes, faults=Faults(drop=drop), seed=seed, shared=True)
     net.run(6.0)
-    nacks: list[int] = []
     for k in range(12):
-        before = sum(n.stats()["nacks_tx"] for n in nodes[1:])
-        data = os.urandom(8_000)
-        msg = nodes[0].send(data, net.now, dests=RECEIVERS, stream=k % 3)
-        assert net.run(net.now + 60, stop=lambda m=msg: _closed(net, 1, m))
+        msg = nodes[0].send(os.urandom(8_000), net.now, dests=RECEIVERS, stream=k % 3)
+        assert net.run(net.now + 60, stop=lambda: _closed(net, 1, msg))  # noqa: B023 (run at once)
         assert arq.MessageClosed(msg, "delivered") in net.events[1]
-        nacks.append(sum(n.stats()["nacks_tx"] for n in nodes[1:]) - before)
-    s = nodes[0].stats()
-    if drop == 0.0:
-        assert s["parity_tx"] == 0 and s["fec_proactive"] == 0.0 and sum(nacks) == 0
-    else:
-        assert s["fec_proactive"] > 0
-        assert sum(nacks[-4:]) < sum(nacks[:4]), nacks
+    return sum(n.stats()["nacks_tx"] for n in nodes[1:]), nodes[0].stats()
+
+
+def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_clean_channel(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On a lossy channel the sender learns to send parity behind each first pass, so fewer gap
+    reports are needed than without it (the same runs with the share held at 0); on a clean one it
+    sends none. Summed over four seeds: one run's twelve maps are too few to show it (written first
+    as later maps needing fewer reports than earlier ones in one run, which held for its seed only)."""
+    clean, s = _late_reports(0.0, 5)
+    assert clean == 0 and s["parity_tx"] == 0 and s["fec_proactive"] == 0.0
+    learned = [_late_reports(0.2, seed) for seed in (1, 2, 3, 4)]
+    assert all(float(s["fec_proactive"]) > 0 for _, s in learned)  # type: ignore[arg-type]
+    monkeypatch.setattr(arq_acks, "PROACTIVE_MAX", 0.0)
+    without = [_late_reports(0.2, seed)[0] for seed in (1, 2, 3, 4)]
+    assert sum(n for n, _ in learned) < 0.95 * sum(without), ([n for n, _ in learned], without)
 
 
 def test_once_parity_is_seen_a_report_asking_for_as_many_chunks_suppresses_ours() -> None:
