@@ -108,14 +108,14 @@ class InputSide(SenderSide):
             peer = PeerState(f.src, f.session, now, self.cfg.max_partials_per_peer)
             self._peers[f.src] = peer
             self._events.append(PeerUp(f.src))
-            self._hello_due = min(self._hello_due, now)  # a newcomer: tell it what we understand
+            self._hello_soon(now)  # a newcomer: tell it what we understand
         elif f.session != peer.session:
             if f.session in peer.retired:
                 self.counters.stale_session += 1
                 return None
             self._rx_held -= peer.restart(f.session)
             self._events.append(PeerRestarted(f.src))
-            self._hello_due = min(self._hello_due, now)  # it forgot what we understand
+            self._hello_soon(now)  # it forgot what we understand
             self._backlogs.forget(f.src)  # its message ids start afresh
             for m in self._out.values():
                 prog = m.peers.get(f.src)

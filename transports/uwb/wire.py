@@ -74,10 +74,11 @@ either. Nodes from before DONE or parity announce nothing and understand neither
 them still sets ``acks = "each"`` and ``fec = false`` (README, *Known gaps*). A receiver takes a
 parity chunk whatever the sender announced (the chunk shows the sender repairs with parity). To
 be heard by a newcomer, a node sends a HELLO soon after it first hears a peer or hears one
-restart, and at least every :data:`~transports.uwb.arq_tx.HELLO_REFRESH_S` however busy (else
-only at start and after ``beacon_s`` of its own silence, which a busy node never has). The dst of a
-signed HELLO is under its signature like every field: only a holder of the link key can make a
-robot look older, which costs the channel parity repair toward it, nothing more.
+restart (one for all heard within :data:`~transports.uwb.arq_tx.HELLO_MIN_GAP_S`), and at least
+every :data:`~transports.uwb.arq_tx.HELLO_REFRESH_S` however busy (else only at start and after
+``beacon_s`` of its own silence, which a busy node never has). The dst of a signed HELLO is under
+its signature like every field: only a holder of the link key can make a robot look older, which
+costs the channel parity repair toward it, nothing more.
 
 A chunk is addressed by (msg, index), so a resend is idempotent. ``total`` is the length of the
 message plus its hash trailer; ``count`` the number of chunks. An ACK tells the data sender which

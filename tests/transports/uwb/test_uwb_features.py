@@ -336,3 +336,47 @@ def _body(framed: bytes | None) -> bytes:
     bodies = list(FrameReader(4096, crc=True).feed(framed))
     assert len(bodies) == 1
     return bodies[0]
+
+
+def test_robots_starting_together_without_tdma_answer_newcomers_with_few_hellos() -> None:
+    """32 robots on one channel without TDMA, all starting at once: each first hears 31 others.
+    A HELLO for each one heard (1,184 in 30 s, measured) took a map to all of them twice as long;
+    one HELLO answers every robot heard within HELLO_MIN_GAP_S."""
+    nodes = [ArqEndpoint(ArqConfig(node_id=i, rate_bps=RATE), session=900 + i, seed=i) for i in range(1, 33)]
+    net = SimNet(nodes, seed=1, shared=True)
+    net.run(30.0)
+    hellos = sum(n.stats()["hellos_tx"] for n in nodes)
+    assert hellos <= 10 * len(nodes), hellos  # a beacon every 5 s of silence, and one or two answers
+    assert all(n.peers_up() == [m.node for m in nodes if m is not n] for n in nodes)
+
+
+def test_a_restarted_peer_hears_a_busy_nodes_word_and_is_unknown_until_it_says_its_own() -> None:
+    """Node 3 (lacking) sends maps back to back to node 2. Node 2 restarts: node 3 answers its new
+    session with a HELLO, so node 2 knows node 3's word at once. Then node 3 restarts as the release
+    before the announcement (HELLO to 255): it understands everything, and is held to nothing."""
+
+    def cfg(n: int, **kw: Any) -> ArqConfig:
+        return ArqConfig(node_id=n, rate_bps=12_500.0, deadline_s=30.0, **kw)
+
+    two = ArqEndpoint(cfg(2), session=902, seed=2)
+    busy: ArqEndpoint = Lacking(cfg(3, acks="each"), session=903, seed=3)
+    net = SimNet([two, busy], seed=1, shared=True)
+
+    def keep_busy(until: float) -> None:
+        k = 0
+        while net.now < until:
+            k += 1
+            msg = busy.send(os.urandom(2000), net.now, dests=[2], stream=k % 2)
+            _wait_closed(net, 3, msg)
+
+    keep_busy(10.0)
+    assert two.older_peers() == {3: wire.FEATURES}
+    again = ArqEndpoint(cfg(2), session=912, seed=12)
+    net.replace(2, again)
+    restarted_at = net.now
+    keep_busy(restarted_at + 3.0)
+    assert again.older_peers() == {3: wire.FEATURES}, busy.stats()["hellos_tx"]
+    previous = PreviousRelease(cfg(3), session=913, seed=13)
+    net.replace(3, previous)
+    net.run(net.now + 3.0)
+    assert again.older_peers() == {} and arq.PeerRestarted(3) in net.events[2]

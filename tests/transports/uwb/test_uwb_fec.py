@@ -113,9 +113,10 @@ def test_a_lossy_broadcast_is_repaired_with_parity_in_fewer_frames(drop: float) 
         assert s["data_tx"] < 0.8 * plain["data_tx"], (s["data_tx"], plain["data_tx"])
 
 
-def _late_reports(drop: float, seed: int) -> tuple[int, dict[str, object]]:
+def _late_reports(drop: float, seed: int) -> tuple[float, dict[str, object]]:
     """Twelve 8 kB broadcasts to 8 receivers that report gaps late (a long backoff, as a TDMA turn
-    would make them), after each message's first pass: the gap reports sent, and the sender's stats."""
+    would make them), after each message's first pass: how long all twelve took, and the sender's
+    stats (the receivers' gap reports under ``nacks``)."""
     nodes = [
         ArqEndpoint(
             ArqConfig(node_id=i, rate_bps=RATE, deadline_s=60.0, fec=True, nack_backoff_s=1.5),
@@ -126,27 +127,34 @@ def _late_reports(drop: float, seed: int) -> tuple[int, dict[str, object]]:
     ]
     net = SimNet(nodes, faults=Faults(drop=drop), seed=seed, shared=True)
     net.run(6.0)
+    start = net.now
     for k in range(12):
         msg = nodes[0].send(os.urandom(8_000), net.now, dests=RECEIVERS, stream=k % 3)
         assert net.run(net.now + 60, stop=lambda: _closed(net, 1, msg))  # noqa: B023 (run at once)
         assert arq.MessageClosed(msg, "delivered") in net.events[1]
-    return sum(n.stats()["nacks_tx"] for n in nodes[1:]), nodes[0].stats()
+    stats: dict[str, object] = dict(nodes[0].stats())
+    stats["nacks"] = sum(n.stats()["nacks_tx"] for n in nodes[1:])
+    return net.now - start, stats
 
 
 def test_parity_goes_behind_the_first_pass_once_losses_are_seen_and_never_on_a_clean_channel(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """On a lossy channel the sender learns to send parity behind each first pass, so fewer gap
-    reports are needed than without it (the same runs with the share held at 0); on a clean one it
-    sends none. Summed over four seeds: one run's twelve maps are too few to show it (written first
-    as later maps needing fewer reports than earlier ones in one run, which held for its seed only)."""
-    clean, s = _late_reports(0.0, 5)
-    assert clean == 0 and s["parity_tx"] == 0 and s["fec_proactive"] == 0.0
-    learned = [_late_reports(0.2, seed) for seed in (1, 2, 3, 4)]
+    """On a lossy channel the sender learns to send parity behind each first pass, which spares
+    the round trip of a repair: its maps get there sooner than in the same runs with that share held
+    at 0. On a clean channel it sends no parity and the receivers no gap report. Summed over six
+    seeds: one run is too few to show it (the test first said later maps of one run needed fewer
+    gap reports than earlier ones, which held for its seed only; the reports themselves fall by
+    about 5 % over sixteen seeds, too little to tell from one draw to the next)."""
+    _, clean = _late_reports(0.0, 5)
+    assert clean["nacks"] == 0 and clean["parity_tx"] == 0 and clean["fec_proactive"] == 0.0
+    seeds = range(1, 7)
+    learned = [_late_reports(0.2, seed) for seed in seeds]
     assert all(float(s["fec_proactive"]) > 0 for _, s in learned)  # type: ignore[arg-type]
     monkeypatch.setattr(arq_acks, "PROACTIVE_MAX", 0.0)
-    without = [_late_reports(0.2, seed)[0] for seed in (1, 2, 3, 4)]
-    assert sum(n for n, _ in learned) < 0.95 * sum(without), ([n for n, _ in learned], without)
+    without = [_late_reports(0.2, seed)[0] for seed in seeds]
+    took = [round(t, 1) for t, _ in learned]
+    assert sum(took) < 0.9 * sum(without), (took, [round(t, 1) for t in without])
 
 
 def test_once_parity_is_seen_a_report_asking_for_as_many_chunks_suppresses_ours() -> None:
