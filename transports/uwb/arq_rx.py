@@ -76,7 +76,7 @@ class ReceiverSide:
         cfg = self.cfg
         # A DGRAM's sender waits for no ack: owe none (a lost one is replaced by the next).
         owe = peer.owe_ack if d.reliable else _no_ack
-        # A sender from before DONE would never hear our COMPLETE: ack it as it acks (each).
+        # A sender that says it lacks DONE would never hear our COMPLETE: ack it each, as it acks.
         nack = d.reliable and self._nack_mode(d.dst) and self._understands(peer.id, wire.F_DONE)
         if d.dst not in (self.node, wire.BROADCAST):
             self.counters.not_for_me += 1
