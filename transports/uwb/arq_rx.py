@@ -160,8 +160,11 @@ class ReceiverSide:
                 self.counters.bad_frames += 1  # a unicast message is repaired chunk by chunk
                 return
             # Acked each because of what its sender announced, but it repairs with parity, so it
-            # runs NACK mode (a stale or false word): take the parity and ack as it expects.
+            # runs NACK mode (a stale or false word): take the parity and ack as it expects, this
+            # map and its next ones (else every repair it sends others gets an ACK of ours).
             part.nack = True
+            if peer.features is not None:
+                peer.features |= wire.F_DONE | wire.F_PARITY
         if len(d.payload) > part.total or not part.wants_parity(d.index):
             self.counters.duplicates += 1
             if part.gaps():

@@ -72,10 +72,11 @@ node does, as every node did before the announcement: the nodes of the release b
 understand DONE, parity and LEND, and only send HELLO to 255, so a fleet of both needs no setting
 either. Nodes from before DONE or parity announce nothing and understand neither: a fleet mixing
 them still sets ``acks = "each"`` and ``fec = false`` (README, *Known gaps*). A receiver takes a
-parity chunk whatever the sender announced (the chunk shows the sender repairs with parity). To
-be heard by a newcomer, a node sends a HELLO soon after it first hears a peer or hears one
-restart (one for all heard within :data:`~transports.uwb.arq_tx.HELLO_MIN_GAP_S`), and at least
-every :data:`~transports.uwb.arq_tx.HELLO_REFRESH_S` however busy (else only at start and after
+parity chunk whatever the sender announced: the chunk shows the sender repairs with parity, and
+so runs gap reports and DONE, which it is given from then on. To be heard by a newcomer, a node
+sends a HELLO soon after it first hears a peer or hears one restart (one for all heard within
+:data:`~transports.uwb.arq_tx.HELLO_MIN_GAP_S`), and at least every
+:data:`~transports.uwb.arq_tx.HELLO_REFRESH_S` however busy (else only at start and after
 ``beacon_s`` of its own silence, which a busy node never has). The dst of a signed HELLO is under
 its signature like every field: only a holder of the link key can make a robot look older, which
 costs the channel parity repair toward it, nothing more.

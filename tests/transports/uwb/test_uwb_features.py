@@ -173,7 +173,7 @@ def test_the_release_before_the_announcement_gets_everything_as_before(seed: int
 def test_parity_from_a_sender_that_announced_none_is_taken() -> None:
     """A sender whose word says no DONE nor parity (a stale or false word) repairs with parity all
     the same: the receiver, acking it each, takes the parity and switches to the gap reports and
-    DONE such a sender expects."""
+    DONE such a sender expects, for its next maps too (its second map: 21 ACKs, 38 acked each)."""
 
     class FalseWord(ArqEndpoint):
         def _build(self, kind: str, ref: Any, now: float) -> wire.Frame | None:
@@ -192,6 +192,12 @@ def test_parity_from_a_sender_that_announced_none_is_taken() -> None:
     assert nodes[1].older_peers() == {1: wire.FEATURES}
     msg, _data = _send(net, nodes[0], [2, 3])
     assert arq.MessageClosed(msg, "delivered") in net.events[1]
+    # what it showed counts over what it said: DONE and parity from now on (LEND still unknown)
+    assert nodes[1].older_peers() == {1: wire.F_LEND} and nodes[2].older_peers() == {1: wire.F_LEND}
+    acks = sum(n.stats()["acks_tx"] for n in nodes[1:])
+    msg, _data = _send(net, nodes[0], [2, 3])
+    assert arq.MessageClosed(msg, "delivered") in net.events[1]
+    assert sum(n.stats()["acks_tx"] for n in nodes[1:]) - acks < 30, acks  # 38 when acked each
     assert (
         nodes[0].stats()["parity_tx"] > 0
         and nodes[1].stats()["parity_rx"] + nodes[2].stats()["parity_rx"] > 0
