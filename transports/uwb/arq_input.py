@@ -86,6 +86,10 @@ class InputSide(SenderSide):
                 lacks, lacked = wire.FEATURES & ~features, was is not None and wire.FEATURES & ~was
                 if features != was and (lacks or lacked):
                     self._events.append(PeerFeatures(peer.id, features))
+                if not features & wire.F_PARITY:  # maps on their way to it: repairs resend chunks
+                    for m in self._out.values():
+                        if peer.id in m.peers:
+                            m.fec = False
         elif isinstance(frame, wire.Data):
             if frame.reliable:  # how much it still has to send (R17)
                 self._backlogs.heard(peer.id, frame.msg, frame.index, frame.count, now)

@@ -62,10 +62,11 @@ Features (mixed versions). Nodes from before the announcement send HELLO to 255;
 :data:`F_LEND`) in its ``dst``, which nodes from before never read: they take any HELLO as presence,
 whatever its dst. A node holds each peer to what its last HELLO announced: a sender without DONE is
 acked message by message with ACKs, as ``acks = "each"`` does; a message goes without parity if
-any of its receivers lacks it; no LEND goes to a node without it. So once a feature is added after
-this one, a fleet upgraded one robot at a time needs no setting for it: what the older nodes would
-refuse as malformed or unknown goes only where it is understood (they still overhear, and drop,
-frames that newer nodes send one another: harmless).
+any of its receivers lacks it (one on its way when the word comes is repaired without it from
+then on); no LEND goes to a node without it. So once a feature is added after this one, a fleet
+upgraded one robot at a time needs no setting for it: what the older nodes would refuse as
+malformed or unknown goes only where it is understood (they still overhear, and drop, frames that
+newer nodes send one another: harmless).
 
 A peer that announced nothing (a HELLO to 255, or none heard yet) is taken to understand what this
 node does, as every node did before the announcement: the nodes of the release before it

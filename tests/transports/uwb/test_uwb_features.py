@@ -386,3 +386,22 @@ def test_a_restarted_peer_hears_a_busy_nodes_word_and_is_unknown_until_it_says_i
     net.replace(3, previous)
     net.run(net.now + 3.0)
     assert again.older_peers() == {} and arq.PeerRestarted(3) in net.events[2]
+
+
+def test_a_map_on_its_way_when_a_receiver_says_it_lacks_parity_is_repaired_without_it() -> None:
+    """Node 1 starts a 20 kB map to nodes 2 and 3 before node 3 is on the air (so before its
+    HELLO): parity was on for it. Node 3, lacking parity, comes up half-way and misses the first
+    chunks; once its HELLO is heard the map's repairs resend chunks (it refused the parity they
+    were before, until the code's parity ran out)."""
+    one = ArqEndpoint(ArqConfig(node_id=1, rate_bps=RATE, deadline_s=30.0, fec=True), session=901, seed=1)
+    two = ArqEndpoint(ArqConfig(node_id=2, rate_bps=RATE, deadline_s=30.0), session=902, seed=2)
+    net = SimNet([one, two], seed=1, shared=True)
+    net.run(0.5)
+    data = os.urandom(20_000)
+    msg = one.send(data, net.now, dests=[2, 3])
+    net.run(net.now + 0.8)
+    lacking = Lacking(ArqConfig(node_id=3, rate_bps=RATE, deadline_s=30.0, acks="each"), session=903, seed=3)
+    net.replace(3, lacking)
+    _wait_closed(net, 1, msg)
+    assert arq.MessageClosed(msg, "delivered") in net.events[1]
+    assert [m.data for m in net.received(3)] == [data] and lacking.parity_refused == 0
