@@ -9,10 +9,9 @@ Pure functions of a status document (:meth:`Daemon.snapshot`), so both read the 
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
-from mapd.daemon.loop_lag import SAY_S, cause
+from mapd.daemon.loop_lag import SAY_S, cause, finite
 from mapd.daemon.versions import label
 
 #: A link's figures that mean something is wrong when not zero (``port_open``, ``session_open``
@@ -162,7 +161,7 @@ def loop_held(s: dict[str, Any]) -> float | None:
     lp = s.get("loop")
     if not isinstance(lp, dict):
         return None
-    last, ago, recent = (_number(lp.get(k)) for k in ("last_stall_ms", "last_stall_ago_s", "recent_s"))
+    last, ago, recent = (finite(lp.get(k)) for k in ("last_stall_ms", "last_stall_ago_s", "recent_s"))
     if last is None or ago is None or recent is None:
         return None
     return last / 1000 if last >= SAY_S * 1000 and 0 <= ago < recent else None
@@ -173,13 +172,6 @@ def loop_cause(s: dict[str, Any]) -> str | None:
     on it, ``waiting`` to run), None when the document does not say."""
     lp = s.get("loop")
     return cause(lp.get("last_stall_ms"), lp.get("last_stall_ran_ms")) if isinstance(lp, dict) else None
-
-
-def _number(v: Any) -> float | None:
-    """``v`` when it is a finite number (a status document comes from another process)."""
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        return None
-    return float(v)
 
 
 def recording_failing(rec: dict[str, Any] | None) -> bool:

@@ -55,16 +55,21 @@ SAY_EVERY_S = 60.0
 BUSY_SHARE = 1 / 3
 
 
+def finite(v: Any) -> float | None:
+    """``v`` when it is a finite number, else None (a status document comes from another process)."""
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
 def cause(lag_ms: Any, ran_ms: Any) -> str | None:
     """``busy`` when the loop's thread ran for at least :data:`BUSY_SHARE` of a hold of ``lag_ms``,
     ``waiting`` when it ran less, None when either is unknown (a daemon from before ``ran``, or a
     status document that is not numbers)."""
-    ok = all(
-        isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in (lag_ms, ran_ms)
-    )
-    if not ok or lag_ms <= 0:
+    lag, ran = finite(lag_ms), finite(ran_ms)
+    if lag is None or ran is None or lag <= 0:
         return None
-    return "busy" if ran_ms >= BUSY_SHARE * lag_ms else "waiting"
+    return "busy" if ran >= BUSY_SHARE * lag else "waiting"
 
 
 class LagMeter:
