@@ -171,6 +171,8 @@ def render_status(s: dict[str, Any]) -> str:
             out.append(f"  {'':<6} FAULTS " + ", ".join(faults))
         if relay:
             out.append(f"  {'':<6} {relay}")
+        if (clock := _radio_clock_line(st.get("radio_clock"))) is not None:
+            out.append(f"  {'':<6} {clock}")
         if isinstance(big := st.get("oversize_from"), dict) and big:
             out.append(
                 f"  {'':<6} maps over limits.max_message_bytes from "
@@ -286,6 +288,32 @@ def _loop_line(lp: dict[str, Any], held: float | None) -> str:
         line
         + f"; {n} of {_num(lp.get('stall_ms'), '.0f')} ms or more, the last {last / 1000:.2f} s{how}, "
         + f"{_age(ago)} ago"
+    )
+
+
+def _radio_clock_line(rc: Any) -> str | None:
+    """The clock a uwb link counts its TDMA turns on (``radio_clock``, from
+    :mod:`transports.uwb.radio_time`), in words; None for a link without radio time."""
+    if not isinstance(rc, dict):
+        return None
+    sent = f"{_num(rc.get('time_beacons_tx'), '.0f')} TIME frames sent"
+    if rc.get("role") == "source":
+        return (
+            f"clock   turns on the wall clock, which a time service keeps; leads robots without one ({sent})"
+        )
+    if rc.get("role") == "leads":
+        return (
+            f"clock   leads the fleet's TDMA turns: no robot heard has a time service or a lower link id "
+            f"(its correction {_num(rc.get('correction_ms'), '.1f')} ms; {sent})"
+        )
+    hops = rc.get("hops")
+    whose = (
+        "a time service's clock" if rc.get("root_is_source") else "no time service: the lowest link id leads"
+    )
+    return (
+        f"clock   turns on {rc.get('root')}'s clock over the radio ({whose}), {hops} hop{'s' if hops != 1 else ''} "
+        f"via {rc.get('parent')}: {_num(rc.get('correction_ms'), '+.1f')} ms on the wall clock, path delay "
+        f"{_num(rc.get('delay_ms'), '.1f')} ms, last TIME {_num(rc.get('synced_ago_s'), '.0f')} s ago ({sent})"
     )
 
 

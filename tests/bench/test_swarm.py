@@ -400,16 +400,26 @@ def test_log_slices_make_streams_with_poses(intel_log: Path, tmp_path: Path) -> 
 def test_clocks_that_disagree_past_the_guard_collide_and_are_heard_out_of_turn(
     swarm: SimpleNamespace, tmp_path: Path
 ) -> None:
-    """TDMA counts its slots on each robot's clock: within the guard (10 ms) they never overlap;
-    two thirds of a slot apart they collide, and the robots count frames heard in their own slot
-    (R18)."""
+    """TDMA counts its slots on each robot's clock (``clock = "system"``): within the guard (10 ms)
+    they never overlap; two thirds of a slot apart they collide, and the robots count frames heard
+    in their own slot (R18). On the clock the fleet agrees over the radio (the default) they keep
+    apart once the first TIME frames are heard."""
     robots = [_heavy_stream(0, (0.0, 0.0))] + [swarm.stream(i, (2.0 * i, 0.0)) for i in range(1, 4)]
     fleet = Fleet(robots, None, "test")
-    rows = {skew: _run(fleet, tmp_path, mac="tdma", clock_skew_s=skew) for skew in (0.0, 0.008, 0.4)}
+    rows = {
+        skew: _run(fleet, tmp_path, mac="tdma", clock_skew_s=skew, clock="system")
+        for skew in (0.0, 0.008, 0.4)
+    }
     for skew in (0.0, 0.008):
         assert rows[skew]["collided"] == 0 and rows[skew]["out_of_turn"] == 0, skew
     assert rows[0.4]["collided"] > 0 and rows[0.4]["out_of_turn"] > 0
     assert rows[0.4]["stale_p95_s"] > rows[0.0]["stale_p95_s"]
     # A guard as long as the disagreement keeps the turns apart again, at the cost of airtime.
-    guarded = _run(fleet, tmp_path, mac="tdma", clock_skew_s=0.4, guard_s=0.45)
+    guarded = _run(fleet, tmp_path, mac="tdma", clock_skew_s=0.4, guard_s=0.45, clock="system")
     assert guarded["collided"] == 0 and guarded["out_of_turn"] == 0
+    # The radio clock: only the first seconds collide, before the robots have heard its TIME frames.
+    radio = _run(fleet, tmp_path, mac="tdma", clock_skew_s=0.4)
+    assert (
+        radio["out_of_turn"] < rows[0.4]["out_of_turn"] / 2 and radio["collided"] < rows[0.4]["collided"] / 2
+    )
+    assert radio["stale_p95_s"] < rows[0.4]["stale_p95_s"]

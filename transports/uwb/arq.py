@@ -129,6 +129,13 @@ Pacing and access
       it was on the air throughout ``[now - airtime, now - rx_slack_s]``. Such frames collide with
       this node's own: the robots' clocks disagree by more than the guard, or two were given one
       slot. The adapter shows the count on ``mapd status``'s FAULTS line.
+Time
+  R19. With TDMA and ``radio_time``, the turns are kept on a clock the fleet agrees over the radio
+      (``radio_time.py``): TIME frames from the best clock heard (one a time service keeps, else
+      the lowest id), passed on over hops, each stamped when it went on the air, and the path delay
+      measured both ways. The wall clock keeps everything else (the signing counters' check). A
+      fleet whose every robot says a time service keeps its clock (:meth:`set_clock_source`)
+      sends no TIME frame. A TIME frame goes after a due HELLO, before anything else.
 """
 
 from __future__ import annotations
@@ -163,6 +170,7 @@ from transports.uwb.arq_types import (
 from transports.uwb.framing import MIN_FRAME, FrameReader, max_body
 from transports.uwb.lending import Backlogs
 from transports.uwb.pacing import MediumAccess, Pacer
+from transports.uwb.radio_time import RadioTime
 from transports.uwb.receiving import CHUNK_COST, PeerState
 from transports.uwb.sending import HASH_LEN, Outgoing
 from transports.uwb.signing import TRAILER_LEN, Signer, Verifier
@@ -253,6 +261,10 @@ class ArqEndpoint(InputSide, TimerSide):
         # cycle (21 s) outgrew the 20 s timeout: every peer went down and up each cycle, and each
         # PeerDown let the publisher supersede the map on the air (P1).
         self._presence_s = max(config.peer_timeout_s, config.beacon_s + 2 * self._cycle)
+        # R19: the turns' clock agreed over the radio (only TDMA has turns to agree on)
+        self._radio: RadioTime | None = None
+        if config.radio_time and config.mac == "tdma":
+            self._radio = RadioTime(self.node, cycle_s=self._cycle)
         self._peers: dict[int, PeerState] = {}
         # R17: lending the rest of an own slot, for which a LEND and one full frame must still fit.
         self._lending = config.lend and config.mac == "tdma"
@@ -359,8 +371,21 @@ class ArqEndpoint(InputSide, TimerSide):
         robot that booted before it had a time source) would otherwise leave this robot's slots
         where the old clock put them, over its neighbours'.
         """
-        self.cfg = dataclasses.replace(self.cfg, clock_offset=offset)
-        self._mac.clock_offset = offset
+        moved, self.cfg = offset - self.cfg.clock_offset, dataclasses.replace(self.cfg, clock_offset=offset)
+        if self._radio is not None:
+            self._radio.wall_moved(moved)
+        self._follow_radio()
+
+    def set_clock_source(self, source: bool) -> None:
+        """Whether a time service keeps this node's wall clock (``mapd.wallclock``): with
+        ``radio_time``, such a node leads the fleet's turns and never follows another (R19)."""
+        if self._radio is not None:
+            self._radio.set_source(source)
+            self._follow_radio()
+
+    def radio_clock(self) -> dict[str, Any] | None:
+        """The radio clock's state (R19) for ``mapd status``; None when the link has none."""
+        return None if self._radio is None else self._radio.stats(self._now + self.cfg.clock_offset)
 
     def events(self) -> list[Event]:
         """Drain the events produced so far."""

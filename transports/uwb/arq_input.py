@@ -2,7 +2,7 @@
 a side looks at a frame: framing and its check (R1), the signature and replay checks (R2), the
 sender as a peer with its session (R3), frames heard in this node's own TDMA slot (R18), then the
 frame handed to the side whose rule it is (rules in ``arq.py``'s docstring), as a mixin over the
-endpoint's state.
+endpoint's state. TIME frames go to the radio clock (R19).
 
 DATA goes to the receiving rules (``arq_rx.py``), ACKs and DONE entries to the sender's ack
 handling (``arq_acks.py``), a LEND to the sending rules (``arq_tx.py``). A peer that restarted gets
@@ -16,7 +16,7 @@ from mapd.errors import ProtocolError
 from transports.uwb import wire
 from transports.uwb.arq_tx import SenderSide
 from transports.uwb.arq_types import PeerFeatures, PeerRestarted, PeerUp
-from transports.uwb.framing import FrameReader
+from transports.uwb.framing import FrameReader, check_len
 from transports.uwb.receiving import PeerState
 from transports.uwb.signing import Verifier
 
@@ -96,6 +96,13 @@ class InputSide(SenderSide):
             self._on_data(peer, frame, now)
         elif isinstance(frame, wire.Lend):
             self._on_lend(frame, now)
+        elif isinstance(frame, wire.Time):
+            self.counters.times_rx += 1
+            if self._radio is not None:  # R19: its stamp, plus its airtime, is the root's clock now
+                wire_len = len(body) + 2 + check_len(self._crc)  # COBS overhead, delimiter, check
+                local = now + self.cfg.clock_offset
+                if self._radio.heard(frame, local, wire_len * self._mac.byte_time):
+                    self._follow_radio()
         elif isinstance(frame, wire.Ack):
             self._on_ack(peer, frame, now)
         elif isinstance(frame, wire.Done):

@@ -1,12 +1,13 @@
 """What :class:`~transports.uwb.arq.ArqEndpoint` sends next, and how it builds each frame: HELLO,
-an owed ACK or DONE, a data or parity chunk (R4-R8, R16), or a LEND of the rest of an idle own slot
-(R17), as a mixin over the endpoint's state (rules in ``arq.py``'s docstring); and the frame handed
-to the adapter, signed, framed and let through by the pacer and medium access (R14, R15).
+TIME (R19), an owed ACK or DONE, a data or parity chunk (R4-R8, R16), or a LEND of the rest of an
+idle own slot (R17), as a mixin over the endpoint's state (rules in ``arq.py``'s docstring); and the
+frame handed to the adapter, signed, framed and let through by the pacer and medium access (R14,
+R15).
 
-Order: a due HELLO, an owed ACK, a due DONE, then the next chunk, round-robin over messages with
-background ones last; a node with nothing of its own left may lend its slot. The rest of the API
-stays in ``arq.py``, the timers in ``arq_timers.py``, frame input in ``arq_input.py``; the ack
-rules in ``arq_acks.py``, the receiving rules in ``arq_rx.py``.
+Order: a due HELLO, a due TIME, an owed ACK, a due DONE, then the next chunk, round-robin over
+messages with background ones last; a node with nothing of its own left may lend its slot. The
+rest of the API stays in ``arq.py``, the timers in ``arq_timers.py``, frame input in
+``arq_input.py``; the ack rules in ``arq_acks.py``, the receiving rules in ``arq_rx.py``.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from transports.uwb.arq_types import Event, MessageFlushed
 from transports.uwb.framing import encode_frame
 from transports.uwb.lending import Backlogs
 from transports.uwb.pacing import MediumAccess, Pacer
+from transports.uwb.radio_time import RadioTime
 from transports.uwb.sending import Outgoing
 from transports.uwb.signing import Signer
 
@@ -53,6 +55,8 @@ class SenderSide(ReceiverSide, AckSide):
     _hello_at: float
     #: One TDMA cycle (0 without TDMA): no probe timer runs shorter.
     _cycle: float
+    #: R19: the fleet's radio clock (None: turns on the wall clock alone).
+    _radio: RadioTime | None
 
     if TYPE_CHECKING:
 
@@ -87,6 +91,18 @@ class SenderSide(ReceiverSide, AckSide):
         self.counters.frames_tx += 1
         return out
 
+    def _follow_radio(self) -> None:
+        """R19: the turns follow the wall clock plus the radio clock's correction."""
+        correction = self._radio.correction if self._radio is not None else 0.0
+        self._mac.clock_offset = self.cfg.clock_offset + correction
+
+    def _time_due(self, now: float) -> float | None:
+        """When a TIME frame is due (R19), on the endpoint's clock; None: none is."""
+        if self._radio is None:
+            return None
+        due = self._radio.due(now + self.cfg.clock_offset, any(p.up for p in self._peers.values()))
+        return None if due is None else due - self.cfg.clock_offset
+
     def _hello_soon(self, now: float) -> None:
         """A HELLO is wanted soon (a peer first heard, or one that restarted: it must hear what
         this node understands), no sooner than :data:`HELLO_MIN_GAP_S` after the last."""
@@ -107,6 +123,9 @@ class SenderSide(ReceiverSide, AckSide):
         anything to send or owes anything, or no peer is known to have chunks left."""
         if not self._lending or self._hello_due <= now or self._done_owed or self._owed_ack() is not None:
             return None
+        time_due = self._time_due(now)
+        if time_due is not None and time_due <= now:
+            return None
         if self._next_data() is not None:
             return None
         peer = self._backlogs.pick(now, [p for p in self.peers_up() if self._understands(p, wire.F_LEND)])
@@ -124,6 +143,9 @@ class SenderSide(ReceiverSide, AckSide):
     def _send_dues(self, now: float) -> list[tuple[float, int]]:
         """(due time, size estimate) of each kind of frame waiting to go."""
         dues = [(self._hello_due, self._est(wire.HEADER_LEN))]
+        time_due = self._time_due(now)
+        if time_due is not None:
+            dues.append((time_due, self._est(wire.TIME_LEN)))
         owed = self._owed_ack()
         if owed is not None:
             dues.append((owed[0], self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)))
@@ -148,6 +170,9 @@ class SenderSide(ReceiverSide, AckSide):
     def _choose(self, now: float) -> tuple[str, Any, int] | None:
         if self._hello_due <= now:
             return "hello", None, self._est(wire.HEADER_LEN)
+        time_due = self._time_due(now)
+        if time_due is not None and time_due <= now:
+            return "time", None, self._est(wire.TIME_LEN)
         owed = self._owed_ack()
         if owed is not None and owed[0] <= now:
             return "ack", (owed[1], owed[2]), self._est(wire.ACK_HEADER_LEN + wire.MAX_BITMAP)
@@ -165,6 +190,10 @@ class SenderSide(ReceiverSide, AckSide):
             self.counters.hellos_tx += 1
             self._hello_at = now
             return wire.Hello(self.node, wire.FEATURES_FLAG | wire.FEATURES, self.session)
+        if kind == "time" and self._radio is not None:
+            self.counters.times_tx += 1
+            # stamped with when it goes on the air: TDMA lets a frame go only once the one before is out
+            return self._radio.beacon(now + self.cfg.clock_offset, self.node, self.session)
         if kind == "ack":
             peer, msg = ref
             return self._build_ack(peer, msg, now)

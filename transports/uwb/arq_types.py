@@ -59,6 +59,9 @@ class ArqConfig:
     slot_index: int = 0
     guard_s: float = 0.01
     clock_offset: float = 0.0
+    #: TDMA: keep the turns on a clock agreed over the radio (``radio_time.py``) while the wall
+    #: clocks are not all kept by a time service; off: on the wall clock alone.
+    radio_time: bool = False
     #: TDMA: how late a frame's bytes may reach this node after the frame's end on the air (the
     #: radio's serial line, at the port's baud): R18 counts a frame out of turn only when it was
     #: certainly on the air in this node's own slot.
@@ -208,6 +211,9 @@ class ArqCounters:
     #: Chunks queued for resend at a NACK's request (one resend serves every receiver lacking it).
     repairs_queued: int = 0
     hellos_tx: int = 0
+    #: TIME frames sent and heard (the fleet's radio clock, ``radio_time.py``).
+    times_tx: int = 0
+    times_rx: int = 0
     #: LEND frames sent (own slots' rests lent), and slots' rests borrowed on a peer's LEND (R17).
     lends_tx: int = 0
     borrowed: int = 0

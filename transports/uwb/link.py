@@ -73,6 +73,7 @@ class UwbLink(PortSide, SigningSide, ClockSide):
         reopen_s: float = 1.0,
         session: int | None = None,
         wall_clock: Callable[[], float] = time.time,
+        time_service: Callable[[], bool | None] | None = None,
         wait_for_port: bool = False,
     ) -> None:
         self.port = port
@@ -80,6 +81,9 @@ class UwbLink(PortSide, SigningSide, ClockSide):
         #: one-shot command such as ``mapd link send``, where a typo must not look like a wait).
         self.wait_for_port = wait_for_port
         self._wall = wall_clock  # the clock TDMA slots are counted on (a test steps its own)
+        # whether a time service keeps the wall clock (the kernel's answer, asked when read)
+        self._time_service = time_service or (lambda: wallclock.synchronized())
+        self._source_at = -float("inf")
         self.baud = baud
         self.reopen_s = reopen_s
         self._on_event = on_event or (lambda e: None)
@@ -153,7 +157,7 @@ class UwbLink(PortSide, SigningSide, ClockSide):
                 )
             self._cfg = dataclasses.replace(self._cfg, counter_start=start, replay_marks=marks)
         self.core = arq.ArqEndpoint(self._cfg, session=self._session, seed=self._session)
-        if self._cfg.mac == "tdma" and wallclock.synchronized() is False:
+        if self._cfg.mac == "tdma" and not self._cfg.radio_time and self._time_service() is False:
             log.warning(
                 "uwb %s: the kernel says the wall clock is not synchronized; TDMA turns need the "
                 "fleet's clocks to agree within guard_ms (run chrony: docs/uwb.md)",
@@ -237,10 +241,13 @@ class UwbLink(PortSide, SigningSide, ClockSide):
 
     def stats(self) -> dict[str, Any]:
         out = self.core.stats() if self.core is not None else {}
-        if self._cfg.mac == "tdma":
-            synced = wallclock.synchronized()  # one syscall; status asks now and then
+        if self._cfg.mac == "tdma" and not self._cfg.radio_time:
+            # (with radio time a clock no time service keeps follows the fleet's: no fault)
+            synced = self._time_service()  # one syscall; status asks now and then
             if synced is not None:
                 out["clock_synchronized"] = synced
+        if self.core is not None and (radio := self.core.radio_clock()) is not None:
+            out["radio_clock"] = radio
         out.update(
             port=self.port,
             port_open=self._proto is not None and not self._proto.lost,

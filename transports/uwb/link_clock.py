@@ -1,6 +1,7 @@
 """How a :class:`~transports.uwb.link.UwbLink` follows the wall clock: TDMA slots and the signing
 counters' clock check count on it, while the link's loop runs on the event loop's monotonic clock,
-so the link reads the wall clock's offset as it runs and passes each change to the core.
+so the link reads the wall clock's offset as it runs and passes each change to the core, with
+whether a time service keeps it (the core's radio clock, R19, lets such a robot lead the turns).
 
 A change within what a time service slews is followed quietly; a faster one is a step (NTP setting
 a clock that booted behind), counted and logged. A step ahead also lets a signing counter that began
@@ -36,13 +37,21 @@ class ClockSide:
 
     port: str
     _wall: Callable[[], float]
+    #: Whether a time service keeps the wall clock (``mapd.wallclock.synchronized``; a test's own).
+    _time_service: Callable[[], bool | None]
+    #: When (loop time) the time service was last asked: once per CLOCK_CHECK_S, not every pass.
+    _source_at: float
     _clock_read: tuple[float, float] | None
     clock_steps: int
     #: The signing counter began from the wall clock, none being saved.
     _counter_from_clock: bool
 
     def _follow_clock(self, core: arq.ArqEndpoint, now: float) -> None:
-        """Pass the wall clock's offset from the loop's to the core when it moved (slew or step)."""
+        """Pass the wall clock's offset from the loop's to the core when it moved (slew or step),
+        and whether a time service keeps it (with radio time such a robot leads, never follows)."""
+        if now - self._source_at >= CLOCK_CHECK_S:
+            self._source_at = now
+            core.set_clock_source(self._time_service() is True)
         offset = self._wall() - now
         last, self._clock_read = self._clock_read, (now, offset)
         if abs(offset - core.cfg.clock_offset) >= CLOCK_FOLLOW_S:

@@ -94,6 +94,13 @@ class UwbOptions(TransportOptions):
     )
     slot_index: int | None = Field(default=None, ge=0, description="tdma: own slot; default rank of node_id")
     guard_ms: float = Field(default=10.0, ge=0, description="tdma: quiet time at the end of a slot")
+    clock: Literal["radio", "system"] = Field(
+        default="radio",
+        description="tdma: the clock the turns are counted on. radio: the wall clock where a time "
+        "service keeps it (chrony), else one the fleet agrees over the radio, led by a robot whose "
+        "clock a time service keeps, or the lowest link id (no TIME frame is sent while every "
+        "robot heard has a time service). system: the wall clock always (every robot must run chrony)",
+    )
     rx_latency_ms: float | None = Field(
         default=None,
         ge=0,

@@ -129,6 +129,7 @@ class UwbTransport(RequestSide, Transport):
             lend=o.lend,
             guard_s=o.guard_ms / 1000,
             clock_offset=time.time() - loop.time(),
+            radio_time=o.clock == "radio",
             rx_slack_s=o.rx_latency_s,
             check_counter_clock=True,
             sense_s=o.sense_ms / 1000,
@@ -319,6 +320,10 @@ class UwbTransport(RequestSide, Transport):
         # robot -> what its older mapd lacks, by name (mapd status: under the link)
         older = out.pop("older_peers", {})
         out["older_mapd"] = {self._name(n): wire.feature_words(f) for n, f in older.items()}
+        if isinstance(radio := out.get("radio_clock"), dict):  # link ids by robot name
+            for key in ("root", "parent"):
+                if isinstance(radio.get(key), int):
+                    radio[key] = self._name(radio[key])
         return out
 
     def _on_event(self, e: arq.Event) -> None:
@@ -380,11 +385,19 @@ class UwbTransport(RequestSide, Transport):
             self._features_said[e.peer] = now
             lacks = wire.FEATURES & ~e.features
             if lacks:  # a rolling upgrade: nothing to set, but the channel carries more meanwhile
+                frames, what = lacks & ~wire.F_TIME, []
+                if frames:
+                    which = "none" if frames == lacks else f"no {wire.feature_words(frames)}"
+                    what.append(
+                        f"{which} go to it until it is upgraded, and maps it receives too are sent without them"
+                    )
+                if lacks & wire.F_TIME:  # TIME frames are broadcast: it drops them, and its turns are its own
+                    what.append("it counts its TDMA turns on its own clock, not the fleet's radio clock")
                 log.info(
-                    "uwb: %s runs a mapd from before %s (its HELLO says so): none go to it until it is "
-                    "upgraded, and maps it receives too are sent without them; nothing needs setting",
+                    "uwb: %s runs a mapd from before %s (its HELLO says so): %s; nothing needs setting",
                     self._name(e.peer),
                     wire.feature_words(lacks),
+                    "; ".join(what),
                 )
             else:
                 log.info("uwb: %s understands all of this link's frames now", self._name(e.peer))

@@ -19,6 +19,10 @@ then, by type::
            for several messages, of several senders, in one frame (NACK mode, R16 in ``arq.py``)
     LEND   u16 slot: the rest of TDMA slot number ``slot`` (mod 2^16 on the shared clock), which is
            the sender's own, goes to ``dst`` (R17 in ``arq.py``)
+    TIME   u8 root, u8 hops (bit 7: the root's clock is kept by a time service), u16 seq, u16 delay
+           (10 us units, 0xFFFF unknown), u64 stamp (us on the sender's link clock when the frame
+           went on the air), u8 echo_src, u32 echo (low bits of echo_src's stamp), u32 hold (us),
+           dst 255: the fleet's TDMA clock kept over the radio (``radio_time.py``)
 
 A signed body ends with a 12-byte trailer (u48 counter, 6-byte truncated HMAC; see
 :mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
@@ -56,6 +60,10 @@ index_limit`), which says its block and share. A node from before it refuses suc
 malformed and so never completes a map whose repairs came as parity: a fleet with such nodes runs
 ``fec = false``, with which no parity is sent (a message goes without parity where any receiver
 says it lacks it: *Features* below).
+
+TIME was added the same way (a fleet without a time service: TDMA's turns need one clock). A node
+from before it drops TIME frames as an unknown type and keeps its turns on its own clock, as
+before; nothing else it hears changes.
 
 Features (mixed versions). Nodes from before the announcement send HELLO to 255; later ones put
 :data:`FEATURES_FLAG` ``|`` the features they understand (:data:`F_DONE`, :data:`F_PARITY`,
@@ -101,8 +109,16 @@ VERSION = 2
 BROADCAST = 255
 SIGNED = 0x80
 
-DATA, ACK, HELLO, DGRAM, DONE, LEND = 1, 2, 3, 4, 5, 6
-KIND_NAMES = {DATA: "DATA", ACK: "ACK", HELLO: "HELLO", DGRAM: "DGRAM", DONE: "DONE", LEND: "LEND"}
+DATA, ACK, HELLO, DGRAM, DONE, LEND, TIME = 1, 2, 3, 4, 5, 6, 7
+KIND_NAMES = {
+    DATA: "DATA",
+    ACK: "ACK",
+    HELLO: "HELLO",
+    DGRAM: "DGRAM",
+    DONE: "DONE",
+    LEND: "LEND",
+    TIME: "TIME",
+}
 
 #: A HELLO whose dst has this bit (and is not BROADCAST) announces the sender's features in the
 #: bits below it; see the module docstring. Bit 6 stays clear (0xFF is BROADCAST): six features.
@@ -110,9 +126,10 @@ FEATURES_FLAG = 0x80
 F_DONE = 0x01  # takes COMPLETEs in DONE frames
 F_PARITY = 0x02  # rebuilds blocks from parity chunks (DATA index at or past count)
 F_LEND = 0x04  # borrows the rest of a slot named in a LEND
+F_TIME = 0x08  # keeps its TDMA turns on the clock TIME frames carry
 #: What this version understands, and so announces.
-FEATURES = F_DONE | F_PARITY | F_LEND
-FEATURE_NAMES = {F_DONE: "DONE acks", F_PARITY: "parity repair", F_LEND: "lent turns"}
+FEATURES = F_DONE | F_PARITY | F_LEND | F_TIME
+FEATURE_NAMES = {F_DONE: "DONE acks", F_PARITY: "parity repair", F_LEND: "lent turns", F_TIME: "radio time"}
 
 
 def feature_words(features: int) -> str:
@@ -139,11 +156,19 @@ _DATA = struct.Struct("<HBBHHHB")
 _ACK = struct.Struct("<HBHBBBH")
 _DONE = struct.Struct("<BBH")
 _LEND = struct.Struct("<H")
+_TIME = struct.Struct("<BBHHQBII")
 HEADER_LEN = _HDR.size
 DONE_ENTRY_LEN = _DONE.size
 DATA_HEADER_LEN = _HDR.size + _DATA.size
 ACK_HEADER_LEN = _HDR.size + _ACK.size
 LEND_LEN = _HDR.size + _LEND.size
+TIME_LEN = _HDR.size + _TIME.size
+#: TIME: bit 7 of ``hops`` says the root's clock is kept by a time service; hops are below it.
+TIME_SOURCE = 0x80
+#: TIME: ``delay`` when the sender has not measured it.
+DELAY_UNKNOWN = 0xFFFF
+#: TIME: ``delay`` counts units of this many seconds (10 us: up to 655 ms).
+DELAY_UNIT_S = 1e-5
 #: LEND names slots modulo this.
 SLOT_MOD = 1 << 16
 
@@ -220,7 +245,29 @@ class Lend:
     slot: int
 
 
-Frame = Data | Ack | Hello | Done | Lend
+@dataclass(frozen=True, slots=True)
+class Time:
+    """The sender's link clock (``stamp``, us, when the frame went on the air) and where it comes
+    from: ``root``'s clock, ``hops`` away, its beacon ``seq``; the path delay the sender measured
+    (``delay``, :data:`DELAY_UNIT_S` units); and an echo of the last TIME heard from ``echo_src``
+    (low 32 bits of its stamp, held ``hold`` us before this one went), by which that node measures
+    the delay. See ``radio_time.py``."""
+
+    src: int
+    dst: int
+    session: int
+    root: int
+    source: bool
+    hops: int
+    seq: int
+    delay: int
+    stamp: int
+    echo_src: int = 0
+    echo: int = 0
+    hold: int = 0
+
+
+Frame = Data | Ack | Hello | Done | Lend | Time
 
 
 def hello_features(h: Hello) -> int | None:
@@ -265,8 +312,16 @@ def pack_lend(f: Lend, *, signed: bool = False) -> bytes:
     return _head(LEND, signed, f.src, f.dst, f.session) + _LEND.pack(f.slot % SLOT_MOD)
 
 
+def pack_time(f: Time, *, signed: bool = False) -> bytes:
+    hops = min(f.hops, TIME_SOURCE - 1) | (TIME_SOURCE if f.source else 0)
+    fields = _TIME.pack(f.root, hops, f.seq, f.delay, f.stamp, f.echo_src, f.echo, f.hold)
+    return _head(TIME, signed, f.src, f.dst, f.session) + fields
+
+
 def pack(frame: Frame, *, signed: bool = False) -> bytes:
     """The body of ``frame`` (without a signing trailer)."""
+    if isinstance(frame, Time):
+        return pack_time(frame, signed=signed)
     if isinstance(frame, Lend):
         return pack_lend(frame, signed=signed)
     if isinstance(frame, Done):
@@ -343,6 +398,18 @@ def parse(body: bytes) -> Frame:
         if dst == BROADCAST:
             raise ProtocolError("uwb: LEND sent to broadcast")
         return Lend(src, dst, session, _LEND.unpack_from(body, HEADER_LEN)[0])
+    if kind == TIME:
+        if len(body) != TIME_LEN:
+            raise ProtocolError(f"uwb: TIME frame of {len(body)} bytes is not {TIME_LEN}")
+        if dst != BROADCAST:
+            raise ProtocolError("uwb: TIME frame not sent to broadcast")
+        root, hops, seq, delay, stamp, echo_src, echo, hold = _TIME.unpack_from(body, HEADER_LEN)
+        if not 1 <= root <= 254:
+            raise ProtocolError(f"uwb: TIME root id {root} is out of range")
+        if echo_src > 254:
+            raise ProtocolError(f"uwb: TIME echo id {echo_src} is out of range")
+        source, hops = bool(hops & TIME_SOURCE), hops & ~TIME_SOURCE
+        return Time(src, dst, session, root, source, hops, seq, delay, stamp, echo_src, echo, hold)
     if kind == HELLO:
         if len(body) != HEADER_LEN:
             raise ProtocolError("uwb: HELLO frame has trailing bytes")

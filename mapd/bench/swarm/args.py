@@ -189,6 +189,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "of it either way (TDMA counts its slots on them; default 0, one clock); several: a run each",
     )
     p.add_argument(
+        "--clock",
+        choices=["radio", "system"],
+        nargs="+",
+        default=["radio"],
+        help="tdma: the clock the turns are counted on, as the daemon's [transports.uwb] clock: radio "
+        "(default: with --clock-skew the robots agree one over the radio; without, every robot's clock "
+        "is taken as kept by a time service and no TIME frame is sent) or system (each robot's own "
+        "clock, skewed or not); several: a run each",
+    )
+    p.add_argument(
         "--slot-ms",
         type=float_arg(1.0, 60_000.0),  # 0 divided by zero; each slot is simulated, so not much finer
         default=None,

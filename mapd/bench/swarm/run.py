@@ -26,6 +26,7 @@ COLUMNS = [
     ("hold", "hold", ""),
     ("arrival", "arrival", ""),
     ("clock_skew_ms", "skew ms", "g"),
+    ("clock", "clock", ""),
     ("stale_p50_s", "stale p50 s", ".1f"),
     ("stale_p95_s", "p95 s", ".1f"),
     ("stale_max_s", "max s", ".0f"),
@@ -40,6 +41,7 @@ COLUMNS = [
     ("x_coded", "x coded", ".1f"),
     ("collided", "collided", ""),
     ("out_of_turn", "out of turn", ""),
+    ("time_frames", "TIME frames", ""),
     ("lost", "lost", ""),
     ("degree", "hears", ".1f"),
     ("robot_hears_all", "hears all", ".1%"),
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         for codec in dict.fromkeys(args.codec):
             payloads = Payloads(args.cache, codec)
             combos = [
-                (rg, m, a, le, f, h, ar, sk, sd)
+                (rg, m, a, le, f, h, ar, sk, ck, sd)
                 for rg in dict.fromkeys(args.range_m)
                 for m in args.mac
                 for a in dict.fromkeys(args.ack_mode)
@@ -114,16 +116,17 @@ def run(args: argparse.Namespace) -> int:
                 for h in args.hold
                 for ar in dict.fromkeys(args.arrival)
                 for sk in dict.fromkeys(args.clock_skew)
+                for ck in dict.fromkeys(args.clock)
                 for sd in dict.fromkeys(args.seed)
             ]
-            for range_m, mac, ack_mode, lend, fec, hold, arrival, skew, seed in combos:
+            for range_m, mac, ack_mode, lend, fec, hold, arrival, skew, clock, seed in combos:
                 cfg = SwarmConfig(
                     codec=codec, period=args.period, duration=args.duration, drain=args.drain,
                     rate_bps=args.rate, loss=args.loss, wall_loss=args.wall_loss, range_m=range_m,
                     mac=mac, signed=not args.unsigned, seed=seed, relay=args.relay, acks=args.acks,
                     slot_s=args.slot_ms / 1000.0 if args.slot_ms is not None else None,
                     inflight_s=args.inflight_s, ack_mode=ack_mode, lend=lend == "on", fec=fec == "on",
-                    hold=hold == "on", arrival=arrival, clock_skew_s=skew / 1000.0,
+                    hold=hold == "on", arrival=arrival, clock_skew_s=skew / 1000.0, clock=clock,
                     guard_s=args.guard_ms / 1000.0,
                     **({"keyframe_every": args.keyframe_every} if args.keyframe_every else {}),
                 )  # fmt: skip
@@ -140,17 +143,19 @@ def run(args: argparse.Namespace) -> int:
                 row["arrival"] = arrival
                 row["seed"] = seed
                 row["clock_skew_ms"] = skew
+                row["clock"] = clock
+                row["time_frames"] = sum(r.arq.counters.times_tx for r in res.robots)
                 row["borrowed"] = sum(r.arq.counters.borrowed for r in res.robots)
                 row["out_of_turn"] = sum(r.arq.counters.out_of_turn for r in res.robots)
                 rows.append(row)
                 print(
                     f"swarm: {n} robots, range {range_m:g} m, {codec}, {mac}, acks {ack_mode}, lend {lend}, "
-                    f"fec {fec}, hold {hold}, arrival {arrival}, skew {skew:g} ms, seed {seed}: "
+                    f"fec {fec}, hold {hold}, arrival {arrival}, skew {skew:g} ms, clock {clock}, seed {seed}: "
                     f"{res.end:.0f} s simulated in {res.wall_s:.1f} s "
                     f"({res.events} events, {payloads.encodes} encodes)",
                     file=sys.stderr,
                 )
-                if args.bound and (mac, ack_mode, lend, fec, hold, arrival, skew) == combos[0][1:8]:
+                if args.bound and (mac, ack_mode, lend, fec, hold, arrival, skew, clock) == combos[0][1:9]:
                     bounds += _bounds(fleet, payloads, cfg)  # the bound ignores the publisher's settings
 
     def key(r: dict[str, Any]) -> tuple[str, ...]:
@@ -195,7 +200,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 #: What sets a row apart, besides its fleet size and seed.
-_SETTINGS = ("range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival", "clock_skew_ms")
+_SETTINGS = (
+    "range_m", "codec", "mac", "ack_mode", "lend", "fec", "hold", "arrival", "clock_skew_ms", "clock",
+)  # fmt: skip
 
 
 def with_means(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:

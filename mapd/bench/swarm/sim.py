@@ -78,6 +78,10 @@ class SwarmConfig:
     #: How far the robots' clocks may disagree (TDMA counts slots on them): each robot's is off by a
     #: seeded draw in [-clock_skew_s / 2, clock_skew_s / 2]. 0: one clock, as the daemon assumes.
     clock_skew_s: float = 0.0
+    #: The clock TDMA's turns are counted on (the daemon's ``[transports.uwb] clock``): ``radio``
+    #: agrees one over the radio where the robots' clocks are skewed (without skew each robot's is
+    #: taken as kept by a time service, and no TIME frame is sent); ``system``: each robot's own.
+    clock: str = "radio"
     #: TDMA: the quiet time at the end of each slot (the daemon's ``guard_ms``), which the default
     #: slot adds to its frames' time.
     guard_s: float = 0.01
@@ -177,6 +181,8 @@ class Swarm:
             )
             for i in range(n)
         ]
+        for robot in self.robots:  # skewed clocks are no time service's (one clock is)
+            robot.arq.set_clock_source(config.clock_skew_s == 0)
         self.made = tl.made
         self._gen = [0] * n
         self._wake_at: list[float | None] = [None] * n
@@ -208,6 +214,7 @@ class Swarm:
             lend=c.lend,
             fec=c.fec,
             clock_offset=self._clocks[i],
+            radio_time=c.clock == "radio",
         )
 
     # --- the run --------------------------------------------------------------------------------

@@ -120,3 +120,6 @@ def test_a_tdma_link_says_whether_its_clock_is_synchronized(
     assert said is not synced
     # A link without TDMA does not count on the clock: nothing said.
     assert "clock_synchronized" not in UwbLink(ArqConfig(node_id=1), "/dev/mapd-test-none").stats()
+    # Nor does one whose turns follow the fleet's radio clock where no time service keeps its own.
+    radio = UwbLink(ArqConfig(node_id=1, mac="tdma", slots=2, radio_time=True), "/dev/mapd-test-none")
+    assert "clock_synchronized" not in radio.stats()

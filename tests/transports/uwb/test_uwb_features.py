@@ -182,8 +182,9 @@ def test_parity_from_a_sender_that_announced_none_is_taken() -> None:
     assert nodes[1].older_peers() == {1: wire.FEATURES}
     msg, _data = _send(net, nodes[0], [2, 3])
     assert arq.MessageClosed(msg, "delivered") in net.events[1]
-    # what it showed counts over what it said: DONE and parity from now on (LEND still unknown)
-    assert nodes[1].older_peers() == {1: wire.F_LEND} and nodes[2].older_peers() == {1: wire.F_LEND}
+    # what it showed counts over what it said: DONE and parity from now on (LEND, TIME still unknown)
+    later = wire.F_LEND | wire.F_TIME
+    assert nodes[1].older_peers() == {1: later} and nodes[2].older_peers() == {1: later}
     acks = sum(n.stats()["acks_tx"] for n in nodes[1:])
     msg, _data = _send(net, nodes[0], [2, 3])
     assert arq.MessageClosed(msg, "delivered") in net.events[1]
@@ -317,8 +318,9 @@ def test_the_transport_says_an_older_robot_once_and_its_upgrade_and_names_it_in_
     t._on_event(arq.PeerFeatures(3, wire.FEATURES))
     said = [r.getMessage() for r in caplog.records if r.name == "mapd.uwb"]
     assert said == [
-        "uwb: c runs a mapd from before parity repair, lent turns (its HELLO says so): none go to it until "
-        "it is upgraded, and maps it receives too are sent without them; nothing needs setting",
+        "uwb: c runs a mapd from before parity repair, lent turns, radio time (its HELLO says so): no parity "
+        "repair, lent turns go to it until it is upgraded, and maps it receives too are sent without them; "
+        "it counts its TDMA turns on its own clock, not the fleet's radio clock; nothing needs setting",
         "uwb: c understands all of this link's frames now",
     ], said
     st = t.stats()

@@ -1,0 +1,334 @@
+"""The fleet's TDMA clock kept over the radio (R19, ``radio_time.py``): robots whose wall clocks
+disagree by hundreds of milliseconds, and no time service, keep their turns apart; a robot whose
+clock a time service keeps leads; a fleet where every robot has one sends no TIME frame.
+
+Each robot's "link clock" is ``now + offset`` of its medium access (the turns it counts); two robots
+agree when those offsets do, on the simulated channel's one true clock.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from mapd.commands.status_text import render_status
+from transports.uwb import radio_time, wire
+from transports.uwb.arq import ArqConfig, ArqEndpoint
+from transports.uwb.faults import Faults
+from transports.uwb.sim import SimNet
+
+RATE = 12_500.0
+SLOT = 0.6  # four full frames, as the daemon's default slot at this rate
+KEY = bytes(range(32))
+
+
+def _node(
+    node_id: int, offset: float, *, slots: int = 3, radio: bool = True, key: bytes | None = None
+) -> ArqEndpoint:
+    cfg = ArqConfig(
+        node_id=node_id, rate_bps=RATE, mac="tdma", slots=slots, slot_index=node_id - 1, slot_s=SLOT,
+        clock_offset=offset, deadline_s=60.0, radio_time=radio, key=key,
+    )  # fmt: skip
+    return ArqEndpoint(cfg, session=node_id, seed=node_id)
+
+
+def _turns(ep: ArqEndpoint) -> float:
+    """The offset of the clock ``ep`` counts its turns on, from the channel's true clock."""
+    return ep._mac.clock_offset
+
+
+class Reach(SimNet):
+    """A channel on which only the pairs in ``hears`` hear each other (robots out of range)."""
+
+    def __init__(self, endpoints: list[ArqEndpoint], hears: set[tuple[int, int]], **kw: object) -> None:
+        super().__init__(endpoints, **kw)  # type: ignore[arg-type]
+        self.hears = hears | {(b, a) for a, b in hears}
+
+    def _push(self, t: float, dst: int, data: bytes) -> None:
+        src = self._sending
+        if (src, dst) in self.hears:
+            super()._push(t, dst, data)
+
+    def _transmit(self, src: int, frame: bytes, rate: float) -> None:
+        self._sending = src
+        super()._transmit(src, frame, rate)
+
+
+# Three robots whose clocks are 250 and 400 ms apart: most of a slot, where the guard is 10 ms.
+SKEWED = (0.3, 0.55, -0.1)
+
+
+@pytest.mark.parametrize("radio", [True, False])
+def test_robots_whose_clocks_disagree_keep_their_turns_apart_on_the_radio_clock(radio: bool) -> None:
+    nodes = [_node(i + 1, off, radio=radio) for i, off in enumerate(SKEWED)]
+    net = SimNet(nodes, shared=True, seed=1)
+    net.run(until=10.0)
+    nodes[1].send(os.urandom(4000), net.now, dests=[1, 3])  # twenty frames' bytes, in robot 2's turns
+    net.run(until=40.0)
+    assert len(net.received(1)) == 1 and len(net.received(3)) == 1
+    out_of_turn = [n.counters.out_of_turn for n in nodes]
+    if not radio:  # the wall clocks alone: robot 2's turns run into robot 1's
+        assert sum(out_of_turn) >= 5, out_of_turn
+        return
+    assert out_of_turn == [0, 0, 0]
+    # every robot counts its turns on robot 1's clock (the lowest id, no time service heard)
+    assert all(abs(_turns(n) - SKEWED[0]) < 1e-6 for n in nodes), [_turns(n) for n in nodes]
+    assert [n.radio_clock()["role"] for n in nodes] == ["leads", "follows", "follows"]  # type: ignore[index]
+
+
+def test_a_robot_whose_clock_a_time_service_keeps_leads_whatever_its_id() -> None:
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    nodes[2].set_clock_source(True)  # chrony keeps robot 3's clock
+    net = SimNet(nodes, shared=True, seed=2)
+    net.run(until=60.0)
+    assert all(abs(_turns(n) - SKEWED[2]) < 1e-6 for n in nodes), [_turns(n) for n in nodes]
+    assert nodes[2].radio_clock()["role"] == "source"  # type: ignore[index]
+    assert nodes[0].radio_clock()["root"] == 3 and nodes[0].radio_clock()["root_is_source"]  # type: ignore[index]
+
+
+def test_a_fleet_whose_every_clock_a_time_service_keeps_sends_no_time_frame() -> None:
+    nodes = [_node(i + 1, 0.0) for i in range(3)]
+    for n in nodes:
+        n.set_clock_source(True)
+    net = SimNet(nodes, shared=True, seed=3)
+    net.run(until=120.0)
+    assert [n.counters.times_tx for n in nodes] == [0, 0, 0]
+    assert [n.counters.hellos_tx > 0 for n in nodes] == [True, True, True]  # (they did talk)
+
+
+def test_a_robot_without_a_time_service_joining_such_a_fleet_is_answered_and_follows() -> None:
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    nodes[0].set_clock_source(True)
+    nodes[1].set_clock_source(True)  # robot 2's clock is 250 ms off robot 1's, but kept: it leads too
+    net = SimNet(nodes, shared=True, seed=4)
+    net.run(until=30.0)
+    assert abs(_turns(nodes[2]) - SKEWED[0]) < 1e-6  # the lowest id of the time-service robots
+    assert _turns(nodes[1]) == SKEWED[1]  # a time service's clock never follows another
+    # Only what robot 3 needs: answers to it, 1, 2, 4 and 8 s apart, then one a period.
+    most = 4 + net.now / radio_time.PERIOD_S + 1
+    assert nodes[0].counters.times_tx <= most and nodes[1].counters.times_tx <= most, net.now
+    net.replace(3, None)  # robot 3 leaves: once its need is forgotten, the sources say nothing more
+    net.run(until=net.now + radio_time.LOST_PERIODS * radio_time.PERIOD_S + 10)
+    sent = [n.counters.times_tx for n in nodes[:2]]
+    net.run(until=net.now + 120)
+    assert [n.counters.times_tx for n in nodes[:2]] == sent
+
+
+def test_a_robot_two_hops_from_the_leader_keeps_its_turns_on_the_leaders_clock() -> None:
+    # 1 - 2 - 3 in a line: robot 3 never hears robot 1; robot 2 passes robot 1's time on.
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    net = Reach(nodes, {(1, 2), (2, 3)}, shared=True, seed=5)
+    net.run(until=200.0)
+    assert all(abs(_turns(n) - SKEWED[0]) < 1e-6 for n in nodes), [_turns(n) for n in nodes]
+    far = nodes[2].radio_clock()
+    assert far is not None and (far["root"], far["hops"], far["parent"]) == (1, 2, 2)
+    # robot 2 passed each of robot 1's beacons on: about one frame per root beacon, not a flood
+    beacons = nodes[0].counters.times_tx
+    assert beacons >= 200 / radio_time.PERIOD_S - 2
+    assert nodes[1].counters.times_tx <= beacons + 3, (nodes[1].counters.times_tx, beacons)
+    # robot 3 sends only its own beacon every LEAF_EVERY periods (robot 2 hears nobody further)
+    assert nodes[2].counters.times_tx <= 200 / (radio_time.LEAF_EVERY * radio_time.PERIOD_S) + 3
+
+
+def test_when_the_leader_leaves_the_next_lowest_id_leads_from_the_same_clock() -> None:
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    net = Reach(nodes, {(1, 2), (2, 3)}, shared=True, seed=6)
+    net.run(until=60.0)
+    assert all(abs(_turns(n) - SKEWED[0]) < 1e-6 for n in nodes)
+    net.replace(1, None)  # robot 1 is switched off
+    lost = radio_time.LOST_PERIODS * radio_time.PERIOD_S + 2 * 3 * SLOT
+    net.run(until=60.0 + lost + 3 * radio_time.PERIOD_S)
+    two, three = nodes[1].radio_clock(), nodes[2].radio_clock()
+    assert two is not None and three is not None
+    assert two["role"] == "leads" and (three["root"], three["hops"]) == (2, 1)
+    # robot 2 leads with the clock it had, so nobody's turns jumped (no count to infinity either)
+    assert abs(_turns(nodes[1]) - SKEWED[0]) < 1e-3 and abs(_turns(nodes[2]) - SKEWED[0]) < 1e-3
+
+
+class NoEcho(radio_time.RadioTime):
+    """A radio clock that never measures the path delay (it takes echoes for nothing)."""
+
+    def _echoed(self, f: wire.Time, local: float) -> None:
+        pass
+
+
+@pytest.mark.parametrize("measured", [True, False])
+def test_the_path_delay_is_measured_both_ways_so_a_slow_radio_does_not_put_followers_behind(
+    measured: bool,
+) -> None:
+    # 17 ms more each way than the frame's airtime (a radio that buffers, a slow serial line): counted
+    # from airtime alone, a follower runs 17 ms behind its leader, past the 10 ms guard.
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    if not measured:
+        for n in nodes:
+            assert n._radio is not None
+            n._radio.__class__ = NoEcho
+    net = SimNet(nodes, shared=True, seed=7, faults=Faults(latency_s=0.017))
+    net.run(until=(radio_time.LEAF_EVERY + 2) * radio_time.PERIOD_S)
+    behind = [_turns(n) - SKEWED[0] for n in nodes]
+    if not measured:
+        assert behind[0] == 0 and all(-0.0171 < b < -0.0169 for b in behind[1:]), behind
+        return
+    assert all(abs(b) < 5e-4 for b in behind), behind
+    airtime = (wire.TIME_LEN + 2 + 4) * 8 / RATE  # COBS, delimiter and CRC
+    delay = nodes[0].radio_clock()["delay_ms"]  # type: ignore[index]
+    assert abs(delay - 1000 * (airtime + 0.017)) < 0.1, delay
+
+
+def test_a_follower_whose_wall_clock_steps_keeps_its_turns_where_they_were() -> None:
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    net = SimNet(nodes, shared=True, seed=8)
+    net.run(until=60.0)
+    assert abs(_turns(nodes[2]) - SKEWED[0]) < 1e-6
+    nodes[2].set_clock_offset(SKEWED[2] + 0.3)  # NTP steps robot 3's clock after the link started
+    assert abs(_turns(nodes[2]) - SKEWED[0]) < 1e-6
+    net.run(until=120.0)
+    assert abs(_turns(nodes[2]) - SKEWED[0]) < 1e-6 and nodes[2].counters.out_of_turn == 0
+
+
+def test_a_replayed_time_frame_does_not_move_a_signed_fleets_clock() -> None:
+    """An attacker without the link key records robot 1's TIME frame and plays it back later (or
+    forges one): the signature or the replay check drops it before the clock sees it."""
+    nodes = [_node(i + 1, off, key=KEY) for i, off in enumerate(SKEWED[:2])]
+    for n in nodes:
+        n.confirm_counter(1 << 40)
+    frames: list[bytes] = []
+    real = nodes[0].data_to_send
+
+    def record(now: float) -> bytes:
+        out = real(now)
+        frames.append(out)
+        return out
+
+    nodes[0].data_to_send = record  # type: ignore[method-assign]
+    net = SimNet(nodes, shared=True, seed=9)
+    net.run(until=10.0)
+    assert abs(_turns(nodes[1]) - SKEWED[0]) < 1e-6
+    net.replace(1, None)
+    replays = [f for f in frames if f]
+    before = nodes[1].stats()
+    for f in replays:  # played back 20 s later: its stamp, plus airtime, would put robot 2 20 s behind
+        nodes[1].receive_data(f, net.now + 20.0)
+    forged = wire.pack(wire.Time(1, 255, 1, 1, True, 0, 999, 0, 0))  # a CRC frame into a keyed link
+    from transports.uwb.framing import encode_frame
+
+    nodes[1].receive_data(encode_frame(forged, crc=True), net.now + 20.0)
+    after = nodes[1].stats()
+    assert abs(_turns(nodes[1]) - SKEWED[0]) < 1e-6
+    assert after["times_rx"] == before["times_rx"]
+    assert after["replayed"] - before["replayed"] == len(replays)
+    assert after["unsigned"] == before["unsigned"] + 1
+
+
+def test_time_frames_round_trip_and_malformed_ones_are_refused() -> None:
+    f = wire.Time(7, 255, 0x123456, 3, True, 5, 65535, 2240, 1_765_000_000_123_456, 3, 0xDEADBEEF, 1_500_000)
+    body = wire.pack(f)
+    assert len(body) == wire.TIME_LEN and wire.parse(body) == f
+    from mapd.errors import ProtocolError
+
+    for bad, why in [
+        (body[:-1], "is not"),
+        (body[:2] + b"\x07" + body[3:], "not sent to broadcast"),
+        (body[:6] + b"\x00" + body[7:], "root id 0"),
+        (body[:20] + b"\xff" + body[21:], "echo id 255"),
+    ]:
+        with pytest.raises(ProtocolError, match=why):
+            wire.parse(bad)
+
+
+def test_mapd_status_says_which_clock_the_turns_are_on() -> None:
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    net = Reach(nodes, {(1, 2), (2, 3)}, shared=True, seed=5)
+    net.run(until=100.0)
+    lines = [render_status({"links": {"uwb": n.stats() | {"radio_clock": n.radio_clock()}}}) for n in nodes]
+    assert "clock   leads the fleet's TDMA turns" in lines[0]
+    assert (
+        "clock   turns on 1's clock over the radio (no time service: the lowest link id leads), 2 hops via 2"
+        in lines[2]
+    )
+    assert "path delay 22.4 ms" in lines[2]
+    nodes[0].set_clock_source(True)
+    shown = render_status({"links": {"uwb": {"radio_clock": nodes[0].radio_clock()}}})
+    assert "turns on the wall clock, which a time service keeps" in shown
+
+
+@pytest.mark.parametrize("clock", ["radio", "system"])
+def test_links_on_ptys_whose_wall_clocks_disagree_keep_one_clock_for_their_turns(clock: str) -> None:
+    """Three real links, each on its pty through the emulated radio (frames take their airtime,
+    overlapping frames garble), whose wall clocks are 250 and 400 ms apart and that no time service
+    keeps: on the radio clock their turns agree within a few ms (the event loop's and the ptys'
+    latency), and robot 2's map gets across with no frame heard out of turn after the first TIME."""
+    import asyncio
+
+    from transports.uwb.link import UwbLink
+    from transports.uwb.relay import FaultRelay
+
+    async def main() -> tuple[list[float], list[int], bool]:
+        loop = asyncio.get_running_loop()
+        got: list[bytes] = []
+        async with FaultRelay(robots=3, rate_bps=RATE, collisions=True, seed=3) as relay:
+            links = []
+            for i, off in enumerate(SKEWED):
+                cfg = ArqConfig(
+                    node_id=i + 1, rate_bps=RATE, mac="tdma", slots=3, slot_index=i, slot_s=SLOT,
+                    deadline_s=60.0, radio_time=clock == "radio",
+                )  # fmt: skip
+
+                def on_event(e: object) -> None:
+                    if type(e).__name__ == "MessageReceived":
+                        got.append(e.data)  # type: ignore[attr-defined]
+
+                link = UwbLink(
+                    cfg, relay.ports[i], wall_clock=lambda off=off: time.time() + off,
+                    time_service=lambda: False, on_event=on_event,
+                )  # fmt: skip
+                links.append(link)
+            for link in links:
+                await link.start()
+            try:
+                deadline = loop.time() + 15
+                while loop.time() < deadline and not all(len(lk.core.peers_up()) == 2 for lk in links):  # type: ignore[union-attr]
+                    await asyncio.sleep(0.1)
+                await asyncio.sleep(3.0)  # the first TIME frames
+                before = [lk.core.counters.out_of_turn for lk in links]  # type: ignore[union-attr]
+                data = os.urandom(3000)
+                links[1].send(data, [1, 3])
+                deadline = loop.time() + 30
+                while loop.time() < deadline and got.count(data) < 2:
+                    await asyncio.sleep(0.1)
+                after = [lk.core.counters.out_of_turn - b for lk, b in zip(links, before, strict=True)]  # type: ignore[union-attr]
+                return (
+                    [lk.core._mac.clock_offset - (time.time() - loop.time()) for lk in links],
+                    after,
+                    got.count(data) == 2,
+                )  # type: ignore[union-attr]
+            finally:
+                for link in links:
+                    await link.close()
+
+    import time
+
+    offsets, out_of_turn, delivered = asyncio.run(main())
+    assert delivered
+    if clock == "system":  # each on its own wall clock: 250 and 400 ms apart, robot 2 in 1's turns
+        assert abs(offsets[1] - offsets[0] - 0.25) < 0.01 and sum(out_of_turn) > 0, (offsets, out_of_turn)
+        return
+    assert all(abs(o - offsets[0]) < 0.005 for o in offsets), offsets
+    assert abs(offsets[0] - SKEWED[0]) < 0.005  # robot 1's clock leads (the lowest id)
+    assert out_of_turn == [0, 0, 0]
+
+
+def test_the_transport_names_the_robots_of_the_radio_clock() -> None:
+    from types import SimpleNamespace
+
+    from transports.base import TransportContext
+    from transports.uwb.transport import UwbOptions, UwbTransport
+
+    ctx = TransportContext(robot="c", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, mac="tdma"), ctx)
+    clock = {"role": "follows", "root": 1, "parent": 2, "hops": 2, "root_is_source": False}
+    t._link = SimpleNamespace(stats=lambda: {"radio_clock": dict(clock)})  # type: ignore[assignment]
+    st = t.stats()
+    assert (st["radio_clock"]["root"], st["radio_clock"]["parent"]) == ("a", "b")
+    assert "turns on a's clock over the radio" in render_status({"links": {"uwb": st}})
