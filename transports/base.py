@@ -239,8 +239,8 @@ class Transport(ABC):
 
     def held(self, envelope: Envelope, data: bytes) -> None:  # noqa: B027 - optional hook
         """The daemon accepted ``envelope`` of another robot (``data``: its bytes as received, on
-        any transport). A link that relays maps (``uwb``) may forward them unaltered; the default
-        does nothing."""
+        any transport), or got a whole map of the version it holds, which came as a delta. A link
+        that relays maps (``uwb``) may forward them unaltered; the default does nothing."""
 
     def restored(self, robot: str, version: int) -> None:  # noqa: B027 - optional hook
         """This robot holds ``robot``'s ``version`` from its state directory (at start, before

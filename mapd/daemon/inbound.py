@@ -325,6 +325,13 @@ class Inbound:
                 await transport.request_keyframe(env.robot)
             if plan.held and transport is not None and env.robot == ev.peer:
                 transport.ack(env.robot, env.version)  # (from its robot: not for each relay's copy)
+            if plan.held and env.base_version == 0 and env.sig:
+                # A whole map of the version held, which came as a delta: what a relay asked its
+                # robot for on a neighbour's behalf, that neighbour lacking the delta's base. Kept
+                # for forwarding; dropped here, the relay asked again each retry, in vain, until
+                # the robot made another version (never, for a map that no longer changes).
+                for t in self.transports:
+                    t.held(env, ev.data)
             return
         try:
             own_codec = self.codec_options is not None and env.codec == self.codec_options[0]

@@ -339,7 +339,9 @@ class ForwardingCore:
         and the newest keyframe."""
         out = self._chain.get(origin, [])[::-1]
         kf = self._kf.get(origin)
-        if kf is not None and all(kf[0] != v for v, _, _ in out):
+        # (also where the chain holds that version as a delta: a whole map of it, asked for on a
+        # neighbour's behalf, serves one the delta's base does not)
+        if kf is not None and all(kf[0] != v or base != 0 for v, base, _ in out):
             out.append((kf[0], 0, kf[1]))
         return out
 

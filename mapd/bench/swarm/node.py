@@ -311,6 +311,10 @@ class SwarmRobot:
             self.fwd.on_overheard(origin_id, version, now)  # another robot forwarded it: do not repeat
         held = self.held.setdefault(origin, [])
         if held and version <= held[-1]:
+            if self.fwd is not None and version == held[-1] and not base:
+                # a whole map of the version held (asked for on a neighbour's behalf), as the
+                # daemon's inbound does: kept to forward to a neighbour the delta cannot serve
+                self.fwd.on_held(origin_id, version, base, data)
             return  # old or duplicate
         if base and base not in held:
             self._ask_keyframe(origin, now)

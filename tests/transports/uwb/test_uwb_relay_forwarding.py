@@ -183,6 +183,33 @@ def test_a_neighbour_beyond_the_chain_makes_the_relay_ask_the_origin_for_a_keyfr
     assert r is not None and (r.version, r.data, r.dests) == (20, b"keyframe A v20", (C,))
 
 
+def test_a_whole_map_of_the_version_held_as_a_delta_serves_a_neighbour_the_delta_cannot() -> None:
+    """B holds A's v19 as a delta on v16 (the base every robot A sent it to had acked); C holds
+    v18. B asks A for a whole map, and A's answer is a keyframe of v19, the version B holds: B
+    forwards that one. Taken for the delta it already held, B asked again each retry_s, in vain,
+    and C never got A's last map (``mapd bench swarm``, the building at 100 kb/s: 10 robots never
+    did in the 300 s after the last map)."""
+    core = _core()  # keyframe A v3
+    core.on_held(A, 16, 0, b"keyframe A v16")
+    core.on_held(A, 19, 16, b"delta A v19 on v16")
+    core.on_summary(C, Summary({A: 18}, frozenset({B})), 0.0)
+    assert core.next_forward(0.0) is None  # the delta needs v16, C holds v18
+    assert core.keyframes_wanted(0.0, hears={A, C}) == [A]
+    core.on_held(A, 19, 0, b"keyframe A v19")  # A's answer: the version B holds, whole
+    assert core.keyframes_wanted(40.0, hears={A, C}) == []  # nothing more to ask for
+    core.on_summary(C, Summary({A: 18}, frozenset({B})), 40.0)
+    r = core.next_forward(40.0)
+    assert r is not None and (r.version, r.data, r.dests) == (19, b"keyframe A v19", (C,))
+    # and a neighbour holding the delta's base still gets the delta, the cheaper of the two
+    other = _core()
+    other.on_held(A, 16, 0, b"keyframe A v16")
+    other.on_held(A, 19, 16, b"delta A v19 on v16")
+    other.on_held(A, 19, 0, b"keyframe A v19")
+    other.on_summary(D, Summary({A: 16}, frozenset({B})), 0.0)
+    r = other.next_forward(0.0)
+    assert r is not None and (r.version, r.data, r.dests) == (19, b"delta A v19 on v16", (D,))
+
+
 def test_the_chain_is_bounded_in_length_and_bytes() -> None:
     from transports.uwb import forwarding
 
