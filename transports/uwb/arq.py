@@ -264,7 +264,7 @@ class ArqEndpoint(InputSide, TimerSide):
         # R19: the turns' clock agreed over the radio (only TDMA has turns to agree on)
         self._radio: RadioTime | None = None
         if config.radio_time and config.mac == "tdma":
-            self._radio = RadioTime(self.node, cycle_s=self._cycle)
+            self._radio = RadioTime(self.node, session=self.session, cycle_s=self._cycle)
         self._peers: dict[int, PeerState] = {}
         # R17: lending the rest of an own slot, for which a LEND and one full frame must still fit.
         self._lending = config.lend and config.mac == "tdma"
@@ -372,16 +372,16 @@ class ArqEndpoint(InputSide, TimerSide):
         where the old clock put them, over its neighbours'.
         """
         moved, self.cfg = offset - self.cfg.clock_offset, dataclasses.replace(self.cfg, clock_offset=offset)
-        if self._radio is not None:
+        if self._radio is not None and math.isfinite(self._now):  # (no time counted on the old one yet)
             self._radio.wall_moved(moved)
-        self._follow_radio()
+        self._follow_radio(self._now)
 
     def set_clock_source(self, source: bool) -> None:
         """Whether a time service keeps this node's wall clock (``mapd.wallclock``): with
         ``radio_time``, such a node leads the fleet's turns and never follows another (R19)."""
         if self._radio is not None:
-            self._radio.set_source(source)
-            self._follow_radio()
+            self._radio.set_source(source, self._now + self.cfg.clock_offset)
+            self._follow_radio(self._now)
 
     def radio_clock(self) -> dict[str, Any] | None:
         """The radio clock's state (R19) for ``mapd status``; None when the link has none."""

@@ -102,7 +102,7 @@ class InputSide(SenderSide):
                 wire_len = len(body) + 2 + check_len(self._crc)  # COBS overhead, delimiter, check
                 local = now + self.cfg.clock_offset
                 if self._radio.heard(frame, local, wire_len * self._mac.byte_time):
-                    self._follow_radio()
+                    self._follow_radio(now)
         elif isinstance(frame, wire.Ack):
             self._on_ack(peer, frame, now)
         elif isinstance(frame, wire.Done):

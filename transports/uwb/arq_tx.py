@@ -12,6 +12,7 @@ rest of the API stays in ``arq.py``, the timers in ``arq_timers.py``, frame inpu
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict, deque
 from typing import TYPE_CHECKING, Any
 
@@ -65,6 +66,8 @@ class SenderSide(ReceiverSide, AckSide):
     def data_to_send(self, now: float) -> bytes:
         """The next frame to write, or b"" when pacing, access or signing says wait (see get_timer)."""
         self._now = now
+        if self._radio is not None:
+            self._follow_radio(now)
         if self._signer is not None and not self._signer.can_sign():
             return b""
         while True:
@@ -91,9 +94,13 @@ class SenderSide(ReceiverSide, AckSide):
         self.counters.frames_tx += 1
         return out
 
-    def _follow_radio(self) -> None:
-        """R19: the turns follow the wall clock plus the radio clock's correction."""
-        correction = self._radio.correction if self._radio is not None else 0.0
+    def _follow_radio(self, now: float) -> None:
+        """R19: the turns follow the wall clock plus the radio clock's correction at ``now``
+        (which moves between TIME frames by the rate the leader's clock runs at against ours)."""
+        local = now + self.cfg.clock_offset
+        correction = (
+            self._radio.correction_at(local) if self._radio is not None and math.isfinite(local) else 0.0
+        )
         self._mac.clock_offset = self.cfg.clock_offset + correction
 
     def _time_due(self, now: float) -> float | None:

@@ -11,62 +11,76 @@ Synchronization Protocol", SenSys 2004), with NTP's two-way delay measurement:
   says so: ``mapd.wallclock``), a *source*, else ``(1, id)``. The fleet follows the smallest key it
   hears: a source before any other, then the lowest id. A source never follows anyone: its own
   clock is the reference, and sources agree with one another through their time service.
-* **Beacons.** The root sends a TIME frame every :data:`PERIOD_S` with a rising ``seq``; each
-  frame's ``stamp`` is the sender's link time when the frame went on the air. A node that hears a
-  better root, or a newer ``seq`` of its own, takes the stamp plus the path delay as the link time
-  at the frame's arrival. Its correction is the largest of its last :data:`SAMPLES` readings of
-  ``stamp - arrival`` plus the delay its parent announces now (a reading is only ever late, never
-  early: a frame queued behind another, a busy serial line; and a delay measured since counts for
-  the readings taken before it).
-  It passes the seq on (a newer one only, so a dead root's time dies out instead of counting to
-  infinity) when it heard a node further from the root than itself, so multi-hop fleets keep
-  one clock; and every :data:`LEAF_EVERY` periods it sends its own, so the node it follows knows
-  it is there and can measure the delay to it.
-* **Delay.** A beacon echoes the last stamp its sender took from the node it follows and how long
-  it held it; that node, hearing the echo, has a round trip ``t4 - t1 - hold`` whose half is the
-  path delay (serial lines, radio buffers and the air, the same both ways for TIME frames of one
-  size), and announces the smallest of its last readings in its beacons (NTP's clock filter: what
-  queueing adds is never less than nothing). Until one is announced, a receiver counts the
-  frame's airtime at the link's rate.
-* **Cost.** A source beacons only while it heard a node that is not one, within :data:`LOST_S`
-  periods: a fleet whose every robot runs chrony sends no TIME frame at all. A node that is its own
-  root beacons every period while it hears any peer (so a better root hears it and answers).
-  A node whose root goes silent for :data:`LOST_S` periods leads with the clock it had, so the
-  turns do not jump when a root leaves.
+* **Beacons.** The leader sends a TIME frame every :data:`PERIOD_S`; each frame's ``stamp`` is its
+  sender's link time when it went on the air, its ``seq`` the leader's link time in quarter
+  seconds (so it rises across a restart of the leader too). A node that hears a better leader, or
+  a newer ``seq`` of its own, reads ``stamp - arrival`` and adds the path delay: its correction is
+  the largest of its last :data:`SAMPLES` readings (a reading is only ever late, never early: a
+  frame queued behind another, a busy serial line), each carried forward by the rate its clock
+  runs at against the leader's (FTSP's regression; here the median of the readings' pairwise
+  slopes, robust to late ones). It passes each newer ``seq`` on when a node follows it (a TIME
+  frame names its ``parent``) or leads with a worse clock, so a building's robots keep one clock
+  over hops; and every :data:`LEAF_EVERY` periods it sends its own, so its parent knows it.
+  A leader silent for :data:`LOST_PERIODS` periods is gone: the node leads with the clock it has
+  (the turns do not jump), and takes that leader back only with a newer ``seq`` than it last
+  had, so a gone leader's time does not go round a loop of robots (no count to infinity).
+* **Delay.** Each TIME frame echoes the last stamp heard from one neighbour, and how long it was
+  held: a child that follows the sender first, the one echoed longest ago first. The neighbour,
+  hearing its own stamp, has a round trip ``t4 - t1 - hold``, half of which is its path delay
+  (serial lines, radio buffers and the air: the same both ways, as every TIME frame has one size),
+  and keeps the smallest of its last :data:`DELAY_SAMPLES` for that neighbour (NTP's clock filter:
+  queueing never adds less than nothing). Until it has one to its parent, it counts the one it
+  measured to others (its own radio's), else the frame's airtime at the link's rate.
+* **Steps.** A leader whose link clock jumps (a time service started, or stepped its wall clock)
+  raises its ``epoch``; followers drop the readings from before. A leader without a time service
+  whose wall clock is stepped keeps its link clock where it was.
+* **Cost.** A source sends TIME frames only while it heard, within :data:`LOST_PERIODS` periods, a
+  node that follows it or leads with a worse clock: a fleet whose every robot runs chrony sends
+  none. A leader beacons every period while it hears any peer (1, 2, 4 and 8 s apart when it starts
+  to lead, so one lost in the first collisions costs seconds, not a period).
 
 Times here are seconds: ``local`` is the robot's wall clock (the endpoint's ``now`` plus its wall
-offset), and the link clock is ``local + correction``.
+offset), and the link clock is ``local + correction_at(local)``.
 """
 
 from __future__ import annotations
 
+import statistics
 from collections import OrderedDict, deque
 from typing import Any
 
 from transports.uwb import wire
 
-#: A root's beacon interval (s). At the 50 ppm a crystal may be off, clocks drift 0.75 ms apart in
-#: 15 s, well within the 10 ms guard; a fleet of 16 or 32 robots without a time service spends
-#: about a hundredth of 12.5 kb/s on TIME frames (``mapd bench swarm --clock-skew 300``).
+#: A leader's beacon interval (s): crystals 100 ppm apart drift 1.5 ms in it, which the rate
+#: estimate takes out; a fleet of 16 or 32 robots without a time service spends about a hundredth
+#: of 12.5 kb/s on TIME frames (``mapd bench swarm --clock-skew 300``).
 PERIOD_S = 15.0
 #: A follower's own beacon, however little it is needed, every this many periods: its parent
-#: learns it exists (and so passes the root's beacons on) and measures the delay from its echo.
+#: learns it follows (and so passes the leader's beacons on) and echoes its stamp.
 LEAF_EVERY = 4
-#: A root silent for this many periods (plus two TDMA cycles: a beacon waits for its turn) is gone;
-#: so is the need for this node's beacons that a node heard this long ago made.
+#: A leader silent for this many periods (plus two TDMA cycles: a beacon waits for its turn) is
+#: gone; so is the need for this node's beacons that a node heard this long ago made.
 LOST_PERIODS = LEAF_EVERY + 1
-#: Readings of the root's time (and of the delay) whose best counts: a late one (a frame queued on
-#: the air, a busy serial line, a scheduler) is passed over. Three periods are few enough that two
-#: clocks 50 ppm apart drift only 2 ms in them.
+#: Readings whose largest counts (a late one is passed over); readings the rate is estimated from.
 SAMPLES = 3
+RATE_SAMPLES = 8
+#: The rate estimate is used once its readings span this many periods, and never past this many
+#: parts per million (a crystal's worst; a larger one is noise).
+RATE_SPAN_PERIODS = 2
+MAX_RATE = 200e-6
+#: Round trips per neighbour whose smallest counts.
 DELAY_SAMPLES = 5
-#: A root answers a node that leads with a worse clock this soon, however recently it beaconed.
-#: A node that starts to lead beacons this long after its first beacon, then twice as long after
-#: each until the period: at start the robots' turns are still apart, and a first beacon lost in a
-#: collision (seen on the emulated radio) cost the fleet a whole period without one clock.
+#: A round trip longer than this is no measurement (a stale stamp that matched by chance).
+MAX_RTT_S = 2.0
+#: A leader answers a node that leads with a worse clock this soon, however recently it beaconed,
+#: and a node that starts to lead beacons this long after its first beacon, then twice as long
+#: after each until the period: at start the robots' turns are still apart, and a first beacon
+#: lost in a collision (seen on the emulated radio) cost the fleet a whole period without one clock.
 ANSWER_GAP_S = 1.0
-#: Stamps this node sent that an echo may still name (by their low 32 bits).
+#: Stamps of this node's own frames an echo may still name (by their low 32 bits); neighbours
+#: whose delays, and whose last stamps to echo, are kept.
 _SENT_KEPT = 8
+_NEIGHBOURS_KEPT = 32
 _US = 1_000_000
 
 
@@ -80,35 +94,77 @@ class RadioTime:
 
     The endpoint feeds it the TIME frames it hears (:meth:`heard`), asks when a beacon is due
     (:meth:`due`) and builds it (:meth:`beacon`), and keeps its TDMA turns on ``local +``
-    :attr:`correction`.
+    :meth:`correction_at`.
     """
 
-    def __init__(self, node: int, *, cycle_s: float = 0.0, period_s: float = PERIOD_S) -> None:
+    def __init__(
+        self, node: int, *, session: int = 0, cycle_s: float = 0.0, period_s: float = PERIOD_S
+    ) -> None:
         self.node = node
         self.period = period_s
         self.lost_s = LOST_PERIODS * period_s + 2 * cycle_s
         #: This node's clock is kept by a time service (it leads, never follows).
         self.source = False
-        #: Seconds added to the local clock to get the link clock.
-        self.correction = 0.0
+        self._base = 0.0  # the correction while leading
+        # own clock steps (while leading); from the session, so a restart is a step to followers too
+        self._epoch = session & 0xFF
         self._root: tuple[int, int] = (1, node)
+        self._root_epoch = 0
         self.hops = 0
         self.parent: int | None = None
-        self._seq = 0  # the root's seq this node holds (its own, when it is the root)
-        self._own_seq = 0
+        self._seq = 0  # the leader's seq this node holds (its own, when it leads)
         self._synced_at = -float("inf")  # local time of the last newer seq taken
-        self._samples: deque[float] = deque(maxlen=SAMPLES)  # stamp - local at arrival (s)
-        self._parent_delay: float | None = None  # announced by the node followed (s)
-        self._delays: deque[float] = deque(maxlen=DELAY_SAMPLES)  # measured by echoes (s)
-        self._last_parent: tuple[int, int, float] | None = None  # (id, stamp us, local at receipt)
-        self._sent: OrderedDict[int, float] = OrderedDict()  # stamp & 0xFFFFFFFF -> local at send
+        #: (local at arrival, stamp - local, sender, the frame's airtime): readings of the leader's
+        #: clock less the path delay, added when read (it may be measured later)
+        self._samples: deque[tuple[float, float, int, float]] = deque(maxlen=RATE_SAMPLES)
+        self._rate = 0.0  # how much faster the leader's clock runs than ours (s/s)
+        #: neighbour -> path delays measured to it, one way (s)
+        self._delay_to: OrderedDict[int, deque[float]] = OrderedDict()
+        self._air = 0.0  # a TIME frame's airtime at the link's rate (the delay until measured)
+        #: leaders timed out: key -> (last seq, until): not taken back without a newer seq
+        self._gone: dict[tuple[int, int], tuple[int, float]] = {}
+        self._sent: OrderedDict[int, float] = OrderedDict()  # stamp low -> local at send
+        #: neighbour -> (its last stamp's low bits, local at arrival, it follows this node)
+        self._echo: OrderedDict[int, tuple[int, float, bool]] = OrderedDict()
+        self._echoed_at: dict[int, float] = {}  # neighbour -> when this node last echoed it
         self._needed_until = -float("inf")
         self._relay = False  # a newer seq to pass on
         self._next = float("inf")  # when the next beacon is due (local)
         self._last_beacon = -float("inf")
         self._ramp = 0  # beacons sent since this node began to lead
         self.beacons_tx = 0
-        self.steps = 0  # corrections taken from a new root
+        self.steps = 0  # leaders changed to a better one
+
+    # --- the clock --------------------------------------------------------------------------------
+    def correction_at(self, local: float) -> float:
+        """Seconds to add to the local clock at ``local`` for the link clock."""
+        if self.parent is None or not self._samples:
+            return self._base
+        recent = list(self._samples)[-SAMPLES:]
+        return max(raw + self._delay(src, air) + self._rate * (local - at) for at, raw, src, air in recent)
+
+    def _delay(self, src: int, air: float) -> float:
+        """The path delay of ``src``'s TIME frames, one way: measured to it; else the median of
+        those measured to others (this robot's own radio and line); else ``air``, its airtime."""
+        mine = self._delay_to.get(src)
+        if mine:
+            return min(mine)
+        others = [min(d) for d in self._delay_to.values() if d]
+        return statistics.median(others) if others else air
+
+    def _estimate_rate(self) -> None:
+        pts = [(at, raw + self._delay(src, air)) for at, raw, src, air in self._samples]
+        if len(pts) < 3 or pts[-1][0] - pts[0][0] < RATE_SPAN_PERIODS * self.period:
+            self._rate = 0.0
+            return
+        slopes = [
+            (b[1] - a[1]) / (b[0] - a[0])
+            for i, a in enumerate(pts)
+            for b in pts[i + 1 :]
+            if b[0] - a[0] > 1.0
+        ]
+        rate = statistics.median(slopes) if slopes else 0.0
+        self._rate = max(-MAX_RATE, min(MAX_RATE, rate))
 
     # --- what leads ------------------------------------------------------------------------------
     @property
@@ -120,58 +176,75 @@ class RadioTime:
     def root_is_source(self) -> bool:
         return self._root[0] == 0
 
-    def _own_key(self) -> tuple[int, int]:
-        return (0 if self.source else 1, self.node)
-
-    def _lead(self) -> None:
-        """Lead with the link clock this node has (its root is gone, or it became a source)."""
-        self._root, self.hops, self.parent = self._own_key(), 0, None
+    def _lead(self, local: float) -> None:
+        """Lead with the link clock this node has (its leader is gone, or it became a source)."""
+        if self.parent is not None:
+            self._gone[self._root] = (self._seq, local + 2 * self.lost_s)
+            self._base = self.correction_at(local)
+        self._root, self.hops, self.parent = (0 if self.source else 1, self.node), 0, None
         self._ramp = 0
         self._samples.clear()
-        self._parent_delay = None
-        self._last_parent = None
+        self._rate = 0.0
 
-    def set_source(self, source: bool) -> None:
+    def set_source(self, source: bool, local: float) -> None:
         """Whether a time service keeps this node's wall clock (it is the reference if so)."""
         if source == self.source:
             return
         self.source = source
-        if source:
-            self.correction = 0.0  # the wall clock itself is the reference now
         if source or self.parent is None:
-            self._lead()
+            self._lead(local)
+        if source and self._base != 0.0:
+            self._base = 0.0  # the wall clock itself is the reference now: the link clock steps
+            self._epoch = (self._epoch + 1) & 0xFF
 
     def wall_moved(self, delta: float) -> None:
-        """The local clock jumped by ``delta`` s (NTP): a follower keeps its link clock where it was
-        (its root's clock did not move); a leader's moves with its own."""
+        """The local clock jumped by ``delta`` s (NTP): a follower's link clock stays where it was
+        (its leader's did not move), and so does that of a leader without a time service; a
+        source's moves with its wall clock, a step its followers are told of (``epoch``)."""
         if self.parent is not None:
-            self.correction -= delta
-            self._samples = deque((s - delta for s in self._samples), maxlen=SAMPLES)
-            if self._last_parent is not None:
-                pid, stamp, at = self._last_parent
-                self._last_parent = (pid, stamp, at + delta)
-        self._sent = OrderedDict((k, v + delta) for k, v in self._sent.items())
+            moved = ((at + delta, raw - delta, src, air) for at, raw, src, air in self._samples)
+            self._samples = deque(moved, RATE_SAMPLES)
+        elif self.source:
+            self._epoch = (self._epoch + 1) & 0xFF
+        else:
+            self._base -= delta
+        self._sent = OrderedDict((k, at + delta) for k, at in self._sent.items())
+        self._echo = OrderedDict((k, (stamp, at + delta, c)) for k, (stamp, at, c) in self._echo.items())
+        self._echoed_at = {k: at + delta for k, at in self._echoed_at.items()}
+        self._gone = {k: (seq, until + delta) for k, (seq, until) in self._gone.items()}
         self._next += delta
         self._last_beacon += delta
         self._synced_at += delta
         self._needed_until += delta
 
     # --- input -----------------------------------------------------------------------------------
-    def heard(self, f: wire.Time, local: float, model_delay: float) -> bool:
-        """A TIME frame whose last byte arrived at ``local``; ``model_delay``: its airtime, used
-        until the sender announces a measured delay. True when the correction changed."""
-        if f.echo_src == self.node:
-            self._echoed(f, local)
+    def heard(self, f: wire.Time, local: float, airtime: float) -> bool:
+        """A TIME frame of ``airtime`` s on the air (at the link's rate) whose last byte arrived at
+        ``local``. True when this node now follows its sender's reading."""
+        self._air = airtime
+        if f.echo_id == self.node:
+            self._echoed(f.src, f.echo, f.hold, local)
         key = (0 if f.source else 1, f.root)
         mine = self._root
-        if (key > mine and not key[0] == mine[0] == 0) or (key == mine and f.hops > self.hops):
-            # a node further from the best clock than this one: it may need our beacons (not one
-            # on another time service's clock: the two agree through their time services)
+        child = f.parent == self.node and key == mine
+        worse = key > mine and not key[0] == mine[0] == 0  # (sources agree through their service)
+        self._echo[f.src] = (f.stamp & 0xFFFFFFFF, local, child)
+        self._echo.move_to_end(f.src)
+        while len(self._echo) > _NEIGHBOURS_KEPT:
+            self._echo.popitem(last=False)
+        if child or worse:
+            # a node that follows this one, or would: it needs our beacons
             self._needed_until = local + self.lost_s
-            if key > mine and self.parent is None:  # it leads with a worse clock: answer soon
+            if worse and self.parent is None:  # it leads with a worse clock: answer soon
                 self._next = min(self._next, max(local, self._last_beacon + ANSWER_GAP_S))
         if self.source or f.root == self.node:
             return False
+        gone = self._gone.get(key)
+        if gone is not None:
+            if local > gone[1] or _seq_newer(f.seq, gone[0]):
+                del self._gone[key]
+            else:
+                return False  # a gone leader's last time, still going round
         better = key < mine
         if not better and not (key == mine and _seq_newer(f.seq, self._seq)):
             return False
@@ -179,34 +252,36 @@ class RadioTime:
             self._root = key
             self._samples.clear()
             self.steps += 1
+            self._next = min(self._next, local + ANSWER_GAP_S)  # so the new parent echoes us soon
+        elif f.epoch != self._root_epoch:
+            self._samples.clear()  # the leader's clock stepped: readings from before are off
+        self._root_epoch = f.epoch
         self._seq, self.hops, self.parent = f.seq, f.hops + 1, f.src
-        self._parent_delay = None if f.delay == wire.DELAY_UNKNOWN else f.delay * wire.DELAY_UNIT_S
-        delay = model_delay if self._parent_delay is None else self._parent_delay
-        self._samples.append(f.stamp / _US - local)
+        self._samples.append((local, f.stamp / _US - local, f.src, airtime))
+        self._estimate_rate()
         self._synced_at = local
-        self._last_parent = (f.src, f.stamp, local)
         self._relay = True
-        if local < self._needed_until:
-            self._next = min(self._next, local)
-        elif self._next == float("inf"):
+        if self._next == float("inf"):
             self._next = local + LEAF_EVERY * self.period
-        before, self.correction = self.correction, max(self._samples) + delay
-        return self.correction != before
+        return True
 
-    def _echoed(self, f: wire.Time, local: float) -> None:
-        sent = self._sent.get(f.echo)
+    def _echoed(self, src: int, stamp: int, hold: int, local: float) -> None:
+        sent = self._sent.get(stamp)
         if sent is None:
             return
-        rtt = (local - sent) - f.hold / _US
-        if 0 <= rtt < 2 * wire.DELAY_UNKNOWN * wire.DELAY_UNIT_S:
-            self._delays.append(rtt / 2)
+        rtt = (local - sent) - hold / _US
+        if 0.0 <= rtt < MAX_RTT_S:
+            self._delay_to.setdefault(src, deque(maxlen=DELAY_SAMPLES)).append(rtt / 2)
+            self._delay_to.move_to_end(src)
+            while len(self._delay_to) > _NEIGHBOURS_KEPT:
+                self._delay_to.popitem(last=False)
 
     # --- output ----------------------------------------------------------------------------------
     def due(self, local: float, peers: bool) -> float | None:
         """When (local time) the next beacon is due; None while none is. ``peers``: any peer is
         up (a lone node has nobody to keep time with)."""
         if self.parent is not None and local - self._synced_at > self.lost_s:
-            self._lead()  # its root went silent: lead with the clock we have
+            self._lead(local)  # its leader went silent: lead with the clock we have
             self._next = local
         if not peers:
             return None
@@ -222,22 +297,24 @@ class RadioTime:
 
     def beacon(self, local: float, src: int, session: int) -> wire.Time:
         """The TIME frame to send now; ``local``: when it goes on the air (its stamp)."""
+        correction = self.correction_at(local)
         if self.parent is None:
-            self._own_seq = (self._own_seq + 1) & 0xFFFF
-            self._seq = self._own_seq
-        stamp = max(0, round((local + self.correction) * _US))
-        echo_src = echo = hold = 0
-        if self._last_parent is not None:
-            pid, pstamp, at = self._last_parent
-            held = round((local - at) * _US)
-            if 0 <= held <= 0xFFFFFFFF:
-                echo_src, echo, hold = pid, pstamp & 0xFFFFFFFF, held
+            seq = round((local + correction) * 4) & 0xFFFF  # quarter seconds of the link clock
+            self._seq = seq if _seq_newer(seq, self._seq) else (self._seq + 1) & 0xFFFF
+        stamp = max(0, round((local + correction) * _US))
+        echo_id = echo = hold = 0
+        if self._echo:  # a child first, then the neighbour echoed longest ago
+            echo_id = min(
+                self._echo, key=lambda n: (not self._echo[n][2], self._echoed_at.get(n, -float("inf")))
+            )
+            echo, at, _ = self._echo.pop(echo_id)
+            hold = min(0xFFFFFFFF, max(0, round((local - at) * _US)))
+            self._echoed_at[echo_id] = local
+            if len(self._echoed_at) > 2 * _NEIGHBOURS_KEPT:
+                self._echoed_at.pop(min(self._echoed_at, key=self._echoed_at.__getitem__))
         self._sent[stamp & 0xFFFFFFFF] = local
         while len(self._sent) > _SENT_KEPT:
             self._sent.popitem(last=False)
-        delay = wire.DELAY_UNKNOWN
-        if self._delays:
-            delay = min(wire.DELAY_UNKNOWN - 1, round(min(self._delays) / wire.DELAY_UNIT_S))
         self._relay = False
         self._last_beacon = local
         if self.parent is None:
@@ -247,21 +324,23 @@ class RadioTime:
             self._next = local + LEAF_EVERY * self.period
         self.beacons_tx += 1
         return wire.Time(
-            src, wire.BROADCAST, session, self.root, self.root_is_source, self.hops, self._seq,
-            delay, stamp, echo_src, echo, hold,
+            src, wire.BROADCAST, session, self.root, self.root_is_source, self.hops, self.parent or 0,
+            self._epoch if self.parent is None else self._root_epoch, self._seq, stamp, echo_id, echo, hold,
         )  # fmt: skip
 
     def stats(self, local: float) -> dict[str, Any]:
         """What ``mapd status`` shows of the radio clock."""
-        delay = min(self._delays) if self._delays else self._parent_delay
+        measured = self.parent is not None and bool(self._delay_to.get(self.parent))
         return {
             "role": "source" if self.source else "leads" if self.parent is None else "follows",
             "root": self.root,
             "root_is_source": self.root_is_source,
             "hops": self.hops,
             "parent": self.parent,
-            "correction_ms": round(1000 * self.correction, 3),
-            "delay_ms": None if delay is None else round(1000 * delay, 3),
+            "correction_ms": round(1000 * self.correction_at(local), 3),
+            "delay_ms": None if self.parent is None else round(1000 * self._delay(self.parent, self._air), 3),
+            "delay_measured": measured,
+            "rate_ppm": round(1e6 * self._rate, 1),
             "synced_ago_s": None if self.parent is None else round(local - self._synced_at, 1),
             "time_beacons_tx": self.beacons_tx,
             "time_root_changes": self.steps,

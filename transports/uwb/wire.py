@@ -19,10 +19,12 @@ then, by type::
            for several messages, of several senders, in one frame (NACK mode, R16 in ``arq.py``)
     LEND   u16 slot: the rest of TDMA slot number ``slot`` (mod 2^16 on the shared clock), which is
            the sender's own, goes to ``dst`` (R17 in ``arq.py``)
-    TIME   u8 root, u8 hops (bit 7: the root's clock is kept by a time service), u16 seq, u16 delay
-           (10 us units, 0xFFFF unknown), u64 stamp (us on the sender's link clock when the frame
-           went on the air), u8 echo_src, u32 echo (low bits of echo_src's stamp), u32 hold (us),
-           dst 255: the fleet's TDMA clock kept over the radio (``radio_time.py``)
+    TIME   u8 root, u8 hops (bit 7: the root's clock is kept by a time service), u8 parent (0:
+           none), u8 epoch (the root's clock steps), u16 seq, u64 stamp (us on the sender's link
+           clock when the frame went on the air), u8 echo_id (0: none), u32 echo (low bits of the
+           stamp of echo_id's last TIME frame), u32 hold (us since); dst 255: the fleet's TDMA
+           clock kept over the radio (``radio_time.py``). One size, so that a round trip of two
+           is twice the path delay of each, whatever the radio's real rate
 
 A signed body ends with a 12-byte trailer (u48 counter, 6-byte truncated HMAC; see
 :mod:`transports.uwb.signing`) that is checked and stripped before :func:`parse` sees the body.
@@ -156,7 +158,7 @@ _DATA = struct.Struct("<HBBHHHB")
 _ACK = struct.Struct("<HBHBBBH")
 _DONE = struct.Struct("<BBH")
 _LEND = struct.Struct("<H")
-_TIME = struct.Struct("<BBHHQBII")
+_TIME = struct.Struct("<BBBBHQBII")
 HEADER_LEN = _HDR.size
 DONE_ENTRY_LEN = _DONE.size
 DATA_HEADER_LEN = _HDR.size + _DATA.size
@@ -165,10 +167,6 @@ LEND_LEN = _HDR.size + _LEND.size
 TIME_LEN = _HDR.size + _TIME.size
 #: TIME: bit 7 of ``hops`` says the root's clock is kept by a time service; hops are below it.
 TIME_SOURCE = 0x80
-#: TIME: ``delay`` when the sender has not measured it.
-DELAY_UNKNOWN = 0xFFFF
-#: TIME: ``delay`` counts units of this many seconds (10 us: up to 655 ms).
-DELAY_UNIT_S = 1e-5
 #: LEND names slots modulo this.
 SLOT_MOD = 1 << 16
 
@@ -248,10 +246,10 @@ class Lend:
 @dataclass(frozen=True, slots=True)
 class Time:
     """The sender's link clock (``stamp``, us, when the frame went on the air) and where it comes
-    from: ``root``'s clock, ``hops`` away, its beacon ``seq``; the path delay the sender measured
-    (``delay``, :data:`DELAY_UNIT_S` units); and an echo of the last TIME heard from ``echo_src``
-    (low 32 bits of its stamp, held ``hold`` us before this one went), by which that node measures
-    the delay. See ``radio_time.py``."""
+    from: ``root``'s clock (kept by a time service: ``source``), ``hops`` away through ``parent``
+    (0: none), its beacon ``seq`` and step ``epoch``; and an echo of the last TIME frame heard from
+    ``echo_id`` (low 32 bits of its stamp, ``hold`` us since), by which that node measures its path
+    delay. See ``radio_time.py``."""
 
     src: int
     dst: int
@@ -259,10 +257,11 @@ class Time:
     root: int
     source: bool
     hops: int
+    parent: int
+    epoch: int
     seq: int
-    delay: int
     stamp: int
-    echo_src: int = 0
+    echo_id: int = 0
     echo: int = 0
     hold: int = 0
 
@@ -314,7 +313,7 @@ def pack_lend(f: Lend, *, signed: bool = False) -> bytes:
 
 def pack_time(f: Time, *, signed: bool = False) -> bytes:
     hops = min(f.hops, TIME_SOURCE - 1) | (TIME_SOURCE if f.source else 0)
-    fields = _TIME.pack(f.root, hops, f.seq, f.delay, f.stamp, f.echo_src, f.echo, f.hold)
+    fields = _TIME.pack(f.root, hops, f.parent, f.epoch & 0xFF, f.seq, f.stamp, f.echo_id, f.echo, f.hold)
     return _head(TIME, signed, f.src, f.dst, f.session) + fields
 
 
@@ -403,13 +402,11 @@ def parse(body: bytes) -> Frame:
             raise ProtocolError(f"uwb: TIME frame of {len(body)} bytes is not {TIME_LEN}")
         if dst != BROADCAST:
             raise ProtocolError("uwb: TIME frame not sent to broadcast")
-        root, hops, seq, delay, stamp, echo_src, echo, hold = _TIME.unpack_from(body, HEADER_LEN)
-        if not 1 <= root <= 254:
-            raise ProtocolError(f"uwb: TIME root id {root} is out of range")
-        if echo_src > 254:
-            raise ProtocolError(f"uwb: TIME echo id {echo_src} is out of range")
+        root, hops, parent, epoch, seq, stamp, echo_id, echo, hold = _TIME.unpack_from(body, HEADER_LEN)
+        if not 1 <= root <= 254 or parent > 254 or echo_id > 254:
+            raise ProtocolError(f"uwb: TIME ids out of range (root {root}, parent {parent}, echo {echo_id})")
         source, hops = bool(hops & TIME_SOURCE), hops & ~TIME_SOURCE
-        return Time(src, dst, session, root, source, hops, seq, delay, stamp, echo_src, echo, hold)
+        return Time(src, dst, session, root, source, hops, parent, epoch, seq, stamp, echo_id, echo, hold)
     if kind == HELLO:
         if len(body) != HEADER_LEN:
             raise ProtocolError("uwb: HELLO frame has trailing bytes")

@@ -8,14 +8,17 @@ agree when those offsets do, on the simulated channel's one true clock.
 
 from __future__ import annotations
 
+import dataclasses
+import heapq
 import os
+import random
 
 import pytest
 
 from mapd.commands.status_text import render_status
 from transports.uwb import radio_time, wire
 from transports.uwb.arq import ArqConfig, ArqEndpoint
-from transports.uwb.faults import Faults
+from transports.uwb.faults import FaultInjector, Faults
 from transports.uwb.sim import SimNet
 
 RATE = 12_500.0
@@ -149,8 +152,21 @@ def test_when_the_leader_leaves_the_next_lowest_id_leads_from_the_same_clock() -
 class NoEcho(radio_time.RadioTime):
     """A radio clock that never measures the path delay (it takes echoes for nothing)."""
 
-    def _echoed(self, f: wire.Time, local: float) -> None:
+    def _echoed(self, src: int, stamp: int, hold: int, local: float) -> None:
         pass
+
+
+class PerLink(SimNet):
+    """A channel whose frames to and from robot 3 take 17 ms more each way (its radio buffers)."""
+
+    def injector(self, src: int, dst: int) -> FaultInjector:
+        key = (src, dst)
+        if key not in self._inj:
+            lat = 0.017 if 3 in key else 0.0
+            self._inj[key] = FaultInjector(
+                Faults(latency_s=lat), seed=hash((self.seed, src, dst)) & 0xFFFFFFFF
+            )
+        return self._inj[key]
 
 
 @pytest.mark.parametrize("measured", [True, False])
@@ -172,8 +188,22 @@ def test_the_path_delay_is_measured_both_ways_so_a_slow_radio_does_not_put_follo
         return
     assert all(abs(b) < 5e-4 for b in behind), behind
     airtime = (wire.TIME_LEN + 2 + 4) * 8 / RATE  # COBS, delimiter and CRC
-    delay = nodes[0].radio_clock()["delay_ms"]  # type: ignore[index]
-    assert abs(delay - 1000 * (airtime + 0.017)) < 0.1, delay
+    shown = [n.radio_clock() for n in nodes[1:]]
+    assert all(c["delay_measured"] for c in shown), shown  # type: ignore[index]
+    assert all(c["delay_ms"] == pytest.approx(1000 * (airtime + 0.017), abs=0.1) for c in shown), shown  # type: ignore[index]
+
+
+def test_each_follower_measures_its_own_path_delay() -> None:
+    """Robot 3's radio adds 17 ms each way, robot 2's nothing: a delay measured by the leader and
+    announced to all (the first version) put robot 3 17 ms behind (found by review)."""
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    net = PerLink(nodes, shared=True, seed=7)
+    net.run(until=300.0)
+    behind = [_turns(n) - SKEWED[0] for n in nodes]
+    assert all(abs(b) < 5e-4 for b in behind), behind
+    two, three = nodes[1].radio_clock(), nodes[2].radio_clock()
+    assert two is not None and three is not None
+    assert three["delay_ms"] - two["delay_ms"] == pytest.approx(17.0, abs=0.1), (two, three)
 
 
 def test_a_follower_whose_wall_clock_steps_keeps_its_turns_where_they_were() -> None:
@@ -210,7 +240,7 @@ def test_a_replayed_time_frame_does_not_move_a_signed_fleets_clock() -> None:
     before = nodes[1].stats()
     for f in replays:  # played back 20 s later: its stamp, plus airtime, would put robot 2 20 s behind
         nodes[1].receive_data(f, net.now + 20.0)
-    forged = wire.pack(wire.Time(1, 255, 1, 1, True, 0, 999, 0, 0))  # a CRC frame into a keyed link
+    forged = wire.pack(wire.Time(1, 255, 1, 1, True, 0, 0, 0, 999, 0))  # a CRC frame into a keyed link
     from transports.uwb.framing import encode_frame
 
     nodes[1].receive_data(encode_frame(forged, crc=True), net.now + 20.0)
@@ -222,16 +252,18 @@ def test_a_replayed_time_frame_does_not_move_a_signed_fleets_clock() -> None:
 
 
 def test_time_frames_round_trip_and_malformed_ones_are_refused() -> None:
-    f = wire.Time(7, 255, 0x123456, 3, True, 5, 65535, 2240, 1_765_000_000_123_456, 3, 0xDEADBEEF, 1_500_000)
+    f = wire.Time(7, 255, 0x123456, 3, True, 5, 2, 17, 65535, 1_765_000_000_123_456, 9, 0xDEADBEEF, 1_500_000)
     body = wire.pack(f)
     assert len(body) == wire.TIME_LEN and wire.parse(body) == f
     from mapd.errors import ProtocolError
 
     for bad, why in [
         (body[:-1], "is not"),
+        (body + b"\x00", "is not"),
         (body[:2] + b"\x07" + body[3:], "not sent to broadcast"),
-        (body[:6] + b"\x00" + body[7:], "root id 0"),
-        (body[:20] + b"\xff" + body[21:], "echo id 255"),
+        (body[:6] + b"\x00" + body[7:], "root 0"),
+        (body[:8] + b"\xff" + body[9:], "parent 255"),
+        (body[:20] + b"\xff" + body[21:], "echo 255"),
     ]:
         with pytest.raises(ProtocolError, match=why):
             wire.parse(bad)
@@ -247,7 +279,7 @@ def test_mapd_status_says_which_clock_the_turns_are_on() -> None:
         "clock   turns on 1's clock over the radio (no time service: the lowest link id leads), 2 hops via 2"
         in lines[2]
     )
-    assert "path delay 22.4 ms" in lines[2]
+    assert "path delay 22.4 ms" in lines[2]  # a TIME frame's 35 bytes at 12.5 kb/s
     nodes[0].set_clock_source(True)
     shown = render_status({"links": {"uwb": {"radio_clock": nodes[0].radio_clock()}}})
     assert "turns on the wall clock, which a time service keeps" in shown
@@ -332,3 +364,121 @@ def test_the_transport_names_the_robots_of_the_radio_clock() -> None:
     st = t.stats()
     assert (st["radio_clock"]["root"], st["radio_clock"]["parent"]) == ("a", "b")
     assert "turns on a's clock over the radio" in render_status({"links": {"uwb": st}})
+
+
+def _mesh(rng: random.Random, n: int, p: float) -> set[tuple[int, int]]:
+    """A random mesh of ``n`` robots, connected also without robot 1."""
+    while True:
+        edges = {(a, b) for a in range(1, n + 1) for b in range(a + 1, n + 1) if rng.random() < p}
+        seen, todo = {2}, [2]
+        while todo:
+            x = todo.pop()
+            for a, b in edges:
+                for u, v in ((a, b), (b, a)):
+                    if u == x and v != 1 and v not in seen:
+                        seen.add(v)
+                        todo.append(v)
+        if len(seen) == n - 1 and any(1 in e for e in edges):
+            return edges
+
+
+def test_a_gone_leaders_time_does_not_go_round_a_mesh() -> None:
+    """Robot 1 leads a mesh of ten and is switched off. A robot that timed it out took its last
+    beacon back from a neighbour that had not yet: the first version's fleet still switched back
+    to robot 1 2000 s later, its hop counts climbing to 38 (count to infinity; found by review)."""
+    rng = random.Random(5)
+    offsets = [rng.uniform(-0.3, 0.3) for _ in range(10)]
+    nodes = [_node(i + 1, off, slots=10) for i, off in enumerate(offsets)]
+    net = Reach(nodes, _mesh(rng, 10, 0.3), seed=5)
+    net.run(until=250.0)
+    assert {n.radio_clock()["root"] for n in nodes} == {1}  # type: ignore[index]
+    net.replace(1, None)
+    net.run(until=250.0 + 600.0)
+    changes = [n.radio_clock()["time_root_changes"] for n in nodes[1:]]  # type: ignore[index]
+    net.run(until=250.0 + 1200.0)
+    rest = [n.radio_clock() for n in nodes[1:]]
+    assert {c["root"] for c in rest} == {2} and max(c["hops"] for c in rest) < 10, rest  # type: ignore[index]
+    assert [c["time_root_changes"] for c in rest] == changes  # settled: nothing changed since  # type: ignore[index]
+    assert all(abs(_turns(n) - _turns(nodes[1])) < 1e-3 for n in nodes[1:])
+
+
+def test_a_restarted_leader_is_followed_at_once_with_its_new_clock() -> None:
+    """Robot 1 restarts with its wall clock 200 ms off (no battery-backed clock): its followers
+    take its new clock within a beacon or two, not after they time it out (found by review: 80 s)."""
+    offsets = (0.0, 0.25, -0.1, 0.3)
+    nodes = [_node(i + 1, off, slots=4) for i, off in enumerate(offsets)]
+    net = SimNet(nodes, shared=True, seed=1)
+    net.run(until=400.0)
+    assert all(abs(_turns(n)) < 1e-6 for n in nodes)
+    again = ArqEndpoint(dataclasses.replace(nodes[0].cfg, clock_offset=0.2), session=777, seed=777)
+    net.replace(1, again)
+    net.run(until=420.0)
+    assert all(abs(_turns(n) - 0.2) < 1e-6 for n in [again, *nodes[1:]]), [_turns(n) for n in nodes[1:]]
+
+
+@pytest.mark.parametrize("source", [False, True])
+def test_a_leaders_wall_clock_step_is_absorbed_or_followed_at_once(source: bool) -> None:
+    """NTP steps the leader's wall clock back 200 ms. Without a time service (it only leads the
+    fleet's turns) its link clock stays where it was; a source's moves with it, and its followers
+    drop their readings from before (its ``epoch``): they kept the older ones for 45 s (review)."""
+    nodes = [_node(i + 1, off) for i, off in enumerate(SKEWED)]
+    nodes[0].set_clock_source(source)
+    net = SimNet(nodes, shared=True, seed=2)
+    net.run(until=120.0)
+    nodes[0].set_clock_offset(SKEWED[0] - 0.2)
+    net.run(until=140.0)
+    want = SKEWED[0] - (0.2 if source else 0.0)
+    assert all(abs(_turns(n) - want) < 1e-6 for n in nodes), [_turns(n) for n in nodes]
+
+
+def test_crystals_that_drift_apart_are_followed_by_their_rate() -> None:
+    """A line of eight whose crystals run from -50 to +50 ppm (the simulated channels have one
+    true clock; here each robot's local clock runs at its own rate). Without the rate estimate the
+    error grew by 1.6 ms a hop, 11 ms at the end of the line (review); with it, under 1 ms."""
+    k = 8
+    ppm = [-50 + 100 * i / (k - 1) for i in range(k)]
+    rng = random.Random(0)
+    off = [rng.uniform(-0.3, 0.3) for _ in range(k)]
+
+    def local(i: int, t: float) -> float:
+        return off[i] + t * (1 + ppm[i] * 1e-6)
+
+    rt = [radio_time.RadioTime(i + 1, session=i + 1) for i in range(k)]
+    air = 0.003
+    queue: list[tuple[float, int, int, wire.Time]] = []
+    worst = 0.0
+    t, n = 0.0, 0
+    while t < 2100.0:
+        for i in range(k):  # each beacon goes when due, and reaches its neighbours in the line
+            due = rt[i].due(local(i, t), True)
+            if due is not None and due <= local(i, t):
+                f = rt[i].beacon(local(i, t), i + 1, i + 1)
+                for j in (i - 1, i + 1):
+                    if 0 <= j < k:
+                        n += 1
+                        heapq.heappush(queue, (t + air, n, j, f))
+        t += 0.25
+        while queue and queue[0][0] <= t:
+            _, _, j, f = heapq.heappop(queue)
+            rt[j].heard(f, local(j, t), air)
+        if t > 300.0:
+            links = [local(i, t) + rt[i].correction_at(local(i, t)) for i in range(k)]
+            worst = max(worst, *(abs(x - links[0]) for x in links))
+    assert worst < 0.001, worst
+    assert all(abs(r.stats(0.0)["rate_ppm"] - (ppm[0] - p)) < 5 for r, p in zip(rt[1:], ppm[1:], strict=True))
+
+
+def test_a_lossy_channel_does_not_multiply_the_time_frames() -> None:
+    """32 robots all in range, 10 % of frames lost: a robot that missed the leader's beacon and
+    took a neighbour's relay made every robot that heard it pass every beacon on for minutes
+    (3.6 times the frames; review). Only a robot that one follows passes beacons on now. The
+    channel here runs eight times the robots' configured rate (a radio faster than its pacing):
+    their path delays, measured both ways, are shorter than airtime at that rate, and they agree."""
+    sent = {}
+    for drop in (0.0, 0.1):
+        nodes = [_node(i + 1, 0.01 * i, slots=32) for i in range(32)]
+        net = SimNet(nodes, shared=False, seed=3, faults=Faults(drop=drop), rate_bps=100_000.0)
+        net.run(until=600.0)
+        sent[drop] = sum(n.counters.times_tx for n in nodes)
+        assert len({round(_turns(n), 4) for n in nodes}) == 1
+    assert sent[0.1] < 1.3 * sent[0.0], sent
