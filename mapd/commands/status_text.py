@@ -307,13 +307,15 @@ def _radio_clock_line(rc: Any) -> str | None:
             f"(its correction {_num(rc.get('correction_ms'), '.1f')} ms; {sent})"
         )
     hops = rc.get("hops")
+    measured = "" if rc.get("delay_measured") else " (its airtime: not measured yet)"
     whose = (
         "a time service's clock" if rc.get("root_is_source") else "no time service: the lowest link id leads"
     )
     return (
         f"clock   turns on {rc.get('root')}'s clock over the radio ({whose}), {hops} hop{'s' if hops != 1 else ''} "
-        f"via {rc.get('parent')}: {_num(rc.get('correction_ms'), '+.1f')} ms on the wall clock, path delay "
-        f"{_num(rc.get('delay_ms'), '.1f')} ms, last TIME {_num(rc.get('synced_ago_s'), '.0f')} s ago ({sent})"
+        f"via {rc.get('parent')}: {_num(rc.get('correction_ms'), '+.1f')} ms on the wall clock, "
+        f"{_num(rc.get('rate_ppm'), '+.1f')} ppm, path delay {_num(rc.get('delay_ms'), '.1f')} ms{measured}, "
+        f"last TIME {_num(rc.get('synced_ago_s'), '.0f')} s ago ({sent})"
     )
 
 

@@ -24,13 +24,18 @@ Synchronization Protocol", SenSys 2004), with NTP's two-way delay measurement:
   A leader silent for :data:`LOST_PERIODS` periods is gone: the node leads with the clock it has
   (the turns do not jump), and takes that leader back only with a newer ``seq`` than it last
   had, so a gone leader's time does not go round a loop of robots (no count to infinity).
-* **Delay.** Each TIME frame echoes the last stamp heard from one neighbour, and how long it was
-  held: a child that follows the sender first, the one echoed longest ago first. The neighbour,
-  hearing its own stamp, has a round trip ``t4 - t1 - hold``, half of which is its path delay
-  (serial lines, radio buffers and the air: the same both ways, as every TIME frame has one size),
-  and keeps the smallest of its last :data:`DELAY_SAMPLES` for that neighbour (NTP's clock filter:
-  queueing never adds less than nothing). Until it has one to its parent, it counts the one it
-  measured to others (its own radio's), else the frame's airtime at the link's rate.
+* **Delay.** Each TIME frame echoes the last stamp heard within a period from one neighbour, and
+  how long it was held (in seconds of the link clock): a child that follows the sender first, the
+  one echoed longest ago first. The neighbour, hearing its own stamp, has a round trip
+  ``t4 - t1 - hold``, half of which is its path delay (serial lines, radio buffers and the air:
+  the same both ways, as every TIME frame has one size), and keeps the smallest of its last
+  :data:`DELAY_SAMPLES` for that neighbour (NTP's clock filter: queueing never adds less than
+  nothing). A round trip counts only where both frames went on one clock (at start the turns
+  overlap and frames wait). Until it has one to its parent, a robot counts the smallest it
+  measured to others (its own radio's), else the frame's airtime at the link's rate. Followers
+  send their own beacons spread over the interval by id, so their parent has fresh stamps to
+  echo, and one that took no newer seq for 2.5 periods beacons, so its parent hears it still
+  follows.
 * **Steps.** A leader whose link clock jumps (a time service started, or stepped its wall clock)
   raises its ``epoch``; followers drop the readings from before. A leader without a time service
   whose wall clock is stepped keeps its link clock where it was.
@@ -70,8 +75,13 @@ RATE_SPAN_PERIODS = 2
 MAX_RATE = 200e-6
 #: Round trips per neighbour whose smallest counts.
 DELAY_SAMPLES = 5
-#: A round trip longer than this is no measurement (a stale stamp that matched by chance).
+#: A round trip longer than this is no measurement (a stale stamp that matched by chance), nor
+#: one whose echo was held longer than this many periods (and two TDMA cycles).
 MAX_RTT_S = 2.0
+MAX_HOLD_PERIODS = 1.5
+#: A follower that took no newer seq for this many periods beacons (once a period) so its parent
+#: knows it still follows.
+STALE_PERIODS = 2.5
 #: A leader answers a node that leads with a worse clock this soon, however recently it beaconed,
 #: and a node that starts to lead beacons this long after its first beacon, then twice as long
 #: after each until the period: at start the robots' turns are still apart, and a first beacon
@@ -81,6 +91,8 @@ ANSWER_GAP_S = 1.0
 #: whose delays, and whose last stamps to echo, are kept.
 _SENT_KEPT = 8
 _NEIGHBOURS_KEPT = 32
+#: A source's wall clock moving this much at once is a step its followers are told of (``epoch``).
+STEP_S = 0.005
 _US = 1_000_000
 
 
@@ -102,7 +114,10 @@ class RadioTime:
     ) -> None:
         self.node = node
         self.period = period_s
+        self.cycle = cycle_s
         self.lost_s = LOST_PERIODS * period_s + 2 * cycle_s
+        # a child's leaf beacon comes every LEAF_EVERY periods: one lost must not stop the relaying
+        self.need_s = 2 * LEAF_EVERY * period_s + 2 * cycle_s
         #: This node's clock is kept by a time service (it leads, never follows).
         self.source = False
         self._base = 0.0  # the correction while leading
@@ -112,7 +127,7 @@ class RadioTime:
         self._root_epoch = 0
         self.hops = 0
         self.parent: int | None = None
-        self._seq = 0  # the leader's seq this node holds (its own, when it leads)
+        self._seq: int | None = None  # the leader's seq this node holds (its own, when it leads)
         self._synced_at = -float("inf")  # local time of the last newer seq taken
         #: (local at arrival, stamp - local, sender, the frame's airtime): readings of the leader's
         #: clock less the path delay, added when read (it may be measured later)
@@ -123,7 +138,8 @@ class RadioTime:
         self._air = 0.0  # a TIME frame's airtime at the link's rate (the delay until measured)
         #: leaders timed out: key -> (last seq, until): not taken back without a newer seq
         self._gone: dict[tuple[int, int], tuple[int, float]] = {}
-        self._sent: OrderedDict[int, float] = OrderedDict()  # stamp low -> local at send
+        #: stamp low -> (local at send, the clock followed then)
+        self._sent: OrderedDict[int, tuple[float, tuple[int, int]]] = OrderedDict()
         #: neighbour -> (its last stamp's low bits, local at arrival, it follows this node)
         self._echo: OrderedDict[int, tuple[int, float, bool]] = OrderedDict()
         self._echoed_at: dict[int, float] = {}  # neighbour -> when this node last echoed it
@@ -132,6 +148,7 @@ class RadioTime:
         self._next = float("inf")  # when the next beacon is due (local)
         self._last_beacon = -float("inf")
         self._ramp = 0  # beacons sent since this node began to lead
+        self._first_leaf = False  # the next beacon is the first since a new leader was taken
         self.beacons_tx = 0
         self.steps = 0  # leaders changed to a better one
 
@@ -145,12 +162,13 @@ class RadioTime:
 
     def _delay(self, src: int, air: float) -> float:
         """The path delay of ``src``'s TIME frames, one way: measured to it; else the median of
-        those measured to others (this robot's own radio and line); else ``air``, its airtime."""
+        those measured to others (this robot's own radio and line: the smallest, as queueing only
+        adds); else ``air``, its airtime."""
         mine = self._delay_to.get(src)
         if mine:
             return min(mine)
         others = [min(d) for d in self._delay_to.values() if d]
-        return statistics.median(others) if others else air
+        return min(others) if others else air
 
     def _estimate_rate(self) -> None:
         pts = [(at, raw + self._delay(src, air)) for at, raw, src, air in self._samples]
@@ -163,8 +181,10 @@ class RadioTime:
             for b in pts[i + 1 :]
             if b[0] - a[0] > 1.0
         ]
-        rate = statistics.median(slopes) if slopes else 0.0
-        self._rate = max(-MAX_RATE, min(MAX_RATE, rate))
+        # A slope past any crystal's is a late reading's, dropped before the median: clamped after
+        # it, three late readings of eight made a clock with no skew run at 200 ppm (review).
+        sane = [r for r in slopes if abs(r) <= MAX_RATE]
+        self._rate = statistics.median(sane) if len(sane) * 2 > len(slopes) else 0.0
 
     # --- what leads ------------------------------------------------------------------------------
     @property
@@ -179,7 +199,7 @@ class RadioTime:
     def _lead(self, local: float) -> None:
         """Lead with the link clock this node has (its leader is gone, or it became a source)."""
         if self.parent is not None:
-            self._gone[self._root] = (self._seq, local + 2 * self.lost_s)
+            self._gone[self._root] = (self._seq or 0, local + 2 * self.lost_s)
             self._base = self.correction_at(local)
         self._root, self.hops, self.parent = (0 if self.source else 1, self.node), 0, None
         self._ramp = 0
@@ -205,10 +225,11 @@ class RadioTime:
             moved = ((at + delta, raw - delta, src, air) for at, raw, src, air in self._samples)
             self._samples = deque(moved, RATE_SAMPLES)
         elif self.source:
-            self._epoch = (self._epoch + 1) & 0xFF
+            if abs(delta) >= STEP_S:  # (a slew passed on is no step for followers to start over)
+                self._epoch = (self._epoch + 1) & 0xFF
         else:
             self._base -= delta
-        self._sent = OrderedDict((k, at + delta) for k, at in self._sent.items())
+        self._sent = OrderedDict((k, (at + delta, r)) for k, (at, r) in self._sent.items())
         self._echo = OrderedDict((k, (stamp, at + delta, c)) for k, (stamp, at, c) in self._echo.items())
         self._echoed_at = {k: at + delta for k, at in self._echoed_at.items()}
         self._gone = {k: (seq, until + delta) for k, (seq, until) in self._gone.items()}
@@ -222,9 +243,9 @@ class RadioTime:
         """A TIME frame of ``airtime`` s on the air (at the link's rate) whose last byte arrived at
         ``local``. True when this node now follows its sender's reading."""
         self._air = airtime
-        if f.echo_id == self.node:
-            self._echoed(f.src, f.echo, f.hold, local)
         key = (0 if f.source else 1, f.root)
+        if f.echo_id == self.node and key == self._root:
+            self._echoed(f.src, f.echo, f.hold, local)
         mine = self._root
         child = f.parent == self.node and key == mine
         worse = key > mine and not key[0] == mine[0] == 0  # (sources agree through their service)
@@ -234,7 +255,7 @@ class RadioTime:
             self._echo.popitem(last=False)
         if child or worse:
             # a node that follows this one, or would: it needs our beacons
-            self._needed_until = local + self.lost_s
+            self._needed_until = local + self.need_s
             if worse and self.parent is None:  # it leads with a worse clock: answer soon
                 self._next = min(self._next, max(local, self._last_beacon + ANSWER_GAP_S))
         if self.source or f.root == self.node:
@@ -246,13 +267,14 @@ class RadioTime:
             else:
                 return False  # a gone leader's last time, still going round
         better = key < mine
-        if not better and not (key == mine and _seq_newer(f.seq, self._seq)):
+        if not better and not (key == mine and (self._seq is None or _seq_newer(f.seq, self._seq))):
             return False
         if better:
             self._root = key
             self._samples.clear()
             self.steps += 1
             self._next = min(self._next, local + ANSWER_GAP_S)  # so the new parent echoes us soon
+            self._first_leaf = True
         elif f.epoch != self._root_epoch:
             self._samples.clear()  # the leader's clock stepped: readings from before are off
         self._root_epoch = f.epoch
@@ -266,10 +288,21 @@ class RadioTime:
         return True
 
     def _echoed(self, src: int, stamp: int, hold: int, local: float) -> None:
+        """A round trip to ``src``: counted only where both frames went on one clock (before, the
+        turns of the two may have overlapped, and a frame queued: a round trip four times too long
+        set a robot's delay, and through the median of others' that of its parent; review), and
+        held for no longer than a period or so. The hold comes in seconds of the link clock, which
+        both count at the leader's rate, and is taken into this robot's seconds by the rate it
+        estimated: counted on the echoer's own crystal, 100 ppm apart biased the delay by 0.7 ms a
+        hop (review)."""
         sent = self._sent.get(stamp)
-        if sent is None:
+        if sent is None or sent[1] != self._root:
             return
-        rtt = (local - sent) - hold / _US
+        # the hold is in seconds of the link clock (the leader's crystal): in ours
+        held = hold / _US / (1.0 + self._rate)
+        if held > MAX_HOLD_PERIODS * self.period + 2 * self.cycle:
+            return
+        rtt = (local - sent[0]) - held
         if 0.0 <= rtt < MAX_RTT_S:
             self._delay_to.setdefault(src, deque(maxlen=DELAY_SAMPLES)).append(rtt / 2)
             self._delay_to.move_to_end(src)
@@ -293,6 +326,10 @@ class RadioTime:
             return self._next
         if self._relay and local < self._needed_until:
             return min(self._next, local)
+        if local - self._synced_at > STALE_PERIODS * self.period:
+            # no newer seq for a while: beacon, so a parent that forgot us (a lost leaf beacon)
+            # passes the leader's on again before we time out (at most once a period)
+            return max(min(self._next, local), self._last_beacon + self.period)
         return self._next
 
     def beacon(self, local: float, src: int, session: int) -> wire.Time:
@@ -300,19 +337,23 @@ class RadioTime:
         correction = self.correction_at(local)
         if self.parent is None:
             seq = round((local + correction) * 4) & 0xFFFF  # quarter seconds of the link clock
-            self._seq = seq if _seq_newer(seq, self._seq) else (self._seq + 1) & 0xFFFF
-        stamp = max(0, round((local + correction) * _US))
+            # (the first is the link time's: an unset seq taken for 0 made one in the upper half of
+            # the range "older", and the leader counted beacons instead for hours; review)
+            self._seq = seq if self._seq is None or _seq_newer(seq, self._seq) else (self._seq + 1) & 0xFFFF
+        stamp = min(wire.MAX_STAMP, max(0, round((local + correction) * _US)))
         echo_id = echo = hold = 0
-        if self._echo:  # a child first, then the neighbour echoed longest ago
-            echo_id = min(
-                self._echo, key=lambda n: (not self._echo[n][2], self._echoed_at.get(n, -float("inf")))
-            )
+        # Of the stamps heard within a period (a long hold is counted on the other's crystal), a
+        # child's first, then the one of the neighbour echoed longest ago.
+        fresh = [n for n, (_, at, _) in self._echo.items() if local - at <= self.period]
+        if fresh:
+            echo_id = min(fresh, key=lambda n: (not self._echo[n][2], self._echoed_at.get(n, -float("inf"))))
             echo, at, _ = self._echo.pop(echo_id)
-            hold = min(0xFFFFFFFF, max(0, round((local - at) * _US)))
+            # (in seconds of the link clock, which runs at the leader's rate: see _echoed)
+            hold = min(0xFFFFFFFF, max(0, round((local - at) * (1.0 + self._rate) * _US)))
             self._echoed_at[echo_id] = local
             if len(self._echoed_at) > 2 * _NEIGHBOURS_KEPT:
                 self._echoed_at.pop(min(self._echoed_at, key=self._echoed_at.__getitem__))
-        self._sent[stamp & 0xFFFFFFFF] = local
+        self._sent[stamp & 0xFFFFFFFF] = (local, self._root)
         while len(self._sent) > _SENT_KEPT:
             self._sent.popitem(last=False)
         self._relay = False
@@ -321,11 +362,15 @@ class RadioTime:
             self._next = local + min(self.period, ANSWER_GAP_S * 2**self._ramp)
             self._ramp += 1
         else:
-            self._next = local + LEAF_EVERY * self.period
+            # Spread over the leaf interval by id: followers that took a leader at one moment beaconed
+            # in step, so their parent had fresh stamps to echo once a minute, one child each time.
+            spread = 1.0 + (LEAF_EVERY - 1) * ((self.node * 0.6180339887) % 1.0)
+            self._next = local + self.period * (spread if self._first_leaf else LEAF_EVERY)
+            self._first_leaf = False
         self.beacons_tx += 1
         return wire.Time(
             src, wire.BROADCAST, session, self.root, self.root_is_source, self.hops, self.parent or 0,
-            self._epoch if self.parent is None else self._root_epoch, self._seq, stamp, echo_id, echo, hold,
+            self._epoch if self.parent is None else self._root_epoch, self._seq or 0, stamp, echo_id, echo, hold,
         )  # fmt: skip
 
     def stats(self, local: float) -> dict[str, Any]:
@@ -340,7 +385,7 @@ class RadioTime:
             "correction_ms": round(1000 * self.correction_at(local), 3),
             "delay_ms": None if self.parent is None else round(1000 * self._delay(self.parent, self._air), 3),
             "delay_measured": measured,
-            "rate_ppm": round(1e6 * self._rate, 1),
+            "rate_ppm": round(1e6 * self._rate, 1) + 0.0,  # (no "-0.0")
             "synced_ago_s": None if self.parent is None else round(local - self._synced_at, 1),
             "time_beacons_tx": self.beacons_tx,
             "time_root_changes": self.steps,

@@ -165,6 +165,9 @@ DATA_HEADER_LEN = _HDR.size + _DATA.size
 ACK_HEADER_LEN = _HDR.size + _ACK.size
 LEND_LEN = _HDR.size + _LEND.size
 TIME_LEN = _HDR.size + _TIME.size
+#: TIME: the latest stamp taken (us): past it (the year 2255) a float no longer holds a
+#: microsecond, and a correction read from it would mean nothing.
+MAX_STAMP = 1 << 53
 #: TIME: bit 7 of ``hops`` says the root's clock is kept by a time service; hops are below it.
 TIME_SOURCE = 0x80
 #: LEND names slots modulo this.
@@ -405,6 +408,8 @@ def parse(body: bytes) -> Frame:
         root, hops, parent, epoch, seq, stamp, echo_id, echo, hold = _TIME.unpack_from(body, HEADER_LEN)
         if not 1 <= root <= 254 or parent > 254 or echo_id > 254:
             raise ProtocolError(f"uwb: TIME ids out of range (root {root}, parent {parent}, echo {echo_id})")
+        if stamp > MAX_STAMP:
+            raise ProtocolError(f"uwb: TIME stamp {stamp} us is past the year 2255")
         source, hops = bool(hops & TIME_SOURCE), hops & ~TIME_SOURCE
         return Time(src, dst, session, root, source, hops, parent, epoch, seq, stamp, echo_id, echo, hold)
     if kind == HELLO:
