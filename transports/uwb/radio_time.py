@@ -161,9 +161,9 @@ class RadioTime:
         return max(raw + self._delay(src, air) + self._rate * (local - at) for at, raw, src, air in recent)
 
     def _delay(self, src: int, air: float) -> float:
-        """The path delay of ``src``'s TIME frames, one way: measured to it; else the median of
-        those measured to others (this robot's own radio and line: the smallest, as queueing only
-        adds); else ``air``, its airtime."""
+        """The path delay of ``src``'s TIME frames, one way: measured to it; else the smallest of
+        those measured to others (this robot's own radio and line; queueing only adds); else
+        ``air``, its airtime."""
         mine = self._delay_to.get(src)
         if mine:
             return min(mine)
