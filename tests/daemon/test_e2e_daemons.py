@@ -555,8 +555,12 @@ def test_a_robot_that_joins_late_over_uwb_gets_a_map_that_no_longer_changes(
     try:
         snaps = fk.wait_for(lambda s: s.get("robot0", {}).get("source", {}).get("finished"), 60, f)
         final = snaps["robot0"]["source"]["version"]
-        time.sleep(8.0)  # its last send has given up on robot1 by now
-        before = f.status()["robot0"]
+        # its last send gives up on robot1 (5 s, or twice its airtime; later on a loaded machine:
+        # a fixed 8 s wait was once too short in a full run)
+        snaps = fk.wait_for(
+            lambda s: s.get("robot0", {}).get("links", {}).get("uwb", {}).get("messages_failed"), 60, f
+        )
+        before = snaps["robot0"]
         assert before["links"]["uwb"]["messages_failed"] > 0
         f.start(only=["robot1"])
         snaps = fk.wait_for(

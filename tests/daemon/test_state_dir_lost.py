@@ -412,8 +412,8 @@ def test_a_daemon_whose_state_directory_is_emptied_remounted_read_only_and_unmou
     def saved(at: Path, n: int) -> bool:
         """Whether the copy ``at`` holds version ``n`` of both maps, each whole, with a state.json
         naming them, and the newest global map: what a restart reads."""
-        if (s := _status(sock)) is not None:
-            global_version[0] = s["fusion"]["global"]["version"]
+        if (s := _status(sock)) is not None and (made := s["fusion"]["global"]) is not None:
+            global_version[0] = made["version"]  # (None while no global map is made yet: seen once)
         store = StateStore(at)
         try:
             store.open()
