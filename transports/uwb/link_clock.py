@@ -49,7 +49,8 @@ class ClockSide:
     def _follow_clock(self, core: arq.ArqEndpoint, now: float) -> None:
         """Pass the wall clock's offset from the loop's to the core when it moved (slew or step),
         and whether a time service keeps it (with radio time such a robot leads, never follows)."""
-        if now - self._source_at >= CLOCK_CHECK_S:
+        # (asked only where a radio clock listens: a syscall a second for nothing otherwise)
+        if core.cfg.radio_time and core.cfg.mac == "tdma" and now - self._source_at >= CLOCK_CHECK_S:
             self._source_at = now
             core.set_clock_source(self._time_service() is True)
         offset = self._wall() - now
