@@ -193,6 +193,12 @@ def render_status(s: dict[str, Any]) -> str:
                 f"  {'':<6} older mapd (not sent what it lacks): "
                 + ", ".join(f"{robot} (lacks {lacks})" for robot, lacks in older.items())
             )
+        if isinstance(own := st.get("own_clock"), list) and own:
+            # No fault either (a rolling upgrade to radio time), but turns on two clocks may overlap.
+            out.append(
+                f"  {'':<6} turns on their own clock, not this radio clock: {', '.join(map(str, own))} "
+                "(set one clock on every robot)"
+            )
         if isinstance(refusing := st.get("refused_by"), dict) and refusing:
             out.append(
                 f"  {'':<6} daemons refusing our maps their radios ack: "

@@ -419,11 +419,13 @@ class ArqEndpoint(InputSide, TimerSide):
 
     def older_peers(self) -> dict[int, int]:
         """Link id -> the features it lacks (``wire.F_*`` bits) of the peers whose HELLO announced
-        fewer than this node understands: a mapd from before them (wire.py, *Features*)."""
+        fewer than this node announces: a mapd from before them (wire.py, *Features*), or, for
+        :data:`~wire.F_TIME` alone, one whose turns are on its wall clock (``clock = "system"``)."""
+        own = wire.own_features(self.cfg.radio_time)
         return {
-            p.id: wire.FEATURES & ~p.features
+            p.id: own & ~p.features
             for p in self._peers.values()
-            if p.features is not None and wire.FEATURES & ~p.features
+            if p.features is not None and own & ~p.features
         }
 
     def reaches(self, msg: int, peer: int) -> bool:

@@ -83,7 +83,8 @@ class InputSide(SenderSide):
             if features is not None:
                 peer.features, was, peer.announced = features, peer.announced, features
                 # said when it lacks any, or no longer does: not for every peer of this version
-                lacks, lacked = wire.FEATURES & ~features, was is not None and wire.FEATURES & ~was
+                own = wire.own_features(self.cfg.radio_time)
+                lacks, lacked = own & ~features, was is not None and own & ~was
                 if features != was and (lacks or lacked):
                     self._events.append(PeerFeatures(peer.id, features))
                 if not features & wire.F_PARITY:  # maps on their way to it: repairs resend chunks

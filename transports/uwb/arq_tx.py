@@ -196,7 +196,9 @@ class SenderSide(ReceiverSide, AckSide):
         if kind == "hello":
             self.counters.hellos_tx += 1
             self._hello_at = now
-            return wire.Hello(self.node, wire.FEATURES_FLAG | wire.FEATURES, self.session)
+            return wire.Hello(
+                self.node, wire.FEATURES_FLAG | wire.own_features(self.cfg.radio_time), self.session
+            )
         if kind == "time" and self._radio is not None:
             self.counters.times_tx += 1
             # stamped with when it goes on the air: TDMA lets a frame go only once the one before is out

@@ -129,7 +129,7 @@ class UwbTransport(RequestSide, Transport):
             lend=o.lend,
             guard_s=o.guard_ms / 1000,
             clock_offset=time.time() - loop.time(),
-            radio_time=o.clock == "radio",
+            radio_time=self._radio_time,
             rx_slack_s=o.rx_latency_s,
             check_counter_clock=True,
             sense_s=o.sense_ms / 1000,
@@ -309,6 +309,11 @@ class UwbTransport(RequestSide, Transport):
             return []
         return [self._name(i) for i in self._link.core.peers_up()]
 
+    @property
+    def _radio_time(self) -> bool:
+        """Whether this link keeps its turns on the radio clock (R19): TDMA with ``clock = "radio"``."""
+        return self.opts.mac == "tdma" and self.opts.clock == "radio"
+
     def stats(self) -> dict[str, Any]:
         out = self._link.stats() if self._link is not None else {}
         out["node_id"] = self.node_id
@@ -319,7 +324,11 @@ class UwbTransport(RequestSide, Transport):
             out.update(self._refusals.stats(self._name))
         # robot -> what its older mapd lacks, by name (mapd status: under the link)
         older = out.pop("older_peers", {})
-        out["older_mapd"] = {self._name(n): wire.feature_words(f) for n, f in older.items()}
+        out["older_mapd"] = {
+            self._name(n): wire.feature_words(f & ~wire.F_TIME) for n, f in older.items() if f & ~wire.F_TIME
+        }
+        # the robots whose turns are not on the radio clock this one keeps (older, or clock = "system")
+        out["own_clock"] = sorted(self._name(n) for n, f in older.items() if f & wire.F_TIME)
         if isinstance(radio := out.get("radio_clock"), dict):  # link ids by robot name
             for key in ("root", "parent"):
                 if isinstance(radio.get(key), int):
@@ -383,14 +392,20 @@ class UwbTransport(RequestSide, Transport):
             if last is not None and now - last < FEATURES_SAY_S:
                 return  # (HELLOs that keep changing their word: forged, say; once in a while)
             self._features_said[e.peer] = now
-            lacks = wire.FEATURES & ~e.features
-            if lacks:  # a rolling upgrade: nothing to set, but the channel carries more meanwhile
+            lacks = wire.own_features(self._radio_time) & ~e.features
+            if lacks == wire.F_TIME:  # an older mapd, or a config that differs: the HELLO cannot tell
+                log.warning(
+                    "uwb: %s counts its TDMA turns on its own clock, not the fleet's radio clock (its HELLO "
+                    'says so: a mapd from before radio time, or clock = "system" in its [transports.uwb]); '
+                    "its frames go out of turn as far as its wall clock is off: set one clock on every robot",
+                    self._name(e.peer),
+                )
+            elif lacks:  # a rolling upgrade: nothing to set, but the channel carries more meanwhile
                 frames, what = lacks & ~wire.F_TIME, []
-                if frames:
-                    which = "none" if frames == lacks else f"no {wire.feature_words(frames)}"
-                    what.append(
-                        f"{which} go to it until it is upgraded, and maps it receives too are sent without them"
-                    )
+                which = "none" if frames == lacks else f"no {wire.feature_words(frames)}"
+                what.append(
+                    f"{which} go to it until it is upgraded, and maps it receives too are sent without them"
+                )
                 if lacks & wire.F_TIME:  # TIME frames are broadcast: it drops them, and its turns are its own
                     what.append("it counts its TDMA turns on its own clock, not the fleet's radio clock")
                 log.info(

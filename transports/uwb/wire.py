@@ -134,6 +134,13 @@ FEATURES = F_DONE | F_PARITY | F_LEND | F_TIME
 FEATURE_NAMES = {F_DONE: "DONE acks", F_PARITY: "parity repair", F_LEND: "lent turns", F_TIME: "radio time"}
 
 
+def own_features(radio_time: bool) -> int:
+    """What a node announces: all of :data:`FEATURES`, less :data:`F_TIME` where its turns are on
+    its wall clock (``[transports.uwb] clock = "system"``): its peers are then told its turns are
+    its own, as they are told of a node from before radio time."""
+    return FEATURES if radio_time else FEATURES & ~F_TIME
+
+
 def feature_words(features: int) -> str:
     """``features`` (``F_*`` bits) in words, for logs and ``mapd status``."""
     return ", ".join(name for bit, name in FEATURE_NAMES.items() if features & bit) or "none"

@@ -33,6 +33,8 @@ from transports.uwb.sim import SimNet
 from transports.uwb.transport import FEATURES_SAY_S, UwbOptions, UwbTransport
 
 RATE = 100_000.0
+#: What the nodes here announce: their turns are not on a radio clock (ArqConfig.radio_time False).
+OWN = wire.own_features(False)
 
 
 class Says(ArqEndpoint):
@@ -112,7 +114,7 @@ def _send(net: SimNet, sender: ArqEndpoint, dests: list[int], size: int = 20_000
 def test_a_broadcast_to_a_new_and_a_lacking_node_reaches_both_without_parity(seed: int) -> None:
     net, nodes = _fleet(Lacking, 0.1, seed)
     sender, _, lacking = nodes
-    assert sender.older_peers() == {3: wire.FEATURES} and nodes[1].older_peers() == {3: wire.FEATURES}
+    assert sender.older_peers() == {3: OWN} and nodes[1].older_peers() == {3: OWN}
     assert arq.PeerFeatures(3, 0) in net.events[1]
     assert not [e for e in net.events[1] if isinstance(e, arq.PeerFeatures) and e.peer == 2]  # same version
     msg, data = _send(net, sender, [2, 3])
@@ -179,11 +181,11 @@ def test_parity_from_a_sender_that_announced_none_is_taken() -> None:
     ]
     net = SimNet(nodes, faults=Faults(drop=0.15), seed=4, shared=True)
     net.run(1.0)
-    assert nodes[1].older_peers() == {1: wire.FEATURES}
+    assert nodes[1].older_peers() == {1: OWN}
     msg, _data = _send(net, nodes[0], [2, 3])
     assert arq.MessageClosed(msg, "delivered") in net.events[1]
     # what it showed counts over what it said: DONE and parity from now on (LEND, TIME still unknown)
-    later = wire.F_LEND | wire.F_TIME
+    later = wire.F_LEND
     assert nodes[1].older_peers() == {1: later} and nodes[2].older_peers() == {1: later}
     acks = sum(n.stats()["acks_tx"] for n in nodes[1:])
     msg, _data = _send(net, nodes[0], [2, 3])
@@ -221,7 +223,7 @@ def test_a_newcomer_hears_a_busy_nodes_word_and_a_busy_node_repeats_it() -> None
         _wait_closed(net, 3, msg)
         if one.older_peers() or net.now > 40.0:
             break
-    assert one.older_peers() == {3: wire.FEATURES}, (net.now, busy.stats()["hellos_tx"])
+    assert one.older_peers() == {3: OWN}, (net.now, busy.stats()["hellos_tx"])
     assert net.now < 25.0 and busy.stats()["hellos_tx"] == hellos + 1
     # and however busy, it says it again within HELLO_REFRESH_S
     before = busy.stats()["hellos_tx"]
@@ -233,10 +235,14 @@ def test_a_newcomer_hears_a_busy_nodes_word_and_a_busy_node_repeats_it() -> None
 
 
 def test_a_hello_announces_features_in_its_dst_and_older_parsers_take_it_as_presence() -> None:
-    new = ArqEndpoint(ArqConfig(node_id=4), session=44, seed=4)
+    new = ArqEndpoint(ArqConfig(node_id=4, mac="tdma", radio_time=True), session=44, seed=4)
     frame = wire.parse(_body(new.data_to_send(0.0)))
     assert isinstance(frame, wire.Hello) and frame.dst == wire.FEATURES_FLAG | wire.FEATURES
     assert wire.hello_features(frame) == wire.FEATURES
+    # turns on the wall clock (clock = "system"): all but radio time
+    own = ArqEndpoint(ArqConfig(node_id=4, mac="tdma", radio_time=False), session=45, seed=4)
+    hello = wire.parse(_body(own.data_to_send(0.0)))
+    assert isinstance(hello, wire.Hello) and wire.hello_features(hello) == wire.FEATURES & ~wire.F_TIME
     assert wire.hello_features(wire.Hello(4, wire.BROADCAST, 44)) is None  # from before: says nothing
     assert wire.hello_features(wire.Hello(4, 9, 44)) is None  # to one node: says nothing
     assert wire.hello_features(wire.Hello(4, wire.FEATURES_FLAG, 44)) == 0  # says it has none
@@ -251,13 +257,13 @@ def test_a_peer_restarted_as_another_version_is_held_to_its_new_word() -> None:
     old = Lacking(ArqConfig(node_id=2, rate_bps=RATE, acks="each"), session=21, seed=2)
     net = SimNet([a, old], seed=1)
     net.run(2.0)
-    assert a.older_peers() == {2: wire.FEATURES}
+    assert a.older_peers() == {2: OWN}
     upgraded = ArqEndpoint(ArqConfig(node_id=2, rate_bps=RATE), session=22, seed=2)
     net.replace(2, upgraded)
     net.run(4.0)
     assert a.older_peers() == {} and net.events[1][-2:] == [
         arq.PeerRestarted(2),
-        arq.PeerFeatures(2, wire.FEATURES),  # the upgrade is said across the restart
+        arq.PeerFeatures(2, OWN),  # the upgrade is said across the restart
     ]
     assert a.stats()["older_peers"] == {}
 
@@ -307,7 +313,7 @@ def test_the_transport_says_an_older_robot_once_and_its_upgrade_and_names_it_in_
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
-    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2, "c": 3}), ctx)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2, "c": 3}, mac="tdma"), ctx)
     t._link = SimpleNamespace(stats=lambda: {"older_peers": {3: wire.F_PARITY | wire.F_LEND}})  # type: ignore[assignment]
     caplog.set_level(logging.INFO, logger="mapd.uwb")
     t._on_event(arq.PeerFeatures(3, wire.F_DONE))
@@ -380,12 +386,12 @@ def test_a_restarted_peer_hears_a_busy_nodes_word_and_is_unknown_until_it_says_i
             _wait_closed(net, 3, msg)
 
     keep_busy(10.0)
-    assert two.older_peers() == {3: wire.FEATURES}
+    assert two.older_peers() == {3: OWN}
     again = ArqEndpoint(cfg(2), session=912, seed=12)
     net.replace(2, again)
     restarted_at = net.now
     keep_busy(restarted_at + 3.0)
-    assert again.older_peers() == {3: wire.FEATURES}, busy.stats()["hellos_tx"]
+    assert again.older_peers() == {3: OWN}, busy.stats()["hellos_tx"]
     previous = PreviousRelease(cfg(3), session=913, seed=13)
     net.replace(3, previous)
     net.run(net.now + 3.0)
@@ -409,3 +415,51 @@ def test_a_map_on_its_way_when_a_receiver_says_it_lacks_parity_is_repaired_witho
     _wait_closed(net, 1, msg)
     assert arq.MessageClosed(msg, "delivered") in net.events[1]
     assert [m.data for m in net.received(3)] == [data] and lacking.parity_refused == 0
+
+
+def test_a_robot_on_its_wall_clock_is_said_once_to_those_on_the_radio_clock_and_is_no_older_mapd(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """``clock = "system"`` on one robot of a radio-clock fleet: its turns are its own. Before, its
+    HELLO announced radio time all the same: nobody could tell that its frames go out of turn as far
+    as its wall clock is off."""
+
+    def cfg(n: int, radio: bool) -> ArqConfig:
+        return ArqConfig(node_id=n, rate_bps=RATE, mac="tdma", slots=2, slot_index=n - 1, radio_time=radio)
+
+    radio, system = (
+        ArqEndpoint(cfg(1, True), session=31, seed=1),
+        ArqEndpoint(cfg(2, False), session=32, seed=2),
+    )
+    net = SimNet([radio, system], seed=3, shared=True)
+    net.run(3.0)
+    assert (
+        radio.older_peers() == {2: wire.F_TIME}
+        and arq.PeerFeatures(2, wire.FEATURES & ~wire.F_TIME) in net.events[1]
+    )
+    assert system.older_peers() == {} and not any(isinstance(e, arq.PeerFeatures) for e in net.events[2])
+    # the adapter: a warning once with the fix, its name under "own clock" and not "older mapd"
+    ctx = TransportContext(robot="a", fleet="f", max_message_bytes=1 << 20, emit=lambda e: None)
+    t = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}, mac="tdma"), ctx)
+    t._link = SimpleNamespace(stats=lambda: {"older_peers": radio.older_peers()})  # type: ignore[assignment]
+    caplog.set_level(logging.INFO, logger="mapd.uwb")
+    t._on_event(arq.PeerFeatures(2, wire.FEATURES & ~wire.F_TIME))
+    t._on_event(arq.PeerFeatures(2, wire.FEATURES & ~wire.F_TIME))
+    said = [r for r in caplog.records if r.name == "mapd.uwb"]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING, said
+    assert said[0].getMessage().startswith("uwb: b counts its TDMA turns on its own clock")
+    assert (
+        'clock = "system"' in said[0].getMessage() and "set one clock on every robot" in said[0].getMessage()
+    )
+    st = t.stats()
+    assert st["own_clock"] == ["b"] and st["older_mapd"] == {}
+    text = render_status({"robot": "a", "links": {"uwb": st}})
+    assert "turns on their own clock, not this radio clock: b (set one clock on every robot)" in text, text
+    assert "older mapd" not in text and "FAULTS" not in text
+    # a robot on its wall clock itself says nothing of radio-clock robots
+    caplog.clear()
+    on_wall = UwbTransport(UwbOptions(nodes={"a": 1, "b": 2}, mac="tdma", clock="system"), ctx)
+    on_wall._on_event(arq.PeerFeatures(2, wire.FEATURES))
+    assert [r.getMessage() for r in caplog.records if r.name == "mapd.uwb"] == [
+        "uwb: b understands all of this link's frames now"
+    ]
