@@ -11,7 +11,11 @@ sample-miss detection; congestion control blocks only for reliable keep-all. :me
 token, so ``ros2 topic info`` counts mapd as a subscriber; the caller subscribes to the data itself.
 
 With ``key_format="ros2dds"`` there are no tokens and no attachment: samples go on the topic's
-zenoh-bridge-ros2dds key, and a queryable answers with the newest (transient local for bridges).
+zenoh-bridge-ros2dds key, and for a transient-local topic queryables answer with the newest: on the
+key itself, and on ``@ros2_pub_cache/<zid>/<key>``, where a bridge's route to a transient-local DDS
+reader asks for history (its ``route_subscriber.rs`` queries ``@ros2_pub_cache/*/<key>``, as its
+own routes' publication caches answer it), so RViz started behind a bridge after the last merge
+still gets the map and the frames.
 
 The session stays the caller's; :meth:`Ros2Node.close` undeclares only what the node declared.
 """
@@ -19,6 +23,7 @@ The session stays the caller's; :meth:`Ros2Node.close` undeclares only what the 
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import threading
 import time
@@ -124,7 +129,7 @@ class Ros2Publisher:
         self._seq = 0
         self._latest: bytes | None = None
         self._token: Any = None
-        self._queryable: Any = None
+        self._queryables: list[Any] = []
         self.published = 0
         session = node.session
         try:
@@ -133,17 +138,28 @@ class Ros2Publisher:
             else:
                 self._pub = session.declare_publisher(self.key)
             if qos.durability == rmw.TRANSIENT_LOCAL and node.key_format == "ros2dds":
-                self._queryable = session.declare_queryable(self.key, self._on_query)
+                cache = rmw.bridge_cache_key(self.key, str(session.info.zid()))
+                self._queryables = [
+                    session.declare_queryable(k, functools.partial(self._on_query, k))
+                    for k in (self.key, cache)
+                ]
             if entity is not None:
                 self._token = session.liveliness().declare_token(entity.token())
         except Exception as exc:  # zenoh.ZError
             raise TransportError(f"cannot publish {topic} on zenoh key '{self.key}': {exc}") from None
 
-    def _on_query(self, query: Any) -> None:
+    def _on_query(self, declared: str, query: Any) -> None:
+        import zenoh
+
         with self._lock:
             data = self._latest
-        if data is not None:
-            query.reply(self.key, data)
+        if data is None:
+            return
+        # On the topic's key, as a bridge's publication cache replies (its querying subscriber takes
+        # replies on any key); a query that takes only keys it matches, on the key queried here.
+        key = self.key if query.accepts_replies() == zenoh.ReplyKeyExpr.ANY else declared
+        with contextlib.suppress(Exception):  # the querier gone, or the session closing: nothing to do
+            query.reply(key, data)
 
     def put(self, payload: bytes) -> None:
         """Publish one CDR payload (with rmw_zenoh's attachment when the format is rmw_zenoh)."""
@@ -159,11 +175,11 @@ class Ros2Publisher:
         self.published += 1
 
     def close(self) -> None:
-        for thing in (self._token, self._queryable, self._pub):
+        for thing in (self._token, *self._queryables, self._pub):
             if thing is not None:
                 with contextlib.suppress(Exception):  # already gone when the session closed first
                     thing.undeclare()
-        self._token = self._queryable = None
+        self._token, self._queryables = None, []
 
 
 class Ros2Node:

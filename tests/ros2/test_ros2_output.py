@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 
 from mapd import plugins
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
@@ -259,6 +260,18 @@ def test_ros2dds_format_plain_keys_no_attachment(
         sample = next(r.ok for r in replies if r.ok is not None)
         msg = rmw_peer.TS.deserialize_cdr(sample.payload.to_bytes(), rmw_peer.GRID)
         assert (msg.info.width, msg.info.height) == (60, 41) and sample.attachment is None
+        # A bridge's route to a transient-local DDS reader (RViz started after the merge) asks the
+        # publication caches, as zenoh-bridge-ros2dds's route_subscriber.rs does; mapd did not
+        # answer there, so such a reader got no map until the next merge.
+        for key in ("site/map", "site/tf_static"):
+            got = list(
+                peer.session.get(
+                    f"@ros2_pub_cache/*/{key}", timeout=3.0, accept_replies=zenoh.ReplyKeyExpr.ANY
+                )
+            )
+            cached = [r.ok for r in got if r.ok is not None]
+            assert len(cached) == 1 and str(cached[0].key_expr) == key, (key, got)
+        assert rmw_peer.TS.deserialize_cdr(cached[0].payload.to_bytes(), "tf2_msgs/msg/TFMessage").transforms
         assert not [t for t in peer.graph() if t.node == "mapd"]  # a bridge announces topics, not mapd
     finally:
         asyncio.run(out.close())
