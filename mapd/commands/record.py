@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "record",
         help="inspect MCAP recordings made with [record] path or mapd demo --record",
         description="Recordings hold the global map (/map), each robot's map (/<robot>/map), "
-        "/tf_static, /tf (robots' poses) and /mapd/links; Foxglove and ros2 bag read them too.",
+        "/tf_static, /tf (robots' poses) and /diagnostics (the links); Foxglove and ros2 bag read them too.",
     )
     rsub = p.add_subparsers(dest="record_cmd", required=True, metavar="SUBCOMMAND")
     info = rsub.add_parser("info", help="summarise a recording (also one cut short by a crash)")

@@ -228,7 +228,11 @@ class RecordSection(Strict):
         description="below this much free space on its disk nothing is recorded (the daemon's own state "
         "needs it); recording resumes once there is room; 0: no check",
     )
-    stats_every_s: float = Field(default=5.0, gt=0.0, description="how often the link counters are recorded")
+    stats_every_s: float = Field(
+        default=5.0,
+        gt=0.0,
+        description="how often the links' health and counters are recorded (/diagnostics)",
+    )
 
     @model_validator(mode="after")
     def _check_total(self) -> RecordSection:

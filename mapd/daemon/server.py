@@ -430,7 +430,9 @@ class Daemon:
             return
         while True:
             await asyncio.sleep(self.cfg.record.stats_every_s)
-            self.sinks.links({t.name: {**t.stats(), "peers": t.peers()} for t in self.transports})
+            self.sinks.links(
+                {t.name: {**t.stats(), "peers": t.peers()} for t in self.transports}, self.cfg.robot.name
+            )
 
     # ------------------------------------------------------------------ status
     def snapshot(self) -> dict[str, Any]:

@@ -22,6 +22,7 @@ from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
+from mapd.ros2.diagnostics import OK, WARN, Diagnostic, flat_values
 from mapd.ros2.tf import Ros2Names, robot_frame, tf_static
 
 log = logging.getLogger("mapd.daemon")
@@ -35,6 +36,26 @@ _SMALL = 4096
 def placed_frames(placements: dict[str, Placement]) -> dict[str, Pose2D]:
     """Each robot's map frame in the fleet frame, for the placements fusion accepted."""
     return {r: p.transform for r, p in placements.items() if p.accepted and p.transform is not None}
+
+
+def link_diagnostics(links: dict[str, Any], robot: str) -> list[Diagnostic]:
+    """Each link's counters (``{transport: stats}``) as a ``DiagnosticStatus``: its faults in
+    ``mapd status``'s words (:func:`~mapd.daemon.headline.link_faults`) set level and message."""
+    from mapd.daemon.headline import link_faults
+
+    out = []
+    for name, st in sorted(links.items()):
+        faults = link_faults(st)
+        out.append(
+            Diagnostic(
+                name=f"mapd: {name} link",
+                level=WARN if faults else OK,
+                message="; ".join(faults) if faults else "ok",
+                hardware_id=robot,
+                values=tuple(flat_values(st)),
+            )
+        )
+    return out
 
 
 class Sinks:
@@ -138,10 +159,12 @@ class Sinks:
                         sp.stamp,
                     )
 
-    def links(self, links: dict[str, Any]) -> None:
-        """The transports' counters, for the recording."""
+    def links(self, links: dict[str, Any], robot: str) -> None:
+        """The transports' counters, for the recording: on ``/diagnostics``, one status per link
+        named ``mapd: <transport> link`` (hardware id: the robot), at ``WARN`` with the faults
+        ``mapd status`` shows on it, else ``OK``."""
         if self.recorder is not None:
-            self._record(self.recorder.json, "/mapd/links", links, time.time())
+            self._record(self.recorder.diagnostics, link_diagnostics(links, robot), time.time())
 
     def _names(self) -> Ros2Names:
         """The topic and frame names of the output that publishes on a ROS 2 graph (the ``ros2``

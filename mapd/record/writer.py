@@ -15,7 +15,10 @@ Channels, named as the ``ros2`` output names its topics and frames when the daem
   beside the files (``NAME.placed.json``, :data:`PLACED_SUFFIX`), so a restarted daemon moves the
   ones the run before placed off the tree too, as the ``ros2`` output does with its own list;
 * ``/tf``: ``<robot>/map`` -> ``<robot>/base_link`` whenever a robot's pose changes;
-* ``/mapd/links``: the transports' counters (JSON with a JSON schema), every ``stats_every_s``.
+* ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, one status per link (its faults, and
+  its counters as key/values: :mod:`mapd.ros2.diagnostics`), every ``stats_every_s``. Every channel
+  is CDR: rosbag2's reader refuses a file with one channel in another encoding (the counters were
+  JSON on ``/mapd/links`` before, and ``ros2 bag play`` refused every recording).
 
 Every message is stamped with the wall clock (log time and publish time, nanoseconds). The file is
 written in chunks (``chunk_bytes``), each handed to the OS as it is made, so a daemon killed
@@ -39,7 +42,6 @@ Blocking (file writes, CDR encoding): the daemon calls it from its file thread, 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -52,16 +54,12 @@ import yaml
 from mapd.errors import ConfigError, StateError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.record.files import RawFile, RecordingFiles
+from mapd.ros2.diagnostics import DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE, Diagnostic, encode_diagnostics
 from mapd.ros2.tf import TF_TYPE, load_shown, save_shown
 
 log = logging.getLogger("mapd.record")
 
 GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
-LINKS_SCHEMA = {
-    "type": "object",
-    "description": "mapd link counters by transport (see mapd status --json, links)",
-    "additionalProperties": {"type": "object"},
-}
 #: Defaults of ``[record]`` (the config's RecordSection has the same).
 DEFAULT_MAX_BYTES = 256 << 20
 DEFAULT_MAX_TOTAL_BYTES = 2 << 30
@@ -83,15 +81,17 @@ def _ns(wall: float) -> int:
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}
 
 
-def offered_qos_profiles(latched: bool) -> str:
+def offered_qos_profiles(topic: str) -> str:
     """The ``offered_qos_profiles`` channel metadata the MCAP ``ros2`` profile requires, as rosbag2
     writes it (one profile, rmw/types.h enum values, which every rosbag2 since Humble reads), for the
-    QoS the ``ros2`` output publishes with: maps and ``/tf_static`` reliable, transient local, keep
-    last 1 (so ``ros2 bag play`` latches them again); ``/tf`` reliable, volatile, keep last 100.
+    QoS ``topic`` is published with: maps and ``/tf_static`` reliable, transient local, keep last 1
+    (so ``ros2 bag play`` latches them again), as the ``ros2`` output publishes them; ``/tf``
+    reliable, volatile, keep last 100; ``/diagnostics`` reliable, volatile, keep last 1.
     """
     from mapd.ros2 import rmw
+    from mapd.ros2.diagnostics import DIAGNOSTICS_TOPIC
 
-    qos = rmw.LATCHED if latched else rmw.TF_QOS
+    qos = {"/tf": rmw.TF_QOS, DIAGNOSTICS_TOPIC: rmw.DIAGNOSTICS_QOS}.get(topic, rmw.LATCHED)
     profile = {
         "history": qos.history,
         "depth": qos.depth,
@@ -277,7 +277,7 @@ class Recorder:
 
     def _ros2_channel(self, topic: str, msgtype: str) -> int:
         msgdef, _ = self._ts.generate_msgdef(msgtype, ros_version=2)
-        qos = {"offered_qos_profiles": offered_qos_profiles(latched=topic != "/tf")}
+        qos = {"offered_qos_profiles": offered_qos_profiles(topic)}
         return self._channel(topic, msgtype, "cdr", msgdef.encode(), "ros2msg", qos)
 
     def _write(self, topic: str, channel: Callable[[], int], data: bytes, wall: float) -> None:
@@ -370,11 +370,10 @@ class Recorder:
             save_shown(self.placed_path, placed, "record")
         self.transform_list("/tf_static", transforms, wall)
 
-    def json(self, topic: str, doc: dict[str, Any], wall: float) -> None:
-        """A JSON document (the link counters) on ``topic``."""
-        data = json.dumps(doc, default=str, sort_keys=True).encode()
-        schema = json.dumps(LINKS_SCHEMA).encode()
+    def diagnostics(self, statuses: list[Diagnostic], wall: float) -> None:
+        """The links' health on ``/diagnostics`` (:mod:`mapd.ros2.diagnostics`), stamped ``wall``."""
+        data = encode_diagnostics(statuses, wall)
         with self._lock:
             self._write(
-                topic, lambda: self._channel(topic, "mapd.links", "json", schema, "jsonschema"), data, wall
+                DIAGNOSTICS_TOPIC, lambda: self._ros2_channel(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE), data, wall
             )

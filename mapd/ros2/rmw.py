@@ -75,6 +75,8 @@ DEFAULT_QOS = Qos()
 LATCHED = Qos(RELIABLE, TRANSIENT_LOCAL, KEEP_LAST, 1)
 #: ``/tf``: reliable, volatile, keep last 100 (tf2_ros's TransformBroadcaster).
 TF_QOS = Qos(RELIABLE, VOLATILE, KEEP_LAST, 100)
+#: ``/diagnostics``: reliable, volatile, keep last 1 (diagnostic_updater's publisher).
+DIAGNOSTICS_QOS = Qos(RELIABLE, VOLATILE, KEEP_LAST, 1)
 
 
 def qos_string(qos: Qos) -> str:

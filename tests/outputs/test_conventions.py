@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
+from mapd.daemon.sinks import link_diagnostics
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.outputs.base import GlobalUpdate, OutputContext
 from mapd.outputs.files import FilesOptions, FilesOutput
@@ -84,6 +85,7 @@ def _record(path: Path) -> None:
     r.grid("/r1/map", corner_grid(), "r1/map", 1_700_000_000.3)
     r.transforms("/tf_static", "map", {"r1/map": Pose2D(1.0, 2.0, 0.5)}, 1_700_000_000.5)
     r.transforms("/tf", "r1/map", {"r1/base_link": Pose2D(3.0, 4.0, -0.5)}, 1_700_000_001.1)
+    r.diagnostics(link_diagnostics({"uwb": {"port_open": True, "frames_tx": 3}}, "r1"), 1_700_000_001.2)
     r.close()
 
 
@@ -101,11 +103,11 @@ def test_recording_log_time_is_the_header_stamp_in_nanoseconds(tmp_path: Path) -
         for _, channel, message, msg in make_reader(
             f, decoder_factories=[DecoderFactory()]
         ).iter_decoded_messages():
-            header = msg.header if channel.topic.endswith("/map") else msg.transforms[0].header
+            header = msg.transforms[0].header if channel.topic.startswith("/tf") else msg.header
             stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
             assert message.log_time == message.publish_time == stamp_ns, channel.topic
             seen += 1
-    assert seen == 4
+    assert seen == 5
 
 
 def test_recording_follows_the_mcap_ros2_profile(tmp_path: Path) -> None:
@@ -128,7 +130,10 @@ def test_recording_follows_the_mcap_ros2_profile(tmp_path: Path) -> None:
         grids = {}
         for _, channel, _, msg in reader.iter_decoded_messages(topics=["/map", "/r1/map"]):
             grids[channel.topic] = msg
-    assert set(channels) == {"/map", "/r1/map", "/tf_static", "/tf"}
+    assert set(channels) == {"/map", "/r1/map", "/tf_static", "/tf", "/diagnostics"}
+    # rosbag2's reader (SequentialReader::check_topics_serialization_formats) refuses a file whose
+    # topics differ in serialization format: the link counters were JSON, and no recording played
+    assert {ch.message_encoding for ch in channels.values()} == {"cdr"}
     for topic, ch in channels.items():
         assert ch.message_encoding == "cdr"
         assert summary.schemas[ch.schema_id].encoding == "ros2msg"
@@ -138,10 +143,10 @@ def test_recording_follows_the_mcap_ros2_profile(tmp_path: Path) -> None:
         p = profiles[0]
         # rmw/types.h: reliability RELIABLE = 1; durability TRANSIENT_LOCAL = 1, VOLATILE = 2;
         # history KEEP_LAST = 1; liveliness AUTOMATIC = 1; infinite durations as RMW_DURATION_INFINITE
-        latched = topic != "/tf"
+        latched = topic not in ("/tf", "/diagnostics")  # (diagnostic_updater: volatile, keep last 1)
         assert p["reliability"] == 1 and p["history"] == 1 and p["liveliness"] == 1, topic
         assert p["durability"] == (1 if latched else 2), topic
-        assert p["depth"] == (1 if latched else 100), topic
+        assert p["depth"] == (100 if topic == "/tf" else 1), topic
         for key in ("deadline", "lifespan", "liveliness_lease_duration"):
             assert p[key] == {"sec": 9223372036, "nsec": 854775807}, (topic, key)
         assert p["avoid_ros_namespace_conventions"] is False
