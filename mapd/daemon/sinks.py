@@ -22,6 +22,7 @@ from mapd.fusion.placement import Placement
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.outputs.base import GlobalUpdate, Output, PoseUpdate
 from mapd.record.writer import Recorder
+from mapd.ros2 import rmw
 from mapd.ros2.diagnostics import OK, WARN, Diagnostic, flat_values
 from mapd.ros2.tf import Ros2Names, robot_frame, tf_static
 
@@ -72,6 +73,8 @@ class Sinks:
         #: Robot -> its newest map (and when taken) not yet handed to the outputs (latest wins; at
         #: most one per robot the daemon holds, which the roster bounds).
         self._robot_next: dict[str, tuple[OccupancyGrid, float]] = {}
+        #: Robots whose map topic is no ROS 2 name (said once; not recorded): the roster bounds it.
+        self._unnamed: set[str] = set()
         self._out_lock = threading.Lock()
         #: Messages the recorder could not write (a full disk): said once until it writes again.
         self.record_failures = 0
@@ -132,12 +135,17 @@ class Sinks:
         wall = time.time()
         if self.outputs:
             self._to_outputs(robot_map=(grid, wall))
-        if self.recorder is not None:
+        if self.recorder is not None and grid.robot not in self._unnamed:
             names = self._names()
+            topic = robot_frame(names.robot_map_topic, grid.robot)
+            try:  # robot names may hold '-' or begin with a digit; a topic may not (rcl)
+                rmw.check_topic_name(topic)
+            except ValueError as exc:  # ros2 bag play could not make its publisher: left out, as live
+                self._unnamed.add(grid.robot)
+                log.warning("record: robot %s: %s; its map is not recorded", grid.robot, exc)
+                return
             frame = robot_frame(names.frames.robot_map_frame, grid.robot)
-            self._record(
-                self.recorder.grid, robot_frame(names.robot_map_topic, grid.robot), grid, frame, wall
-            )
+            self._record(self.recorder.grid, topic, grid, frame, wall)
 
     def poses(self, poses: dict[str, StampedPose], frames: dict[str, Pose2D]) -> None:
         """New robot poses (each ``base_link`` in its robot's map frame) and the current placements."""

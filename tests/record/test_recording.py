@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import signal
 import subprocess
@@ -352,3 +353,21 @@ def test_a_restarted_recording_moves_the_robots_the_run_before_placed_off_the_tr
         "robot0/map": "map",
         "robot1/map": "mapd/unplaced",
     }
+
+
+def test_a_robot_whose_name_makes_no_ros_topic_is_said_once_and_its_map_left_out(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Robot names may hold '-' or begin with a digit, ROS 2 topic names not: a channel /2-bot/map
+    # made ros2 bag play fail creating its publisher. Left out, as the live ros2 output leaves it.
+    rec = Recorder(tmp_path / "fleet.mcap", min_free_bytes=0)
+    sinks = Sinks([], rec, CsvLog(tmp_path / "fused.csv"))
+    caplog.set_level(logging.WARNING, logger="mapd.daemon")
+    for k in range(3):
+        sinks.robot_map(grid(20, 10, "2-bot", k + 1))
+        sinks.robot_map(grid(20, 10, "robot1", k + 1))
+    sinks.close()
+    topics = [t for t, _, _, _ in read_all(tmp_path / "fleet.mcap")]
+    assert topics == ["/robot1/map"] * 3
+    said = [r.getMessage() for r in caplog.records if "2-bot" in r.getMessage()]
+    assert len(said) == 1 and "not a ROS 2 topic name" in said[0] and "not recorded" in said[0], said
