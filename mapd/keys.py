@@ -37,9 +37,17 @@ def read_key_file(path: Path | None, option: str) -> bytes | None:
             f"{option}: {path} holds more than {MAX_KEY_FILE_BYTES} bytes; a fleet key file holds one "
             f"key of {MIN_KEY_BYTES}+ bytes (raw or hex)"
         )
+    text = raw.strip()
     try:
-        key = bytes.fromhex(raw.strip().decode("ascii"))
+        key = bytes.fromhex(text.decode("ascii"))
     except (UnicodeDecodeError, ValueError):
+        if text and all(c in b"0123456789abcdefABCDEF" for c in text):
+            # hex, cut short or pasted with a digit missing: taken as raw bytes it would be another
+            # key, and every frame would fail its signature with no word of why
+            raise ConfigError(
+                f"{option}: {path} holds {len(text)} hex digits, an odd number: the key is damaged "
+                "(cut short?); copy it again, or make one with mapd keygen"
+            ) from None
         key = raw
     if len(key) < MIN_KEY_BYTES:
         raise ConfigError(

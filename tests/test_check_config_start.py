@@ -70,6 +70,21 @@ def _fake_mcap(d: Path) -> None:
 # (id, text added, replacements, setup, what the line says after "c.toml: ")
 CASES: list[tuple[str, str, dict[str, str], Callable[[Path], None] | None, str]] = [
     ("state-dir-is-a-file", "", {}, _file("state"), "state.dir: {d}/state is not a folder"),
+    # passed, and run's mapper then failed with exit 1 ("try again"): systemd restarted it for ever
+    (
+        "mapper-resolution-finer-than-a-map-file-holds",
+        "",
+        {"duration = 5\n": "duration = 5\nresolution = 1e-300\n"},
+        None,
+        "source.sim.resolution: Input should be greater than or equal to 0.0001 (got 1e-300)",
+    ),
+    (
+        "mapper-log-odds-past-float32",
+        "",
+        {"duration = 5\n": "duration = 5\nclamp_max = 1e300\n"},
+        None,
+        "source.sim.clamp_max: Input should be less than or equal to 100 (got 1e+300)",
+    ),
     (
         "state-dir-below-a-file",
         "",

@@ -254,3 +254,17 @@ def test_binary_pnm_reads_like_pillow_for_any_maxval(tmp_path: Path, kind: str, 
         grey = grey.sum(axis=2) / 3
     expect = np.flipud(grey.astype(np.uint8).view(np.int8))
     assert load_map(y).data.tolist() == expect.tolist()
+
+
+@pytest.mark.parametrize(("maxval", "over"), [(10, 11), (10, 255), (254, 255), (300, 301), (1000, 65535)])
+def test_a_binary_pnm_sample_over_its_maxval_is_refused(tmp_path: Path, maxval: int, over: int) -> None:
+    # Netpbm: no sample is above maxval. Clamped, such a sample read as white (free space) where
+    # the plain form of the same file is refused ("Channel value too large").
+    samples = np.full((3, 4), maxval // 2)
+    samples[1, 2] = over
+    raw = samples.astype(">u2" if maxval > 255 else np.uint8).tobytes()
+    (tmp_path / "m.pgm").write_bytes(f"P5\n4 3\n{maxval}\n".encode() + raw)
+    y = tmp_path / "m.yaml"
+    y.write_text("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(MapFileError, match=rf"m.pgm' has a sample of {over}, over its PNM maxval {maxval}$"):
+        load_map(y)

@@ -34,3 +34,13 @@ def test_errors_name_the_option(tmp_path: Path, option: str) -> None:
         read_key_file(tmp_path / "short", option)
     with pytest.raises(ConfigError, match=rf"^{option}: cannot read .*absent"):
         read_key_file(tmp_path / "absent", option)
+
+
+def test_hex_cut_to_an_odd_number_of_digits_is_refused_not_taken_as_raw_bytes(tmp_path: Path) -> None:
+    # Before, the 63 ASCII digits became the key: another key than the fleet's, and every frame
+    # failed its signature with no word at start.
+    (tmp_path / "k").write_text("0f" * 31 + "a\n")
+    with pytest.raises(ConfigError, match=r"^robot.key_file: .*k holds 63 hex digits, an odd number"):
+        read_key_file(tmp_path / "k", "robot.key_file")
+    (tmp_path / "p").write_text("correct horse battery staple\n")  # a passphrase: raw, as before
+    assert read_key_file(tmp_path / "p", "robot.key_file") == b"correct horse battery staple\n"

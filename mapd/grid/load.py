@@ -106,7 +106,9 @@ def read_map_yaml(yaml_path: str | os.PathLike[str]) -> dict[str, Any]:
         raise MapFileError(f"{path}: expected a YAML mapping with image, resolution and origin")
 
     image = _field(meta, "image", path, str)
-    if not image or "\x00" in image:
+    # (a control character, a newline say, would go into every error about the image: one line
+    # of mapd's own, and a line after it forged by the file)
+    if not image or not image.isprintable():
         raise MapFileError(f"{path}: key 'image' must name an image file, got {_short(image)}")
     resolution = _field(meta, "resolution", path, float)
     if resolution <= 0:

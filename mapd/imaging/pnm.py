@@ -129,4 +129,8 @@ def read_pnm(f: Any, size: int, where: str, image: Path, max_cells: int) -> Pixe
     dtype = np.dtype(np.uint8) if sample == 1 else np.dtype(">u2")
     shape = (height, width, channels)
     arr = np.frombuffer(raw, dtype=dtype).reshape(shape)
+    if maxval != (255 if sample == 1 else 65535) and (top := int(arr.max(initial=0))) > maxval:
+        # Netpbm: every sample is at most maxval. Clamped (Pillow's rule for the lut) such a
+        # sample read as white, free space, though the file is damaged; the plain forms refuse it.
+        raise MapFileError(f"{where}: image '{image}' has a sample of {top}, over its PNM maxval {maxval}")
     return Pixels(arr, has_alpha=False, lut=_pnm_lut(kind, maxval))

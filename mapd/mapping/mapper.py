@@ -73,16 +73,32 @@ def logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+#: The largest log-odds a mapper option may hold (p = 1 - 4e-44: certain).
+MAX_LOG_ODDS = 100.0
+
+
 class MapperOptions(BaseModel):
     """Mapper parameters; sources that map take these keys in their own config table."""
 
     model_config = ConfigDict(extra="forbid")
 
-    resolution: float = Field(default=0.05, gt=0.0, le=MAX_MAPPER_RESOLUTION, description="meters per cell")
-    hit: float = Field(default=0.85, gt=0.0, description="log-odds added to a cell a beam ends in")
-    miss: float = Field(default=-0.4, lt=0.0, description="log-odds added to a cell a beam passes")
-    clamp_min: float = Field(default=-2.0, lt=0.0, description="lowest log-odds a cell may hold")
-    clamp_max: float = Field(default=3.5, gt=0.0, description="highest log-odds a cell may hold")
+    # (bounds: finer than MIN_RESOLUTION cannot be read back from its own file; log-odds past
+    # MAX_LOG_ODDS are certainty already, and overflowed the float32 cells)
+    resolution: float = Field(
+        default=0.05, ge=MIN_RESOLUTION, le=MAX_MAPPER_RESOLUTION, description="meters per cell"
+    )
+    hit: float = Field(
+        default=0.85, gt=0.0, le=MAX_LOG_ODDS, description="log-odds added to a cell a beam ends in"
+    )
+    miss: float = Field(
+        default=-0.4, lt=0.0, ge=-MAX_LOG_ODDS, description="log-odds added to a cell a beam passes"
+    )
+    clamp_min: float = Field(
+        default=-2.0, lt=0.0, ge=-MAX_LOG_ODDS, description="lowest log-odds a cell may hold"
+    )
+    clamp_max: float = Field(
+        default=3.5, gt=0.0, le=MAX_LOG_ODDS, description="highest log-odds a cell may hold"
+    )
     max_range: float | None = Field(
         default=None, gt=0.0, description="usable range in m: longer beams clear up to here, no hit"
     )

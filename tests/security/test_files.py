@@ -288,6 +288,11 @@ def test_mapd_info_of_an_8192_square_png_stays_small(
         ("image: m.pgm\nresolution: 0.05\norigin: [true, 0, 0]\n", "origin must hold three numbers"),
         ("image: m.pgm\nresolution: 0.05\norigin: " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
         ("a: " + "{b: " * 3000 + "1" + "}" * 3000 + "\n", "nested too deeply"),
+        # a newline in the image's name went into the error as it was: a second, forged error line
+        (
+            'image: "nofile\\nmapd: error: forged line"\nresolution: 0.05\norigin: [0, 0, 0]\n',
+            "key 'image' must name an image file, got 'nofile\\nmapd: error: forged line'",
+        ),
     ],
 )
 def test_hostile_yaml_through_the_cli(
