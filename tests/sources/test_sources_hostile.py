@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mapd.errors import LimitError, SourceError
-from mapd.grid import OccupancyGrid, Pose2D
+from mapd.grid import MIN_RESOLUTION, OccupancyGrid, Pose2D
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions
 from mapd.mapping.replay import replay_log
@@ -90,8 +90,9 @@ def test_a_finite_range_that_overflows_in_cells_is_a_limit_error() -> None:
     with pytest.raises(LimitError, match="past any grid"):
         mapper.integrate(np.array([1e308]), np.array([0.3]), Pose2D(0.0, 0.0, 0.0))
     with pytest.raises(LimitError, match="past any grid"):
-        Mapper(MapperOptions(resolution=1e-300)).integrate(
-            np.array([1.0]), np.array([0.0]), Pose2D(1e10, 0, 0)
+        # (the finest resolution the options take; 1e-300 is refused by them since)
+        Mapper(MapperOptions(resolution=MIN_RESOLUTION)).integrate(
+            np.array([1.0]), np.array([0.0]), Pose2D(1e305, 0, 0)
         )
     assert mapper.bounds is None  # nothing changed
 
