@@ -218,13 +218,14 @@ def key_for(
 
 def session_config(
     *,
-    mode: Literal["peer", "client"] = "peer",
+    mode: Literal["peer", "client"] | None = None,
     connect: list[str] | None = None,
     listen: list[str] | None = None,
-    multicast_scouting: bool = False,
+    multicast_scouting: bool | None = None,
     config_file: Path | None = None,
 ) -> Any:
-    """A ``zenoh.Config``: the file's (if any), with mode, endpoints and scouting set over it."""
+    """A ``zenoh.Config``: the file's (if any), with mode, endpoints and scouting set over it
+    where given; without a file, a peer without multicast scouting where not given."""
     try:
         import zenoh
     except ModuleNotFoundError:
@@ -238,12 +239,17 @@ def session_config(
         )
     except Exception as exc:  # ValueError from the read, zenoh.ZError for a malformed config
         raise TransportError(f"{config_file}: cannot use zenoh config: {exc}") from None
+    if config_file is None:
+        mode = mode or "peer"
+        multicast_scouting = bool(multicast_scouting)
     settings: dict[str, Any] = {
-        "mode": mode,
-        "scouting/multicast/enabled": multicast_scouting,
         # The advanced publisher's cache orders samples by timestamp, so sessions must stamp them.
         "timestamping/enabled": {"router": True, "peer": True, "client": True},
     }
+    if mode is not None:
+        settings["mode"] = mode
+    if multicast_scouting is not None:
+        settings["scouting/multicast/enabled"] = multicast_scouting
     if connect:
         settings["connect/endpoints"] = list(connect)
     if listen:
@@ -256,16 +262,20 @@ def session_config(
     return cfg
 
 
+def session_options_for(o: Any) -> dict[str, Any]:
+    """:func:`session_config`'s options for an ``[output.ros2]`` or ``[source.ros2]`` table (both
+    have mode, connect, listen, multicast_scouting and zenoh_config). With a config file only the
+    keys the table sets go over it, as in ``[transports.zenoh]``: the table's defaults (a peer, no
+    scouting) made a file's TLS client a peer."""
+    from mapd.ros2.zenoh_config import TABLE_KEYS, table_keys_set
+
+    keys = table_keys_set(o) if o.zenoh_config is not None else set(TABLE_KEYS)
+    return {"config_file": o.zenoh_config, **{k: getattr(o, k) for k in sorted(keys)}}
+
+
 def open_session_for(o: Any) -> Any:
-    """Open the session an ``[output.ros2]`` or ``[source.ros2]`` table describes (both have mode,
-    connect, listen, multicast_scouting and zenoh_config)."""
-    return open_session(
-        mode=o.mode,
-        connect=o.connect,
-        listen=o.listen,
-        multicast_scouting=o.multicast_scouting,
-        config_file=o.zenoh_config,
-    )
+    """Open the session an ``[output.ros2]`` or ``[source.ros2]`` table describes."""
+    return open_session(**session_options_for(o))
 
 
 def open_session(**options: Any) -> Any:

@@ -160,6 +160,44 @@ def check_zenoh_config(path: Path) -> None:
         raise ValueError(zenoh_message(exc)) from None
 
 
+#: The session keys a zenoh plugin's table holds, and where a zenoh config file holds each.
+TABLE_KEYS = {
+    "mode": "mode",
+    "listen": "listen/endpoints",
+    "connect": "connect/endpoints",
+    "multicast_scouting": "scouting/multicast/enabled",
+}
+
+
+def table_keys_set(options: Any) -> set[str]:
+    """The :data:`TABLE_KEYS` the table sets (an empty endpoint list sets nothing): with a config
+    file, only these go over it; the others keep the file's value."""
+    return {
+        name for name in TABLE_KEYS if name in options.model_fields_set and getattr(options, name, []) != []
+    }
+
+
+def table_conflicts(options: Any, path: Path) -> list[str]:
+    """The keys the table sets to other values than the zenoh config at ``path`` does, in words.
+
+    A file's value equal to zenoh's default counts as not set there (a parsed config cannot tell
+    the two apart), so a file that holds only TLS settings leaves mode and endpoints to the table.
+    """
+    try:
+        import zenoh
+
+        conf, default = zenoh.Config.from_json5(zenoh_config_text(path)), zenoh.Config()
+    except Exception:  # no zenoh, or a file check_zenoh_config refuses with its own line
+        return []
+    out = []
+    for name in sorted(table_keys_set(options)):
+        key, value = TABLE_KEYS[name], getattr(options, name)
+        theirs = json.loads(conf.get_json(key))
+        if theirs != json.loads(default.get_json(key)) and theirs != value:
+            out.append(f"{name} {json.dumps(value)} here, {json.dumps(theirs)} there")
+    return out
+
+
 def check_tls(path: Path | None, listen: list[str], field: str = "config_file") -> None:
     """ValueError with one line for TLS files the zenoh config at ``path`` names that the session
     could not load, or a tls/quic listener in ``listen`` with none to listen with.
@@ -247,6 +285,14 @@ class ZenohConfigFiles:
                 check_zenoh_config(path)
             except ValueError as exc:
                 raise ValueError(f"{name}: {path}: {exc}") from None
+            if conflicts := table_conflicts(self, path):
+                # Set here, they went over the file: the example config's mode = "peer" and
+                # multicast_scouting = true turned robot-tls.json5's TLS client into a peer that
+                # scouts and listens on plain TCP, with no word.
+                raise ValueError(
+                    f"{name}: {path}: {'; '.join(conflicts)}: a key set in both must agree (set here, "
+                    "it goes over the file); leave it out of one"
+                )
         # The TLS files the config names, and a tls/quic listener without them: the session's
         # open refused those at start (every such options class has ``listen``).
         field = self.beside_config[0]

@@ -2,8 +2,9 @@
 
 The table covers what a fleet usually sets (mode, endpoints, multicast scouting); anything more
 (TLS/mTLS, access control, shared memory, timeouts) goes in a zenoh config file named by
-``config_file``. Precedence: keys set in the table override the file; keys left out keep the
-file's value, or zenoh's default when there is no file. mapd always caps zenoh's largest accepted
+``config_file``. Precedence: keys set in the table override the file (a key set in both must
+agree: ``check_files`` refuses a conflict, :func:`mapd.ros2.zenoh_config.table_conflicts`); keys
+left out keep the file's value, or zenoh's default when there is no file. mapd always caps zenoh's largest accepted
 message at ``limits.max_message_bytes`` plus a margin, so a peer cannot make zenoh allocate a
 huge message for mapd to refuse afterwards. zenoh drops a larger one without a word, so a peer's
 map past the cap is neither counted nor said here; one between the limit and the cap is refused
