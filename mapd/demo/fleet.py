@@ -390,8 +390,12 @@ def run_demo(args: argparse.Namespace) -> int:
     took = warm_up(args.codec)
     if took > 2.0:
         print(f"codec {args.codec} ready in {took:.0f} s (compiled once, cached for the robots)", flush=True)
-    fleet.prepare()
-    fleet.start()
+    try:
+        fleet.prepare()
+        fleet.start()
+    except BaseException:  # a bad --log, say: the radio relay and its socat ptys must not outlive it
+        fleet.stop()
+        raise
     if fleet.base is not None:
         print(
             f"ROS 2 (rmw_zenoh): the base station publishes /map, each robot's /<robot>/map, /tf_static "

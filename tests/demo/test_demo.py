@@ -133,3 +133,33 @@ def test_demo_readies_the_codec_once_before_any_robot_starts(
     with pytest.raises(Started):
         fleet.run_demo(args)
     assert calls == ["warm_up pooled", "prepare"]
+
+
+def _processes_naming(text: str) -> list[str]:
+    """Command lines of the running processes that hold ``text`` (from /proc, as ps shows them)."""
+    out = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            args = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # gone meanwhile
+            continue
+        if text in args:
+            out.append(args)
+    return out
+
+
+@needs_socat
+@pytest.mark.parametrize("log", ["absent.log", "."])
+def test_a_demo_whose_setup_fails_leaves_no_radio_relay_or_socat_behind(tmp_path: Path, log: str) -> None:
+    # Before, the relay (started first) and its two socat ptys outlived the one error line, for
+    # ever, one set per mistyped --log.
+    out = tmp_path / "demo"
+    r = subprocess.run(
+        [sys.executable, "-m", "mapd", "demo", "--transport", "uwb", "--log", str(tmp_path / log),
+         "--duration", "3", "--out", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode != 0 and r.stderr.strip().splitlines()[-1].startswith("mapd: error: "), r.stderr
+    assert "Traceback" not in r.stderr
+    assert (out / "run" / "uwb").is_dir(), "the relay was not started: the test shows nothing"
+    assert _processes_naming(str(out)) == []
