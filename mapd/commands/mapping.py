@@ -53,22 +53,6 @@ def _check_output(out: Path) -> None:
         )
 
 
-def _no_scan_lines(log: Path) -> str:
-    """Why a log with no scan line at all is no CARMEN log, in words (for the one error line)."""
-    try:
-        with open(log, "rb") as fh:
-            head = fh.read(2)
-    except OSError:
-        head = b""
-    if not head:
-        return f"{log}: the log is empty"
-    if log.name.endswith(".gz") and head != b"\x1f\x8b":
-        return (
-            f"{log}: not a CARMEN log (named .gz but not gzip-compressed, and no FLASER or ROBOTLASER1 line)"
-        )
-    return f"{log}: not a CARMEN log (no FLASER or ROBOTLASER1 line)"
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay",
@@ -107,7 +91,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from mapd.files import atomic_write_bytes
     from mapd.grid.save import save_map
     from mapd.mapping import carmen
-    from mapd.mapping.replay import first_pose, replay_log, split_range
+    from mapd.mapping.replay import first_pose, no_scan_lines, replay_log, split_range
 
     if args.every < 1:
         raise ConfigError("--every must be at least 1")
@@ -119,7 +103,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     total = carmen.count_scans(args.log)
     if total == 0:
         # SourceError, as for a log that cannot be opened: the log is the input at fault.
-        raise SourceError(_no_scan_lines(args.log))
+        raise SourceError(no_scan_lines(args.log))
     # One record of bad lines for every robot's pass: each kind of fault is said once, not per robot.
     stats = carmen.LogStats()
     poses: dict[str, list[float]] = {}

@@ -22,6 +22,31 @@ from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, relative, resolution_problem
 
 
+def no_scan_lines(log: str | os.PathLike[str]) -> str:
+    """Why a log with no scan line at all is no CARMEN log, in words (for the one error line)."""
+    try:
+        with open(log, "rb") as fh:
+            head = fh.read(2)
+    except OSError:
+        head = b""
+    if not head:
+        return f"{log}: the log is empty"
+    if os.fspath(log).endswith(".gz") and head != b"\x1f\x8b":
+        return (
+            f"{log}: not a CARMEN log (named .gz but not gzip-compressed, and no FLASER or ROBOTLASER1 line)"
+        )
+    return f"{log}: not a CARMEN log (no FLASER or ROBOTLASER1 line)"
+
+
+def no_valid_scan(log: str | os.PathLike[str], part: str = "") -> str:
+    """Why a log gave no scan to replay, in words: no scan line at all (:func:`no_scan_lines`), or
+    scan lines that are all damaged (in ``part`` of it, a robot's slice, when given)."""
+    lines = carmen.count_scans(log)
+    if lines == 0:
+        return no_scan_lines(log)
+    return f"{log}: no valid scan{' in ' + part if part else ''} ({lines} scan line{'s' if lines != 1 else ''} in the log, none usable there)"
+
+
 def split_range(n: int, robots: int, index: int, overlap: float = 0.2) -> range:
     """Scan indices robot ``index`` of ``robots`` replays: evenly spaced slices of equal length where
     consecutive slices share ``overlap`` of the whole log (two robots: the first and last 60 %)."""

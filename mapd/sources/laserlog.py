@@ -45,7 +45,7 @@ from mapd.errors import LimitError, SourceError
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
 from mapd.mapping import carmen
 from mapd.mapping.mapper import Mapper, MapperOptions, relative
-from mapd.mapping.replay import first_pose, replay_scans
+from mapd.mapping.replay import first_pose, no_valid_scan, replay_scans
 from mapd.sources.base import FleetSliceOptions, MapSource, SourceContext, SourceOptions
 
 if TYPE_CHECKING:
@@ -85,7 +85,9 @@ class LaserLogOptions(FleetSliceOptions, MapperOptions):
         path = SourceContext.of(cfg).resolve(self.log)
         try:
             # the first scan only (the generator, dropped here, closes the file)
-            next(carmen.read_scans(path, stats=carmen.LogStats(quiet=True)), None)
+            first = next(carmen.read_scans(path, stats=carmen.LogStats(quiet=True)), None)
+            if first is None:  # a text file, say: the source ran with no map, and said "finished"
+                raise SourceError(no_valid_scan(path))
         except SourceError as exc:
             raise ValueError(f"log: {exc}") from None
 
@@ -187,6 +189,9 @@ class LaserLogSource(MapSource):
                 yield await asyncio.to_thread(self._snapshot, mapper, scan.stamp)
         if pending:
             yield await asyncio.to_thread(self._snapshot, mapper, stamp)
+        if frame is None:  # not one scan replayed: one error, not a source that ran with no map
+            part = f"robot {o.index + 1} of {o.robots}'s part" if o.robots > 1 else ""
+            raise SourceError(await asyncio.to_thread(no_valid_scan, path, part))
 
     def pose(self) -> StampedPose | None:
         """The robot's pose in its map frame at the last replayed scan."""

@@ -11,6 +11,7 @@ import pytest
 
 from mapd import plugins
 from mapd.codec.metrics import occupied_f1
+from mapd.config import MapdConfig
 from mapd.errors import SourceError
 from mapd.grid import OccupancyGrid, Pose2D
 from mapd.grid.load import load_map
@@ -100,6 +101,29 @@ def test_missing_log_is_one_source_error(tmp_path: Path) -> None:
     src = LaserLogSource(LaserLogOptions(log=tmp_path / "none.log", realtime=0), SourceContext(robot="r"))
     with pytest.raises(SourceError, match="no such log file"):
         _collect(src)
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("hello world\n", r"text\.log: not a CARMEN log \(no FLASER or ROBOTLASER1 line\)$"),
+        (
+            "FLASER 3 1.0 x\nFLASER 2 nan\n",
+            r"text\.log: no valid scan \(2 scan lines in the log, none usable there\)$",
+        ),
+    ],
+)
+def test_a_log_without_a_scan_is_one_error_at_check_and_at_start(
+    tmp_path: Path, text: str, says: str
+) -> None:
+    # Before, check-config said ok and the source logged a warning, then "finished": the daemon ran
+    # with no map of its own, and `mapd demo --log` on a config file exited 0 with an empty report.
+    (tmp_path / "text.log").write_text(text)
+    opts = LaserLogOptions(log=tmp_path / "text.log", realtime=0)
+    with pytest.raises(ValueError, match="^log: .*" + says):
+        opts.check_with_config(MapdConfig.model_validate({"robot": {"name": "r"}}))
+    with pytest.raises(SourceError, match=says):
+        _collect(LaserLogSource(opts, SourceContext(robot="r")))
 
 
 def test_options_are_validated() -> None:
