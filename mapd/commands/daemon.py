@@ -176,6 +176,7 @@ def _socket_path(args: argparse.Namespace) -> Path:
     if args.socket is not None:
         return Path(args.socket)
     from mapd import config
+    from mapd.errors import ConfigError
 
     try:
         default = DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None
@@ -183,7 +184,16 @@ def _socket_path(args: argparse.Namespace) -> Path:
         default = None  # the socket's own refusal then says who may ask
     cfg_path = args.config or default
     if cfg_path is not None:
-        return config.load(cfg_path).control_socket()
+        try:
+            return config.load(cfg_path).control_socket()
+        except ConfigError as exc:
+            # Edited with a mistake while the daemon runs on the config it loaded before (its
+            # reload refused): say so, and still ask the socket the file names.
+            socket = config.control_socket_of(cfg_path)
+            if socket is None:
+                raise
+            print(f"mapd: warning: {exc} (asking {socket}, which it names)", file=sys.stderr)
+            return socket
     return Path("/run/mapd/mapd.sock")
 
 

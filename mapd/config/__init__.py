@@ -25,6 +25,7 @@ from mapd.config.checking import Checked, Keys, check, read_keys, read_view_toke
 from mapd.config.loading import (
     MAX_CONFIG_BYTES,
     MAX_CONFIG_DEPTH,
+    control_socket_of,
     format_validation_error,
     load,
     validate,
@@ -79,6 +80,7 @@ __all__ = [
     "ViewSection",
     "check",
     "check_plugins",
+    "control_socket_of",
     "format_validation_error",
     "is_loopback",
     "load",

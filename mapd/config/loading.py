@@ -149,6 +149,32 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
     return cfg
 
 
+def control_socket_of(path: str | os.PathLike[str]) -> Path | None:
+    """The control socket a config names (``control.socket``, else ``state.runtime_dir``'s
+    ``mapd.sock``), read from its TOML alone: for ``mapd status`` when :func:`load` refuses the
+    file (edited with a mistake while the daemon runs on the config it loaded before: ``mapd
+    status`` must still show it, the reload it refused included). None when even that cannot be
+    read (not TOML, no such file)."""
+    p = Path(path)
+    try:
+        raw = read_capped(p, MAX_CONFIG_BYTES)
+        data = tomllib.loads(raw.decode("utf-8")) if len(raw) <= MAX_CONFIG_BYTES else None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    control, state = data.get("control"), data.get("state")
+    socket = control.get("socket") if isinstance(control, dict) else None
+    runtime = state.get("runtime_dir") if isinstance(state, dict) else None
+    if isinstance(socket, str) and socket:
+        chosen = Path(socket)
+    elif isinstance(runtime, str) and runtime:
+        chosen = Path(runtime) / "mapd.sock"
+    else:
+        chosen = Path("/run/mapd/mapd.sock")  # the defaults' (StateSection.runtime_dir)
+    return chosen if chosen.is_absolute() else p.parent / chosen
+
+
 #: (section, field) of every path in the main tables; plugin options name theirs in ``beside_config``.
 _PATHS_BESIDE_CONFIG = (
     ("robot", "key_file"),

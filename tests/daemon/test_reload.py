@@ -435,13 +435,29 @@ def test_sighup_to_a_running_daemon_revokes_and_readmits_a_robot(tmp_path: Path,
             os.close(held)
         assert snaps["robot0"]["reload"]["refused"] == 2
         assert "did not finish it in" in snaps["robot0"]["reload"]["last"]
+
+        # Edited with a mistake (sudoedit, then systemctl reload): refused, and `mapd status
+        # --config` with that file refused too, so the refusal could be seen only with --socket.
+        cfg0.unlink()
+        cfg0.write_text(original.replace("[robot]\n", "[robot]\nbogus = 1\n", 1))
+        f.procs["robot0"].send_signal(signal.SIGHUP)
+        fk.wait_for(lambda s: s.get("robot0", {}).get("reload", {}).get("count") == 5, 30, f)
+        out = subprocess.run(
+            [sys.executable, "-m", "mapd", "status", "--config", str(cfg0)],
+            capture_output=True, text=True, timeout=30,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr
+        (warning,) = out.stderr.splitlines()
+        assert warning.startswith("mapd: warning: ") and "robot.bogus" in warning and "mapd.sock" in warning
+        assert "reload  5 (3 refused)" in out.stdout, out.stdout
     finally:
         codes = f.stop(timeout=10)
     assert codes == {"robot0": 0, "robot1": 0}
     log = (f.run_dir / "robot0" / "daemon.log").read_text()
     refusals = [ln for ln in log.splitlines() if "reload refused" in ln]
-    assert len(refusals) == 2 and all(str(cfg0) in line for line in refusals) and "Traceback" not in log
+    assert len(refusals) == 3 and all(str(cfg0) in line for line in refusals) and "Traceback" not in log
     assert f"did not finish it in {reading.READ_TIMEOUT_S:g} s" in refusals[1]
+    assert "robot.bogus: unknown key" in refusals[2]
 
 
 def test_a_reload_that_fails_unexpectedly_leaves_the_daemon_running(
