@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The example config.toml made into one robot's /etc/mapd/config.toml (install.sh runs it):
 #   deploy/robot-config.sh ROBOT FLEET < config.toml > /etc/mapd/config.toml
-# It names the robot and its fleet, points the keys at /etc/mapd and drops the example's
+# It names the robot and its fleet, points the keys at /etc/mapd and the paper codec's models at
+# /opt/mapd/models (the unit's MAPD_MODELS, which a shell lacks), and drops the example's
 # placeholder roster lines (install.sh adds the robot's own). Every other line is kept as it is:
 # the example's state, runtime and output folders are the unit's (StateDirectory, RuntimeDirectory).
 set -euo pipefail
@@ -14,4 +15,5 @@ done
 sed -e "s/^name = \"alpha\"/name = \"$robot\"/" -e "s/^fleet = \"demo\"/fleet = \"$fleet\"/" \
     -e 's#^key_file = .*#key_file = "/etc/mapd/robot.key"#' \
     -e 's#^link_key_file = .*#link_key_file = "/etc/mapd/link.key"#' \
+    -e 's@^# model_dir = "/opt/mapd/models".*@model_dir = "/opt/mapd/models"   # where install.sh put them (mapd in a shell reads this file too)@' \
     -e '/^[A-Za-z0-9_-]* = "ed25519:A*="/d'

@@ -99,6 +99,10 @@ def test_the_robot_config_install_writes_keeps_the_examples_folders(tmp_path: Pa
     assert cfg.fleet.link_key_file == Path("/etc/mapd/link.key")
     assert cfg.fleet.roster == {}, "the example's placeholder keys are dropped"
     assert cfg.state == orig.state and cfg.output.table("files") == orig.output.table("files")
+    # the models where install.sh puts them, for mapd in a shell too (the unit alone set
+    # MAPD_MODELS, so check-config refused a paper codec config the daemon ran)
+    assert cfg.codec.table("paper")["model_dir"] == "/opt/mapd/models"
+    assert "/opt/mapd/models" in (DEPLOY / "install.sh").read_text()
     # what the unit lets the daemon write (ProtectSystem=strict): its state directory
     s = unit()["Service"]
     for folder in (cfg.state.dir, Path(cfg.output.table("files")["dir"])):
