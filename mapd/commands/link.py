@@ -6,7 +6,10 @@ the goodput against the configured link rate, and the link statistics (resends, 
 duplicates, RTT). ``recv`` exits 0 after one complete message whose hash checked out, once the sender
 has gone quiet (it answers the sender's repeats until then: ``--linger``); ``send`` exits 0 once the
 receiver acknowledged it, 1 when it did not before ``--deadline`` or the receiver fell silent after
-the whole file was on the air (it may have got it: its last acks may have been lost).
+the whole file was on the air (it may have got it: its last acks may have been lost). A failed ``send``
+or ``recv`` prints the same statistics (``"ok": false`` and the ``"error"`` with ``--json``) and what
+the line carried, before the error: nothing at all (a dead radio, the wrong port), frames whose link
+tag failed (another ``--key``), or frames the framing spoiled (another ``--baud``).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from typing import Any
 from mapd.bench.common import DAY_S, UWB_MAX_BPS, float_arg, int_arg
 from mapd.commands.common import check_writable
 from mapd.commands.link_waits import LINGER_MAX_S, LINGER_S, PEER_TIMEOUT_S, SILENT_TIMEOUTS, Quiet, Silence
-from mapd.errors import ConfigError, TransportError
+from mapd.errors import ConfigError, MapdError, TransportError
 from mapd.keys import read_key_file
 
 #: The largest frame ``[transports.uwb] max_frame`` takes.
@@ -178,15 +181,47 @@ async def _progress(link: Any, what: str, total: int | None) -> None:
         print(f"link: {moved} bytes {'sent' if what == 'bytes_tx' else 'received'}{share}", file=sys.stderr)
 
 
-def _report(args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, Any]) -> None:
+def _report(
+    args: argparse.Namespace, summary: dict[str, Any], stats: dict[str, Any], error: MapdError | None = None
+) -> None:
+    """The summary line and the link line (or one JSON document); ``error``: the command failed, and
+    raises it next (the CLI's one ``mapd: error:`` line on stderr): the figures are printed first
+    because a failed commissioning is when they are needed, to tell a wrong key from a dead line."""
     from mapd.daemon.headline import damage_words, damaged
 
     if args.json:
-        print(json.dumps({**summary, "damaged": damaged(stats), "stats": stats}, indent=2))
+        doc = {"ok": error is None, "error": None if error is None else str(error), **summary}
+        print(json.dumps({**doc, "damaged": damaged(stats), "stats": stats}, indent=2))
         return
     print(summary["line"])
     words = damage_words(stats) or "damaged=None"
     print("link: " + "  ".join(words if k == "damaged" else f"{k}={stats.get(k)}" for k in _SHOWN))
+
+
+def _heard(stats: dict[str, Any]) -> str:
+    """What the line carried, for a failed command: in words that tell the usual commissioning
+    faults apart, which otherwise all end in the same timeout."""
+    rx = int(stats.get("bytes_rx") or 0)
+    if not rx:
+        return "nothing heard on the line (is the other end running, on this --port?)"
+    valid = int(stats.get("frames_rx") or 0)
+    words = [f"heard {rx} bytes, {valid} valid frames"]
+    # A wrong baud breaks the framing itself (COBS, the length). Frames whole but for the check at
+    # their end (the CRC; on a keyed link the tag, which replaces it), and none valid, point at the
+    # keys: an unkeyed end finds a keyed end's frames failing the CRC.
+    broken = sum(int(stats.get(k) or 0) for k in ("cobs_errors", "oversize", "runts"))
+    keys = not broken and not valid
+    if broken:
+        words.append(f"{broken} broken (another --baud, or a noisy line?)")
+    if n := int(stats.get("crc_errors") or 0):
+        words.append(f"{n} failed the CRC" + (" (a --key there, and none here?)" if keys else ""))
+    if n := int(stats.get("bad_signature") or 0):
+        words.append(f"{n} failed the link tag" + (" (another --key?)" if keys else ""))
+    if n := int(stats.get("signed_no_key") or 0):
+        words.append(f"{n} signed, and no --key here")
+    if n := int(stats.get("unsigned") or 0):
+        words.append(f"{n} unsigned, and a --key here")
+    return ", ".join(words)
 
 
 def cmd_send(args: argparse.Namespace) -> int:
@@ -244,18 +279,33 @@ async def _send(args: argparse.Namespace, data: bytes, peers: list[int]) -> int:
     )
     progress = asyncio.ensure_future(_progress(link, "bytes_tx", len(data)))
     watcher = asyncio.ensure_future(watch())
+    error: MapdError | None = None
     try:
         t0 = loop.time()
         link.send(data, peers, deadline_s=args.deadline)
-        await link.run_until(done.wait())
+        try:
+            await link.run_until(done.wait())
+        except MapdError as exc:  # the link stopped (the port gone): reported with the figures below
+            error = exc
         dt = loop.time() - t0
         stats = link.stats()
     finally:
         progress.cancel()
         watcher.cancel()
         await link.close()
-    if failed or silence.pending:
-        raise TransportError(_not_acknowledged(args, silence, failed, dt))
+    if error is None and (failed or silence.pending):
+        error = TransportError(_not_acknowledged(args, silence, failed, dt))
+    if error is not None:
+        line = f"send {args.file} on {args.port} failed after {dt:.2f} s: {_heard(stats)}"
+        summary = {
+            "line": line,
+            "bytes": len(data),
+            "seconds": dt,
+            "goodput_bps": None,
+            "peers": sorted(delivered),
+        }
+        _report(args, summary, stats, error)
+        raise error
     words, goodput = _goodput(args, len(data), dt)
     line = (
         f"sent {args.file}: {len(data)} bytes to peer {', '.join(map(str, sorted(delivered)))} in {dt:.2f} s, "
@@ -332,6 +382,7 @@ async def _recv(args: argparse.Namespace) -> int:
     print(f"waiting for the peer on {args.port}", file=sys.stderr)
     progress = asyncio.ensure_future(_progress(link, "bytes_rx", None))
     loop = asyncio.get_running_loop()
+    t0 = loop.time()
     try:
         try:
             msg = await asyncio.wait_for(link.run_until(got), args.timeout)
@@ -349,6 +400,14 @@ async def _recv(args: argparse.Namespace) -> int:
             quiet.heard(int(link.stats().get("bytes_rx") or 0), now)
             await link.run_until(asyncio.sleep(POLL_S))
         stats = link.stats()
+    except MapdError as exc:
+        dt = loop.time() - t0
+        stats = link.stats()
+        line = f"recv on {args.port} failed after {dt:.2f} s: {_heard(stats)}"
+        _report(
+            args, {"line": line, "bytes": None, "seconds": dt, "goodput_bps": None, "peer": None}, stats, exc
+        )
+        raise
     finally:
         progress.cancel()
         await link.close()

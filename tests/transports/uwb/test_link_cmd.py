@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import os
 import re
@@ -37,12 +38,13 @@ async def _pair(
     seed: int = 0,
     recv_args: tuple[str, ...] = ("--linger", "0.5"),
     relay_type: type[FaultRelay] = FaultRelay,
+    recv_timeout: float = 20,
 ) -> tuple[int, str, str, int, str, str]:
     """Run ``recv -o out`` and ``send src`` on the two ends of one relay; both exit codes and outputs."""
     async with relay_type(rate_bps=100_000, faults=faults or Faults(), seed=seed) as relay:
         recv = await asyncio.create_subprocess_exec(
             *EXE, "link", "recv", "--port", relay.ports[1], "-o", str(out), *recv_args,
-            "--timeout", "20", *COMMON,
+            "--timeout", str(recv_timeout), *COMMON,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
         await asyncio.sleep(0.3)
@@ -86,6 +88,24 @@ def _is_complete(frame: bytes) -> bool:
     except MapdError:
         return False
     return isinstance(body, wire.Ack) and bool(body.flags & wire.COMPLETE)
+
+
+async def _recv_alone(out: Path, *args: str) -> tuple[int, str, str]:
+    """Run ``recv -o out`` on one end of a relay whose other end nobody opens: a dead radio."""
+    async with FaultRelay(rate_bps=100_000) as relay:
+        recv = await asyncio.create_subprocess_exec(
+            *EXE, "link", "recv", "--port", relay.ports[1], "-o", str(out), *COMMON, *args,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        r_out, r_err = await asyncio.wait_for(recv.communicate(), 30)
+    assert recv.returncode is not None
+    return recv.returncode, r_out.decode(), r_err.decode()
+
+
+def _one_error(err: str) -> str:
+    errors = [ln.removeprefix("mapd: error: ") for ln in err.splitlines() if ln.startswith("mapd: error: ")]
+    assert len(errors) == 1 and "Traceback" not in err, err
+    return errors[0]
 
 
 @pytest.mark.parametrize("where", ["missing folder", "a folder"])
@@ -207,3 +227,59 @@ def test_send_stops_waiting_for_a_peer_gone_silent_and_says_it_was_sent(tmp_path
     assert (
         took < 40
     )  # two peer timeouts (--peer-timeout 6) after the whole file went out, not the 70 s deadline
+
+
+@pytest.mark.parametrize("form", ["json", "text"])
+def test_a_failed_recv_and_send_print_their_figures_that_tell_a_wrong_key(tmp_path: Path, form: str) -> None:
+    """Docs review: a failed recv or send printed the error alone (with --json, nothing on stdout),
+    so a wrong --key, a wrong --baud and a dead radio all read the same, when commissioning needs
+    the figures most."""
+    key_a, key_b = tmp_path / "a.key", tmp_path / "b.key"
+    key_a.write_text(bytes(range(32)).hex() + "\n")
+    key_b.write_text(bytes(range(1, 33)).hex() + "\n")
+    src = tmp_path / "map.bin"
+    src.write_bytes(os.urandom(3000))
+    out = tmp_path / "got.bin"
+    as_json = ("--json",) if form == "json" else ()
+    s_rc, s_out, s_err, r_rc, r_out, r_err = asyncio.run(
+        _pair(
+            src,
+            out,
+            *("--key", str(key_b), "--deadline", "3", *as_json),
+            recv_args=("--key", str(key_a), *as_json),
+            recv_timeout=2,
+        )
+    )
+    r_error, s_error = _one_error(r_err), _one_error(s_err)
+    assert r_rc == 1 and r_error.startswith("uwb: no complete message on "), r_err
+    assert s_rc == 1 and "was not delivered to peer 2" in s_error, s_err
+    assert not out.exists()
+    if form == "json":
+        doc, sent = json.loads(r_out), json.loads(s_out)  # one document each, whole
+        assert doc["ok"] is False and doc["error"] == r_error, doc
+        st = doc["stats"]
+        # Every frame came whole and failed the tag: another key, not a dead line nor another baud.
+        assert st["bytes_rx"] > 0 and st["frames_rx"] == 0 and st["bad_signature"] > 0, st
+        assert doc["damaged"] == st["bad_signature"] and st["crc_errors"] == st["cobs_errors"] == 0
+        assert "failed the link tag (another --key?)" in doc["line"], doc["line"]
+        assert sent["ok"] is False and sent["error"] == s_error and sent["stats"]["frames_tx"] > 0, sent
+    else:
+        summary, link = r_out.splitlines()
+        assert summary.startswith("recv on ") and "failed after" in summary, r_out
+        assert "0 valid frames" in summary and "failed the link tag (another --key?)" in summary, summary
+        m = re.search(r" bytes_rx=(\d+) .* damaged=(\d+) \(bad_signature=(\d+)\)", link)
+        assert m is not None and link.startswith("link: "), link
+        assert int(m.group(1)) > 0 and int(m.group(2)) == int(m.group(3)) > 0, link
+        assert s_out.startswith(f"send {src} on ") and "\nlink: bytes_tx=" in s_out, s_out
+
+
+def test_a_recv_that_heard_nothing_says_so_apart_from_a_wrong_key(tmp_path: Path) -> None:
+    """A dead radio (nobody on the other end): the same figures, with nothing received at all."""
+    out = tmp_path / "got.bin"
+    rc, r_out, r_err = asyncio.run(_recv_alone(out, "--timeout", "1", "--json"))
+    error = _one_error(r_err)
+    assert rc == 1 and error.startswith("uwb: no complete message on ") and "within 1 s" in error, r_err
+    doc = json.loads(r_out)
+    assert doc["ok"] is False and doc["error"] == error, doc
+    assert doc["stats"]["bytes_rx"] == 0 and doc["damaged"] == 0, doc["stats"]
+    assert "nothing heard on the line" in doc["line"], doc["line"]
