@@ -112,6 +112,16 @@ def test_config_errors_name_file_and_key(tmp_path: Path, text: str, match: str) 
         config.check_plugins(cfg)
 
 
+def test_a_pose_of_neither_kind_is_one_line(tmp_path: Path) -> None:
+    # The union said it twice, a line per member (list[float], literal['estimate']).
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, MINIMAL + '\n[fusion.poses]\nbeta = "nonsense"\n'))
+    assert str(err.value).splitlines() == [
+        f"{tmp_path / 'mapd.toml'}: fusion.poses: Value error, pose of 'beta' must be [x, y, yaw] in meters "
+        "and radians, or \"estimate\" (got 'nonsense')"
+    ]
+
+
 def test_missing_config_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="no such config file"):
         config.load(tmp_path / "absent.toml")

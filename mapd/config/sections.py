@@ -196,11 +196,17 @@ class FusionSection(Strict):
     @field_validator("poses", mode="before")
     @classmethod
     def _no_boolean_poses(cls, v: Any) -> Any:
-        # pydantic reads true as 1.0: a pose written with booleans is a typo, not a place
+        # pydantic reads true as 1.0: a pose written with booleans is a typo, not a place. And a
+        # value of neither kind is said here once: the union said it twice, a line per member.
         if isinstance(v, dict):
             for robot, pose in v.items():
                 if isinstance(pose, list) and any(isinstance(p, bool) for p in pose):
                     raise ValueError(f"pose of '{robot}' must be [x, y, yaw] in meters and radians")
+                if not isinstance(pose, list) and pose != "estimate":
+                    raise ValueError(
+                        f"pose of {short_repr(robot, 40)} must be [x, y, yaw] in meters and radians, "
+                        f"or \"estimate\" (got {short_repr(pose, 40)})"
+                    )
         return v
 
 
