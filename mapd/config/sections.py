@@ -205,7 +205,7 @@ class FusionSection(Strict):
                 if not isinstance(pose, list) and pose != "estimate":
                     raise ValueError(
                         f"pose of {short_repr(robot, 40)} must be [x, y, yaw] in meters and radians, "
-                        f"or \"estimate\" (got {short_repr(pose, 40)})"
+                        f'or "estimate" (got {short_repr(pose, 40)})'
                     )
         return v
 
