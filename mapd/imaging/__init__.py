@@ -10,6 +10,8 @@ before any pixel is decoded).
 * :mod:`~mapd.imaging.pnm`: PNM header parser and reader (P5/P6 with numpy, P1-P4 checked for Pillow);
 * :mod:`~mapd.imaging.png`: PNG chunk, CRC, IEND, PLTE and data-length verifier, run before Pillow
   decodes;
+* :mod:`~mapd.imaging.jpeg`: JPEG marker walker, run before Pillow decodes: a progressive JPEG's
+  scans are counted and bounded (each costs a pass over the whole image);
 * :mod:`~mapd.imaging.pixels`: the Pillow wrapper for everything else (only map_server's formats,
   one error per failure), :class:`Pixels` (grey levels a band of rows at a time) and the helpers the
   readers share (regular-file open, the cell check).

@@ -5,7 +5,7 @@
 * :func:`pillow_pixels`: Pillow restricted to the formats asked for (only those map_server also
   reads, :data:`PILLOW_FORMATS`), the size checked from the header before decoding, the pixels handed
   over as map_server's SDL_image would (palette to RGB(A), 1-bit to grey, 16-bit scaled to 0..255),
-  and every failure one error.
+  a JPEG's scans counted first (:mod:`mapd.imaging.jpeg`), and every failure one error.
 * :func:`check_cells`: an empty image, or one over the caller's cell limit, refused from its header
   before a pixel is decoded.
 * :func:`open_map_file`: a regular file, opened so that a FIFO or a device named as a
@@ -25,6 +25,7 @@ from PIL import Image, UnidentifiedImageError
 
 from mapd.errors import LimitError, MapFileError
 from mapd.files.reading import NotRegularFileError, open_regular
+from mapd.imaging.jpeg import JPEG_SIGNATURE, check_jpeg
 
 #: Image formats handed to Pillow (the ones ROS map_server's SDL_image also reads). Anything else is
 #: refused before a decoder runs: no Ghostscript for EPS, no rarely used decoders on untrusted bytes.
@@ -111,6 +112,9 @@ def pillow_pixels(
     PNG's PLTE); a pixel whose index lies beyond it is refused. Pillow would decode it as black, a
     wall by map_server's rules, where libpng refuses the file.
 
+    A JPEG's markers are walked first (:func:`mapd.imaging.jpeg.check_jpeg`): one with more scans
+    than :data:`mapd.imaging.jpeg.MAX_JPEG_SCANS` is a LimitError before libjpeg decodes any.
+
     ``max_cells`` is checked right after ``Image.open``, which reads only the header, so nothing over
     the limit is decoded. Pillow's own decompression-bomb guard (``Image.MAX_IMAGE_PIXELS``, about
     89 M pixels, refused at twice that) is deliberately left at its process-wide default: it is above
@@ -118,6 +122,13 @@ def pillow_pixels(
     change a global that other code in the process may rely on. Its refusal is a LimitError.
     """
     name = f"{where}: image '{image}'"
+    if "JPEG" in formats:
+        # libjpeg has no limit on a progressive JPEG's scans, each as costly as the image is large:
+        # they are counted first (a file Pillow's JPEG plugin would take starts with these bytes).
+        head = f.read(len(JPEG_SIGNATURE))
+        if head == JPEG_SIGNATURE:
+            check_jpeg(f, where, image)
+        f.seek(0)
     try:
         img = Image.open(f, formats=list(formats))
     except Image.DecompressionBombError as exc:

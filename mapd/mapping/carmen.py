@@ -17,6 +17,10 @@ A log that ends early (a gzip stream cut short because the robot lost power whil
 was interrupted, a damaged stream, a failed read) is read up to there: the scans before the cut are
 good data. The cut is said once, as a warning with its line and how many bytes of the file were read,
 and kept in :attr:`LogStats.cut`. Only a log with no scan before the cut is a :class:`CutLogError`.
+
+A gzip log that inflates to more than :data:`MAX_GZIP_RATIO` times its size, or to more lines than
+:data:`MAX_GZIP_LINES_PER_BYTE` per byte of it (a decompression bomb: a small file of newlines), is
+one :class:`LimitError`, raised while it is read, as soon as a limit is passed.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import gzip
 import logging
 import math
 import os
+import sys
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -33,7 +38,7 @@ from typing import BinaryIO, cast
 
 import numpy as np
 
-from mapd.errors import SourceError
+from mapd.errors import LimitError, SourceError
 from mapd.files.reading import NotRegularFileError, open_regular
 from mapd.grid import Pose2D
 
@@ -41,6 +46,23 @@ log = logging.getLogger(__name__)
 
 #: Longest line read; anything longer is skipped, so a corrupt log cannot make us allocate without bound.
 MAX_LINE_BYTES = 1 << 20
+#: Most bytes a gzip log may inflate to, as a multiple of its size on disk. Real CARMEN logs inflate
+#: about 4-5x (intel-corrected.log.gz 3.9x, freiburg-079-corrected.log.gz 4.6x); the most a real
+#: run could write, a simulated noiseless laser standing still (the same ranges on every line, only
+#: the times moving), 80x with 180 beams, 105x with 361, 130x with 1081. Deflate reaches 1000x on a
+#: file of newlines: a 200 KB log of them inflated to 200 MiB, read in full on every pass (``mapd
+#: replay`` makes one per robot, plus a count), and kept ``mapd replay`` busy for minutes.
+MAX_GZIP_RATIO = 250
+#: Most lines a gzip log may hold, per byte of its size on disk. Each line costs a Python step
+#: (0.4 to 1 us), whatever its length: held to 100x alone, the 200 KB log of newlines was still read
+#: for 8 s (``mapd replay``) to 17 s (the laserlog source) before its refusal. Real logs hold 0.04
+#: (intel) and 0.01 (freiburg) lines per byte; a robot logging the same odometry while it stands
+#: still, 0.2.
+MAX_GZIP_LINES_PER_BYTE = 2
+#: A gzip log may always inflate to this many bytes and lines, whatever its ratios: a small log of a
+#: few scans (test data, identical lines) compresses far beyond a real one and is cheap to read.
+MIN_GZIP_LIMIT_BYTES = 4 << 20
+MIN_GZIP_LIMIT_LINES = 1 << 16
 #: Most beams accepted in one scan.
 MAX_BEAMS = 8192
 #: Largest pose coordinate accepted (m). Beyond it, frame arithmetic on two poses can overflow to
@@ -120,8 +142,9 @@ class BadLine(ValueError):
         self.key = key
 
 
-def _open(path: Path) -> tuple[BinaryIO, BinaryIO]:
-    """The log's lines to read (inflated if gzip), and the file under them (for how far it got)."""
+def _open(path: Path) -> tuple[BinaryIO, BinaryIO, int | None]:
+    """The log's lines to read (inflated if gzip), the file under them (for how far it got), and a
+    gzip log's size on disk (None for a plain log, whose lines are as many as its bytes allow)."""
     try:
         raw = open_regular(path)  # a FIFO without a writer blocked for ever, and /dev/zero never ended
     except FileNotFoundError:
@@ -130,11 +153,16 @@ def _open(path: Path) -> tuple[BinaryIO, BinaryIO]:
         raise SourceError(f"{path}: not a regular file") from None
     except OSError as exc:
         raise SourceError(f"{path}: cannot open log: {exc.strerror or exc}") from None
-    magic = raw.read(2)
-    raw.seek(0)
+    try:
+        magic = raw.read(2)
+        raw.seek(0)
+        size = os.fstat(raw.fileno()).st_size
+    except OSError as exc:
+        raw.close()
+        raise SourceError(f"{path}: cannot read log: {exc.strerror or exc}") from None
     if magic == b"\x1f\x8b":
-        return cast(BinaryIO, gzip.GzipFile(fileobj=raw, mode="rb")), raw
-    return raw, raw
+        return cast(BinaryIO, gzip.GzipFile(fileobj=raw, mode="rb")), raw, size
+    return raw, raw, None
 
 
 def _cut(path: Path, raw: BinaryIO, line: int, exc: BaseException) -> CutLogError:
@@ -146,12 +174,34 @@ def _cut(path: Path, raw: BinaryIO, line: int, exc: BaseException) -> CutLogErro
     return CutLogError(path, line, f"{where}({exc})")
 
 
+def _bomb(path: Path, by_bytes: bool, max_bytes: int, max_lines: int) -> LimitError:
+    """The error for a gzip log past its limit of inflated bytes (``by_bytes``) or of lines."""
+    if by_bytes:
+        what = f"inflates to more than {max_bytes} bytes, over {MAX_GZIP_RATIO} times its size on disk"
+        real = "a CARMEN log inflates about 5 times"
+    else:
+        what = (
+            f"holds more than {max_lines} lines, over {MAX_GZIP_LINES_PER_BYTE} per byte of its size on disk"
+        )
+        real = "a CARMEN log holds under 1 per 25 bytes"
+    return LimitError(f"{path}: gzip log {what} ({real}): refused as a decompression bomb")
+
+
 def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
     """(line number, line) pairs; overlong lines come back as b'' plus a sentinel of their own.
 
-    Raises :class:`CutLogError` where the log stops being readable, after the lines before it.
+    Raises :class:`CutLogError` where the log stops being readable, after the lines before it, and
+    :class:`LimitError` as soon as a gzip log has inflated to more bytes or lines than its size
+    allows (:data:`MAX_GZIP_RATIO`, :data:`MAX_GZIP_LINES_PER_BYTE`), before the rest is inflated.
     """
-    fh, raw = _open(path)
+    fh, raw, packed = _open(path)
+    # A gzip log is held to limits in proportion to its size, counted as its lines are inflated, so
+    # a decompression bomb stops there, not after inflating all of itself (once per pass).
+    max_bytes = max_lines = sys.maxsize
+    if packed is not None:
+        max_bytes = max(MIN_GZIP_LIMIT_BYTES, MAX_GZIP_RATIO * packed)
+        max_lines = max(MIN_GZIP_LIMIT_LINES, MAX_GZIP_LINES_PER_BYTE * packed)
+    inflated = 0
     try:
         number = 0
         while True:
@@ -162,6 +212,9 @@ def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
             if not chunk:
                 return
             number += 1
+            inflated += len(chunk)
+            if inflated > max_bytes or number > max_lines:
+                raise _bomb(path, inflated > max_bytes, max_bytes, max_lines)
             if len(chunk) >= MAX_LINE_BYTES and not chunk.endswith(b"\n"):
                 # Drain the rest of the overlong line so the next line is read whole.
                 while True:
@@ -169,6 +222,9 @@ def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
                         more = fh.readline(MAX_LINE_BYTES)
                     except (OSError, EOFError, zlib.error) as exc:
                         raise _cut(path, raw, number, exc) from None
+                    inflated += len(more)
+                    if inflated > max_bytes:
+                        raise _bomb(path, True, max_bytes, max_lines)
                     if not more or more.endswith(b"\n"):
                         break
                 yield number, b"\x00overlong"

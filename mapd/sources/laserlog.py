@@ -88,7 +88,7 @@ class LaserLogOptions(FleetSliceOptions, MapperOptions):
             first = next(carmen.read_scans(path, stats=carmen.LogStats(quiet=True)), None)
             if first is None:  # a text file, say: the source ran with no map, and said "finished"
                 raise SourceError(no_valid_scan(path))
-        except SourceError as exc:
+        except (SourceError, LimitError) as exc:  # (LimitError: a gzip bomb, carmen.MAX_GZIP_RATIO)
             raise ValueError(f"log: {exc}") from None
 
 
