@@ -31,7 +31,7 @@ import threading
 from pathlib import Path
 from typing import Any, ClassVar
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from mapd.config.paths import folder_problem
 from mapd.errors import ConfigError, MapdError, MapFileError
@@ -40,6 +40,8 @@ from mapd.files.folders import FOLDER_GONE, Folder, file_id
 from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.grid.save import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
+from mapd.ros2 import rmw
+from mapd.ros2.tf import robot_frame
 
 log = logging.getLogger("mapd.outputs.files")
 
@@ -53,6 +55,19 @@ class FilesOptions(OutputOptions):
     )
     name: str = Field(default="map", pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="file name stem")
     frame_id: str = Field(default="map", description="the fleet frame's name (REP-105), in transforms.json")
+    robot_map_frame: str = Field(
+        default="{robot}/map",
+        description="each robot's map frame in transforms.json ({robot} is its name), as the ros2 "
+        "output's robot_map_frame names it",
+    )
+
+    @field_validator("robot_map_frame")
+    @classmethod
+    def _check_robot_frame(cls, v: str) -> str:
+        if "{robot}" not in v:
+            raise ValueError(f"{v!r} must name the robot with {{robot}}: one frame each")
+        rmw.check_frame_id(robot_frame(v, "robot0"), shown=v)
+        return v
 
     def check_files(self) -> None:
         """ValueError when ``dir`` could not be a folder (a file there, or above it): start could
@@ -215,7 +230,7 @@ class FilesOutput(Output):
             "frame_id": self.opts.frame_id,
             "stamp": update.stamp,
             "robots": {
-                robot: {"child_frame_id": f"{robot}/map", "x": p.x, "y": p.y, "yaw": p.yaw,
+                robot: {"child_frame_id": robot_frame(self.opts.robot_map_frame, robot), "x": p.x, "y": p.y, "yaw": p.yaw,
                         "version": update.versions.get(robot)}
                 for robot, p in sorted(update.frames.items())
             },

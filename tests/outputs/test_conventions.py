@@ -55,6 +55,19 @@ def test_files_output_writes_map_server_layout(tmp_path: Path) -> None:
     assert doc["frame_id"] == "map" and doc["robots"]["r1"]["child_frame_id"] == "r1/map"
 
 
+def test_files_output_names_robot_frames_as_the_ros2_output_is_told_to(tmp_path: Path) -> None:
+    # transforms.json said "<robot>/map" whatever frames the fleet uses on its TF tree.
+    opts = FilesOptions(dir=tmp_path, frame_id="fleet", robot_map_frame="{robot}/map_fleet")
+    out = FilesOutput(opts, OutputContext("base", "lab"))
+    asyncio.run(out.start())
+    out.publish(GlobalUpdate(corner_grid(), {"r1": Pose2D(1.0, 2.0, 0.5)}, 1.7e9))
+    doc = json.loads((tmp_path / "transforms.json").read_text())
+    assert doc["frame_id"] == "fleet" and doc["robots"]["r1"]["child_frame_id"] == "r1/map_fleet"
+    for bad in ("map", "/{robot}/map"):  # one frame for every robot; a leading '/' tf2 refuses
+        with pytest.raises(ValueError):
+            FilesOptions(dir=tmp_path, robot_map_frame=bad)
+
+
 def test_ros2_cdr_is_an_occupancy_grid_with_data0_at_the_origin() -> None:
     pytest.importorskip("rosbags")
     from rosbags.typesys import Stores, get_typestore
