@@ -123,6 +123,10 @@ def load(path: str | os.PathLike[str]) -> MapdConfig:
         raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from None
     if len(raw) > MAX_CONFIG_BYTES:
         raise ConfigError(f"{p}: config is over {MAX_CONFIG_BYTES} bytes; is this the right file?")
+    if not raw.strip():  # (/dev/null, a FIFO closed unwritten: "robot: required key is missing" misled)
+        raise ConfigError(
+            f"{p}: the config is empty; is this the right file? (the least one holds: [robot] name)"
+        )
     try:
         data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

@@ -175,8 +175,12 @@ def test_fifos_named_as_inputs_never_block(
         mapd_run("decode", str(fifo), "-o", str(tmp_path / "o.yaml"), timeout=30)
     )
     assert "not an MCAP recording" in one_error_line(mapd_run("record", "info", str(fifo), timeout=30))
-    assert "required key is missing" in one_error_line(
+    assert "the config is empty; is this the right file?" in one_error_line(
         mapd_run("check-config", str(fifo), timeout=30), code=2
+    )
+    # a device reads as empty too (before: "robot: required key is missing", as if it were a config)
+    assert one_error_line(mapd_run("check-config", "/dev/null", timeout=30), code=2).startswith(
+        "mapd: error: /dev/null: the config is empty"
     )
 
 
