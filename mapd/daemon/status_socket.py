@@ -93,6 +93,13 @@ def _alive(path: Path) -> bool:
             return False
 
 
+def _is_socket(path: Path) -> bool:
+    try:
+        return stat.S_ISSOCK(os.stat(path).st_mode)
+    except OSError:
+        return True  # (it was there a moment ago: say what connect said)
+
+
 def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
     """Read the daemon's status from ``path``; raises :class:`DaemonError` when none answers whole
     within ``timeout`` seconds (in all: a socket trickling a byte at a time is given up too)."""
@@ -118,6 +125,10 @@ def query(path: Path, timeout: float = 3.0) -> dict[str, Any]:
         except FileNotFoundError:
             raise DaemonError(f"no mapd daemon is running (no control socket at {path})") from None
         except ConnectionRefusedError:
+            if not _is_socket(path):  # (a file there refuses too: "stale socket" misled)
+                raise DaemonError(
+                    f"{path} is not a socket: no mapd control socket (wrong --socket?)"
+                ) from None
             raise DaemonError(f"no mapd daemon is running (stale control socket at {path})") from None
         except PermissionError:
             raise DaemonError(f"permission denied on {path} (are you in the mapd group?)") from None

@@ -369,6 +369,17 @@ def test_a_state_directory_is_held_by_one_daemon_at_a_time(tmp_path: Path) -> No
 def test_query_without_daemon_is_clear(tmp_path: Path) -> None:
     with pytest.raises(DaemonError, match="no mapd daemon is running"):
         query(tmp_path / "none.sock")
+    # a stale socket (a killed daemon's) is not a file given as --socket by mistake
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(tmp_path / "stale.sock"))
+    stale.close()
+    with pytest.raises(DaemonError, match=r"stale control socket at .*stale\.sock\)$"):
+        query(tmp_path / "stale.sock")
+    (tmp_path / "status.json").write_text("{}")  # before: "stale control socket" for it too
+    with pytest.raises(
+        DaemonError, match=r"status\.json is not a socket: no mapd control socket \(wrong --socket\?\)$"
+    ):
+        query(tmp_path / "status.json")
 
 
 def test_a_socket_that_trickles_bytes_is_given_up_after_the_whole_timeout(tmp_path: Path) -> None:
