@@ -48,7 +48,7 @@ COLUMNS = [
     ("mean_bytes", "mean B", ".0f"),
     ("max_bytes", "max B", ""),
     ("bps", "bit/s", ".1f"),
-    ("uwb_share", "of 12.5 kb/s", ".4f"),
+    ("uwb_share", "of 12.5 kb/s", ".2%"),  # (the JSON keeps the fraction)
     ("vs_zstd_diff", "x zstd-19 diff", ".2f"),
     ("enc_ms", "enc ms", ".1f"),
     ("dec_ms", "dec ms", ".1f"),
