@@ -6,7 +6,6 @@
 # [fleet.roster] on every robot. --link-key copies the fleet's uwb link key (made once per fleet);
 # without it, the first robot makes one to copy to the others.
 set -euo pipefail
-cd "$(dirname "$0")/.."
 robot="$(hostname -s)"; fleet="default"; link_key=""
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -16,6 +15,11 @@ while [ $# -gt 0 ]; do
     *) echo "usage: $0 [--robot NAME] [--fleet NAME] [--link-key FILE]" >&2; exit 2 ;;
   esac
 done
+# from where it was typed, before the cd below (a relative path meant the repo's folder)
+if [ -n "$link_key" ]; then
+  link_key="$(realpath -e -- "$link_key")" || { echo "--link-key: no such file" >&2; exit 2; }
+fi
+cd "$(dirname "$0")/.."
 [ "$(id -u)" = 0 ] || { echo "install.sh must run as root" >&2; exit 1; }
 # names first (a hostname with a dot is no robot name): nothing is installed with one mapd refuses
 deploy/robot-config.sh "$robot" "$fleet" < /dev/null > /dev/null
@@ -55,9 +59,11 @@ if [ ! -f /etc/mapd/robot.key ]; then
   echo "made /etc/mapd/robot.key; add this line to [fleet.roster] on every robot of the fleet:"
   echo "  $line"
 fi
-if [ -n "$link_key" ]; then
+if [ -n "$link_key" ] && ! [ "$link_key" -ef /etc/mapd/link.key ]; then
+  # (the installed key itself, given again: install refuses to copy a file onto itself, and the
+  # script stopped half-way through an upgrade)
   install -m 0640 -o root -g mapd "$link_key" /etc/mapd/link.key
-elif [ ! -f /etc/mapd/link.key ]; then
+elif [ -z "$link_key" ] && [ ! -f /etc/mapd/link.key ]; then
   /opt/mapd/venv/bin/mapd keygen --link-key /etc/mapd/link.key >/dev/null
   chgrp mapd /etc/mapd/link.key && chmod 0640 /etc/mapd/link.key
   echo "made the fleet's uwb link key /etc/mapd/link.key: copy it to every robot (install.sh --link-key FILE)"
@@ -67,11 +73,28 @@ fi
 install -d -m 0750 -o mapd -g mapd /var/cache/mapd
 runuser -u mapd -- env NUMBA_CACHE_DIR=/var/cache/mapd/numba MAPD_MODELS=/opt/mapd/models \
   /opt/mapd/venv/bin/mapd warmup --codec lossless zstd raw paper
+# The unit is replaced on every run: local changes (ReadWritePaths= for an output folder elsewhere)
+# go in a drop-in, which an upgrade keeps: systemctl edit mapd
 install -m 0644 deploy/mapd.service /etc/systemd/system/mapd.service
-install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
+# The udev rule only where there is none: the example must be edited to the robot's radio, and an
+# upgrade wrote over the edited one
+if [ ! -f /etc/udev/rules.d/99-mapd-uwb.rules ]; then
+  install -m 0644 deploy/99-mapd-uwb.rules /etc/udev/rules.d/99-mapd-uwb.rules
+  echo "installed /etc/udev/rules.d/99-mapd-uwb.rules: edit its match to this robot's radio (see its comments)"
+fi
 udevadm control --reload 2>/dev/null || true
+udevadm trigger --subsystem-match=tty --action=change 2>/dev/null || true  # a radio plugged in already
 systemctl daemon-reload
 systemd-analyze verify /etc/systemd/system/mapd.service || true
-# An upgrade: a running daemon goes on with the old code until it restarts (nothing if not running)
-systemctl try-restart mapd 2>/dev/null || true
+# An upgrade: a running daemon goes on with the old code until it restarts (nothing if not running).
+# Restarted only into a config the new code takes: one it refuses would stop the robot's mapd
+# (exit 2, not restarted) until someone looks.
+if systemctl is-active -q mapd 2>/dev/null; then
+  if runuser -u mapd -- /opt/mapd/venv/bin/mapd check-config /etc/mapd/config.toml >/dev/null; then
+    systemctl try-restart mapd 2>/dev/null || true
+  else
+    echo "mapd check-config refuses /etc/mapd/config.toml (above): mapd not restarted; it goes on" \
+         "with the old code until the config is fixed and it is restarted" >&2
+  fi
+fi
 echo "installed. start with: systemctl enable --now mapd; check with: mapd status"

@@ -26,6 +26,9 @@ def run_daemon(cfg: configmod.MapdConfig) -> int:
     # -s USR1 mapd` shows where, without stopping it. Written by the interpreter itself, so it
     # works when the event loop is the thing that is stuck.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    # And when it dies of one (systemd's watchdog sends SIGABRT to a daemon that stopped pinging;
+    # SIGSEGV in a native library): every thread's stack first, or the journal says nothing of where.
+    faulthandler.enable(all_threads=True)
 
     async def main() -> None:
         daemon = Daemon(cfg)

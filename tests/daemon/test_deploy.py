@@ -166,3 +166,62 @@ def test_install_restarts_a_running_daemon_after_an_upgrade() -> None:
     assert "systemctl try-restart mapd" in install  # the old code ran on until a reboot
     assert install.index("systemctl daemon-reload") < install.index("systemctl try-restart mapd")
     assert "useradd --system --user-group" in install
+
+
+def _directives(path: Path) -> list[tuple[str, str]]:
+    """Every ``Key=value`` line of a unit, repeated keys kept (comments left out)."""
+    out = []
+    for line in path.read_text().splitlines():
+        if line.strip() and not line.lstrip().startswith(("#", ";", "[")) and "=" in line:
+            key, _, value = line.partition("=")
+            out.append((key.strip(), value.strip()))
+    return out
+
+
+def test_the_unit_lets_the_daemon_ask_the_clock_and_open_a_radio_plugged_in_later() -> None:
+    found = _directives(DEPLOY / "mapd.service")
+    keys = {k for k, _ in found}
+    # ProtectClock= forbids adjtimex(2), even to read: the time-service question (mapd.wallclock)
+    # came back "cannot be asked", so no robot led the radio clock and clock_wait_s never waited
+    assert "ProtectClock" not in keys
+    assert ("CapabilityBoundingSet", "") in found  # setting the clock stays out of reach
+    # DevicePolicy=closed resolves char-ttyUSB/char-ttyACM once at start: their drivers first
+    wants = " ".join(v for k, v in found if k == "Wants").split()
+    after = " ".join(v for k, v in found if k == "After").split()
+    for mod in ("modprobe@usbserial.service", "modprobe@cdc_acm.service"):
+        assert mod in wants and mod in after, mod
+    assert ("DevicePolicy", "closed") in found and ("DeviceAllow", "char-ttyUSB rw") in found
+
+
+def test_install_keeps_an_edited_udev_rule_and_takes_the_link_key_from_where_it_was_typed() -> None:
+    install = (DEPLOY / "install.sh").read_text()
+    # the rule is the robot's own once edited: installed only where there is none, then triggered
+    assert "if [ ! -f /etc/udev/rules.d/99-mapd-uwb.rules ]; then" in install
+    assert "udevadm trigger --subsystem-match=tty" in install
+    # --link-key: resolved before the cd into the repo; the installed key given again is no copy
+    assert install.index('realpath -e -- "$link_key"') < install.index('cd "$(dirname "$0")/.."')
+    assert '! [ "$link_key" -ef /etc/mapd/link.key ]' in install
+    # an upgrade restarts the daemon only into a config the new code takes
+    check = install.index("mapd check-config /etc/mapd/config.toml")
+    assert check < install.index("systemctl try-restart mapd")
+    # the shipped rule matches no bare CP210x (the chip of many lidars): a serial is needed
+    rules = [ln for ln in (DEPLOY / "99-mapd-uwb.rules").read_text().splitlines() if not ln.startswith("#")]
+    assert rules and all('ATTRS{idVendor}=="10c4"' not in ln or "ATTRS{serial}" in ln for ln in rules)
+
+
+def test_install_sh_link_key_handling_runs_as_written(tmp_path: Path) -> None:
+    # The argument part of install.sh, run for real up to its root check: a relative --link-key is
+    # taken from the caller's folder, a missing one refused with one line.
+    (tmp_path / "link.key").write_text("ab" * 32)
+    head = (DEPLOY / "install.sh").read_text().split('cd "$(dirname "$0")/.."')[0]
+    script = head + 'echo "$link_key"\n'
+    ok = subprocess.run(
+        ["bash", "-c", script, "install.sh", "--link-key", "link.key"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert ok.returncode == 0 and ok.stdout.strip() == str((tmp_path / "link.key").resolve()), ok.stderr
+    bad = subprocess.run(
+        ["bash", "-c", script, "install.sh", "--link-key", "absent.key"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1] == "--link-key: no such file"

@@ -242,9 +242,15 @@ def test_sigusr1_writes_every_thread_stack_and_the_daemon_runs_on(
         assert text.count("Thread 0x") >= 2 and "mapd/daemon/process.py" in text
         before = fk.held(f.status(), "robot0", "robot1")
         fk.wait_for(lambda s: fk.held(s, "robot0", "robot1") > before, 60, f)  # still at work
+        # systemd's watchdog kills a daemon that stopped answering with SIGABRT: where it hung goes
+        # to the journal too (before, it died without a word of where)
+        f.procs["robot1"].send_signal(signal.SIGABRT)
+        assert f.procs["robot1"].wait(10) == -signal.SIGABRT
+        text = (f.run_dir / "robot1" / "daemon.log").read_text(errors="replace")
+        assert "Fatal Python error: Aborted" in text and text.count("Thread 0x") >= 2, text[-2000:]
     finally:
         codes = f.stop()
-    assert codes == {"robot0": 0, "robot1": 0}
+    assert codes == {"robot0": 0, "robot1": -signal.SIGABRT}
 
 
 def _final_maps(f: Fleet) -> dict[str, Any]:

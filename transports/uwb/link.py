@@ -101,6 +101,7 @@ class UwbLink(PortSide, SigningSide, ClockSide):
         self._proto = None  # typed where PortSide declares it
         #: False until the port first opened (it may not be there yet at start)
         self._ever_open = False
+        self._reopen_error = None
         self._task: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
         self._closing = False

@@ -97,6 +97,8 @@ class PortSide:
     core: arq.ArqEndpoint | None
     _proto: _Proto | None
     _ever_open: bool
+    #: Why the last try to open the port failed, as said (None: nothing said since it was open).
+    _reopen_error: str | None
     _closing: bool
     _wake: asyncio.Event
     _reopen_at: float
@@ -152,13 +154,20 @@ class PortSide:
         try:
             first = not self._ever_open
             await self._open()
+            self._reopen_error = None
             if first:
                 log.warning("uwb: serial port %s is there now: opened", self.port)
             else:
                 self.reconnects += 1
                 log.warning("uwb: serial port %s reopened", self.port)
-        except TransportError:
+        except TransportError as exc:
             self._reopen_at = now + self.reopen_s
+            # Said when why changes, not at every try: a port that is there but refused (a unit's
+            # device policy that took no ttyUSB at boot, a missing dialout group) was retried every
+            # second for ever without a word. A port not there was said already (at start, or lost).
+            if str(exc) != self._reopen_error and os.path.exists(self.port):
+                log.warning("%s; trying again every %.1f s", exc, self.reopen_s)
+            self._reopen_error = str(exc)
 
     async def _drain(self, proto: _Proto) -> None:
         try:

@@ -566,6 +566,34 @@ def test_a_port_not_there_yet_at_start_is_opened_once_it_is(
     assert sum("is there now: opened" in m for m in said) == 1
 
 
+def test_a_port_that_comes_but_cannot_be_opened_is_said_once_not_tried_in_silence(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Under the unit's DevicePolicy=closed, a USB radio plugged in after a boot that had no ttyUSB
+    # driver loaded came, and every open was refused (EPERM), retried each second without a word.
+    path = tmp_path / "radio"
+
+    async def main() -> None:
+        link = UwbLink(
+            arq.ArqConfig(node_id=1, rate_bps=200_000.0), str(path), reopen_s=0.1, wait_for_port=True
+        )
+        await link.start()  # not there: said once, waited for
+        try:
+            await asyncio.sleep(0.4)
+            path.write_text("x")  # there now, but no serial port: every open fails
+            await asyncio.sleep(0.8)
+            assert link.stats()["port_open"] is False
+        finally:
+            await link.close()
+
+    with caplog.at_level(logging.WARNING, logger="mapd.uwb"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("is not there" in m for m in said) == 1, said
+    refused = [m for m in said if "cannot open serial port" in m]
+    assert len(refused) == 1 and refused[0].endswith("; trying again every 0.1 s"), said
+
+
 def test_a_port_that_is_there_but_no_serial_port_still_stops_start(tmp_path: Path) -> None:
     (tmp_path / "file").write_text("x")
 
