@@ -323,6 +323,10 @@ class StatusModel:
                     link=peer.get("link"),
                 )
             entry["label"] = _label(entry.get("version"))
+            # how old its last pose is (this daemon's clock against the stamp): the page fades a
+            # robot last heard long ago, which it drew as if it were there now
+            pose = (((snap.get("poses") or {}).get("robots") or {}).get(robot)) or {}
+            entry["pose_age_s"] = _num(pose.get("age_s")) if isinstance(pose, dict) else None
             robots[robot] = entry
         g = fusion.get("global") or {}
         return sse(

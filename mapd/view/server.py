@@ -120,7 +120,10 @@ class ViewServer:
         self._assets: dict[str, bytes] = {}
         #: Names this server's run: a page seeing another one after a reconnect clears its state.
         self.instance = secrets.token_hex(8)
-        self._hello = sse("hello", {"instance": self.instance}).frame
+        # (how often the page hears from a live daemon: silence past it says the stream is stale)
+        self._hello = sse(
+            "hello", {"instance": self.instance, "status_every_s": status_every_s, "keepalive_s": KEEPALIVE_S}
+        ).frame
         #: Counters for ``mapd status``.
         self.counters = {
             "viewers_total": 0,
@@ -363,8 +366,11 @@ class ViewServer:
             await asyncio.wait_for(resp.write(view[at : at + WRITE_SLICE]), WRITE_TIMEOUT_S)
 
     async def _index(self, request: web.Request) -> web.Response:
-        # The page passes the token it was opened with on to its assets and its stream.
-        query = f"?token={quote(self.token, safe='')}" if self.token is not None else ""
+        # The page passes the token it was opened with on to its assets and its stream: only one
+        # that came in the query. One a proxy adds as a header (Authorization: Bearer) for its users
+        # was written into every page they got, and into the proxy's access log with each asset.
+        came = "token" in request.query and self.token is not None
+        query = f"?token={quote(self.token, safe='')}" if came and self.token is not None else ""
         body = self._page.replace(b"__QUERY__", query.encode())
         return web.Response(body=body, content_type="text/html", charset="utf-8")
 

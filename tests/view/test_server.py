@@ -20,7 +20,7 @@ from mapd.grid import OccupancyGrid
 from mapd.outputs.base import GlobalUpdate
 from mapd.view.model import MapModel
 from mapd.view.queue import sse
-from mapd.view.server import ViewServer
+from mapd.view.server import KEEPALIVE_S, ViewServer
 
 TOKEN = "s3cret-token-0123456789"
 
@@ -92,6 +92,11 @@ def test_token_is_required_when_configured() -> None:
                 assert f"static/view.js?token={TOKEN}" in await r.text()
             async with s.get(url + "static/view.css", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
                 assert r.status == 200
+            # a page asked for with the header (a proxy adding it for its users) does not hold the
+            # token: it was written into every such page, and into the proxy's log with each asset
+            async with s.get(url, headers={"Authorization": f"Bearer {TOKEN}"}) as r:
+                page = await r.text()
+                assert r.status == 200 and TOKEN not in page and "static/view.js" in page
             # the scheme is case-insensitive (RFC 9110), the token is not
             async with s.get(url + "static/view.css", headers={"Authorization": f"bearer {TOKEN}"}) as r:
                 assert r.status == 200
@@ -146,7 +151,12 @@ def test_sse_delivers_full_state_then_updates_and_status() -> None:
         async with aiohttp.ClientSession() as s, s.get(url + "events") as r:
             assert r.status == 200 and r.content_type == "text/event-stream"
             it = events(r)
-            assert await anext(it) == ("hello", {"instance": server.instance})  # before any state
+            hello = {
+                "instance": server.instance,
+                "status_every_s": server.status_every_s,
+                "keepalive_s": KEEPALIVE_S,
+            }
+            assert await anext(it) == ("hello", hello)  # before any state
             kind, first = await anext(it)
             assert kind == "map" and first["full"] and first["seq"] == 1 and len(first["tiles"]) == 3
             seen = {kind}
@@ -304,7 +314,7 @@ def test_each_stream_starts_with_the_servers_instance_new_at_every_start() -> No
             for _ in range(2):
                 async with s.get(url + "events") as r:
                     kind, data = await anext(events(r))
-                    assert kind == "hello" and data == {"instance": server.instance}
+                    assert kind == "hello" and data["instance"] == server.instance
         seen.append(server.instance)
 
     serve(body)

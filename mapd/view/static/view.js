@@ -31,6 +31,12 @@
     instance: null, // the serving daemon's run (its hello): another one means a restart
     restarts: 0, // how often the page cleared the state of a daemon that restarted
     retries: 0, // refusals in a row (401, 503): how long to wait before the next try
+    // A live daemon sends its status every status_every_s (the hello says): silence past staleAfter
+    // is a daemon stopped or a network dropped without a word, which leave the stream open.
+    staleAfter: 5, // s
+    reconnectAfter: 30, // s: then the stream is dropped and opened again
+    stale: false,
+    heardAt: Date.now(),
   };
   window.mapdView = st;
   st.cells = () => off; // the canvas of cells (tests read its pixels)
@@ -64,6 +70,22 @@
       requestAnimationFrame(draw);
     }
   }
+
+  // A robot whose pose is old (its link silent, or its robot stopped) is drawn faded, with the age:
+  // drawn as live, it looked to be where it was last heard.
+  const STALE_POSE_S = 30;
+  let staleNames = "";
+  function poseAge(name) {
+    const r = st.status && st.status.robots[name];
+    return r && typeof r.pose_age_s === "number" ? r.pose_age_s : null;
+  }
+  function staleRobot(name) {
+    const r = st.status && st.status.robots[name];
+    if (!r) return false;
+    const age = poseAge(name);
+    return (!r.own && r.present === false) || (age !== null && age > STALE_POSE_S);
+  }
+  st.staleRobot = staleRobot;
 
   function draw() {
     frameAsked = false;
@@ -111,6 +133,8 @@
       // the robot itself; before any pose is known, its map frame's origin (where it started)
       const at = r.pose || r.frame;
       if (!at) continue;
+      const faded = staleRobot(name);
+      ctx.globalAlpha = faded ? 0.4 : 1;
       const [sx, sy] = toScreen(at[0], at[1]);
       ctx.beginPath();
       ctx.arc(sx, sy, 9, 0, 2 * Math.PI);
@@ -127,10 +151,12 @@
       ctx.font = "bold 12px system-ui, sans-serif";
       ctx.lineWidth = 3;
       ctx.strokeStyle = "rgba(0,0,0,.7)";
-      const label = r.pose ? name : name + " (start)";
+      const age = poseAge(name);
+      const label = !r.pose ? name + " (start)" : faded ? name + (age !== null ? " (" + Math.round(age) + " s ago)" : " (not heard)") : name;
       ctx.strokeText(label, sx + 12, sy - 10);
       ctx.fillStyle = "#fff";
       ctx.fillText(label, sx + 12, sy - 10);
+      ctx.globalAlpha = 1;
     }
   }
 
@@ -254,6 +280,8 @@
       dot.style.background = (st.robots[name] && st.robots[name].colour) || "#888";
       cell(tr, "").appendChild(dot);
       cell(tr, name + (r.own ? " (this)" : ""));
+      const age = poseAge(name);
+      cell(tr, age === null ? "–" : fmt(age, 0) + " s", staleRobot(name) ? "warn" : "");
       cell(tr, r.label || "–");
       cell(tr, r.own ? r.keyframes + "k+" + r.deltas + "d" : (r.updates || 0) + " got" + (r.last_kind ? ", last " + r.last_kind : ""));
       cell(tr, r.own ? "last " + kb(r.bytes) : kb(r.bytes));
@@ -263,7 +291,7 @@
         const tr2 = rb.insertRow();
         cell(tr2, "");
         const td = cell(tr2, r.reason, "reason");
-        td.colSpan = 5;
+        td.colSpan = 6;
       }
     }
     const lb = $("links").tBodies[0];
@@ -297,6 +325,8 @@
       redraw();
     }
     st.instance = m.instance;
+    if (m.status_every_s) st.staleAfter = Math.max(5, 3 * m.status_every_s);
+    if (m.keepalive_s) st.reconnectAfter = Math.max(st.staleAfter + 5, 2 * m.keepalive_s);
   }
 
   // ---------------------------------------------------------------- the stream
@@ -330,9 +360,30 @@
     }, 1000);
   }
 
+  // Every event says the daemon is there; a stream open and silent for long is not live.
+  let stream = null;
+  function heard() {
+    st.heardAt = Date.now();
+    if (st.stale) { st.stale = false; setConn("live", "ok"); }
+  }
+  setInterval(() => {
+    if (!stream || stream.readyState !== EventSource.OPEN) return;
+    const quiet = (Date.now() - st.heardAt) / 1000;
+    if (quiet > st.reconnectAfter) {
+      stream.close(); // half-open (the network dropped): a new stream finds out
+      st.stale = false;
+      setConn("no update for " + Math.round(quiet) + " s; reconnecting", "bad");
+      connect();
+    } else if (quiet > st.staleAfter) {
+      st.stale = true;
+      setConn("no update for " + Math.round(quiet) + " s (daemon stopped, or the network?)", "bad");
+    }
+  }, 1000);
+
   function connect() {
     const es = new EventSource("events" + query);
-    es.onopen = () => { st.retries = 0; setConn("live", "ok"); };
+    stream = es;
+    es.onopen = () => { st.retries = 0; st.stale = false; st.heardAt = Date.now(); setConn("live", "ok"); };
     es.onerror = () => {
       if (es.readyState === EventSource.CLOSED) {
         es.close();
@@ -347,10 +398,17 @@
         setConn("reconnecting", "bad"); // the stream broke: the browser tries again by itself
       }
     };
-    es.addEventListener("hello", (e) => onHello(JSON.parse(e.data)));
-    es.addEventListener("map", (e) => onMap(JSON.parse(e.data)));
-    es.addEventListener("robots", (e) => { st.robots = JSON.parse(e.data).robots; redraw(); renderPanel(); });
-    es.addEventListener("status", (e) => { st.status = JSON.parse(e.data); renderPanel(); });
+    es.addEventListener("hello", (e) => { heard(); onHello(JSON.parse(e.data)); });
+    es.addEventListener("map", (e) => { heard(); onMap(JSON.parse(e.data)); });
+    es.addEventListener("robots", (e) => { heard(); st.robots = JSON.parse(e.data).robots; redraw(); renderPanel(); });
+    es.addEventListener("status", (e) => {
+      heard();
+      st.status = JSON.parse(e.data);
+      const was = staleNames;
+      staleNames = Object.keys(st.status.robots).filter(staleRobot).sort().join(",");
+      if (staleNames !== was) redraw(); // markers greyed or back
+      renderPanel();
+    });
   }
 
   // ---------------------------------------------------------------- zoom and pan (mouse, touch, pen)
