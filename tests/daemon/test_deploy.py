@@ -225,3 +225,26 @@ def test_install_sh_link_key_handling_runs_as_written(tmp_path: Path) -> None:
         cwd=tmp_path, capture_output=True, text=True, timeout=30,
     )  # fmt: skip
     assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1] == "--link-key: no such file"
+
+
+def test_uninstall_removes_what_install_puts_and_keeps_the_robots_identity_unless_purged() -> None:
+    install = (DEPLOY / "install.sh").read_text()
+    uninstall = (DEPLOY / "uninstall.sh").read_text()
+    # every place install.sh writes to outside /etc/mapd and the state, uninstall.sh clears
+    for path in (
+        "/etc/systemd/system/mapd.service",
+        "/etc/udev/rules.d/99-mapd-uwb.rules",
+        "/usr/local/bin/mapd",
+    ):
+        assert path in install and path in uninstall, path
+    assert "install -d -m 0755 /opt/mapd" in install and "rm -rf /opt/mapd" in uninstall
+    # the key, the config and the maps go only with --purge (a later install takes them up again)
+    keep, purge = uninstall.split('if [ "$purge" = yes ]; then', 1)
+    for path in ("/etc/mapd", "/var/lib/mapd", "userdel mapd"):
+        assert path not in keep.split("set -euo pipefail", 1)[1], path
+        assert path in purge, path
+    assert "systemctl disable --now mapd" in uninstall  # stopped (and saved) before anything goes
+    bad = subprocess.run(
+        ["bash", str(DEPLOY / "uninstall.sh"), "--everything"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and bad.stderr.startswith("usage: ")
