@@ -406,7 +406,7 @@
       st.status = JSON.parse(e.data);
       const was = staleNames;
       staleNames = Object.keys(st.status.robots).filter(staleRobot).sort().join(",");
-      if (staleNames !== was) redraw(); // markers greyed or back
+      if (staleNames !== was || staleNames) redraw(); // markers faded or back; faded ones' ages
       renderPanel();
     });
   }
