@@ -173,8 +173,9 @@ class Outbound:
                     return
         log.warning(
             "the wall clock is not synchronized%s; this new state's versions start from it: if it is "
-            "behind, peers holding maps of this robot from before refuse its new ones (they say so; "
-            "fix: set the clock, then restart with an empty state directory)",
+            "behind, peers holding maps of this robot from before refuse its new ones (they say so). "
+            "Once a time service (chrony, NTP) synchronizes it or steps it ahead, the versions begin "
+            "again from it by themselves: no restart, and keep the state directory",
             f" after {self.clock_wait_s:g} s" if self.clock_wait_s > 0 else "",
         )
 

@@ -51,7 +51,7 @@ from mapd.daemon.snapshot import snapshot
 from mapd.daemon.state import StateStore
 from mapd.daemon.state_lock import lock_state_dir
 from mapd.daemon.status_socket import StatusServer
-from mapd.daemon.versions import VersionBounds
+from mapd.daemon.versions import VersionBounds, label
 from mapd.errors import MapdError
 from mapd.fusion.worker import FusionWorker
 from mapd.grid import OccupancyGrid
@@ -411,7 +411,7 @@ class Daemon:
                 "resumed from state",
                 extra={
                     "fields": {
-                        "own_version": self.store.data.own_version,
+                        "own_version": label(self.store.data.own_version),
                         "peers": ",".join(self.receiver.maps) or "-",
                     }
                 },

@@ -34,6 +34,7 @@ import pytest
 
 from mapd.daemon.state import StateStore
 from mapd.daemon.state_lock import lock_state_dir
+from mapd.daemon.versions import label
 from mapd.demo.ports import free_ports
 from mapd.errors import StateError
 from mapd.fusion.merge import NO_OWNER, Bounds, MergeResult
@@ -509,7 +510,8 @@ def test_a_daemon_whose_state_directory_is_emptied_remounted_read_only_and_unmou
     lines = _log_lines(log1)
     assert not any("Traceback" in line for line in lines), "\n".join(lines)
     resumed = [line for line in lines if "resumed from state" in line]
-    assert len(resumed) == 1 and f"own_version={held['robot1']}" in resumed[0], resumed
+    # (as mapd status labels it: the raw number, incarnation and all, matched nothing it shows)
+    assert len(resumed) == 1 and f"own_version={label(held['robot1'])} " in resumed[0], resumed
     assert "peers=robot0" in resumed[0], resumed
     assert _count(lines, LOST) == 2, lines  # emptied, and the new disk: once each
     for cause in ("read-only file system", "not mounted any more"):
