@@ -97,6 +97,11 @@ def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
+def max_payload(max_cells: int) -> int:
+    """The largest CDR payload an OccupancyGrid of at most ``max_cells`` cells takes."""
+    return max_cells + _OVERHEAD
+
+
 def decode(
     payload: bytes, *, max_cells: int = DEFAULT_MAX_CELLS, where: str = "CDR payload"
 ) -> OccupancyGrid:
@@ -105,7 +110,7 @@ def decode(
     Raises :class:`CodecError` for bytes that do not parse or describe no valid grid, and
     :class:`LimitError` for a grid over ``max_cells`` (checked before anything is allocated for it).
     """
-    if len(payload) > max_cells + _OVERHEAD:
+    if len(payload) > max_payload(max_cells):
         raise LimitError(f"{where}: {len(payload)} bytes is more than a grid of {max_cells} cells needs")
     if len(payload) < 4 or payload[:2] not in (b"\x00\x01", b"\x00\x00"):
         raise CodecError(f"{where}: not a CDR payload (bad encapsulation header)")

@@ -11,11 +11,10 @@ sample-miss detection; congestion control blocks only for reliable keep-all. :me
 token, so ``ros2 topic info`` counts mapd as a subscriber; the caller subscribes to the data itself.
 
 With ``key_format="ros2dds"`` there are no tokens and no attachment: samples go on the topic's
-zenoh-bridge-ros2dds key, and for a transient-local topic queryables answer with the newest: on the
-key itself, and on ``@ros2_pub_cache/<zid>/<key>``, where a bridge's route to a transient-local DDS
-reader asks for history (its ``route_subscriber.rs`` queries ``@ros2_pub_cache/*/<key>``, as its
-own routes' publication caches answer it), so RViz started behind a bridge after the last merge
-still gets the map and the frames.
+zenoh-bridge-ros2dds key from an advanced publisher (a cache for a transient-local topic, publisher
+detection), as the bridge's own routes publish: since 1.5.1 the bridge routes a transient-local DDS
+reader (RViz started after the last merge) through an advanced subscriber that detects publishers
+and asks for their cache. A queryable on the key answers a plain ``get`` with the newest too.
 
 The session stays the caller's; :meth:`Ros2Node.close` undeclares only what the node declared.
 """
@@ -23,7 +22,6 @@ The session stays the caller's; :meth:`Ros2Node.close` undeclares only what the 
 from __future__ import annotations
 
 import contextlib
-import functools
 import itertools
 import threading
 import time
@@ -133,33 +131,24 @@ class Ros2Publisher:
         self.published = 0
         session = node.session
         try:
-            if node.key_format == "rmw_zenoh":
-                self._pub = zext.declare_advanced_publisher(session, self.key, **_advanced_options(qos))
-            else:
-                self._pub = session.declare_publisher(self.key)
+            # An advanced publisher in both formats: zenoh-bridge-ros2dds (1.5.1 and later) routes a
+            # transient-local DDS reader (RViz, Nav2's map QoS) through an advanced subscriber that
+            # asks the publishers it detects for their cache, as rmw_zenoh's subscribers do.
+            self._pub = zext.declare_advanced_publisher(session, self.key, **_advanced_options(qos))
             if qos.durability == rmw.TRANSIENT_LOCAL and node.key_format == "ros2dds":
-                cache = rmw.bridge_cache_key(self.key, str(session.info.zid()))
-                self._queryables = [
-                    session.declare_queryable(k, functools.partial(self._on_query, k))
-                    for k in (self.key, cache)
-                ]
+                # (and a plain get on the key, for zenoh clients that are no bridge)
+                self._queryables = [session.declare_queryable(self.key, self._on_query)]
             if entity is not None:
                 self._token = session.liveliness().declare_token(entity.token())
         except Exception as exc:  # zenoh.ZError
             raise TransportError(f"cannot publish {topic} on zenoh key '{self.key}': {exc}") from None
 
-    def _on_query(self, declared: str, query: Any) -> None:
-        import zenoh
-
+    def _on_query(self, query: Any) -> None:
         with self._lock:
             data = self._latest
-        if data is None:
-            return
-        # On the topic's key, as a bridge's publication cache replies (its querying subscriber takes
-        # replies on any key); a query that takes only keys it matches, on the key queried here.
-        key = self.key if query.accepts_replies() == zenoh.ReplyKeyExpr.ANY else declared
-        with contextlib.suppress(Exception):  # the querier gone, or the session closing: nothing to do
-            query.reply(key, data)
+        if data is not None:
+            with contextlib.suppress(Exception):  # the querier gone, or the session closing
+                query.reply(self.key, data)
 
     def put(self, payload: bytes) -> None:
         """Publish one CDR payload (with rmw_zenoh's attachment when the format is rmw_zenoh)."""

@@ -265,17 +265,6 @@ def bridge_key(topic: str, *, namespace: str = "") -> str:
     return f"{check_name(ns, 'namespace')}/{name}" if ns else name
 
 
-#: Where zenoh-bridge-ros2dds's publication caches answer for history (``KE_PREFIX_PUB_CACHE``):
-#: a route to a transient-local DDS reader queries ``@ros2_pub_cache/*/<key>``.
-BRIDGE_CACHE_PREFIX = "@ros2_pub_cache"
-
-
-def bridge_cache_key(key: str, zid: str) -> str:
-    """The key on which a publisher of bridge key ``key`` answers a bridge's history queries, as a
-    bridge whose id is ``zid`` would (``@ros2_pub_cache/<zid>/<key>``)."""
-    return f"{BRIDGE_CACHE_PREFIX}/{zid}/{key}"
-
-
 @dataclass(frozen=True)
 class Entity:
     """One rmw_zenoh graph entity: a node (``NN``), a publisher (``MP``) or a subscription (``MS``)."""

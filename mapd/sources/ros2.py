@@ -106,7 +106,8 @@ class Ros2Source(Ros2Robots, MapSource):
         self._sub: Any = None
         self._lv_sub: Any = None
         self._node: Any = None
-        self._pending: dict[str, tuple[str, bytes]] = {}
+        #: (key, payload): zenoh's ZBytes, or bytes (copied only once its size is checked)
+        self._pending: dict[str, tuple[str, Any]] = {}
         self._wake: asyncio.Event | None = None
         self._robots: dict[str, int] = {}  # robot -> versions yielded
         self._digests: dict[str, bytes] = {}
@@ -119,7 +120,7 @@ class Ros2Source(Ros2Robots, MapSource):
         self._received = 0
         self._dropped = 0
         #: Payloads from zenoh's threads not yet taken by the loop, the newest per key.
-        self._inbox: dict[str, bytes] = {}
+        self._inbox: dict[str, Any] = {}
         self._inbox_due = False  # a call to _take_inbox is on its way to the loop
         self._inbox_lock = threading.Lock()
         self._bad = 0
@@ -139,7 +140,9 @@ class Ros2Source(Ros2Robots, MapSource):
     # -- zenoh side (runs on zenoh threads) ------------------------------------------------------------
     def _on_sample(self, loop: asyncio.AbstractEventLoop, sample: Any) -> None:
         try:
-            payload = sample.payload.to_bytes()
+            # Not copied here: a payload over what a grid of max_cells needs is refused by its size
+            # in _decode, before any copy (a 300 MiB sample on /map cost 600 MiB, copied to be refused).
+            payload = sample.payload
             key = str(sample.key_expr)
         except Exception:  # a sample we cannot read at all
             return
@@ -198,7 +201,7 @@ class Ros2Source(Ros2Robots, MapSource):
             loop.call_soon_threadsafe(self._publisher_gone if gone else self._discovered, entity.topic)
 
     # -- asyncio side ----------------------------------------------------------------------------------
-    def _offer(self, key: str, payload: bytes) -> None:
+    def _offer(self, key: str, payload: Any) -> None:
         robot = self.robot_of_key(key)
         if robot is None:
             return
@@ -233,8 +236,15 @@ class Ros2Source(Ros2Robots, MapSource):
         self._session = ros2cdr.open_session_for(o)
         history = zext.HistoryConfig(detect_late_publishers=True) if o.history else None
         try:
+            # recovery: a sample lost on the way (a large /map over Wi-Fi, rmw_zenoh publishing keep-last
+            # topics with congestion control drop) is asked for again on the publisher's heartbeat, as
+            # rmw_zenoh's own subscribers do; map_server publishes once, and it was never had
             self._sub = zext.declare_advanced_subscriber(
-                self._session, self.key, lambda s: self._on_sample(loop, s), history=history
+                self._session,
+                self.key,
+                lambda s: self._on_sample(loop, s),
+                history=history,
+                recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
             )
             if o.key_format == "rmw_zenoh" and o.key is None:
                 self._node = Ros2Node(self._session, o.node, domain=o.domain, distro=o.distro)
@@ -255,14 +265,19 @@ class Ros2Source(Ros2Robots, MapSource):
             raise TransportError(f"ros2 source: cannot subscribe to '{self.key}': {exc}") from None
         log.info("ros2 source: subscribed to %s", self.key)
 
-    def _decode(self, key: str, payload: bytes) -> tuple[OccupancyGrid, bytes] | None:
+    def _decode(self, key: str, payload: Any) -> tuple[OccupancyGrid, bytes] | None:
         """The map and its digest (a worker thread: both are a pass over every cell)."""
         # The key as its repr, cut short: a publisher's key is anyone's text (a newline and a forged
         # log line in it, 4 kB of it).
         shown = short_repr(key, 120)
         where = f"key {shown}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {shown})"
         try:
-            grid = ros2cdr.decode(payload, max_cells=self.ctx.max_cells, where=where)
+            if len(payload) > ros2cdr.max_payload(self.ctx.max_cells):  # (zenoh's ZBytes: not copied yet)
+                raise LimitError(
+                    f"{where}: {len(payload)} bytes is more than a grid of {self.ctx.max_cells} cells needs"
+                )
+            data = payload if isinstance(payload, bytes) else payload.to_bytes()
+            grid = ros2cdr.decode(data, max_cells=self.ctx.max_cells, where=where)
         except (CodecError, LimitError) as exc:
             self._bad += 1
             self._last_error = str(exc)

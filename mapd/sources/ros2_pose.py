@@ -100,7 +100,9 @@ class PoseSubscription:
         self.frame = frame
         self.distro = distro
         if key_format == "rmw_zenoh":
-            self.key = rmw.data_key(self.topic, self.msgtype, domain=domain, distro=distro)
+            # any type hash, as the map's key: Humble's rmw_zenoh publishes TypeHashNotSupported
+            # where the distro's hash was asked for, and no pose ever arrived, without a word
+            self.key = rmw.data_key(self.topic, self.msgtype, domain=domain, distro=distro, hash_="*")
         else:
             self.key = rmw.bridge_key(self.topic, namespace=namespace)
         self._lock = threading.Lock()
@@ -121,6 +123,9 @@ class PoseSubscription:
                 self.key,
                 self.on_sample,
                 history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                recovery=zext.RecoveryConfig(
+                    periodic_queries=None, heartbeat=True
+                ),  # (see ros2.py: a lost sample asked again)
             )
             if node is not None:
                 node.subscription(self.topic, self.msgtype, POSE_QOS)

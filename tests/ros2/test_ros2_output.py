@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-import zenoh
+import zenoh.ext as zext
 
 from mapd import plugins
 from mapd.grid import OccupancyGrid, Pose2D, StampedPose
@@ -260,18 +260,31 @@ def test_ros2dds_format_plain_keys_no_attachment(
         sample = next(r.ok for r in replies if r.ok is not None)
         msg = rmw_peer.TS.deserialize_cdr(sample.payload.to_bytes(), rmw_peer.GRID)
         assert (msg.info.width, msg.info.height) == (60, 41) and sample.attachment is None
-        # A bridge's route to a transient-local DDS reader (RViz started after the merge) asks the
-        # publication caches, as zenoh-bridge-ros2dds's route_subscriber.rs does; mapd did not
-        # answer there, so such a reader got no map until the next merge.
-        for key in ("site/map", "site/tf_static"):
-            got = list(
-                peer.session.get(
-                    f"@ros2_pub_cache/*/{key}", timeout=3.0, accept_replies=zenoh.ReplyKeyExpr.ANY
-                )
+        # A bridge (zenoh-bridge-ros2dds 1.5.1 and later) routes a transient-local DDS reader (RViz
+        # started after the merge) through an advanced subscriber that detects late publishers and
+        # asks for their cache (route_subscriber.rs); mapd's plain publisher had none, so such a
+        # reader got no map and no frames until the next merge.
+        got: dict[str, list[bytes]] = {"site/map": [], "site/tf_static": []}
+        subs = [
+            zext.declare_advanced_subscriber(
+                peer.session,
+                key,
+                lambda sample, key=key: got[key].append(sample.payload.to_bytes()),
+                history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
             )
-            cached = [r.ok for r in got if r.ok is not None]
-            assert len(cached) == 1 and str(cached[0].key_expr) == key, (key, got)
-        assert rmw_peer.TS.deserialize_cdr(cached[0].payload.to_bytes(), "tf2_msgs/msg/TFMessage").transforms
+            for key in got
+        ]
+        try:
+            deadline = time.monotonic() + 10
+            while not all(got.values()) and time.monotonic() < deadline:
+                time.sleep(0.1)
+        finally:
+            for sub in subs:
+                sub.undeclare()
+        assert [len(v) for v in got.values()] == [1, 1], {k: len(v) for k, v in got.items()}
+        bridged = rmw_peer.TS.deserialize_cdr(got["site/map"][0], rmw_peer.GRID)
+        assert (bridged.info.width, bridged.info.height) == (60, 41)
+        assert rmw_peer.TS.deserialize_cdr(got["site/tf_static"][0], "tf2_msgs/msg/TFMessage").transforms
         assert not [t for t in peer.graph() if t.node == "mapd"]  # a bridge announces topics, not mapd
     finally:
         asyncio.run(out.close())

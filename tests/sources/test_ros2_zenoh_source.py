@@ -385,7 +385,7 @@ def test_samples_arriving_while_the_loop_is_busy_are_held_one_per_key() -> None:
     class Sample:
         def __init__(self, data: bytes) -> None:
             self.key_expr = "0/map/nav_msgs::msg::dds_::OccupancyGrid_/x"
-            self.payload = type("P", (), {"to_bytes": lambda _self: data})()
+            self.payload = zenoh.ZBytes(data)  # held as zenoh gave it: copied only once its size is checked
 
     src = Ros2Source(Ros2Options(), SourceContext(robot="r2"))
     loop = asyncio.new_event_loop()
@@ -402,7 +402,9 @@ def test_samples_arriving_while_the_loop_is_busy_are_held_one_per_key() -> None:
         assert len(src._inbox) == 1 and len(loop._ready) == 1  # type: ignore[attr-defined]
         src._on_sample(loop, Sample(b"newest"))
         loop.run_until_complete(asyncio.sleep(0))
-        assert src._pending == {"r2": (Sample(b"").key_expr, b"newest")} and src._inbox == {}
+        assert list(src._pending) == ["r2"] and src._inbox == {}
+        key, payload = src._pending["r2"]
+        assert (key, payload.to_bytes()) == (Sample(b"").key_expr, b"newest")
         assert src.stats()["replaced_before_decode"] == 1000 and src.stats()["received"] == 1
     finally:
         loop.close()
@@ -454,3 +456,20 @@ def test_a_session_refused_for_another_cause_still_stops_the_source() -> None:
             await src.maps().__anext__()
 
     asyncio.run(go())
+
+
+def test_a_payload_over_what_a_grid_needs_is_refused_by_its_size_before_it_is_copied() -> None:
+    # It was copied out of zenoh first (to_bytes) and refused after: a 300 MiB sample on /map,
+    # which any node on the robot's graph may publish, cost the daemon 600 MiB.
+    class Huge:
+        def __len__(self) -> int:
+            return 300 << 20
+
+        def to_bytes(self) -> bytes:
+            raise AssertionError("copied before its size was checked")
+
+    src = Ros2Source(Ros2Options(), SourceContext(robot="r2", max_cells=1 << 20))
+    assert src._decode("0/map/x", Huge()) is None
+    assert src.stats()["last_error"].endswith(
+        f"{300 << 20} bytes is more than a grid of {1 << 20} cells needs"
+    )
