@@ -21,7 +21,12 @@ def _age(seconds: Any) -> str:
 def _num(v: Any, spec: str = ".1f") -> str:
     if isinstance(v, float) and not math.isfinite(v):
         return "-"
-    return format(v, spec) if isinstance(v, int | float) else "-"
+    if not isinstance(v, int | float):
+        return "-"
+    text = format(v, spec)
+    if text.startswith("-") and float(text) == 0.0:  # -0.04 ms printed "-0.0": nothing, with a sign
+        text = ("+" if "+" in spec else "") + text[1:]
+    return text
 
 
 def render_status(s: dict[str, Any]) -> str:
@@ -155,9 +160,13 @@ def render_status(s: dict[str, Any]) -> str:
             parts.insert(len([k for k in head if k in st]), damage)
         faults = link_faults(st)
         relay = _relay_line(st)
+        # Of the rest, what says a link struggles first (only 8 fit): in dict order, counters such
+        # as completes_tx=0 took the places and timeouts, failed messages and the rate were cut.
+        first = ("link_rate_bps", "timeouts", "messages_failed", "relays_failed", "in_flight", "peers_up")
+        ordered = sorted(st.items(), key=lambda kv: first.index(kv[0]) if kv[0] in first else len(first))
         others = [
             f"{k}={v}"
-            for k, v in st.items()
+            for k, v in ordered
             if k not in keys
             and k not in hidden
             and k not in LINK_FAULTS

@@ -298,6 +298,9 @@ class Fleet:
                 tail = (
                     (self.run_dir / name / "daemon.log").read_text(errors="replace").strip().splitlines()[-5:]
                 )
+                if p.returncode < 0:  # a signal, not an exit: its log's last lines are not why
+                    how = f"was killed by signal {-p.returncode} ({signal.Signals(-p.returncode).name})"
+                    raise DaemonError(f"{name} {how}; stopping the other robots")
                 raise DaemonError(f"{name} exited with code {p.returncode}: " + " | ".join(tail))
 
     def stop(self, timeout: float = 10.0) -> dict[str, int | None]:

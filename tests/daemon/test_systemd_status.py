@@ -373,3 +373,15 @@ def test_a_relaying_link_says_what_it_forwarded_on_a_line_of_its_own() -> None:
     assert not any("relay " in ln for ln in render_status({"links": {"zenoh": {"rate_bps": 1}}}).splitlines())
     odd = render_status({"links": {"uwb": {"relays_tx": 2, "relays_failed": "x", "relay_bad_summaries": 4}}})
     assert "forwarded 2 maps of other robots (- given up" in odd and "heard (4 malformed)" in odd
+
+
+def test_a_links_struggle_is_among_the_counters_shown_first() -> None:
+    # 30 % frame loss showed "completes_tx=0" and seven more of the first counters in dict order,
+    # and cut timeouts=13 and the failed messages: nothing on the line said the link struggled.
+    from mapd.commands.status_text import render_status
+
+    st = {"goodput_bps": 397, "resends": 26, "completes_tx": 0}
+    st |= {f"counter{i}": i for i in range(10)}
+    st |= {"timeouts": 13, "messages_failed": 2, "link_rate_bps": 12500}
+    line = next(ln for ln in render_status({"links": {"uwb": st}}).splitlines() if ln.startswith("  uwb"))
+    assert "timeouts=13" in line and "messages_failed=2" in line and "link_rate_bps=12500" in line, line

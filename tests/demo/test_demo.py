@@ -163,3 +163,25 @@ def test_a_demo_whose_setup_fails_leaves_no_radio_relay_or_socat_behind(tmp_path
     assert "Traceback" not in r.stderr
     assert (out / "run" / "uwb").is_dir(), "the relay was not started: the test shows nothing"
     assert _processes_naming(str(out)) == []
+
+
+def test_a_robot_killed_by_a_signal_is_said_so_not_as_an_exit_code(tmp_path: Path) -> None:
+    # "robot1 exited with code -9: ... the wall clock is not synchronized": a signal read as an
+    # exit code, and the log's last line read as the cause.
+    import signal
+
+    from mapd.demo.fleet import Fleet
+    from mapd.errors import DaemonError
+
+    fleet = Fleet.__new__(Fleet)
+    fleet.run_dir = tmp_path
+    (tmp_path / "robot1").mkdir()
+    (tmp_path / "robot1" / "daemon.log").write_text("WARNING the wall clock is not synchronized\n")
+    proc = subprocess.Popen(["sleep", "30"])
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    fleet.procs = {"robot1": proc}
+    with pytest.raises(
+        DaemonError, match=r"^robot1 was killed by signal 9 \(SIGKILL\); stopping the other robots$"
+    ):
+        fleet.check_alive()

@@ -559,3 +559,21 @@ def test_a_lossy_channel_does_not_multiply_the_time_frames() -> None:
         sent[drop] = sum(n.counters.times_tx for n in nodes)
         assert len({round(_turns(n), 4) for n in nodes}) == 1
     assert sent[0.1] < 1.3 * sent[0.0], sent
+
+
+def test_a_correction_of_nothing_is_shown_without_a_sign() -> None:
+    # "its correction -0.0 ms": a leader's link clock 40 us behind its wall clock, rounded.
+    leads = {"role": "leads", "correction_ms": -0.04, "time_beacons_tx": 3}
+    assert "(its correction 0.0 ms; 3 TIME frames sent)" in render_status(
+        {"links": {"uwb": {"radio_clock": leads}}}
+    )
+    follows = {
+        "role": "follows",
+        "root": "a",
+        "parent": "a",
+        "hops": 1,
+        "correction_ms": -0.04,
+        "rate_ppm": -0.0,
+    }
+    shown = render_status({"links": {"uwb": {"radio_clock": follows}}})
+    assert ": +0.0 ms on the wall clock, +0.0 ppm," in shown, shown
