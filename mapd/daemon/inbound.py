@@ -34,6 +34,7 @@ from mapd.daemon.headline import roster_refusals
 from mapd.daemon.intake import AskKeyframe, Decode, decode_envelope, open_envelope
 from mapd.daemon.peer_saves import PeerSaves, UnsavedPeer
 from mapd.daemon.poses import PoseRelay
+from mapd.daemon.presence_log import PresenceLog
 from mapd.daemon.publisher import PublisherCore
 from mapd.daemon.receiver import Receiver
 from mapd.daemon.refusals import decode_cause, shown
@@ -61,6 +62,8 @@ from transports.base import (
 )
 
 log = logging.getLogger("mapd.daemon")
+#: A robot's restart is said at most this often (seconds).
+RESTART_SAY_S = 60.0
 
 
 @dataclass
@@ -174,6 +177,9 @@ class Inbound:
     _looked_at: float = 0.0
     #: The state's saves that failed (a full disk), tried again (:class:`PeerSaves`).
     saves: PeerSaves = field(init=False)
+    #: Robots coming, going and restarting, said in the log (:mod:`mapd.daemon.presence_log`).
+    _presence: PresenceLog = field(default_factory=PresenceLog)
+    _restart_said: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.saves = PeerSaves(self.store, self._trusted, self._save_base, WriteOutage(log))
@@ -243,8 +249,21 @@ class Inbound:
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever
         elif isinstance(ev, KeyframeNeeded | PeerRestarted):
             self._lost_our_base(ev.peer)
+            if isinstance(ev, PeerRestarted) and ev.peer in self.receiver.info:
+                now = time.monotonic()
+                if now - self._restart_said.get(ev.peer, -RESTART_SAY_S) >= RESTART_SAY_S:
+                    self._restart_said[ev.peer] = now  # (once a minute at most: forged HELLOs)
+                    log.info(
+                        "%s restarted (a new session on %s): it gets this robot's next map whole",
+                        ev.peer,
+                        ev.transport,
+                    )
         elif isinstance(ev, PeerUp | PeerDown):
             self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
+            if ev.peer in self.receiver.info:  # (robots the roster admits, and not too many)
+                line = self._presence.change(ev.peer, ev.transport, isinstance(ev, PeerUp), time.monotonic())
+                if line is not None:
+                    log.info("%s", line)
             if isinstance(ev, PeerDown) and core.peer_gone(ev.transport, ev.peer):
                 self.wake()  # the offer waited only for a robot that left: the link is free
         elif isinstance(ev, Arrived):
@@ -277,6 +296,8 @@ class Inbound:
         self._revocations += 1
         self._revoked_at[robot] = self._revocations
         self.saves.revoked(robot)
+        self._presence.forget(robot)
+        self._restart_said.pop(robot, None)
 
     def _trusted(self, robot: str, mark: int) -> bool:
         """Whether ``robot``'s map, verified after revocation number ``mark``, may still be used."""
