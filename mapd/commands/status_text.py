@@ -113,9 +113,12 @@ def render_status(s: dict[str, Any]) -> str:
         via = p.get("link", "-")
         if isinstance(relay := p.get("relayed_by"), str):
             via = f"{via} (relayed by {relay})"
+        # 0: no ack known (none yet, none relayed back, or forgotten when it asked for a whole map
+        # or restarted); "v0" read as an ack of a version 0 it never had
+        acked = p.get("acked_our_version") or 0
         out.append(
             f"  {name:<12} {label(p.get('version')):<6} age {_age(p.get('age_s')):>5}  {p.get('bytes', 0):>9} B  "
-            f"{p.get('updates', 0):>4} updates  via {via}  {state}  acked our {label(p.get('acked_our_version', 0))}"
+            f"{p.get('updates', 0):>4} updates  via {via}  {state}  acked our {label(acked) if acked else 'none known'}"
         )
         # What disagrees between its config and ours, on lines of its own: with the fix, in the
         # words of the log line that said it once.

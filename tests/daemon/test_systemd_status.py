@@ -385,3 +385,18 @@ def test_a_links_struggle_is_among_the_counters_shown_first() -> None:
     st |= {"timeouts": 13, "messages_failed": 2, "link_rate_bps": 12500}
     line = next(ln for ln in render_status({"links": {"uwb": st}}).splitlines() if ln.startswith("  uwb"))
     assert "timeouts=13" in line and "messages_failed=2" in line and "link_rate_bps=12500" in line, line
+
+
+def test_a_peer_whose_ack_is_not_known_is_not_said_to_have_acked_v0() -> None:
+    # Forgotten when it asked for a whole map (a relay's keyframe request), or never relayed back:
+    # "acked our v0" read as an ack of a version it never had, of a robot that held our v31.
+    from mapd.commands.status_text import render_status
+
+    peers = {
+        "robot1": {"present": True, "version": 5, "acked_our_version": 0},
+        "robot2": {"acked_our_version": 1},
+    }
+    text = render_status({"peers": peers})
+    line1 = next(ln for ln in text.splitlines() if ln.strip().startswith("robot1"))
+    assert line1.endswith("acked our none known") and "v0" not in line1, line1
+    assert next(ln for ln in text.splitlines() if ln.strip().startswith("robot2")).endswith("acked our v1")
