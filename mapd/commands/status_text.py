@@ -11,6 +11,9 @@ import math
 import time
 from typing import Any
 
+#: A robot's pose older than this (s) is marked stale, as the live view fades it.
+STALE_POSE_S = 30.0
+
 
 def _age(seconds: Any) -> str:
     if not isinstance(seconds, int | float):
@@ -242,7 +245,10 @@ def render_status(s: dict[str, Any]) -> str:
         where = " ".join(_num(v, ".2f") for v in p.get("map", []))
         fleet = p.get("fleet")
         in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
-        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}")
+        age = p.get("age_s")
+        # (a pose this old is where the robot was, not where it is: its link quiet, or it stopped)
+        stale = "  (stale)" if isinstance(age, int | float) and age > STALE_POSE_S else ""
+        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(age)}{stale}")
     for name, st in (s.get("outputs") or {}).items():
         if isinstance(st, dict) and (faults := link_faults(st)):
             out.append(f"output  {name}: FAULTS " + ", ".join(faults))

@@ -400,3 +400,17 @@ def test_a_peer_whose_ack_is_not_known_is_not_said_to_have_acked_v0() -> None:
     line1 = next(ln for ln in text.splitlines() if ln.strip().startswith("robot1"))
     assert line1.endswith("acked our none known") and "v0" not in line1, line1
     assert next(ln for ln in text.splitlines() if ln.strip().startswith("robot2")).endswith("acked our v1")
+
+
+def test_a_pose_last_heard_long_ago_is_marked_stale() -> None:
+    from mapd.commands.status_text import render_status
+
+    poses = {
+        "robots": {
+            "robot1": {"map": [1.0, 2.0, 0.0], "age_s": 40.0},
+            "robot2": {"map": [0, 0, 0], "age_s": 2.0},
+        }
+    }
+    lines = render_status({"poses": poses}).splitlines()
+    assert next(ln for ln in lines if ln.strip().startswith("robot1")).endswith("age 40s  (stale)")
+    assert next(ln for ln in lines if ln.strip().startswith("robot2")).endswith("age 2s")
