@@ -90,7 +90,9 @@ systemd-analyze verify /etc/systemd/system/mapd.service || true
 # Restarted only into a config the new code takes: one it refuses would stop the robot's mapd
 # (exit 2, not restarted) until someone looks.
 if systemctl is-active -q mapd 2>/dev/null; then
-  if runuser -u mapd -- /opt/mapd/venv/bin/mapd check-config /etc/mapd/config.toml >/dev/null; then
+  # (as the unit runs it: its MAPD_MODELS too, which a config from before model_dir was set needs)
+  if runuser -u mapd -- env MAPD_MODELS=/opt/mapd/models \
+       /opt/mapd/venv/bin/mapd check-config /etc/mapd/config.toml >/dev/null; then
     systemctl try-restart mapd 2>/dev/null || true
   else
     echo "mapd check-config refuses /etc/mapd/config.toml (above): mapd not restarted; it goes on" \
