@@ -232,6 +232,25 @@ MAX_ORIGIN_M = 1e7
 MAX_ORIGIN_YAW = 2.0 * math.pi
 
 
+def on_lattice(origin: Pose2D, resolution: float, ref: Pose2D) -> Pose2D:
+    """``origin`` moved (by at most half a cell on each axis) onto the cell lattice of a map whose
+    origin is ``ref``, for maps of one resolution and yaw; unchanged otherwise.
+
+    A SLAM that sets its map's origin to the corner of its scans' bounding box (slam_toolbox, from
+    Karto) moves it by a fraction of a cell as the map grows: no delta aligns such maps cell for
+    cell, and each version went whole. On the first map's lattice, the next ones do.
+    """
+    if resolution <= 0 or abs(wrap_angle(origin.yaw - ref.yaw)) > 1e-9:
+        return origin
+    dx, dy = (origin.x - ref.x) / resolution, (origin.y - ref.y) / resolution
+    cos, sin = math.cos(ref.yaw), math.sin(ref.yaw)
+    fc, fr = cos * dx + sin * dy, -sin * dx + cos * dy  # in the reference's cell axes
+    if not (math.isfinite(fc) and math.isfinite(fr)):
+        return origin
+    c, r = round(fc), round(fr)
+    return Pose2D(ref.x + (cos * c - sin * r) * resolution, ref.y + (sin * c + cos * r) * resolution, ref.yaw)
+
+
 def geometry_problem(resolution: float, origin: tuple[float, float, float]) -> str | None:
     """Why a map's resolution and origin cannot be right (not finite, out of the documented
     bounds :data:`MIN_RESOLUTION`, :data:`MAX_RESOLUTION`, :data:`MAX_ORIGIN_M`,

@@ -55,12 +55,13 @@ import asyncio
 import contextlib
 import functools
 import logging
+import math
 import threading
 from collections.abc import AsyncIterator
 from typing import Any
 
 from mapd.errors import CodecError, LimitError, TransportError, UnreachableError
-from mapd.grid import OccupancyGrid, Pose2D, StampedPose
+from mapd.grid import OccupancyGrid, Pose2D, StampedPose, on_lattice
 from mapd.grid.reprs import short_repr
 from mapd.ros2 import cdr as ros2cdr
 from mapd.ros2 import rmw
@@ -111,6 +112,8 @@ class Ros2Source(Ros2Robots, MapSource):
         self._wake: asyncio.Event | None = None
         self._robots: dict[str, int] = {}  # robot -> versions yielded
         self._digests: dict[str, bytes] = {}
+        #: robot -> the resolution and origin of its first map (snap_origin: the lattice kept)
+        self._lattice: dict[str, tuple[float, Pose2D]] = {}
         self._announced: set[str] = set()
         #: The robots counted against ``max_robots`` (a sample or a publisher's token seen).
         self._taken: set[str] = set()
@@ -304,6 +307,10 @@ class Ros2Source(Ros2Robots, MapSource):
                     grid, digest = decoded
                     if digest == self._digests.get(robot):
                         continue
+                    if self.opts.snap_origin:
+                        ref = self._lattice.setdefault(robot, (grid.resolution, grid.origin))
+                        if math.isclose(ref[0], grid.resolution, rel_tol=1e-9):
+                            grid = grid.replace(origin=on_lattice(grid.origin, grid.resolution, ref[1]))
                     self._digests[robot] = digest
                     self._robots[robot] = self._robots.get(robot, 0) + 1
                     self._versions += 1

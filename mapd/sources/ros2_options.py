@@ -37,6 +37,12 @@ class Ros2Options(ZenohEndpoints, ZenohConfigFiles, SourceOptions):
     namespace: str = Field(default="", description="bridge namespace (ros2dds keys)")
     key: str | None = Field(default=None, description="subscribe to this key expression instead")
     history: bool = Field(default=True, description="ask publishers for their cached map on start")
+    snap_origin: bool = Field(
+        default=False,
+        description="move each map's origin, by at most half a cell, onto the first map's cell lattice: "
+        "a SLAM whose origin moves by a fraction of a cell as the map grows (slam_toolbox) then sends "
+        "deltas, not whole maps",
+    )
     mode: Literal["peer", "client"] = Field(default="client", description="zenoh session mode")
     connect: list[str] = Field(
         default_factory=lambda: ["tcp/127.0.0.1:7447"], description="zenoh endpoints to connect to"

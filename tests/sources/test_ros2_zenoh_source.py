@@ -473,3 +473,42 @@ def test_a_payload_over_what_a_grid_needs_is_refused_by_its_size_before_it_is_co
     assert src.stats()["last_error"].endswith(
         f"{300 << 20} bytes is more than a grid of {1 << 20} cells needs"
     )
+
+
+@pytest.mark.parametrize("snap", [False, True])
+def test_snap_origin_puts_a_slam_maps_fractional_origin_moves_on_the_first_maps_lattice(
+    publisher_session: tuple[Any, str], snap: bool
+) -> None:
+    # slam_toolbox (Karto) sets its map's origin to its scans' bounding-box corner, which moves by a
+    # fraction of a cell as the map grows: no delta aligned the versions, and each went whole.
+    from mapd.codec.lossless import alignment
+
+    session, endpoint = publisher_session
+    first = _grid(1, yaw=0.3)
+    grown = _grid(2, yaw=0.3)
+    # grown by 7.26 cells towards -x (in the map's own axes), as Karto's corner moves
+    shift = -7.26 * 0.05
+    grown = grown.replace(
+        origin=Pose2D(first.origin.x + shift * math.cos(0.3), first.origin.y + shift * math.sin(0.3), 0.3)
+    )
+    sink = Ros2Sink(session, "/map")
+    sink.publish(first)
+    src = _source(endpoint, snap_origin=snap)
+
+    async def go() -> tuple[OccupancyGrid, OccupancyGrid]:
+        it = src.maps().__aiter__()
+        a = await _next(it)
+        sink.publish(grown)
+        b = await _next(it)
+        await it.aclose()
+        return a, b
+
+    a, b = asyncio.run(go())
+    sink.close()
+    assert a.origin == first.origin  # the first map sets the lattice, as it came
+    moved = math.hypot(b.origin.x - grown.origin.x, b.origin.y - grown.origin.y)
+    if snap:
+        assert alignment(b.resolution, b.origin, a) == (0, -7)  # a delta codes against it
+        assert moved == pytest.approx(0.26 * 0.05, abs=1e-9)  # under half a cell
+    else:
+        assert alignment(b.resolution, b.origin, a) is None and moved == 0.0
