@@ -383,6 +383,7 @@ async def _recv(args: argparse.Namespace) -> int:
     progress = asyncio.ensure_future(_progress(link, "bytes_rx", None))
     loop = asyncio.get_running_loop()
     t0 = loop.time()
+    received = False
     try:
         try:
             msg = await asyncio.wait_for(link.run_until(got), args.timeout)
@@ -393,6 +394,7 @@ async def _recv(args: argparse.Namespace) -> int:
         t_done = loop.time()
         progress.cancel()
         t_first = link.first_rx_at or link.started_at
+        received = True  # (a failed write from here on is the file's, not the link's)
         _write(args.output, msg.data)
         # Answer the sender's repeats (our last COMPLETEs may have been lost) until it goes quiet.
         quiet = Quiet(args.linger, LINGER_MAX_S, loop.time())
@@ -401,6 +403,8 @@ async def _recv(args: argparse.Namespace) -> int:
             await link.run_until(asyncio.sleep(POLL_S))
         stats = link.stats()
     except MapdError as exc:
+        if received:  # the message came whole: the error (a full disk, say) is its own one line
+            raise
         dt = loop.time() - t0
         stats = link.stats()
         line = f"recv on {args.port} failed after {dt:.2f} s: {_heard(stats)}"

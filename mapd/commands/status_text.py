@@ -11,9 +11,6 @@ import math
 import time
 from typing import Any
 
-#: A robot's pose older than this (s) is marked stale, as the live view fades it.
-STALE_POSE_S = 30.0
-
 
 def _age(seconds: Any) -> str:
     if not isinstance(seconds, int | float):
@@ -245,10 +242,11 @@ def render_status(s: dict[str, Any]) -> str:
         where = " ".join(_num(v, ".2f") for v in p.get("map", []))
         fleet = p.get("fleet")
         in_fleet = " ".join(_num(v, ".2f") for v in fleet) if fleet else "not placed"
-        age = p.get("age_s")
-        # (a pose this old is where the robot was, not where it is: its link quiet, or it stopped)
-        stale = "  (stale)" if isinstance(age, int | float) and age > STALE_POSE_S else ""
-        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(age)}{stale}")
+        # (a robot its link no longer hears is where it was, not where it is; the age alone does
+        # not say it: AMCL publishes only when the robot moves, a parked robot's pose is old)
+        peer = (s.get("peers") or {}).get(robot)
+        gone = "  (not heard now)" if isinstance(peer, dict) and peer.get("present") is False else ""
+        out.append(f"  {robot:<12} map {where:<20} fleet {in_fleet:<20} age {_age(p.get('age_s'))}{gone}")
     for name, st in (s.get("outputs") or {}).items():
         if isinstance(st, dict) and (faults := link_faults(st)):
             out.append(f"output  {name}: FAULTS " + ", ".join(faults))

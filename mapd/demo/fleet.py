@@ -299,7 +299,11 @@ class Fleet:
                     (self.run_dir / name / "daemon.log").read_text(errors="replace").strip().splitlines()[-5:]
                 )
                 if p.returncode < 0:  # a signal, not an exit: its log's last lines are not why
-                    how = f"was killed by signal {-p.returncode} ({signal.Signals(-p.returncode).name})"
+                    try:
+                        sig = f" ({signal.Signals(-p.returncode).name})"
+                    except ValueError:  # a real-time signal has no name of its own
+                        sig = ""
+                    how = f"was killed by signal {-p.returncode}{sig}"
                     raise DaemonError(f"{name} {how}; stopping the other robots")
                 raise DaemonError(f"{name} exited with code {p.returncode}: " + " | ".join(tail))
 

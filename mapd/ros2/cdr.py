@@ -269,12 +269,16 @@ def session_config(
 
 def session_options_for(o: Any) -> dict[str, Any]:
     """:func:`session_config`'s options for an ``[output.ros2]`` or ``[source.ros2]`` table (both
-    have mode, connect, listen, multicast_scouting and zenoh_config). With a config file only the
-    keys the table sets go over it, as in ``[transports.zenoh]``: the table's defaults (a peer, no
-    scouting) made a file's TLS client a peer."""
-    from mapd.ros2.zenoh_config import TABLE_KEYS, table_keys_set
+    have mode, connect, listen, multicast_scouting and zenoh_config). With a config file, the keys
+    the file sets stand unless the table sets them too (check_files refuses a conflict): the
+    table's defaults (a peer, no scouting) made a file's TLS client a peer. The keys the file leaves
+    out take the table's values, its defaults included (a client of rmw_zenohd on localhost that
+    does not scout: a file of TLS or timeouts alone gave zenoh's peer that scouts the LAN)."""
+    from mapd.ros2.zenoh_config import TABLE_KEYS, file_keys_set, table_keys_set
 
-    keys = table_keys_set(o) if o.zenoh_config is not None else set(TABLE_KEYS)
+    keys = set(TABLE_KEYS)
+    if o.zenoh_config is not None:
+        keys -= file_keys_set(o.zenoh_config) - table_keys_set(o)
     return {"config_file": o.zenoh_config, **{k: getattr(o, k) for k in sorted(keys)}}
 
 

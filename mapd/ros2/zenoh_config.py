@@ -177,6 +177,26 @@ def table_keys_set(options: Any) -> set[str]:
     }
 
 
+def file_keys_set(path: Path) -> set[str]:
+    """The :data:`TABLE_KEYS` the zenoh config at ``path`` sets: to a value other than zenoh's
+    default (a parsed config cannot tell one set to the default from one left out); none when it
+    cannot be read (check_zenoh_config says why)."""
+    try:
+        import zenoh
+
+        conf, default = zenoh.Config.from_json5(zenoh_config_text(path)), zenoh.Config()
+    except Exception:
+        return set()
+    out = set()
+    for name, key in TABLE_KEYS.items():
+        try:
+            if json.loads(conf.get_json(key)) != json.loads(default.get_json(key)):
+                out.add(name)
+        except Exception:  # a zenoh without the key
+            continue
+    return out
+
+
 def table_conflicts(options: Any, path: Path) -> list[str]:
     """The keys the table sets to other values than the zenoh config at ``path`` does, in words.
 

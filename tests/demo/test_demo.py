@@ -185,3 +185,12 @@ def test_a_robot_killed_by_a_signal_is_said_so_not_as_an_exit_code(tmp_path: Pat
         DaemonError, match=r"^robot1 was killed by signal 9 \(SIGKILL\); stopping the other robots$"
     ):
         fleet.check_alive()
+    # a real-time signal has no name: said by its number, not a ValueError traceback
+    rt = subprocess.Popen(["sleep", "30"])
+    rt.send_signal(signal.SIGRTMIN + 1)
+    rt.wait(10)
+    fleet.procs = {"robot1": rt}
+    with pytest.raises(
+        DaemonError, match=rf"^robot1 was killed by signal {int(signal.SIGRTMIN) + 1}; stopping"
+    ):
+        fleet.check_alive()

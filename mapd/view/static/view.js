@@ -71,9 +71,9 @@
     }
   }
 
-  // A robot whose pose is old (its link silent, or its robot stopped) is drawn faded, with the age:
-  // drawn as live, it looked to be where it was last heard.
-  const STALE_POSE_S = 30;
+  // A robot its link no longer hears is drawn faded, with its pose's age: drawn as live, it looked
+  // to be where it was last heard. (Not by the pose's age alone: AMCL publishes only when the robot
+  // moves, so a parked robot's pose is old while its link hears it well.)
   let staleNames = "";
   function poseAge(name) {
     const r = st.status && st.status.robots[name];
@@ -82,8 +82,7 @@
   function staleRobot(name) {
     const r = st.status && st.status.robots[name];
     if (!r) return false;
-    const age = poseAge(name);
-    return (!r.own && r.present === false) || (age !== null && age > STALE_POSE_S);
+    return !r.own && r.present === false;
   }
   st.staleRobot = staleRobot;
 

@@ -60,11 +60,14 @@ def test_keys_that_agree_or_that_the_file_leaves_out_are_taken(tmp_path: Path) -
     assert _get(conf, "mode") == "client" and _get(conf, "scouting/multicast/enabled") is False
 
 
-def test_the_ros2_output_keeps_the_files_mode_and_scouting_unless_its_table_sets_them(tmp_path: Path) -> None:
+def test_the_ros2_output_keeps_the_files_mode_and_endpoints_unless_its_table_sets_them(
+    tmp_path: Path,
+) -> None:
     client = tmp_path / "client.json5"
-    client.write_text(CLIENT.replace("enabled: false", "enabled: true"))
+    client.write_text(CLIENT.replace("tcp/127.0.0.1:7447", "tcp/10.0.0.5:7447"))
     conf = session_config(**session_options_for(Ros2OutputOptions(zenoh_config=client)))
-    assert _get(conf, "mode") == "client" and _get(conf, "scouting/multicast/enabled") is True
+    assert _get(conf, "mode") == "client" and _get(conf, "connect/endpoints") == ["tcp/10.0.0.5:7447"]
+    assert _get(conf, "scouting/multicast/enabled") is False
     # without a file, the table's defaults: a peer that does not scout
     conf = session_config(**session_options_for(Ros2OutputOptions()))
     assert _get(conf, "mode") == "peer" and _get(conf, "scouting/multicast/enabled") is False
@@ -72,3 +75,17 @@ def test_the_ros2_output_keeps_the_files_mode_and_scouting_unless_its_table_sets
         ValueError, match=r'^zenoh_config: .*: mode "peer" here, "client" there: a key set in both'
     ):
         Ros2OutputOptions(mode="peer", zenoh_config=client).check_files()
+
+
+def test_a_file_that_leaves_the_session_keys_out_keeps_the_ros2_tables_defaults(tmp_path: Path) -> None:
+    # A file of TLS or timeouts alone: the source's table defaults (a client of rmw_zenohd on
+    # localhost that does not scout) were dropped with the earlier fix, for zenoh's (a peer that
+    # scouts the LAN, connected to nothing): found by review.
+    from mapd.sources.ros2_options import Ros2Options
+
+    only = tmp_path / "timeouts.json5"
+    only.write_text("{transport: {link: {tx: {lease: 12000}}}}")
+    conf = session_config(**session_options_for(Ros2Options(zenoh_config=only)))
+    assert _get(conf, "mode") == "client" and _get(conf, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert _get(conf, "scouting/multicast/enabled") is False
+    assert _get(conf, "transport/link/tx/lease") == 12000
