@@ -97,18 +97,38 @@ class _Counted(asyncio.Protocol):
     count from before it, and all were taken past a cap of 4.
     """
 
-    def __init__(self, inner: asyncio.Protocol, closed: Callable[[], None]) -> None:
+    def __init__(
+        self,
+        inner: asyncio.Protocol,
+        closed: Callable[[], None],
+        admit: Callable[[str], bool] = lambda address: True,
+        release: Callable[[str], None] = lambda address: None,
+    ) -> None:
         self._inner = inner
         self._closed: Callable[[], None] | None = closed
+        self._admit, self._release = admit, release
+        #: The peer's address once admitted; None for one refused (its socket never reaches aiohttp)
+        self._address: str | None = None
+        self._refused = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # Per address too: one client's idle sockets (no token is asked before a request) took every
+        # place, and viewers with the token got 503s for as long as it kept them open.
+        peer = transport.get_extra_info("peername")
+        address = str(peer[0]) if isinstance(peer, tuple) and peer else ""
+        if not self._admit(address):
+            self._refused = True
+            _Refused().connection_made(transport)
+            return
+        self._address = address
         self._inner.connection_made(transport)
 
     def data_received(self, data: bytes) -> None:
-        self._inner.data_received(data)
+        if not self._refused:
+            self._inner.data_received(data)
 
     def eof_received(self) -> bool | None:
-        return self._inner.eof_received()
+        return None if self._refused else self._inner.eof_received()
 
     def pause_writing(self) -> None:
         self._inner.pause_writing()
@@ -121,8 +141,11 @@ class _Counted(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         try:
-            self._inner.connection_lost(exc)
+            if not self._refused:
+                self._inner.connection_lost(exc)
         finally:
             if self._closed is not None:  # once, however often the transport says it
                 self._closed()
                 self._closed = None
+                if self._address is not None:
+                    self._release(self._address)

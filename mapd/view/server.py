@@ -107,6 +107,9 @@ class ViewServer:
         #: Open sockets at most: every stream, plus room for page loads and viewers reconnecting.
         #: Without a cap a flood of idle sockets would use up the daemon's file descriptors.
         self.max_connections = 2 * max_viewers + 16 if max_connections is None else max_connections
+        #: Places one address may hold at once (see _admit_address); address -> places held.
+        self.max_per_address = max(4, self.max_connections // 2)
+        self._per_address: dict[str, int] = {}
         self.snapshot = snapshot
         self.status_every_s = status_every_s
         self._viewers: set[_Viewer] = set()
@@ -165,6 +168,7 @@ class ViewServer:
                 max(1, allowed),
             )
             self.max_connections = max(1, allowed)
+            self.max_per_address = max(4, self.max_connections // 2)
             # as the default cap: room beside the streams for page loads and viewers reconnecting
             self.max_viewers = min(self.max_viewers, max(1, (self.max_connections - 16) // 2))
         self._page = _asset("index.html")
@@ -280,10 +284,28 @@ class ViewServer:
             self.counters["refused_conns"] += 1
             return _Refused()
         self._open += 1
-        return _Counted(self._runner.server(), self._closed)
+        return _Counted(self._runner.server(), self._closed, self._admit_address, self._release_address)
 
     def _closed(self) -> None:
         self._open -= 1
+
+    def _admit_address(self, address: str) -> bool:
+        """Whether a socket from ``address`` may have a place: one address holds at most
+        :attr:`max_per_address` (half the places), so others still get in (a proxy's users share
+        one address: half the places for them)."""
+        held = self._per_address.get(address, 0)
+        if held >= self.max_per_address:
+            self.counters["refused_conns"] += 1
+            return False
+        self._per_address[address] = held + 1
+        return True
+
+    def _release_address(self, address: str) -> None:
+        held = self._per_address.get(address, 0) - 1
+        if held > 0:
+            self._per_address[address] = held
+        else:
+            self._per_address.pop(address, None)
 
     def _authorized(self, request: web.Request) -> bool:
         assert self.token is not None

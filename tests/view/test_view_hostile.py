@@ -417,3 +417,36 @@ def test_a_burst_of_connections_stays_within_the_cap() -> None:
             assert r.status == 200
 
     serve(body, max_connections=4)
+
+
+def test_one_address_holding_idle_sockets_leaves_places_for_the_others() -> None:
+    """No token is asked before a request: one client's idle sockets took every place, and viewers
+    with the token got 503s for as long as it kept them open (found by review). One address holds
+    at most half the places; a client from another (127.0.0.2 here) still gets in."""
+
+    async def body(server: ViewServer, url: str) -> None:
+        assert server.max_connections == 24 and server.max_per_address == 12
+        idle = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(20)]
+        try:
+            for _ in range(100):
+                if server.connections + server.counters["refused_conns"] >= 20:
+                    break
+                await asyncio.sleep(0.05)
+            assert server.counters["refused_conns"] == 8  # past its half, from one address
+            other = socket.socket()
+            other.bind(("127.0.0.2", 0))
+            other.settimeout(5)
+            other.connect(("127.0.0.1", server.port))
+            try:
+                other.sendall(
+                    f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\nConnection: close\r\n\r\n".encode()
+                )
+                answer = await asyncio.to_thread(other.recv, 64)
+            finally:
+                other.close()
+            assert answer.startswith(b"HTTP/1.1 200 "), answer
+        finally:
+            for sock in idle:
+                sock.close()
+
+    serve(body, max_viewers=4)
