@@ -40,8 +40,7 @@ from mapd.files.folders import FOLDER_GONE, Folder, file_id
 from mapd.files.outage import WRITE_RETRY_S, WriteOutage
 from mapd.grid.save import save_map
 from mapd.outputs.base import GlobalUpdate, Output, OutputContext, OutputOptions
-from mapd.ros2 import rmw
-from mapd.ros2.tf import robot_frame
+from mapd.ros2.tf import check_robot_frame, robot_frame
 
 log = logging.getLogger("mapd.outputs.files")
 
@@ -64,10 +63,7 @@ class FilesOptions(OutputOptions):
     @field_validator("robot_map_frame")
     @classmethod
     def _check_robot_frame(cls, v: str) -> str:
-        if "{robot}" not in v:
-            raise ValueError(f"{v!r} must name the robot with {{robot}}: one frame each")
-        rmw.check_frame_id(robot_frame(v, "robot0"), shown=v)
-        return v
+        return check_robot_frame(v)
 
     def check_files(self) -> None:
         """ValueError when ``dir`` could not be a folder (a file there, or above it): start could

@@ -19,7 +19,7 @@ from mapd.config import NAME_PATTERN
 from mapd.config.endpoints import ZenohEndpoints
 from mapd.outputs.base import OutputOptions
 from mapd.ros2 import rmw
-from mapd.ros2.tf import TfFrames, robot_frame
+from mapd.ros2.tf import TfFrames, check_robot_frame, robot_frame
 from mapd.ros2.zenoh_config import ZenohConfigFiles
 
 
@@ -100,10 +100,7 @@ class Ros2OutputOptions(ZenohEndpoints, ZenohConfigFiles, OutputOptions):
     def _check_robot_frame(cls, v: str, info: ValidationInfo) -> str:
         if v == "" and info.field_name == "robot_pose_frame":
             return v
-        if "{robot}" not in v:
-            raise ValueError(f"{v!r} must name the robot with {{robot}}: one frame each")
-        rmw.check_frame_id(robot_frame(v, "robot0"), shown=v)
-        return v
+        return check_robot_frame(v)
 
     @field_validator("unplaced_frame")
     @classmethod

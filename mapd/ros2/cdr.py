@@ -97,9 +97,11 @@ def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
-def max_payload(max_cells: int) -> int:
-    """The largest CDR payload an OccupancyGrid of at most ``max_cells`` cells takes."""
-    return max_cells + _OVERHEAD
+def check_size(size: int, max_cells: int, where: str) -> None:
+    """LimitError for a CDR payload of ``size`` bytes, more than an OccupancyGrid of at most
+    ``max_cells`` cells takes: checked before the payload is copied or parsed."""
+    if size > max_cells + _OVERHEAD:
+        raise LimitError(f"{where}: {size} bytes is more than a grid of {max_cells} cells needs")
 
 
 def decode(
@@ -110,8 +112,7 @@ def decode(
     Raises :class:`CodecError` for bytes that do not parse or describe no valid grid, and
     :class:`LimitError` for a grid over ``max_cells`` (checked before anything is allocated for it).
     """
-    if len(payload) > max_payload(max_cells):
-        raise LimitError(f"{where}: {len(payload)} bytes is more than a grid of {max_cells} cells needs")
+    check_size(len(payload), max_cells, where)
     if len(payload) < 4 or payload[:2] not in (b"\x00\x01", b"\x00\x00"):
         raise CodecError(f"{where}: not a CDR payload (bad encapsulation header)")
     try:
@@ -274,11 +275,11 @@ def session_options_for(o: Any) -> dict[str, Any]:
     table's defaults (a peer, no scouting) made a file's TLS client a peer. The keys the file leaves
     out take the table's values, its defaults included (a client of rmw_zenohd on localhost that
     does not scout: a file of TLS or timeouts alone gave zenoh's peer that scouts the LAN)."""
-    from mapd.ros2.zenoh_config import TABLE_KEYS, file_keys_set, table_keys_set
+    from mapd.ros2.zenoh_config import TABLE_KEYS, file_values, table_keys_set
 
     keys = set(TABLE_KEYS)
     if o.zenoh_config is not None:
-        keys -= file_keys_set(o.zenoh_config) - table_keys_set(o)
+        keys -= set(file_values(o.zenoh_config)) - table_keys_set(o)
     return {"config_file": o.zenoh_config, **{k: getattr(o, k) for k in sorted(keys)}}
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 #: The message type, and its levels (``DiagnosticStatus`` constants).
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
+OK, WARN = 0, 1
 #: The topic ``diagnostic_updater`` publishes on (absolute: diagnostics are not namespaced).
 DIAGNOSTICS_TOPIC = "/diagnostics"
 #: Key/value pairs kept per status: a link's counters are a few dozen; a value cut to this length.

@@ -57,6 +57,17 @@ class Ros2Names:
     robot_map_topic: str = "/{robot}/map"
 
 
+def check_robot_frame(template: str) -> str:
+    """``template`` when it names one frame per robot (``{robot}`` in it) that tf2 takes as
+    written; ValueError with one line otherwise."""
+    from mapd.ros2 import rmw
+
+    if "{robot}" not in template:
+        raise ValueError(f"{template!r} must name the robot with {{robot}}: one frame each")
+    rmw.check_frame_id(robot_frame(template, "robot0"), shown=template)
+    return template
+
+
 def robot_frame(template: str, robot: str) -> str:
     """``template`` with ``{robot}`` replaced (plain replacement: a config's braces never reach
     ``str.format``)."""

@@ -177,48 +177,36 @@ def table_keys_set(options: Any) -> set[str]:
     }
 
 
-def file_keys_set(path: Path) -> set[str]:
-    """The :data:`TABLE_KEYS` the zenoh config at ``path`` sets: to a value other than zenoh's
-    default (a parsed config cannot tell one set to the default from one left out); none when it
-    cannot be read (check_zenoh_config says why)."""
+def file_values(path: Path) -> dict[str, Any]:
+    """The :data:`TABLE_KEYS` the zenoh config at ``path`` sets, with their values: those set to a
+    value other than zenoh's default (a parsed config cannot tell one set to the default from one
+    left out); none when it cannot be read (check_zenoh_config says why)."""
     try:
         import zenoh
 
         conf, default = zenoh.Config.from_json5(zenoh_config_text(path)), zenoh.Config()
     except Exception:
-        return set()
-    out = set()
+        return {}
+    out = {}
     for name, key in TABLE_KEYS.items():
         try:
-            if json.loads(conf.get_json(key)) != json.loads(default.get_json(key)):
-                out.add(name)
-        except Exception:  # a zenoh without the key
+            theirs = json.loads(conf.get_json(key))
+            if theirs != json.loads(default.get_json(key)):
+                out[name] = theirs
+        except Exception:  # a zenoh without the key: nothing to compare
             continue
     return out
 
 
 def table_conflicts(options: Any, path: Path) -> list[str]:
-    """The keys the table sets to other values than the zenoh config at ``path`` does, in words.
-
-    A file's value equal to zenoh's default counts as not set there (a parsed config cannot tell
-    the two apart), so a file that holds only TLS settings leaves mode and endpoints to the table.
-    """
-    try:
-        import zenoh
-
-        conf, default = zenoh.Config.from_json5(zenoh_config_text(path)), zenoh.Config()
-    except Exception:  # no zenoh, or a file check_zenoh_config refuses with its own line
-        return []
-    out = []
-    for name in sorted(table_keys_set(options)):
-        key, value = TABLE_KEYS[name], getattr(options, name)
-        try:
-            theirs, zenohs = json.loads(conf.get_json(key)), json.loads(default.get_json(key))
-        except Exception:  # a zenoh without the key: nothing to compare
-            continue
-        if theirs != zenohs and theirs != value:
-            out.append(f"{name} {json.dumps(value)} here, {json.dumps(theirs)} there")
-    return out
+    """The keys the table sets to other values than the zenoh config at ``path`` does, in words
+    (a file that holds only TLS settings leaves mode and endpoints to the table)."""
+    theirs = file_values(path)
+    return [
+        f"{name} {json.dumps(getattr(options, name))} here, {json.dumps(theirs[name])} there"
+        for name in sorted(table_keys_set(options))
+        if name in theirs and theirs[name] != getattr(options, name)
+    ]
 
 
 def check_tls(path: Path | None, listen: list[str], field: str = "config_file") -> None:

@@ -275,10 +275,7 @@ class Ros2Source(Ros2Robots, MapSource):
         shown = short_repr(key, 120)
         where = f"key {shown}" if self.opts.discover_robots else f"topic {self.opts.topic} (key {shown})"
         try:
-            if len(payload) > ros2cdr.max_payload(self.ctx.max_cells):  # (zenoh's ZBytes: not copied yet)
-                raise LimitError(
-                    f"{where}: {len(payload)} bytes is more than a grid of {self.ctx.max_cells} cells needs"
-                )
+            ros2cdr.check_size(len(payload), self.ctx.max_cells, where)  # (zenoh's ZBytes: not copied yet)
             data = payload if isinstance(payload, bytes) else payload.to_bytes()
             grid = ros2cdr.decode(data, max_cells=self.ctx.max_cells, where=where)
         except (CodecError, LimitError) as exc:
