@@ -62,8 +62,6 @@ from transports.base import (
 )
 
 log = logging.getLogger("mapd.daemon")
-#: A robot's restart is said at most this often (seconds).
-RESTART_SAY_S = 60.0
 
 
 @dataclass
@@ -179,7 +177,6 @@ class Inbound:
     saves: PeerSaves = field(init=False)
     #: Robots coming, going and restarting, said in the log (:mod:`mapd.daemon.presence_log`).
     _presence: PresenceLog = field(default_factory=PresenceLog)
-    _restart_said: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.saves = PeerSaves(self.store, self._trusted, self._save_base, WriteOutage(log))
@@ -249,15 +246,12 @@ class Inbound:
                 self.wake()  # the offer now times out: the publisher waits for that, not for ever
         elif isinstance(ev, KeyframeNeeded | PeerRestarted):
             self._lost_our_base(ev.peer)
-            if isinstance(ev, PeerRestarted) and ev.peer in self.receiver.info:
-                now = time.monotonic()
-                if now - self._restart_said.get(ev.peer, -RESTART_SAY_S) >= RESTART_SAY_S:
-                    self._restart_said[ev.peer] = now  # (once a minute at most: forged HELLOs)
-                    log.info(
-                        "%s restarted (a new session on %s): it gets this robot's next map whole",
-                        ev.peer,
-                        ev.transport,
-                    )
+            if (
+                isinstance(ev, PeerRestarted)
+                and ev.peer in self.receiver.info
+                and (line := self._presence.restarted(ev.peer, ev.transport, time.monotonic())) is not None
+            ):
+                log.info("%s", line)
         elif isinstance(ev, PeerUp | PeerDown):
             self.receiver.presence(ev.peer, ev.transport, isinstance(ev, PeerUp))
             if ev.peer in self.receiver.info:  # (robots the roster admits, and not too many)
@@ -297,7 +291,6 @@ class Inbound:
         self._revoked_at[robot] = self._revocations
         self.saves.revoked(robot)
         self._presence.forget(robot)
-        self._restart_said.pop(robot, None)
 
     def _trusted(self, robot: str, mark: int) -> bool:
         """Whether ``robot``'s map, verified after revocation number ``mark``, may still be used."""

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 #: Changes of one robot on one link within FLAP_WINDOW_S seconds past which they go unlogged.
 FLAP_CHANGES = 6
 FLAP_WINDOW_S = 600.0
+#: A robot's restart is said at most this often (seconds): forged HELLOs cannot fill the log.
+RESTART_SAY_S = 60.0
 
 
 @dataclass
@@ -32,6 +34,7 @@ class PresenceLog:
 
     def __init__(self) -> None:
         self._seen: dict[tuple[str, str], _Seen] = {}
+        self._restart_said: dict[str, float] = {}
 
     def change(self, robot: str, transport: str, present: bool, now: float) -> str | None:
         """The line for ``robot`` coming (``present``) or going on ``transport`` at ``now``; None
@@ -59,7 +62,16 @@ class PresenceLog:
             return f"{robot} back on {transport} after {gone_for:.0f} s"
         return f"{robot} not heard on {transport} any more"
 
+    def restarted(self, robot: str, transport: str, now: float) -> str | None:
+        """The line for ``robot`` restarting (a new session on ``transport``), at most once per
+        :data:`RESTART_SAY_S`."""
+        if now - self._restart_said.get(robot, -RESTART_SAY_S) < RESTART_SAY_S:
+            return None
+        self._restart_said[robot] = now
+        return f"{robot} restarted (a new session on {transport}): it gets this robot's next map whole"
+
     def forget(self, robot: str) -> None:
         """Drop a robot (revoked): it is no longer one of the fleet's."""
         for key in [k for k in self._seen if k[0] == robot]:
             del self._seen[key]
+        self._restart_said.pop(robot, None)

@@ -76,3 +76,12 @@ def test_a_peer_gone_and_back_and_restarted_is_in_the_daemons_log(tmp_path, fk) 
     assert sum("robot1 heard on zenoh" in ln for ln in lines) == 1, lines
     assert sum("not heard on zenoh any more" in ln for ln in lines) == 1, lines
     assert all(" INFO " in ln for ln in lines if "zenoh" in ln and "heard" in ln)  # (not warnings)
+
+
+def test_a_restart_is_said_at_most_once_a_minute_per_robot() -> None:
+    log = PresenceLog()
+    line = "robot1 restarted (a new session on uwb): it gets this robot's next map whole"
+    assert log.restarted("robot1", "uwb", 0.0) == line
+    assert log.restarted("robot1", "uwb", 30.0) is None  # (forged HELLOs cannot fill the log)
+    assert log.restarted("robot2", "uwb", 30.0) is not None
+    assert log.restarted("robot1", "uwb", 61.0) == line
